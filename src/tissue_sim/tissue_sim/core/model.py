@@ -1,0 +1,266 @@
+"""The immutable tissue model: topology, rest shapes, skeleton. Flat numpy arrays, no behaviour.
+
+This is the contract between the model builder (which makes it), the solver (which compiles it with
+physical parameters into a simulation), the nodes (which publish it) and the analysis (which reads
+recorded runs against it).
+
+Frames and units
+----------------
+Everything is SI (metres, kilograms, radians) in the *model frame*, REP-103 body convention:
+x anterior (forward), y left, z superior (up). The builder converts a NIfTI volume's RAS+
+millimetre world coordinates to it by ``model = (A, -R, S) / 1000``; the origin is wherever the
+label volume's affine puts it (the bundled anatomy puts it at the right hip joint centre).
+
+Soft tissue
+-----------
+* ``rest_positions`` (V, 3): soft-tissue (muscle and fat) vertices at rest.
+* Cells are *prisms*: a cell with ``2n`` vertices lists its bottom ring (lower slice, ``n`` vertices)
+  then its top ring (upper slice, ``n`` vertices) in the same angular order, counter-clockwise seen
+  from +z. Muscle cells are the paper's polygonal prisms (n = polygon vertex count); fat cells are
+  the paper's hexahedra (n = 4, ring order: inner a, inner b, outer b, outer a, where a -> b is
+  counter-clockwise seen from +z and "outer" is the skin side).
+* ``vertex_segment`` (V,): -1 for a free vertex, else the index of the skeleton segment the vertex is
+  fixed to (bone-attached vertex: it moves rigidly with that segment; its rest position is its
+  position in the segment's rest pose).
+* ``skin_quads`` (Q, 4): the skin-side face of each fat cell (outer a/b bottom, outer b/a top),
+  ``skin_quad_cell`` (Q,) its fat cell. Used by the area-change analysis (paper Fig. 8).
+
+Skeleton (a tree; nothing may assume a single joint)
+---------------------------------------------------
+* Segments: ``segment_parent[s]`` (-1 for the root), mass [kg], centre of mass [m, model frame at
+  rest], inertia tensor about the COM [kg m^2, model frame axes at rest].
+* Joints: one per non-root segment, joining ``joint_parent`` to ``joint_child``; ``joint_type``
+  JOINT_FIXED or JOINT_HINGE; hinge axis (unit, model frame at rest; positive rotation about it is
+  the positive joint coordinate, e.g. knee flexion), centre [m], range [rad], rest coordinate.
+* The pose of a segment is a rigid transform applied to *rest* coordinates: a point p_rest on the
+  segment is at ``R_s @ p_rest + t_s``; at rest every segment has R = I, t = 0.
+
+Bones are rigid surface meshes, each on one segment.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = 'tissue_sim.model'
+FORMAT_VERSION = 1
+
+TISSUE_MUSCLE = 1
+TISSUE_FAT = 2
+
+JOINT_FIXED = 0
+JOINT_HINGE = 1
+
+# vertex_flags bits
+VF_MUSCLE = 1       # used by at least one muscle cell
+VF_FAT = 2          # used by at least one fat cell
+VF_SHARED = 4       # merged from vertices of different tissues (paper section 2.4)
+VF_SKIN = 8         # on the skin surface
+
+
+class ModelError(ValueError):
+    """A model file or array set that is not a valid TissueModel (message names the problem)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TissueModel:
+    name: str
+    # --- soft tissue -------------------------------------------------------------------------
+    rest_positions: np.ndarray          # (V, 3) float64 [m]
+    vertex_segment: np.ndarray          # (V,) int32, -1 free
+    vertex_flags: np.ndarray            # (V,) uint8, VF_* bits
+    cell_offsets: np.ndarray            # (C+1,) int64
+    cell_vertices: np.ndarray           # (K,) int32
+    cell_tissue: np.ndarray             # (C,) uint8, TISSUE_*
+    cell_muscle: np.ndarray             # (C,) int32, -1 for fat
+    cell_fibre: np.ndarray              # (C, 3) float64 unit fibre (long) axis at rest; fat: limb axis
+    cell_slice: np.ndarray              # (C,) int32 index into slice_z of the bottom ring
+    cell_k_scale: np.ndarray            # (C,) float64 stiffness multiplier from the tissue table (1.0)
+    skin_quads: np.ndarray              # (Q, 4) int32
+    skin_quad_cell: np.ndarray          # (Q,) int32
+    surface_triangles: np.ndarray       # (T, 3) int32 into rest_positions, outward
+    surface_group: np.ndarray           # (T,) int32 into surface_group_names
+    surface_group_names: tuple          # ("skin", "muscle/<name>", ...)
+    # --- muscles -----------------------------------------------------------------------------
+    muscle_names: tuple                 # (M,) str
+    muscle_groups: tuple                # (M,) str, e.g. "hamstrings", "quadriceps", ""
+    muscle_max_force: np.ndarray        # (M,) float64 [N] max isometric force, NaN if unknown
+    muscle_fibre_length: np.ndarray     # (M,) float64 [m] optimal fibre length, NaN if unknown
+    # --- bones -------------------------------------------------------------------------------
+    bone_names: tuple                   # (B,) str
+    bone_segment: np.ndarray            # (B,) int32
+    bone_vertex_offsets: np.ndarray     # (B+1,) int64
+    bone_vertices: np.ndarray           # (NB, 3) float64 [m], rest pose, model frame
+    bone_triangle_offsets: np.ndarray   # (B+1,) int64
+    bone_triangles: np.ndarray          # (NT, 3) int32, local to each bone's vertex block
+    # --- skeleton ----------------------------------------------------------------------------
+    segment_names: tuple                # (S,) str
+    segment_parent: np.ndarray          # (S,) int32, -1 root
+    segment_mass: np.ndarray            # (S,) float64 [kg]
+    segment_com: np.ndarray             # (S, 3) float64 [m]
+    segment_inertia: np.ndarray         # (S, 3, 3) float64 [kg m^2] about the COM
+    joint_names: tuple                  # (J,) str
+    joint_type: np.ndarray              # (J,) uint8
+    joint_parent: np.ndarray            # (J,) int32 segment
+    joint_child: np.ndarray             # (J,) int32 segment
+    joint_axis: np.ndarray              # (J, 3) float64 unit
+    joint_centre: np.ndarray            # (J, 3) float64 [m]
+    joint_range: np.ndarray             # (J, 2) float64 [rad]
+    joint_rest: np.ndarray              # (J,) float64 [rad] coordinate of the rest pose
+    # --- slices and provenance -----------------------------------------------------------------
+    slice_z: np.ndarray                 # (Z,) float64 [m] height of each slice used
+    meta: dict = dataclasses.field(default_factory=dict)   # JSON-able: source, builder settings, ...
+
+    # ---------------------------------------------------------------------------- conveniences
+    @property
+    def n_vertices(self) -> int:
+        return int(self.rest_positions.shape[0])
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.cell_tissue.shape[0])
+
+    @property
+    def n_muscles(self) -> int:
+        return len(self.muscle_names)
+
+    @property
+    def n_segments(self) -> int:
+        return len(self.segment_names)
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    def cell(self, c: int) -> np.ndarray:
+        """Vertex indices of cell c (bottom ring then top ring)."""
+        return self.cell_vertices[self.cell_offsets[c]:self.cell_offsets[c + 1]]
+
+    def muscle_index(self, name: str) -> int:
+        try:
+            return self.muscle_names.index(name)
+        except ValueError:
+            raise KeyError(f'unknown muscle {name!r}; the model has: {", ".join(self.muscle_names)}') from None
+
+    def bone_mesh(self, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices, triangles) of bone b at rest."""
+        v = self.bone_vertices[self.bone_vertex_offsets[b]:self.bone_vertex_offsets[b + 1]]
+        t = self.bone_triangles[self.bone_triangle_offsets[b]:self.bone_triangle_offsets[b + 1]]
+        return v, t
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, np.ndarray):
+                v.flags.writeable = False
+
+    # ---------------------------------------------------------------------------- validation
+    def validate(self) -> 'TissueModel':
+        """Check shapes, index ranges and finiteness; raise ModelError naming the first problem."""
+        V, C = self.n_vertices, self.n_cells
+        M, S, J, B = self.n_muscles, self.n_segments, self.n_joints, len(self.bone_names)
+
+        def need(cond, msg):
+            if not cond:
+                raise ModelError(f'model {self.name!r}: {msg}')
+
+        need(self.rest_positions.shape == (V, 3), 'rest_positions must be (V, 3)')
+        need(np.all(np.isfinite(self.rest_positions)), 'rest_positions has non-finite values')
+        need(self.vertex_segment.shape == (V,) and self.vertex_flags.shape == (V,), 'vertex arrays must be (V,)')
+        need(np.all((self.vertex_segment >= -1) & (self.vertex_segment < S)), 'vertex_segment out of range')
+        need(self.cell_offsets.shape == (C + 1,) and self.cell_offsets[0] == 0
+             and self.cell_offsets[-1] == self.cell_vertices.shape[0], 'cell_offsets inconsistent with cell_vertices')
+        sizes = np.diff(self.cell_offsets)
+        need(np.all(sizes >= 6) and np.all(sizes % 2 == 0), 'every cell must be a prism with an even vertex count >= 6')
+        need(self.cell_vertices.size == 0 or (self.cell_vertices.min() >= 0 and self.cell_vertices.max() < V),
+             'cell_vertices index out of range')
+        need(np.all(np.isin(self.cell_tissue, (TISSUE_MUSCLE, TISSUE_FAT))), 'cell_tissue must be 1 (muscle) or 2 (fat)')
+        mus = self.cell_tissue == TISSUE_MUSCLE
+        need(np.all((self.cell_muscle[mus] >= 0) & (self.cell_muscle[mus] < M)), 'muscle cell with bad cell_muscle')
+        need(np.all(self.cell_muscle[~mus] == -1), 'fat cell with cell_muscle != -1')
+        need(self.cell_fibre.shape == (C, 3) and np.allclose(np.linalg.norm(self.cell_fibre, axis=1), 1.0, atol=1e-6),
+             'cell_fibre must be (C, 3) unit vectors')
+        need(self.cell_k_scale.shape == (C,) and np.all(self.cell_k_scale > 0), 'cell_k_scale must be (C,) positive')
+        need(self.skin_quads.ndim == 2 and self.skin_quads.shape[1] == 4 and self.skin_quad_cell.shape == (self.skin_quads.shape[0],),
+             'skin_quads must be (Q, 4) with skin_quad_cell (Q,)')
+        need(self.surface_triangles.ndim == 2 and self.surface_triangles.shape[1] == 3, 'surface_triangles must be (T, 3)')
+        need(self.surface_group.shape == (self.surface_triangles.shape[0],), 'surface_group must be (T,)')
+        need(len(self.muscle_groups) == M and self.muscle_max_force.shape == (M,) and self.muscle_fibre_length.shape == (M,),
+             'muscle arrays must be (M,)')
+        need(len(set(self.muscle_names)) == M, 'muscle names must be unique')
+        need(self.bone_segment.shape == (B,) and self.bone_vertex_offsets.shape == (B + 1,)
+             and self.bone_triangle_offsets.shape == (B + 1,), 'bone arrays inconsistent')
+        need(self.segment_parent.shape == (S,) and self.segment_mass.shape == (S,) and self.segment_com.shape == (S, 3)
+             and self.segment_inertia.shape == (S, 3, 3), 'segment arrays must be (S, ...)')
+        need(np.sum(self.segment_parent == -1) == 1, 'the skeleton must have exactly one root segment')
+        need(np.all(self.segment_mass > 0), 'segment masses must be positive')
+        for a in (self.joint_type, self.joint_parent, self.joint_child, self.joint_rest):
+            need(a.shape[0] == J, 'joint arrays must have one row per joint')
+        need(self.joint_axis.shape == (J, 3) and self.joint_centre.shape == (J, 3) and self.joint_range.shape == (J, 2),
+             'joint axis/centre/range shapes')
+        need(np.all(self.joint_range[:, 0] <= self.joint_range[:, 1]), 'joint range lower > upper')
+        for j in range(J):
+            need(self.segment_parent[self.joint_child[j]] == self.joint_parent[j],
+                 f'joint {self.joint_names[j]!r}: parent/child do not match segment_parent')
+        return self
+
+    # ---------------------------------------------------------------------------- file I/O
+    def to_arrays(self) -> dict:
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, np.ndarray):
+                out[f.name] = v
+            elif isinstance(v, tuple):
+                out[f.name] = np.array(v, dtype=str) if len(v) else np.zeros(0, dtype='<U1')
+        return out
+
+    def save(self, path) -> Path:
+        """Write one versioned file (.npz: arrays + a JSON header). Returns the path."""
+        path = Path(path)
+        header = {'format': FORMAT, 'version': FORMAT_VERSION, 'name': self.name, 'meta': self.meta}
+        buf = io.BytesIO()
+        np.savez_compressed(buf, __header__=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
+                            **self.to_arrays())
+        path.write_bytes(buf.getvalue())
+        return path
+
+    @classmethod
+    def load(cls, path) -> 'TissueModel':
+        path = Path(path)
+        if not path.is_file():
+            raise ModelError(f'{path}: no such model file')
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+            raise ModelError(f'{path}: not a tissue_sim model file ({e})') from None
+        if '__header__' not in arrays:
+            raise ModelError(f'{path}: not a tissue_sim model file (no header)')
+        header = json.loads(arrays.pop('__header__').tobytes().decode())
+        if header.get('format') != FORMAT:
+            raise ModelError(f'{path}: format {header.get("format")!r}, expected {FORMAT!r}')
+        if header.get('version') != FORMAT_VERSION:
+            raise ModelError(f'{path}: model format version {header.get("version")}, this tissue_sim reads {FORMAT_VERSION}; rebuild the model')
+        kw = {}
+        for f in dataclasses.fields(cls):
+            if f.name in ('name', 'meta'):
+                continue
+            if f.name not in arrays:
+                raise ModelError(f'{path}: missing array {f.name!r}')
+            a = arrays[f.name]
+            kw[f.name] = tuple(str(s) for s in a) if a.dtype.kind == 'U' else a
+        return cls(name=header['name'], meta=header.get('meta', {}), **kw).validate()
+
+    def content_hash(self) -> str:
+        h = hashlib.sha256()
+        for k, v in sorted(self.to_arrays().items()):
+            h.update(k.encode())
+            h.update(np.ascontiguousarray(v).tobytes())
+        return h.hexdigest()
