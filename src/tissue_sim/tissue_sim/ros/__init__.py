@@ -1,0 +1,1 @@
+"""ROS helpers: numpy CDR encoders for big messages, QoS profiles, parameter helpers."""
