@@ -110,7 +110,16 @@ def test_bytes_match_rclpy_when_built(tm):
     assert bytes(serialize_message(m)) == data
 
 
-def test_mcap_schema_is_the_msg_text():
-    s = runio.ros2msg_schema('TissueState').decode()
-    assert s.startswith((MSG_DIR / 'TissueState.msg').read_text())
-    assert 'MSG: std_msgs/Header' in s and 'MSG: builtin_interfaces/Time' in s
+def test_run_file_has_ros2_schemas(tm, tmp_path):
+    """The run files carry the .msg text as ros2msg schemas (what rosbag2/Foxglove need)."""
+    from mcap.reader import make_reader
+    topo = tissue_cdr.from_model(tm)
+    p = runio.write_run(tmp_path / 'r.mcap', topo, [tissue_cdr.State(**_state(tm))])
+    with open(p, 'rb') as f:
+        s = make_reader(f).get_summary()
+    schemas = {sc.name: sc for sc in s.schemas.values()}
+    assert set(schemas) == {'tissue_msgs/msg/TissueState', 'tissue_msgs/msg/TissueTopology'}
+    text = schemas['tissue_msgs/msg/TissueState'].data.decode()
+    assert text.startswith((MSG_DIR / 'TissueState.msg').read_text().rstrip()[:40])
+    assert 'MSG: std_msgs/Header' in text and schemas['tissue_msgs/msg/TissueState'].encoding == 'ros2msg'
+    assert runio.count_states(p) == 1

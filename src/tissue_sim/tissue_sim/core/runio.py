@@ -14,12 +14,11 @@ complete message, with a warning.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-from tissue_sim.core import tissue_cdr
+from tissue_sim.core import mcapio, tissue_cdr
 from tissue_sim.core.cdr import CdrError
 from tissue_sim.core.tissue_cdr import STATE_TYPE, TOPOLOGY_TYPE, State, Topology
 
@@ -56,58 +55,29 @@ class Run:
 
 # ----------------------------------------------------------------------------- MCAP access
 def run_files(path) -> list[Path]:
-    """The MCAP files of a run: the file itself, or the *.mcap files of a folder (recursively, name order)."""
+    """The MCAP files of a run: the file itself, or the *.mcap files of a folder in split order."""
     p = Path(path)
-    if p.is_dir():
-        files = sorted(p.glob('*.mcap')) or sorted(p.rglob('*.mcap'))
-        if not files:
-            raise RunError(f'{p}: folder has no .mcap files')
-        return files
-    if not p.exists():
-        raise RunError(f'{p}: no such file or folder')
-    if p.suffix == '.npz':
+    if p.is_file() and p.suffix == '.npz':
         return [p]
-    return [p]
+    try:
+        return mcapio.mcap_files(p)
+    except mcapio.McapIOError as e:
+        raise RunError(str(e)) from None
 
 
 def _iter_raw(files, want: set[str]):
-    """Yield (schema name, log_time, data) of the messages whose schema is in ``want``.
+    """Yield (schema name, log_time, data) of the messages whose schema is in ``want``, in file order.
 
-    Reads linearly (tolerates a missing summary and a truncated tail); uses the project's
-    mcapio reader when it is available.
+    Uses the project's reader (:mod:`tissue_sim.core.mcapio`): a file cut short by a killed recorder
+    yields everything up to its last complete chunk.
     """
-    try:
-        from tissue_sim.core import mcapio            # noqa: F401  (ROS-nodes engineer's reader)
-        reader = getattr(mcapio, 'iter_raw_messages', None)
-    except ImportError:
-        reader = None
-    if reader is not None:
-        for f in files:
-            for schema, log_time, data in reader(f, schemas=want):
-                yield schema, log_time, data
-        return
-    from mcap.reader import NonSeekingReader
     for f in files:
-        n = 0
-        with open(f, 'rb') as fh:
-            head = fh.read(8)
-            if head[:5] != b'\x89MCAP':
-                raise RunError(f'{f}: not an MCAP file')
-            fh.seek(0)
-            it = NonSeekingReader(fh, record_size_limit=1 << 31).iter_messages()
-            while True:
-                try:
-                    schema, channel, msg = next(it)
-                except StopIteration:
-                    break
-                except Exception as e:            # truncated / corrupt tail: keep what was complete
-                    warnings.warn(f'{f}: stopped reading after {n} messages ({type(e).__name__}: {e}); '
-                                  'the file looks truncated', RuntimeWarning, stacklevel=2)
-                    break
-                name = schema.name if schema is not None else ''
-                if name in want:
-                    n += 1
-                    yield name, msg.log_time, msg.data
+        try:
+            for m in mcapio.iter_messages(f):
+                if m.schema_name in want:
+                    yield m.schema_name, m.log_time, m.data
+        except mcapio.McapIOError as e:
+            raise RunError(str(e)) from None
 
 
 def count_states(path) -> int | None:
@@ -212,53 +182,19 @@ def load_run(path, stride: int = 1, frames=None, max_frames: int | None = None) 
 
 
 # ----------------------------------------------------------------------------- writing (tests, synthetic runs)
-_TIME = 'int32 sec\nuint32 nanosec\n'
-_HEADER = 'builtin_interfaces/Time stamp\nstring frame_id\n'
-_SEP = '=' * 80 + '\n'
-
-
-def _msg_text(name: str) -> str:
-    here = Path(__file__).resolve()
-    for base in (here.parents[3] / 'tissue_msgs' / 'msg',):
-        f = base / f'{name}.msg'
-        if f.is_file():
-            return f.read_text()
-    try:
-        from ament_index_python.packages import get_package_share_directory   # pragma: no cover
-        return (Path(get_package_share_directory('tissue_msgs')) / 'msg' / f'{name}.msg').read_text()
-    except Exception as e:                                                       # pragma: no cover
-        raise RunError(f'cannot find tissue_msgs/msg/{name}.msg ({e})') from None
-
-
-def ros2msg_schema(name: str) -> bytes:
-    """The ros2msg schema text of tissue_msgs/msg/<name> with its dependencies (MCAP convention)."""
-    return (_msg_text(name) + '\n' + _SEP + 'MSG: std_msgs/Header\n' + _HEADER
-            + _SEP + 'MSG: builtin_interfaces/Time\n' + _TIME).encode()
-
-
 def write_run(path, topology: Topology, states, topology_stamp_ns: int = 0) -> Path:
-    """Write a run MCAP: the topology on /tissue/topology then each State (or CDR bytes) on /tissue/state.
-
-    Used for synthetic runs and tests; real runs come from the recorder or a headless simulation.
-    """
+    """Write a run MCAP (project writer): the topology on /tissue/topology, then each State (or its
+    CDR bytes) on /tissue/state. Used for synthetic runs and tests; real runs come from the recorder
+    or a headless simulation."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    from mcap.writer import Writer
-    with open(path, 'wb') as fh:
-        w = Writer(fh)
-        w.start(profile='ros2', library='tissue_sim.runio')
-        st = w.register_schema(name=STATE_TYPE, encoding='ros2msg', data=ros2msg_schema('TissueState'))
-        tp = w.register_schema(name=TOPOLOGY_TYPE, encoding='ros2msg', data=ros2msg_schema('TissueTopology'))
-        c_state = w.register_channel(topic='/tissue/state', message_encoding='cdr', schema_id=st)
-        c_topo = w.register_channel(topic='/tissue/topology', message_encoding='cdr', schema_id=tp,
-                                    metadata={'offered_qos_profiles': ''})
-        w.add_message(c_topo, log_time=topology_stamp_ns, publish_time=topology_stamp_ns,
-                      data=tissue_cdr.encode_topology(topology))
+    with mcapio.McapWriter(path, flush_seconds=-1, metadata={'model': topology.model_name}) as w:
+        w.add_channel('/tissue/topology', TOPOLOGY_TYPE)
+        w.add_channel('/tissue/state', STATE_TYPE)
+        w.write('/tissue/topology', tissue_cdr.encode_topology(topology), topology_stamp_ns)
         for i, s in enumerate(states):
             data = s if isinstance(s, (bytes, bytearray)) else tissue_cdr.encode_state_obj(s)
             stamp = int(s.stamp_ns) if isinstance(s, State) else topology_stamp_ns + i
-            w.add_message(c_state, log_time=stamp, publish_time=stamp, sequence=i, data=data)
-        w.finish()
+            w.write('/tissue/state', data, max(stamp, topology_stamp_ns))
     return path
 
 
