@@ -203,6 +203,7 @@ class McapWriter:
         self.files: list[Path] = []
         self.message_count = 0
         self._split = self.split_bytes > 0 or self.split_ns > 0
+        self._extra_meta = {}
         self.path.parent.mkdir(parents=True, exist_ok=True)
 
     # -- channels
@@ -238,6 +239,8 @@ class McapWriter:
             self._register(topic)
         if self.metadata:
             self._writer.add_metadata(METADATA_NAME, self.metadata)
+        for name, data in self._extra_meta.items():
+            self._writer.add_metadata(name, data)
         self._writer.flush()
         self._file.flush()
         self.files.append(p)
@@ -250,6 +253,13 @@ class McapWriter:
             self._file.close()
             self._writer = None
             self._file = None
+
+    def add_metadata(self, name: str, data: dict) -> None:
+        """A further metadata record (written now and into every later split file)."""
+        data = {k: (v if isinstance(v, str) else json.dumps(v)) for k, v in data.items()}
+        self._extra_meta[name] = data
+        if self._writer is not None:
+            self._writer.add_metadata(name, data)
 
     # -- data
     def write(self, topic: str, data, log_time_ns: int, publish_time_ns: int | None = None) -> None:

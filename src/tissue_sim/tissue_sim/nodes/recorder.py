@@ -1,0 +1,145 @@
+"""`recorder` node: records topics to MCAP exactly as received (raw CDR, no re-encoding).
+
+    recorder -o runs/today/run.mcap                       # the tissue topics
+    recorder -o run.mcap --topics /tissue/markers /tf     # plus any topics named
+    recorder -o run.mcap --split-size 500 --split-duration 60
+
+Default topics: /tissue/state, /tissue/topology, /tissue/activation, /joint_states, /diagnostics
+(/tissue/markers only when named: ~7 MB/s). Types are discovered from the ROS graph (or given as
+``/topic:pkg/msg/Type``). Files: profile ros2, ros2msg schemas, cdr, zstd chunks, a ``tissue_sim``
+metadata record (model, parameters, versions, topics); rosbag2 and Foxglove open them. Log times
+are the receive time (wall clock, ns). SIGINT/SIGTERM finish the file; after SIGKILL the file is
+readable up to the last flushed chunk (``--flush`` seconds) by tissue_sim.core.mcapio.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from ..core import mcapio
+from ..ros.common import (TISSUE_TOPICS, TOPIC_TOPOLOGY, main_wrapper, parse_args, qos_latched, qos_stream)
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog='recorder', description=__doc__.split('\n')[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n', 2)[2])
+    p.add_argument('-o', '--output', required=True, help='output .mcap path (parent folders are created)')
+    p.add_argument('--topics', nargs='*', default=[], help='extra topics (optionally /topic:pkg/msg/Type)')
+    p.add_argument('--only', action='store_true', help='record only --topics, not the tissue topics')
+    p.add_argument('--chunk-size', type=int, default=1 << 20, help='chunk size [bytes] (default 1 MiB)')
+    p.add_argument('--flush', type=float, default=0.5, help='flush a chunk at least every FLUSH s (default 0.5)')
+    p.add_argument('--split-size', type=float, default=0.0, help='start a new file every N MB (0 = never)')
+    p.add_argument('--split-duration', type=float, default=0.0, help='start a new file every N s (0 = never)')
+    p.add_argument('--compression', choices=('zstd', 'lz4', 'none'), default='zstd')
+    p.add_argument('--meta', nargs='*', default=[], metavar='KEY=VALUE', help='extra metadata entries')
+    return p
+
+
+class Recorder:
+    def __init__(self, args):
+        import rclpy
+        self.a = args
+        self.node = rclpy.create_node('recorder')
+        self.wanted = {}               # topic -> explicit type or None
+        for t in ([] if args.only else list(TISSUE_TOPICS)) + list(args.topics):
+            name, _, typ = t.partition(':')
+            self.wanted[name] = typ or None
+        meta = {'recorder_topics': json.dumps(sorted(self.wanted)), 'versions': json.dumps(mcapio.versions()),
+                'command': ' '.join(sys.argv), 'started_wall_ns': str(time.time_ns())}
+        for kv in args.meta:
+            k, _, v = kv.partition('=')
+            meta[k] = v
+        self.meta = meta
+        self.writer = mcapio.McapWriter(args.output, chunk_size=args.chunk_size, compression=args.compression,
+                                        split_bytes=int(args.split_size * 1e6), split_seconds=args.split_duration,
+                                        flush_seconds=args.flush, metadata=meta)
+        self.subs = {}
+        self.counts = {}
+        self.closed = False
+        self.node.create_timer(0.5, self.discover)
+        self.node.create_timer(max(args.flush, 0.05), self.writer.flush)
+        self.discover()
+        print(f'recorder: writing {args.output}', flush=True)
+
+    def discover(self):
+        types = dict(self.node.get_topic_names_and_types())
+        for topic, typ in self.wanted.items():
+            if topic in self.subs:
+                continue
+            if typ is None:
+                ts = types.get(topic)
+                if not ts:
+                    continue
+                typ = ts[0]
+            self.subscribe(topic, typ)
+
+    def subscribe(self, topic, typ):
+        from rosidl_runtime_py.utilities import get_message
+        try:
+            cls = get_message(typ)
+            self.writer.add_channel(topic, typ)
+        except (ValueError, AttributeError, ModuleNotFoundError, mcapio.McapIOError) as e:
+            self.node.get_logger().error(f'cannot record {topic} ({typ}): {e}')
+            self.subs[topic] = None
+            return
+        qos = qos_latched() if topic == TOPIC_TOPOLOGY else qos_stream(100)
+        self.subs[topic] = self.node.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data),
+                                                         qos, raw=True)
+        self.node.get_logger().info(f'recording {topic} [{typ}]')
+
+    def on_message(self, topic, data):
+        if self.closed:
+            return
+        self.writer.write(topic, data, time.time_ns())
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+        if topic == TOPIC_TOPOLOGY and self.counts[topic] == 1:
+            self.note_model(data)
+
+    def note_model(self, data):
+        """Model name, hash and parameters of the run (from the topology) as a metadata record."""
+        try:
+            from ..core.tissue_cdr import decode_topology
+            topo = decode_topology(data)
+        except Exception as e:
+            self.node.get_logger().warning(f'could not decode {TOPIC_TOPOLOGY}: {e}')
+            return
+        self.writer.add_metadata('tissue_sim_model', {'model': topo.model_name, 'model_hash': topo.model_hash,
+                                                      'parameters_yaml': topo.parameters_yaml,
+                                                      'n_vertices': str(topo.n_vertices)})
+
+    def close(self):
+        if self.closed:
+            return
+        self.closed = True
+        self.writer.close()
+        total = sum(self.counts.values())
+        print(f'recorder: {total} messages in {", ".join(str(f) for f in self.writer.files)} '
+              f'({", ".join(f"{k}: {v}" for k, v in sorted(self.counts.items()))})', flush=True)
+
+
+@main_wrapper
+def main(argv=None):
+    args, argv = parse_args(build_parser(), argv)
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    rclpy.init(args=argv)
+    rec = Recorder(args)
+    try:
+        rclpy.spin(rec.node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        rec.close()
+        rec.node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,99 @@
+"""Shared plumbing of the tissue_sim nodes: argument parsing beside ROS args, QoS profiles,
+parameter descriptors, and a spin loop that shuts down cleanly on SIGINT/SIGTERM."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+TOPIC_ACTIVATION = '/tissue/activation'
+TOPIC_STATE = '/tissue/state'
+TOPIC_TOPOLOGY = '/tissue/topology'
+TOPIC_MARKERS = '/tissue/markers'
+TOPIC_JOINTS = '/joint_states'
+TOPIC_CLOCK = '/clock'
+TOPIC_DIAGNOSTICS = '/diagnostics'
+TISSUE_TOPICS = (TOPIC_STATE, TOPIC_TOPOLOGY, TOPIC_ACTIVATION, TOPIC_JOINTS, TOPIC_DIAGNOSTICS)
+
+
+def parse_args(parser: argparse.ArgumentParser, argv=None):
+    """Parse the non-ROS arguments (``--ros-args ...`` removed). Returns (args, full argv)."""
+    from rclpy.utilities import remove_ros_args
+    argv = list(sys.argv if argv is None else argv)
+    rest = remove_ros_args(args=argv)[1:]
+    parser.epilog = (parser.epilog or '') + (
+        '\nROS arguments follow --ros-args, e.g. --ros-args -p publish_rate:=34.0 '
+        '--params-file simulator.yaml -r __ns:=/left_leg')
+    return parser.parse_args(rest), argv
+
+
+def qos_latched():
+    """Reliable, transient-local, depth 1: late joiners get the last message (topology)."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def qos_stream(depth: int = 10):
+    """Reliable, volatile: the per-frame topics (what RViz, Foxglove and the recorder use)."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def declare(node, name, default, description, *, lo=None, hi=None, step=None, choices=None, read_only=False):
+    """Declare a parameter with a descriptor (description, range, read-only); returns its value."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+    d = ParameterDescriptor(description=description, read_only=read_only)
+    if choices:
+        d.additional_constraints = 'one of: ' + ', '.join(choices)
+    if isinstance(default, bool):
+        pass
+    elif isinstance(default, float) and (lo is not None or hi is not None):
+        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=float(step or 0.0))]
+    elif isinstance(default, int) and (lo is not None or hi is not None):
+        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(step or 0))]
+    value = node.declare_parameter(name, default, d).value
+    if choices and value not in choices:
+        raise ValueError(f'parameter {name}={value!r}: expected one of {", ".join(choices)}')
+    return value
+
+
+def spin(node, on_shutdown=None) -> int:
+    """Spin until SIGINT/SIGTERM (rclpy's handlers) or shutdown; always run ``on_shutdown``."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    rc = 0
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        try:
+            if on_shutdown is not None:
+                on_shutdown()
+        finally:
+            try:
+                node.destroy_node()
+            except Exception:
+                pass
+            if rclpy.ok():
+                rclpy.shutdown()
+    return rc
+
+
+def main_wrapper(fn):
+    """Run a node's main; a UserError/ValueError in set-up is one 'error:' line and exit code 2."""
+    def wrapped(argv=None):
+        from ..errors import UserError
+        try:
+            return fn(argv) or 0
+        except (UserError, ValueError, FileNotFoundError) as e:
+            print(f'error: {e}', file=sys.stderr)
+            try:
+                import rclpy
+                if rclpy.ok():
+                    rclpy.shutdown()
+            except Exception:
+                pass
+            return 2
+    return wrapped
