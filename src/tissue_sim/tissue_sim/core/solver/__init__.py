@@ -1,0 +1,18 @@
+"""The solver: local shape-preserving elastic cells, volume-preserving contraction, skeleton dynamics.
+
+MuJoCo/Newton-style API (docs/ARCHITECTURE.md, docs/solver.md)::
+
+    sim = compile_model(tissue_model, Params.paper())   # immutable SimModel
+    state = make_state(sim); ctrl = make_control(sim)   # mutable State, Control (activation (M,))
+    step(sim, state, ctrl)                              # in place; DivergenceError on failure
+    observe(sim, state)                                 # joint angles, muscle lengths/volumes, energies
+    for t, s in simulate(sim, 3.0, {'hamstrings': [(0, 1)]}, every=10): ...
+"""
+from tissue_sim.core.solver.model import (Control, DivergenceError, SimModel, State, compile_model,
+                                          make_control, make_state, muscle_indices, reset)
+from tissue_sim.core.solver.params import Params
+from tissue_sim.core.solver.run import observe, simulate, timeline_function
+from tissue_sim.core.solver.step import step
+
+__all__ = ['Params', 'SimModel', 'State', 'Control', 'DivergenceError', 'compile_model', 'make_state',
+           'make_control', 'reset', 'step', 'observe', 'simulate', 'timeline_function', 'muscle_indices']

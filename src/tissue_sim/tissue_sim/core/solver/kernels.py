@@ -1,0 +1,512 @@
+"""Numba kernels of the solver: flat arrays in, flat arrays out, single thread, no fastmath.
+
+Cells are CSR (``off``, ``cv``); ``X0`` (K, 3) holds each cell's rest vertex positions relative to
+the cell's rest centroid (unweighted mean), in the same order as ``cv``. All positions in metres,
+model frame; forces in N (paper units in the 'paper' preset).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+CAUSE_OK = 0
+CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
+CAUSE_SPEED = 2             # a vertex exceeded max_speed (energy blow-up)
+CAUSE_SKELETON = 3          # non-finite joint acceleration
+CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPEED: 'vertex speed above max_speed (energy blow-up)',
+          CAUSE_SKELETON: 'non-finite joint acceleration'}
+FORCE_BOUND = 1e150
+
+
+# ------------------------------------------------------------------------------------ small math
+@njit(cache=True)
+def quat_to_mat(q, R):
+    """Unit quaternion (x, y, z, w) -> rotation matrix R (3, 3), written in place."""
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    R[0, 0] = 1 - 2 * (y * y + z * z); R[0, 1] = 2 * (x * y - z * w); R[0, 2] = 2 * (x * z + y * w)
+    R[1, 0] = 2 * (x * y + z * w); R[1, 1] = 1 - 2 * (x * x + z * z); R[1, 2] = 2 * (y * z - x * w)
+    R[2, 0] = 2 * (x * z - y * w); R[2, 1] = 2 * (y * z + x * w); R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True)
+def axis_angle_mat(ax, ang, R):
+    """Rotation by ang [rad] about unit axis ax (Rodrigues), written into R."""
+    c, s = math.cos(ang), math.sin(ang)
+    t = 1 - c
+    x, y, z = ax[0], ax[1], ax[2]
+    R[0, 0] = t * x * x + c; R[0, 1] = t * x * y - s * z; R[0, 2] = t * x * z + s * y
+    R[1, 0] = t * x * y + s * z; R[1, 1] = t * y * y + c; R[1, 2] = t * y * z - s * x
+    R[2, 0] = t * x * z - s * y; R[2, 1] = t * y * z + s * x; R[2, 2] = t * z * z + c
+
+
+@njit(cache=True)
+def extract_rotation(B, q, iters, R):
+    """Rotational part of B (3x3) by Mueller et al. 2016 ("A Robust Method to Extract the Rotational
+    Part of Deformations"): quaternion q (x, y, z, w) is warm-started, updated in place, and R gets
+    its matrix. Robust for flat and inverted B (always returns a rotation)."""
+    nrm = 0.0
+    for i in range(3):
+        for j in range(3):
+            nrm += B[i, j] * B[i, j]
+    nrm = math.sqrt(nrm)
+    quat_to_mat(q, R)
+    if not (nrm > 0.0) or not math.isfinite(nrm):
+        return
+    inv = 1.0 / nrm
+    for _ in range(iters):
+        ox = oy = oz = 0.0
+        den = 0.0
+        for j in range(3):          # columns: sum_j R[:, j] x B[:, j]
+            r0, r1, r2 = R[0, j], R[1, j], R[2, j]
+            b0, b1, b2 = B[0, j] * inv, B[1, j] * inv, B[2, j] * inv
+            ox += r1 * b2 - r2 * b1
+            oy += r2 * b0 - r0 * b2
+            oz += r0 * b1 - r1 * b0
+            den += r0 * b0 + r1 * b1 + r2 * b2
+        den = abs(den) + 1e-9
+        ox /= den; oy /= den; oz /= den
+        w = math.sqrt(ox * ox + oy * oy + oz * oz)
+        if w < 1e-12:
+            break
+        s = math.sin(0.5 * w) / w
+        dx, dy, dz, dw = ox * s, oy * s, oz * s, math.cos(0.5 * w)
+        x, y, z, qw = q[0], q[1], q[2], q[3]       # q = dq * q
+        nx = dw * x + dx * qw + dy * z - dz * y
+        ny = dw * y - dx * z + dy * qw + dz * x
+        nz = dw * z + dx * y - dy * x + dz * qw
+        nw = dw * qw - dx * x - dy * y - dz * z
+        n = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+        q[0], q[1], q[2], q[3] = nx * n, ny * n, nz * n, nw * n
+        quat_to_mat(q, R)
+
+
+# ------------------------------------------------------------------------------------ contraction
+@njit(cache=True)
+def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
+    """Fibre stretch lam (M,) of each muscle's rest shape, in place.
+
+    Target stretch lam* = 1 - a (1 - lam_min_full). Above it, lam shrinks by c^(a h/rate_dt)
+    (the paper's c per dT at a = 1); below it (activation lowered or 0), lam recovers by
+    1/r^(h/rate_dt) towards lam*, i.e. back to 1 (rest length) at a = 0."""
+    for m in range(lam.shape[0]):
+        a = min(max(act[m], 0.0), 1.0)
+        target = 1.0 - a * (1.0 - lam_min_full)
+        if lam[m] > target:
+            lam[m] = max(lam[m] * math.exp(log_c * a * h_over_ref), target)
+        elif lam[m] < target:
+            lam[m] = min(lam[m] * math.exp(-log_r * h_over_ref), target)
+
+
+# ------------------------------------------------------------------------------------ cell forces
+@njit(cache=True)
+def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, kc, kact, damp_b,
+                volume_actual, iters, cell_energy):
+    """Elastic (+ deformation-damping) forces of all cells, accumulated into f (V, 3) (zeroed here).
+
+    Per cell: centroid c = mean x_i; rest shape X'_i = F X0_i with F = lam f f^T + s (I - f f^T)
+    (muscle cells; F = I for fat); R = rotation of A F, A = sum (x_i - c) X0_i^T, warm-started
+    from quat; goal G_i = c + R F X0_i; force k (G_i - x_i). With R the polar factor this
+    satisfies eq. (1): zero net force and zero net moment. Damping: -b (v_i - v_rigid_i), v_rigid
+    the cell's mean linear + angular velocity (conserves momentum, leaves rigid motion undamped);
+    damp_b[c] = 0 turns it off. Returns the index of the first cell with a non-finite or overflowing
+    force, else -1. cell_energy[c] = 0.5 k sum |G_i - x_i|^2."""
+    f[:] = 0.0
+    A = np.empty((3, 3))
+    B = np.empty((3, 3))
+    F = np.empty((3, 3))
+    R = np.empty((3, 3))
+    T = np.empty((3, 3))
+    for c in range(off.shape[0] - 1):
+        a0, a1 = off[c], off[c + 1]
+        n = a1 - a0
+        cx = cy = cz = 0.0
+        for p in range(a0, a1):
+            i = cv[p]
+            cx += x[i, 0]; cy += x[i, 1]; cz += x[i, 2]
+        cx /= n; cy /= n; cz /= n
+        for r in range(3):
+            for s in range(3):
+                A[r, s] = 0.0
+        for p in range(a0, a1):
+            i = cv[p]
+            dx, dy, dz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
+            X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
+            A[0, 0] += dx * X; A[0, 1] += dx * Y; A[0, 2] += dx * Z
+            A[1, 0] += dy * X; A[1, 1] += dy * Y; A[1, 2] += dy * Z
+            A[2, 0] += dz * X; A[2, 1] += dz * Y; A[2, 2] += dz * Z
+        m = cell_muscle[c]
+        k = kc[c]
+        if m >= 0:
+            fx, fy, fz = fibre[c, 0], fibre[c, 1], fibre[c, 2]
+            la = lam[m]
+            k += act[m] * kact[c]
+            if volume_actual:          # current fibre stretch mu = |A Qinv f| (deformation gradient estimate)
+                ux = uy = uz = 0.0
+                for r in range(3):
+                    qf = Qinv[c, r, 0] * fx + Qinv[c, r, 1] * fy + Qinv[c, r, 2] * fz
+                    ux += A[0, r] * qf; uy += A[1, r] * qf; uz += A[2, r] * qf
+                mu = math.sqrt(ux * ux + uy * uy + uz * uz)
+                mu = min(max(mu, 0.25), 4.0)
+                sl = 1.0 / math.sqrt(mu)
+            else:
+                sl = 1.0 / math.sqrt(la)
+            fv = (fx, fy, fz)
+            for r in range(3):
+                for s in range(3):
+                    F[r, s] = (la - sl) * fv[r] * fv[s] + (sl if r == s else 0.0)
+            for r in range(3):
+                for s in range(3):
+                    B[r, s] = A[r, 0] * F[0, s] + A[r, 1] * F[1, s] + A[r, 2] * F[2, s]
+            extract_rotation(B, quat[c], iters, R)
+            for r in range(3):
+                for s in range(3):
+                    T[r, s] = R[r, 0] * F[0, s] + R[r, 1] * F[1, s] + R[r, 2] * F[2, s]
+        else:
+            extract_rotation(A, quat[c], iters, R)
+            for r in range(3):
+                for s in range(3):
+                    T[r, s] = R[r, s]
+        b = damp_b[c]
+        wx = wy = wz = 0.0
+        vx = vy = vz = 0.0
+        if b > 0.0:                      # the cell's rigid velocity: mean + angular (I^-1 L)
+            for p in range(a0, a1):
+                i = cv[p]
+                vx += v[i, 0]; vy += v[i, 1]; vz += v[i, 2]
+            vx /= n; vy /= n; vz /= n
+            Lx = Ly = Lz = 0.0
+            I00 = I01 = I02 = I11 = I12 = I22 = 0.0
+            for p in range(a0, a1):
+                i = cv[p]
+                rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
+                ux, uy, uz = v[i, 0] - vx, v[i, 1] - vy, v[i, 2] - vz
+                Lx += ry * uz - rz * uy; Ly += rz * ux - rx * uz; Lz += rx * uy - ry * ux
+                r2 = rx * rx + ry * ry + rz * rz
+                I00 += r2 - rx * rx; I11 += r2 - ry * ry; I22 += r2 - rz * rz
+                I01 -= rx * ry; I02 -= rx * rz; I12 -= ry * rz
+            eps = 1e-9 * (I00 + I11 + I22) + 1e-300
+            I00 += eps; I11 += eps; I22 += eps
+            c00 = I11 * I22 - I12 * I12; c01 = I02 * I12 - I01 * I22; c02 = I01 * I12 - I02 * I11
+            c11 = I00 * I22 - I02 * I02; c12 = I01 * I02 - I00 * I12; c22 = I00 * I11 - I01 * I01
+            det = I00 * c00 + I01 * c01 + I02 * c02
+            if det > 0.0 and math.isfinite(det):
+                wx = (c00 * Lx + c01 * Ly + c02 * Lz) / det
+                wy = (c01 * Lx + c11 * Ly + c12 * Lz) / det
+                wz = (c02 * Lx + c12 * Ly + c22 * Lz) / det
+        e = 0.0
+        for p in range(a0, a1):
+            i = cv[p]
+            X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
+            gx = cx + T[0, 0] * X + T[0, 1] * Y + T[0, 2] * Z - x[i, 0]
+            gy = cy + T[1, 0] * X + T[1, 1] * Y + T[1, 2] * Z - x[i, 1]
+            gz = cz + T[2, 0] * X + T[2, 1] * Y + T[2, 2] * Z - x[i, 2]
+            e += gx * gx + gy * gy + gz * gz
+            fx_, fy_, fz_ = k * gx, k * gy, k * gz
+            if b > 0.0:
+                rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
+                fx_ -= b * (v[i, 0] - vx - (wy * rz - wz * ry))
+                fy_ -= b * (v[i, 1] - vy - (wz * rx - wx * rz))
+                fz_ -= b * (v[i, 2] - vz - (wx * ry - wy * rx))
+            f[i, 0] += fx_; f[i, 1] += fy_; f[i, 2] += fz_
+        cell_energy[c] = 0.5 * k * e
+        if not (e * k * k < FORCE_BOUND):      # catches NaN and overflow
+            return c
+    return -1
+
+
+# ------------------------------------------------------------------------------------ skeleton
+@njit(cache=True)
+def forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t):
+    """Pose (R_s, t_s) of every non-root segment from the joint coordinates q; a point p_rest of
+    segment s is at R_s p_rest + t_s. Joint j rotates its child by q_j - rest_j about its rest axis
+    through its rest centre, then the parent's pose applies. seg_order lists parents first."""
+    Rj = np.empty((3, 3))
+    for s in seg_order:
+        j = seg_joint[s]
+        if j < 0:
+            continue
+        p = j_parent[j]
+        axis_angle_mat(j_axis[j], q[j] - j_rest[j], Rj)
+        cx, cy, cz = j_centre[j, 0], j_centre[j, 1], j_centre[j, 2]
+        # local transform: x -> Rj (x - c) + c ; world: R_p (Rj (x - c) + c) + t_p
+        lx = cx - (Rj[0, 0] * cx + Rj[0, 1] * cy + Rj[0, 2] * cz)
+        ly = cy - (Rj[1, 0] * cx + Rj[1, 1] * cy + Rj[1, 2] * cz)
+        lz = cz - (Rj[2, 0] * cx + Rj[2, 1] * cy + Rj[2, 2] * cz)
+        for r in range(3):
+            for c in range(3):
+                seg_R[s, r, c] = seg_R[p, r, 0] * Rj[0, c] + seg_R[p, r, 1] * Rj[1, c] + seg_R[p, r, 2] * Rj[2, c]
+            seg_t[s, r] = seg_R[p, r, 0] * lx + seg_R[p, r, 1] * ly + seg_R[p, r, 2] * lz + seg_t[p, r]
+
+
+@njit(cache=True)
+def _cross(a, b, out):
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+
+
+@njit(cache=True)
+def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint, seg_mass, seg_com,
+                  seg_inertia, j_parent, j_child, j_type, j_axis, j_centre, j_rest, j_range, anc,
+                  gravity, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work):
+    """One step of the skeleton (a tree of rigid segments, hinge or fixed joints, fixed root).
+
+    tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
+    tissue's reaction on the bone). Joint-space mass matrix M from segment masses/inertias by
+    Jacobians; bias (Coriolis, centrifugal, gravity) by recursive Newton-Euler with qdd = 0;
+    range limits as an implicit stiff, critically damped end stop (no jolt). Symplectic Euler:
+    qd += h qdd, q += h qd; then forward kinematics. Returns False if qdd is not finite."""
+    S = seg_mass.shape[0]
+    J = q.shape[0]
+    # world axes and centres of the joints, world COM and inertia of the segments (current pose)
+    a = work[0:J, 0:3]
+    pj = work[0:J, 3:6]
+    com = np.empty((S, 3))
+    Iw = np.empty((S, 3, 3))
+    for j in range(J):
+        p = j_parent[j]
+        for r in range(3):
+            a[j, r] = seg_R[p, r, 0] * j_axis[j, 0] + seg_R[p, r, 1] * j_axis[j, 1] + seg_R[p, r, 2] * j_axis[j, 2]
+            pj[j, r] = (seg_R[p, r, 0] * j_centre[j, 0] + seg_R[p, r, 1] * j_centre[j, 1]
+                        + seg_R[p, r, 2] * j_centre[j, 2] + seg_t[p, r])
+    for s in range(S):
+        for r in range(3):
+            com[s, r] = seg_R[s, r, 0] * seg_com[s, 0] + seg_R[s, r, 1] * seg_com[s, 1] + seg_R[s, r, 2] * seg_com[s, 2] + seg_t[s, r]
+        for r in range(3):
+            for c in range(3):
+                acc = 0.0
+                for k in range(3):
+                    for l in range(3):
+                        acc += seg_R[s, r, k] * seg_inertia[s, k, l] * seg_R[s, c, l]
+                Iw[s, r, c] = acc
+    # tissue wrench per segment (force, moment about the world origin), summed up the tree
+    Fs = np.zeros((S, 3))
+    Ns = np.zeros((S, 3))
+    for k in range(att_idx.shape[0]):
+        i = att_idx[k]
+        s = att_seg[k]
+        Fs[s, 0] += f[i, 0]; Fs[s, 1] += f[i, 1]; Fs[s, 2] += f[i, 2]
+        Ns[s, 0] += x[i, 1] * f[i, 2] - x[i, 2] * f[i, 1]
+        Ns[s, 1] += x[i, 2] * f[i, 0] - x[i, 0] * f[i, 2]
+        Ns[s, 2] += x[i, 0] * f[i, 1] - x[i, 1] * f[i, 0]
+    # recursive Newton-Euler, qdd = 0, base acceleration -g (gravity), forward pass
+    w = np.zeros((S, 3))
+    al = np.zeros((S, 3))
+    acom = np.zeros((S, 3))
+    tmp = np.empty(3)
+    tmp2 = np.empty(3)
+    vk = np.empty(3)
+    d = np.empty(3)
+    acc_p = np.empty(3)
+    Iwv = np.empty(3)
+    Ial = np.empty(3)
+    for s in seg_order:
+        j = seg_joint[s]
+        if j < 0:
+            for r in range(3):
+                acom[s, r] = -gravity[r]
+            continue
+        p = j_parent[j]
+        wq = qd[j] if j_type[j] == 1 else 0.0
+        for r in range(3):
+            w[s, r] = w[p, r] + a[j, r] * wq
+        # alpha_s = alpha_p + w_p x (a_j qd_j)
+        _cross(w[p], a[j], tmp)
+        for r in range(3):
+            al[s, r] = al[p, r] + tmp[r] * wq
+        # acceleration of the joint point on the parent, then of the child's COM
+        for r in range(3):
+            d[r] = pj[j, r] - com[p, r]
+        _cross(al[p], d, tmp); _cross(w[p], d, tmp2)
+        for r in range(3):
+            acc_p[r] = acom[p, r] + tmp[r]
+        _cross(w[p], tmp2, tmp)
+        for r in range(3):
+            acc_p[r] += tmp[r]
+            d[r] = com[s, r] - pj[j, r]
+        _cross(al[s], d, tmp); _cross(w[s], d, tmp2)
+        for r in range(3):
+            acom[s, r] = acc_p[r] + tmp[r]
+        _cross(w[s], tmp2, tmp)
+        for r in range(3):
+            acom[s, r] += tmp[r]
+    # backward pass: wrench (force, moment about the world origin) each subtree needs
+    Fb = np.zeros((S, 3))
+    Nb = np.zeros((S, 3))
+    for kk in range(seg_order.shape[0] - 1, -1, -1):
+        s = seg_order[kk]
+        for r in range(3):
+            Fb[s, r] += seg_mass[s] * acom[s, r]
+        for r in range(3):
+            Iwv[r] = Iw[s, r, 0] * w[s, 0] + Iw[s, r, 1] * w[s, 1] + Iw[s, r, 2] * w[s, 2]
+            Ial[r] = Iw[s, r, 0] * al[s, 0] + Iw[s, r, 1] * al[s, 1] + Iw[s, r, 2] * al[s, 2]
+        _cross(w[s], Iwv, tmp)
+        for r in range(3):
+            tmp2[r] = seg_mass[s] * acom[s, r]
+        _cross(com[s], tmp2, Iwv)
+        for r in range(3):
+            Nb[s, r] += Ial[r] + tmp[r] + Iwv[r]
+        ps = seg_parent[s]
+        if ps >= 0:
+            for r in range(3):
+                Fb[ps, r] += Fb[s, r]; Nb[ps, r] += Nb[s, r]
+                Fs[ps, r] += Fs[s, r]; Ns[ps, r] += Ns[s, r]
+    # joint-space equations M qdd = tau - bias
+    M = work[0:J, 6:6 + J]
+    rhs = work[0:J, 6 + J]
+    for j in range(J):
+        c = j_child[j]
+        # moment about p_j: N - p_j x F
+        _cross(pj[j], Fs[c], tmp)
+        _cross(pj[j], Fb[c], tmp2)
+        tau = 0.0
+        bias = 0.0
+        for r in range(3):
+            tau += a[j, r] * (Ns[c, r] - tmp[r])
+            bias += a[j, r] * (Nb[c, r] - tmp2[r])
+        rhs[j] = tau - bias - joint_damping * qd[j]
+        for k in range(J):
+            acc = 0.0
+            for s in range(S):
+                if anc[j, s] and anc[k, s]:
+                    for r in range(3):
+                        d0 = com[s, r] - pj[j, r]
+                        tmp[r] = d0
+                    _cross(a[j], tmp, tmp2)      # J_v column of j at COM of s
+                    for r in range(3):
+                        tmp[r] = com[s, r] - pj[k, r]
+                    _cross(a[k], tmp, vk)
+                    acc += seg_mass[s] * (tmp2[0] * vk[0] + tmp2[1] * vk[1] + tmp2[2] * vk[2])
+                    for r in range(3):
+                        acc += a[j, r] * (Iw[s, r, 0] * a[k, 0] + Iw[s, r, 1] * a[k, 1] + Iw[s, r, 2] * a[k, 2])
+            M[j, k] = acc
+    for j in range(J):
+        if j_type[j] != 1:                       # fixed joint: no motion
+            for k in range(J):
+                M[j, k] = 0.0
+                M[k, j] = 0.0
+            M[j, j] = 1.0
+            rhs[j] = 0.0
+            continue
+        # end stop: implicit spring-damper on the predicted coordinate (stiffness from the joint's inertia)
+        mjj = M[j, j]
+        wl = limit_wh / h
+        kl = mjj * wl * wl
+        bl = 2.0 * limit_zeta * mjj * wl
+        qp = q[j] + h * qd[j]
+        pen = 0.0
+        if qp > j_range[j, 1]:
+            pen = qp - j_range[j, 1]
+        elif qp < j_range[j, 0]:
+            pen = qp - j_range[j, 0]
+        if pen != 0.0:
+            M[j, j] += h * h * kl + h * bl
+            rhs[j] += -kl * pen - bl * qd[j]
+    # solve (Gaussian elimination with partial pivoting; J is small)
+    qdd = work[0:J, 7 + J]
+    for i in range(J):
+        piv = i
+        for r in range(i + 1, J):
+            if abs(M[r, i]) > abs(M[piv, i]):
+                piv = r
+        if piv != i:
+            for c in range(J):
+                t_ = M[i, c]; M[i, c] = M[piv, c]; M[piv, c] = t_
+            t_ = rhs[i]; rhs[i] = rhs[piv]; rhs[piv] = t_
+        for r in range(i + 1, J):
+            fac = M[r, i] / M[i, i]
+            for c in range(i, J):
+                M[r, c] -= fac * M[i, c]
+            rhs[r] -= fac * rhs[i]
+    for i in range(J - 1, -1, -1):
+        acc = rhs[i]
+        for c in range(i + 1, J):
+            acc -= M[i, c] * qdd[c]
+        qdd[i] = acc / M[i, i]
+    for j in range(J):
+        if not math.isfinite(qdd[j]):
+            return False
+    for j in range(J):
+        if j_type[j] == 1:
+            qd[j] += h * qdd[j]
+            q[j] += h * qd[j]
+    forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t)
+    return True
+
+
+# ------------------------------------------------------------------------------------ integration
+@njit(cache=True)
+def integrate(h, x, v, f, inv_m, xn, vn, vertex_segment, rest, seg_R, seg_t, gravity, vel_damp):
+    """Symplectic Euler for free vertices (v += h (f/m + g); v *= 1 - h c_v; x += h v) into xn, vn;
+    bone-attached vertices take their segment's pose (x = R_s X + t_s, v = dx/h). Reads x, v and
+    writes xn, vn (double buffer, so a failed step leaves x, v untouched). Returns (max speed^2,
+    kinetic energy sum 0.5 m v^2 of free vertices)."""
+    vmax2 = 0.0
+    ke = 0.0
+    damp = 1.0 - h * vel_damp
+    for i in range(x.shape[0]):
+        s = vertex_segment[i]
+        if s < 0:
+            im = inv_m[i]
+            a = v[i, 0] + h * (f[i, 0] * im + gravity[0])
+            b = v[i, 1] + h * (f[i, 1] * im + gravity[1])
+            c = v[i, 2] + h * (f[i, 2] * im + gravity[2])
+            a *= damp; b *= damp; c *= damp
+            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
+            xn[i, 0] = x[i, 0] + h * a; xn[i, 1] = x[i, 1] + h * b; xn[i, 2] = x[i, 2] + h * c
+            sp = a * a + b * b + c * c
+            ke += 0.5 * sp / im
+        else:
+            X, Y, Z = rest[i, 0], rest[i, 1], rest[i, 2]
+            for r in range(3):
+                xr = seg_R[s, r, 0] * X + seg_R[s, r, 1] * Y + seg_R[s, r, 2] * Z + seg_t[s, r]
+                vn[i, r] = (xr - x[i, r]) / h
+                xn[i, r] = xr
+            sp = vn[i, 0] * vn[i, 0] + vn[i, 1] * vn[i, 1] + vn[i, 2] * vn[i, 2]
+        if not (sp <= vmax2):
+            vmax2 = sp if sp == sp else np.inf
+    return vmax2, ke
+
+
+# ------------------------------------------------------------------------------------ measures
+@njit(cache=True)
+def cell_volumes(x, off, cv, out):
+    """Signed volume of each prism cell [m^3] by the divergence theorem on its triangulated surface:
+    bottom ring (fan, outward = down), top ring (fan), each side quad split along b_i - t_{i+1}.
+    Positive for the model's convention (rings counter-clockwise seen from +z)."""
+    for c in range(off.shape[0] - 1):
+        a0 = off[c]
+        n = (off[c + 1] - a0) // 2
+        vol = 0.0
+        for t in range(1, n - 1):      # bottom: (b0, b_{t+1}, b_t); top: (t0, t_t, t_{t+1})
+            vol += _tri(x, cv[a0], cv[a0 + t + 1], cv[a0 + t])
+            vol += _tri(x, cv[a0 + n], cv[a0 + n + t], cv[a0 + n + t + 1])
+        for t in range(n):
+            u = (t + 1) % n
+            b0, b1, t0, t1 = cv[a0 + t], cv[a0 + u], cv[a0 + n + t], cv[a0 + n + u]
+            vol += _tri(x, b0, b1, t1)
+            vol += _tri(x, b0, t1, t0)
+        out[c] = vol
+
+
+@njit(cache=True)
+def _tri(x, i, j, k):
+    return (x[i, 0] * (x[j, 1] * x[k, 2] - x[j, 2] * x[k, 1])
+            + x[i, 1] * (x[j, 2] * x[k, 0] - x[j, 0] * x[k, 2])
+            + x[i, 2] * (x[j, 0] * x[k, 1] - x[j, 1] * x[k, 0])) / 6.0
+
+
+@njit(cache=True)
+def cell_axial_lengths(x, off, cv, out):
+    """Distance [m] between the bottom-ring and the top-ring centroid of each cell."""
+    for c in range(off.shape[0] - 1):
+        a0 = off[c]
+        n = (off[c + 1] - a0) // 2
+        bx = by = bz = tx = ty = tz = 0.0
+        for t in range(n):
+            i, j = cv[a0 + t], cv[a0 + n + t]
+            bx += x[i, 0]; by += x[i, 1]; bz += x[i, 2]
+            tx += x[j, 0]; ty += x[j, 1]; tz += x[j, 2]
+        out[c] = math.sqrt((tx - bx) ** 2 + (ty - by) ** 2 + (tz - bz) ** 2) / n

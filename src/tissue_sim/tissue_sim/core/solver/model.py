@@ -1,0 +1,326 @@
+"""SimModel (immutable, compiled flat arrays), State (mutable), Control; compile_model/make_state/make_control.
+
+The MuJoCo mjModel/mjData split: ``compile_model(tissue_model, params)`` turns the builder's
+TissueModel plus physical parameters into the arrays the kernels read; ``make_state`` gives the
+mutable simulation state at rest; ``make_control`` the per-muscle activation.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from tissue_sim.core.model import JOINT_HINGE, TISSUE_MUSCLE, TissueModel
+from tissue_sim.core.solver import kernels as K
+from tissue_sim.core.solver.params import Params
+
+
+class DivergenceError(RuntimeError):
+    """The simulation diverged. ``step`` (int, the step that failed), ``cell`` (int or -1),
+    ``cause`` (str). The state is left at the last good step (no NaN leaves ``step``)."""
+
+    def __init__(self, step: int, cell: int, cause: str):
+        self.step, self.cell, self.cause = int(step), int(cell), str(cause)
+        where = f', cell {self.cell}' if self.cell >= 0 else ''
+        super().__init__(f'simulation diverged at step {self.step}{where}: {self.cause}')
+
+
+def _frozen(a, dtype=None):
+    a = np.ascontiguousarray(a if dtype is None else np.asarray(a, dtype=dtype))
+    a = a.copy()
+    a.flags.writeable = False
+    return a
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SimModel:
+    """Compiled, immutable model. Arrays are read-only, contiguous, ready for the numba kernels."""
+    tissue: TissueModel
+    params: Params
+    n_substeps: int                 # sub-steps per step at params.dt
+    omega_max: float                # [rad/s] highest tissue natural frequency estimated at rest
+    # soft tissue
+    rest: np.ndarray                # (V, 3) rest positions [m]
+    inv_mass: np.ndarray            # (V,) 1/kg (0 for bone-attached vertices)
+    mass: np.ndarray                # (V,) kg
+    vertex_segment: np.ndarray      # (V,) int32, -1 free
+    off: np.ndarray                 # (C+1,) int64
+    cv: np.ndarray                  # (K,) int32
+    X0: np.ndarray                  # (K, 3) rest positions relative to each cell's rest centroid [m]
+    Qinv: np.ndarray                # (C, 3, 3) inverse of sum X0 X0^T (fibre-stretch estimate)
+    fibre: np.ndarray               # (C, 3)
+    cell_muscle: np.ndarray         # (C,) int32
+    k: np.ndarray                   # (C,) passive spring constant per cell-vertex [N/m]
+    k_active: np.ndarray            # (C,) added spring constant at full activation [N/m]
+    damp_b: np.ndarray              # (C,) deformation-damping coefficient [N s/m]
+    rest_volume: np.ndarray         # (C,) [m^3]
+    cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
+    length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
+    att_idx: np.ndarray             # (A,) int32 bone-attached vertices
+    att_seg: np.ndarray             # (A,) int32 their segments
+    # skeleton
+    seg_order: np.ndarray           # (S,) parents before children
+    seg_parent: np.ndarray
+    seg_joint: np.ndarray           # (S,) joint whose child is s, -1 root
+    seg_mass: np.ndarray            # (S,) [kg] incl. attached vertices if params.attached_mass_to_segment
+    seg_com: np.ndarray             # (S, 3) [m] rest pose
+    seg_inertia: np.ndarray         # (S, 3, 3) [kg m^2] about the COM
+    j_parent: np.ndarray
+    j_child: np.ndarray
+    j_type: np.ndarray
+    j_axis: np.ndarray
+    j_centre: np.ndarray
+    j_rest: np.ndarray
+    j_range: np.ndarray
+    anc: np.ndarray                 # (J, S) bool: joint j moves segment s
+    gravity: np.ndarray             # (3,)
+    muscle_index_of: dict           # name -> index; group name -> list of indices
+
+    @property
+    def n_vertices(self):
+        return self.rest.shape[0]
+
+    @property
+    def n_cells(self):
+        return self.off.shape[0] - 1
+
+    @property
+    def n_muscles(self):
+        return self.tissue.n_muscles
+
+    @property
+    def n_joints(self):
+        return self.j_type.shape[0]
+
+    @property
+    def n_segments(self):
+        return self.seg_mass.shape[0]
+
+
+@dataclasses.dataclass(eq=False)
+class State:
+    """Mutable simulation state (mjData). Positions [m], velocities [m/s], joint coordinates [rad]."""
+    x: np.ndarray                   # (V, 3)
+    v: np.ndarray                   # (V, 3)
+    f: np.ndarray                   # (V, 3) last elastic+damping forces [N]
+    quat: np.ndarray                # (C, 4) per-cell rotation (x, y, z, w), warm start
+    q: np.ndarray                   # (J,) joint coordinates [rad]
+    qd: np.ndarray                  # (J,) [rad/s]
+    seg_R: np.ndarray               # (S, 3, 3) segment rotations (act on rest coordinates)
+    seg_t: np.ndarray               # (S, 3) [m]
+    lam: np.ndarray                 # (M,) fibre stretch of each muscle's rest shape (1 = rest length)
+    cell_energy: np.ndarray         # (C,) elastic energy per cell at the last force evaluation
+    step: int = 0
+    time: float = 0.0               # [s]
+    kinetic_energy: float = 0.0     # free vertices, last step
+    x_back: np.ndarray = None       # double buffers (internal)
+    v_back: np.ndarray = None
+    work: np.ndarray = None         # skeleton scratch
+
+    def copy(self) -> 'State':
+        return State(**{f.name: (getattr(self, f.name).copy() if isinstance(getattr(self, f.name), np.ndarray)
+                                 else getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+
+@dataclasses.dataclass(eq=False)
+class Control:
+    activation: np.ndarray          # (M,) float64 in [0, 1]
+
+
+# ---------------------------------------------------------------------------------------- compile
+def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
+    """TissueModel + Params -> SimModel (raises ValueError naming the problem for a bad model)."""
+    p = (params or Params.paper()).validate()
+    tm.validate()
+    V, C = tm.n_vertices, tm.n_cells
+    off = np.asarray(tm.cell_offsets, np.int64)
+    cv = np.asarray(tm.cell_vertices, np.int32)
+    rest = np.asarray(tm.rest_positions, np.float64)
+    sizes = np.diff(off)
+    cell_of_k = np.repeat(np.arange(C), sizes)
+    cent = np.zeros((C, 3))
+    np.add.at(cent, cell_of_k, rest[cv])
+    cent /= sizes[:, None]
+    X0 = rest[cv] - cent[cell_of_k]
+    Q = np.zeros((C, 3, 3))
+    np.add.at(Q, cell_of_k, X0[:, :, None] * X0[:, None, :])
+    tr = np.trace(Q, axis1=1, axis2=2)
+    Qinv = np.linalg.inv(Q + (1e-6 * tr)[:, None, None] * np.eye(3))
+    vol = np.zeros(C)
+    K.cell_volumes(rest, off, cv, vol)
+    if np.any(vol == 0) or not np.all(np.isfinite(vol)):
+        bad = int(np.flatnonzero(~(np.abs(vol) > 0))[0])
+        raise ValueError(f'model {tm.name!r}: cell {bad} has zero or non-finite rest volume')
+    sign = np.sign(vol)            # ring orientation of each cell (the volume formula assumes counter-clockwise)
+    vol = np.abs(vol)
+    muscle = tm.cell_tissue == TISSUE_MUSCLE
+    # masses
+    if p.mass_mode == 'uniform':
+        mass = np.full(V, p.vertex_mass)
+    else:
+        dens = np.where(muscle, p.density_muscle, p.density_fat)
+        mass = np.zeros(V)
+        np.add.at(mass, cv, np.repeat(dens * vol / sizes, sizes))
+        unused = mass <= 0
+        mass[unused] = mass[~unused].min() if np.any(~unused) else 1.0
+    # stiffness
+    size = np.cbrt(vol)
+    if p.stiffness_mode == 'given':
+        k = np.where(muscle, p.k_muscle, p.k_fat) * tm.cell_k_scale
+    else:
+        k = np.where(muscle, p.youngs_muscle, p.youngs_fat) * size * 4.0 / sizes * tm.cell_k_scale
+    k_active = np.zeros(C)
+    alen = np.zeros(C)
+    K.cell_axial_lengths(rest, off, cv, alen)
+    if p.specific_tension > 0 and p.min_stretch < 1:
+        area = vol / np.maximum(alen, 1e-9)
+        n_ring = sizes / 2
+        # isometric cell at lam_min pulls with ~ n_ring * k * (1 - lam_min) * length = sigma * area
+        k_active = np.where(muscle, p.specific_tension * area / (n_ring * (1 - p.min_stretch) * np.maximum(alen, 1e-9)), 0.0)
+    # damping: fraction of critical for a vertex of mean mass on one cell spring
+    mcell = np.zeros(C)
+    np.add.at(mcell, cell_of_k, mass[cv])
+    mcell /= sizes
+    damp_b = 2.0 * p.damping_ratio * np.sqrt((k + k_active) * mcell) if p.damping == 'deformation' else np.zeros(C)
+    vel_damp = p.velocity_damping
+    # muscle length weights: cells of a muscle in the same slice gap share one gap length
+    lw = np.zeros(C)
+    for m in range(tm.n_muscles):
+        cells = np.flatnonzero(tm.cell_muscle == m)
+        if cells.size:
+            _, inv, cnt = np.unique(tm.cell_slice[cells], return_inverse=True, return_counts=True)
+            lw[cells] = 1.0 / cnt[inv]
+    # skeleton
+    S, J = tm.n_segments, tm.n_joints
+    seg_parent = np.asarray(tm.segment_parent, np.int32)
+    order, seen = [], set()
+    root = int(np.flatnonzero(seg_parent == -1)[0])
+    stack = [root]
+    while stack:
+        s = stack.pop(0)
+        order.append(s)
+        stack.extend(int(c) for c in np.flatnonzero(seg_parent == s))
+    if len(order) != S:
+        raise ValueError(f'model {tm.name!r}: the segments do not form one tree')
+    seg_joint = np.full(S, -1, np.int32)
+    for j in range(J):
+        seg_joint[tm.joint_child[j]] = j
+    if np.any((seg_joint < 0) & (seg_parent >= 0)):
+        raise ValueError(f'model {tm.name!r}: a non-root segment has no joint')
+    anc = np.zeros((J, S), bool)
+    for s in range(S):
+        t = s
+        while seg_parent[t] >= 0:
+            j = seg_joint[t]
+            if tm.joint_type[j] == JOINT_HINGE:
+                anc[j, s] = True
+            t = seg_parent[t]
+    seg_mass = np.array(tm.segment_mass, float)
+    seg_com = np.array(tm.segment_com, float)
+    seg_I = np.array(tm.segment_inertia, float)
+    vs = np.asarray(tm.vertex_segment, np.int32)
+    att = np.flatnonzero(vs >= 0).astype(np.int32)
+    if p.attached_mass_to_segment:
+        for s in range(S):
+            sel = att[vs[att] == s]
+            if sel.size == 0:
+                continue
+            mv, pv = mass[sel], rest[sel]
+            mt = seg_mass[s] + mv.sum()
+            com = (seg_mass[s] * seg_com[s] + (mv[:, None] * pv).sum(0)) / mt
+            d = seg_com[s] - com
+            I = seg_I[s] + seg_mass[s] * (d @ d * np.eye(3) - np.outer(d, d))
+            r = pv - com
+            I += np.einsum('i,ijk->jk', mv, (r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])
+            seg_mass[s], seg_com[s], seg_I[s] = mt, com, I
+    inv_mass = np.where(vs >= 0, 0.0, 1.0 / mass)
+    names = {n: [i] for i, n in enumerate(tm.muscle_names)}
+    for i, g in enumerate(tm.muscle_groups):
+        if g and g not in names:
+            names.setdefault(g, [])
+        if g and g in names and g not in tm.muscle_names:
+            names[g].append(i)
+    sim_kw = dict(
+        tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
+        mass=_frozen(mass), vertex_segment=_frozen(vs), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
+        Qinv=_frozen(Qinv), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
+        k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), cell_sign=_frozen(sign),
+        length_weight=_frozen(lw), att_idx=_frozen(att), att_seg=_frozen(vs[att]),
+        seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
+        seg_mass=_frozen(seg_mass), seg_com=_frozen(seg_com), seg_inertia=_frozen(seg_I),
+        j_parent=_frozen(tm.joint_parent, np.int32), j_child=_frozen(tm.joint_child, np.int32),
+        j_type=_frozen(tm.joint_type, np.uint8), j_axis=_frozen(tm.joint_axis, np.float64),
+        j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
+        j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
+        muscle_index_of=names)
+    sim = SimModel(**sim_kw)
+    w = estimate_omega_max(sim)
+    n_sub = p.substeps or max(1, math.ceil(w * p.dt / p.stability_limit))
+    return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w))
+
+
+def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
+    """Highest natural frequency [rad/s] of the free tissue at rest (power iteration on the force
+    kernel linearised by finite differences, every muscle at full activation). Sets the sub-steps."""
+    free = sim.inv_mass > 0
+    if not np.any(free):
+        return 0.0
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal(sim.rest.shape) * free[:, None]
+    f = np.zeros_like(sim.rest)
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (sim.n_cells, 1))
+    M = max(sim.n_muscles, 1)
+    lam, act = np.ones(M), np.ones(M)
+    e = np.zeros(sim.n_cells)
+    scale = 1e-6 * max(np.ptp(sim.rest, axis=0).max(), 1e-3)
+    zero_b = np.zeros(sim.n_cells)
+    lam_est = 0.0
+    for _ in range(iters):
+        u /= np.linalg.norm(u)
+        xp = sim.rest + scale * u
+        quat[:] = (0.0, 0.0, 0.0, 1.0)
+        K.cell_forces(xp, xp, f, quat, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, lam, act,
+                      sim.k, sim.k_active, zero_b, sim.params.volume_mode == 'actual', 20, e)
+        y = -(f / scale) * sim.inv_mass[:, None]
+        lam_est = float(np.sum(y * u))
+        u = y
+    return math.sqrt(max(lam_est, 0.0) * 1.05)
+
+
+def make_state(sim: SimModel) -> State:
+    """The rest state: positions at rest, zero velocities, joints at their rest coordinates."""
+    V, C, S, J = sim.n_vertices, sim.n_cells, sim.n_segments, sim.n_joints
+    quat = np.zeros((C, 4))
+    quat[:, 3] = 1.0
+    st = State(x=sim.rest.copy(), v=np.zeros((V, 3)), f=np.zeros((V, 3)), quat=quat, q=sim.j_rest.copy(),
+               qd=np.zeros(J), seg_R=np.tile(np.eye(3), (S, 1, 1)), seg_t=np.zeros((S, 3)),
+               lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C),
+               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), work=np.zeros((max(J, 1), 8 + max(J, 1))))
+    return st
+
+
+def reset(sim: SimModel, state: State) -> State:
+    """Put state back to rest in place (keeps its arrays); returns it."""
+    fresh = make_state(sim)
+    for f in dataclasses.fields(State):
+        a, b = getattr(state, f.name), getattr(fresh, f.name)
+        if isinstance(a, np.ndarray) and a.shape == b.shape:
+            a[...] = b
+        else:
+            setattr(state, f.name, b)
+    return state
+
+
+def make_control(sim: SimModel) -> Control:
+    return Control(activation=np.zeros(sim.n_muscles))
+
+
+def muscle_indices(sim: SimModel, name: str) -> list:
+    """Indices of a muscle name, a muscle group name, or 'all'; KeyError naming the choices."""
+    if name == 'all':
+        return list(range(sim.n_muscles))
+    if name in sim.muscle_index_of:
+        return list(sim.muscle_index_of[name])
+    raise KeyError(f'unknown muscle or group {name!r}; the model has muscles {", ".join(sim.tissue.muscle_names)}'
+                   f' and groups {", ".join(sorted(set(g for g in sim.tissue.muscle_groups if g)))}')

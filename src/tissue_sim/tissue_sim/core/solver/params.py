@@ -1,0 +1,151 @@
+"""Physical and numerical parameters of the solver (one flat dataclass, YAML round trip).
+
+Two presets (METHOD.md section 6):
+
+* ``Params.paper()``: Table 2 of Inaba et al. 2005 as given: every vertex mass 1, muscle k 1e6,
+  fat k 5e5, dT 1e-3, contraction rate c = 0.998 per dT. Dimensionless in the paper; we read it
+  as kg, N/m and s on the model's metre coordinates.
+* ``Params.physical()``: SI masses from tissue density and cell volume, passive stiffness from
+  published moduli, active stiffness scaled so that an isometric, fully active muscle pulls
+  with its cross-section x specific tension (60 N/cm^2, Rajagopal 2016).
+
+Every field is documented with its unit. ``docs/solver.md`` explains the choices.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import yaml
+
+DAMPING_MODES = ('deformation', 'velocity', 'none')
+MASS_MODES = ('uniform', 'density')
+STIFFNESS_MODES = ('given', 'modulus')
+VOLUME_MODES = ('actual', 'rest')
+
+
+@dataclasses.dataclass
+class Params:
+    preset: str = 'paper'                 # name of the preset this set started from (informative)
+    # --- time ------------------------------------------------------------------------------
+    dt: float = 1e-3                      # [s] step length dT of step() when dt is None
+    substeps: int = 0                     # sub-steps per step; 0 = automatic from the stability estimate
+    stability_limit: float = 1.8          # automatic sub-steps keep omega_max * h below this (< 2, symplectic Euler)
+    # --- soft tissue -----------------------------------------------------------------------
+    mass_mode: str = 'uniform'            # 'uniform': every vertex weighs vertex_mass; 'density': from cell volumes
+    vertex_mass: float = 1.0              # [kg] mass of each vertex in 'uniform' mode (paper: 1)
+    density_muscle: float = 1060.0        # [kg/m^3] 'density' mode (Ward & Lieber 2005)
+    density_fat: float = 900.0            # [kg/m^3] 'density' mode (Farvid et al. 2005)
+    stiffness_mode: str = 'given'         # 'given': k_muscle/k_fat per cell; 'modulus': k = E * cell size / N
+    k_muscle: float = 1e6                 # [N/m] spring constant of a muscle cell on each of its vertices
+    k_fat: float = 5e5                    # [N/m] the same for fat cells
+    youngs_muscle: float = 2.0e4          # [Pa] passive muscle modulus, 'modulus' mode
+    youngs_fat: float = 3.0e3             # [Pa] fat modulus, 'modulus' mode
+    specific_tension: float = 0.0         # [Pa] active stress at full activation (physical: 6e5 = 60 N/cm^2); 0 = off
+    damping: str = 'deformation'          # 'deformation' (relative to each cell's rigid motion), 'velocity', 'none'
+    damping_ratio: float = 0.05           # fraction of critical damping of one cell's mode (deformation damping)
+    velocity_damping: float = 0.0         # [1/s] plain velocity damping of free vertices (any mode)
+    # --- contraction -----------------------------------------------------------------------
+    contraction_rate: float = 0.998       # factor on a fully active muscle's fibre stretch per rate_dt (paper c)
+    relax_rate: float = 0.998             # factor (<1) by which the stretch recovers towards its target per rate_dt
+    rate_dt: float = 1e-3                 # [s] time unit of contraction_rate/relax_rate (paper: per dT)
+    min_stretch: float = 0.7              # fibre stretch reached at full activation; > 0, the shortening limit
+    volume_mode: str = 'actual'           # muscle cross-section: 'actual' = 1/sqrt(current fibre stretch), 'rest' = 1/sqrt(lambda)
+    # --- skeleton --------------------------------------------------------------------------
+    gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
+    fixed_root: bool = True               # the root segment (thigh) is fixed to the world
+    attached_mass_to_segment: bool = True # bone-attached vertices' masses join their segment's inertia
+    joint_damping: float = 0.0            # [N m s/rad] passive viscous damping of every hinge
+    limit_omega_dt: float = 1.0           # end-stop natural frequency x h (stiffness relative to the joint's inertia; implicit)
+    limit_damping_ratio: float = 1.0      # end-stop damping, fraction of critical
+    # --- numerics / safety -----------------------------------------------------------------
+    rotation_iterations: int = 4          # max iterations of the warm-started rotation extraction per cell and step
+    max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
+
+    # ------------------------------------------------------------------------------ presets
+    @classmethod
+    def paper(cls, **kw) -> 'Params':
+        """Inaba et al. 2005, Table 2 (mass 1, k 1e6 / 5e5, dT 1e-3, c 0.998)."""
+        return cls(**kw).validate()
+
+    @classmethod
+    def physical(cls, **kw) -> 'Params':
+        """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
+        base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
+                    damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=0.05, max_speed=50.0)
+        base.update(kw)
+        return cls(**base).validate()
+
+    # ------------------------------------------------------------------------------ checks
+    def validate(self) -> 'Params':
+        def need(cond, msg):
+            if not cond:
+                raise ValueError(f'solver parameters: {msg}')
+        need(self.dt > 0 and self.dt < 1, 'dt must be in (0, 1) s')
+        need(isinstance(self.substeps, int) and self.substeps >= 0, 'substeps must be an integer >= 0')
+        need(0 < self.stability_limit < 2, 'stability_limit must be in (0, 2)')
+        need(self.mass_mode in MASS_MODES, f'mass_mode must be one of {MASS_MODES}')
+        need(self.stiffness_mode in STIFFNESS_MODES, f'stiffness_mode must be one of {STIFFNESS_MODES}')
+        need(self.damping in DAMPING_MODES, f'damping must be one of {DAMPING_MODES}')
+        need(self.volume_mode in VOLUME_MODES, f'volume_mode must be one of {VOLUME_MODES}')
+        for name in ('vertex_mass', 'density_muscle', 'density_fat', 'k_muscle', 'k_fat', 'youngs_muscle',
+                     'youngs_fat', 'rate_dt', 'max_speed'):
+            need(getattr(self, name) > 0, f'{name} must be > 0')
+        for name in ('specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
+            need(getattr(self, name) >= 0, f'{name} must be >= 0')
+        need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
+        need(0 < self.relax_rate <= 1, 'relax_rate must be in (0, 1]')
+        need(0.2 <= self.min_stretch <= 1, 'min_stretch must be in [0.2, 1] (a muscle cannot shorten without bound)')
+        need(len(tuple(self.gravity)) == 3, 'gravity must be 3 numbers')
+        self.gravity = tuple(float(g) for g in self.gravity)
+        need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
+        need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')
+        need(self.fixed_root, 'fixed_root False (floating base) is not supported yet')
+        return self
+
+    # ------------------------------------------------------------------------------ YAML
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d['gravity'] = list(self.gravity)
+        return d
+
+    def to_yaml(self, path=None) -> str:
+        text = yaml.safe_dump(self.to_dict(), sort_keys=False)
+        if path is not None:
+            Path(path).write_text(text)
+        return text
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'Params':
+        if not isinstance(d, dict):
+            raise ValueError('solver parameters: expected a mapping of field: value')
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f'solver parameters: unknown field(s) {", ".join(unknown)}')
+        preset = d.get('preset', 'paper')
+        base = cls.physical() if preset == 'physical' else cls.paper()
+        kw = base.to_dict()
+        kw.update(d)
+        types = {f.name: type(getattr(base, f.name)) for f in dataclasses.fields(cls)}
+        for k, v in kw.items():
+            t = types[k]
+            if t is float and isinstance(v, (int, float)) and not isinstance(v, bool):
+                kw[k] = float(v)
+            elif t in (bool, int, str) and not isinstance(v, t):
+                raise ValueError(f'solver parameters: {k} must be a {t.__name__}, got {v!r}')
+        return cls(**kw).validate()
+
+    @classmethod
+    def from_yaml(cls, path) -> 'Params':
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f'{path}: no such parameter file')
+        try:
+            d = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as e:
+            raise ValueError(f'{path}: not valid YAML ({e})') from None
+        try:
+            return cls.from_dict(d or {})
+        except ValueError as e:
+            raise ValueError(f'{path}: {e}') from None

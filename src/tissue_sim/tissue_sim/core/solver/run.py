@@ -1,0 +1,126 @@
+"""Observations and headless runs: observe(), activation timelines, simulate()."""
+from __future__ import annotations
+
+import math
+from typing import Callable, Iterator
+
+import numpy as np
+
+from tissue_sim.core.solver import kernels as K
+from tissue_sim.core.solver.model import SimModel, State, make_state, muscle_indices
+from tissue_sim.core.solver.step import _run
+
+
+def _quat_from_mat(R: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) -> (S, 4) x y z w."""
+    out = np.empty((R.shape[0], 4))
+    for s, m in enumerate(R):
+        tr = np.trace(m)
+        if tr > 0:
+            w = math.sqrt(1 + tr) * 2
+            out[s] = ((m[2, 1] - m[1, 2]) / w, (m[0, 2] - m[2, 0]) / w, (m[1, 0] - m[0, 1]) / w, 0.25 * w)
+        else:
+            i = int(np.argmax(np.diag(m)))
+            j, k = (i + 1) % 3, (i + 2) % 3
+            w = math.sqrt(1 + m[i, i] - m[j, j] - m[k, k]) * 2
+            v = np.empty(4)
+            v[i] = 0.25 * w
+            v[j] = (m[j, i] + m[i, j]) / w
+            v[k] = (m[k, i] + m[i, k]) / w
+            v[3] = (m[k, j] - m[j, k]) / w
+            out[s] = v
+    return out
+
+
+def observe(sim: SimModel, state: State) -> dict:
+    """Outputs of the current state.
+
+    joint_positions (J,) [rad], joint_velocities (J,) [rad/s], muscle_lengths (M,) [m] (per muscle,
+    the sum over slice gaps of the mean distance between its cells' bottom- and top-ring centroids),
+    muscle_volumes (M,) [m^3] (sum of its cells' volumes, divergence theorem on the triangulated
+    prism surface), muscle_stretch (M,) (contraction state lambda), kinetic_energy [J] (free
+    vertices), elastic_energy [J] (sum 0.5 k |G - x|^2 at the last force evaluation),
+    segment_poses (S, 7) x y z qx qy qz qw (the transform from rest to current pose), time [s], step."""
+    M = sim.n_muscles
+    vol = np.empty(sim.n_cells)
+    K.cell_volumes(state.x, sim.off, sim.cv, vol)
+    vol *= sim.cell_sign
+    alen = np.empty(sim.n_cells)
+    K.cell_axial_lengths(state.x, sim.off, sim.cv, alen)
+    mus = sim.cell_muscle
+    sel = mus >= 0
+    mv = np.bincount(mus[sel], weights=vol[sel], minlength=M)
+    ml = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)
+    ke = float(0.5 * np.sum(sim.mass[sim.inv_mass > 0] * np.sum(state.v[sim.inv_mass > 0] ** 2, axis=1)))
+    return dict(time=state.time, step=state.step, joint_positions=state.q.copy(), joint_velocities=state.qd.copy(),
+                muscle_lengths=ml, muscle_volumes=mv, muscle_stretch=state.lam.copy(), kinetic_energy=ke,
+                elastic_energy=float(state.cell_energy.sum()),
+                segment_poses=np.concatenate([state.seg_t, _quat_from_mat(state.seg_R)], axis=1))
+
+
+def timeline_function(sim: SimModel, timeline) -> Callable[[float], np.ndarray]:
+    """Activation timeline -> function t [s] -> activation (M,).
+
+    ``timeline`` is None (all zero), a callable t -> (M,) array, a constant (M,) array, or a dict
+    {muscle name | group name | 'all': [(t, value), ...]} of breakpoints, piecewise linear and held
+    constant before the first and after the last; several entries add, clipped to [0, 1]."""
+    M = sim.n_muscles
+    if timeline is None:
+        return lambda t: np.zeros(M)
+    if callable(timeline):
+        def fn(t):
+            a = np.asarray(timeline(t), np.float64)
+            if a.shape != (M,) or not np.all(np.isfinite(a)) or np.any((a < 0) | (a > 1)):
+                raise ValueError(f'timeline({t}) must give {M} finite activations in [0, 1]')
+            return a
+        return fn
+    if isinstance(timeline, dict):
+        parts = []
+        for name, pts in timeline.items():
+            idx = muscle_indices(sim, name)
+            if np.isscalar(pts):
+                pts = [(0.0, float(pts))]
+            arr = np.asarray(pts, np.float64).reshape(-1, 2)
+            if arr.size == 0 or np.any(np.diff(arr[:, 0]) < 0):
+                raise ValueError(f'timeline for {name!r}: breakpoints must be (t, value) with increasing t')
+            if np.any((arr[:, 1] < 0) | (arr[:, 1] > 1)) or not np.all(np.isfinite(arr)):
+                raise ValueError(f'timeline for {name!r}: activations must be finite and in [0, 1]')
+            parts.append((idx, arr))
+
+        def fn(t):
+            a = np.zeros(M)
+            for idx, arr in parts:
+                a[idx] += np.interp(t, arr[:, 0], arr[:, 1])
+            return np.clip(a, 0.0, 1.0)
+        return fn
+    a = np.asarray(timeline, np.float64)
+    if a.shape != (M,) or np.any((a < 0) | (a > 1)):
+        raise ValueError(f'a constant activation must be {M} values in [0, 1]')
+    return lambda t: a
+
+
+def simulate(sim: SimModel, duration: float, timeline=None, dt: float | None = None, every: int = 1,
+             state: State | None = None, output: str = 'state') -> Iterator[tuple]:
+    """Run headless for ``duration`` s; yield (t, snapshot) at t = 0 and every ``every`` steps.
+
+    Snapshot: a State copy (output='state') or observe()'s dict (output='obs'). Activation is
+    sampled at the start of every step. ``state`` (modified in place) continues a run. Raises
+    DivergenceError like step()."""
+    dt = sim.params.dt if dt is None else float(dt)
+    if not (duration >= 0 and dt > 0 and every >= 1):
+        raise ValueError('simulate: need duration >= 0, dt > 0, every >= 1')
+    if output not in ('state', 'obs'):
+        raise ValueError("simulate: output must be 'state' or 'obs'")
+    fn = timeline_function(sim, timeline)
+    st = make_state(sim) if state is None else state
+    snap = (lambda s: s.copy()) if output == 'state' else (lambda s: observe(sim, s))
+    n_total = int(round(duration / dt))
+    t0 = st.time
+    yield st.time, snap(st)
+    done = 0
+    while done < n_total:
+        n = min(every, n_total - done)
+        acts = np.stack([fn(t0 + (done + i) * dt) for i in range(n)])
+        _run(sim, st, acts, dt)
+        done += n
+        yield st.time, snap(st)

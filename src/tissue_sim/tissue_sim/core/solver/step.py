@@ -1,0 +1,88 @@
+"""The time step (METHOD.md section 3 order: muscle tension, then skeleton, then soft tissue)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from tissue_sim.core.solver import kernels as K
+from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State
+
+
+@njit(cache=True)
+def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, work,
+            m_rest, inv_m, vseg, off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, att_idx, att_seg,
+            seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis,
+            j_centre, j_rest, j_range, anc, grav, log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp,
+            lim_wh, lim_z, vel_damp, vmax2, info):
+    """n_steps steps of n_sub sub-steps of length h; acts (n_steps, M) activations. Positions and
+    velocities alternate between (x, v) and (xb, vb); returns how many swaps happened. On failure
+    info = (step, cell, cause) and everything is left at the last good sub-step."""
+    swaps = 0
+    q0, qd0, lam0 = q.copy(), qd.copy(), lam.copy()
+    for n in range(n_steps):
+        act = acts[n]
+        for _ in range(n_sub):
+            q0[:] = q; qd0[:] = qd; lam0[:] = lam
+            K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)                 # 1. muscle tension
+            bad = K.cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cmus, lam, act, kc, kact, damp_b,
+                                vol_actual, iters, cell_e)
+            if bad >= 0:
+                info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
+                lam[:] = lam0
+                return swaps
+            ok = K.skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint,  # 2. skeleton
+                                 seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, j_rest,
+                                 j_range, anc, grav, jdamp, lim_wh, lim_z, seg_R, seg_t, work)
+            sp2, ke = K.integrate(h, x, v, f, inv_m, xb, vb, vseg, m_rest, seg_R, seg_t, grav, vel_damp)  # 3. tissue
+            if not ok or not (sp2 <= vmax2):
+                info[0], info[1], info[2] = n, -1, K.CAUSE_SKELETON if not ok else K.CAUSE_SPEED
+                q[:] = q0; qd[:] = qd0; lam[:] = lam0
+                K.forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t)
+                return swaps
+            x, xb = xb, x
+            v, vb = vb, v
+            swaps += 1
+            work[0, work.shape[1] - 1] = ke
+    return swaps
+
+
+def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
+    """Advance state in place by len(acts) steps of dt under per-step activations acts (N, M)."""
+    p = sim.params
+    n_sub = sim.n_substeps if dt == p.dt else max(1, math.ceil(sim.omega_max * dt / p.stability_limit), p.substeps)
+    h = dt / n_sub
+    info = np.array([-1, -1, 0], np.int64)
+    swaps = advance(acts.shape[0], n_sub, h, acts, state.x, state.v, state.x_back, state.v_back, state.f,
+                    state.quat, state.q, state.qd, state.seg_R, state.seg_t, state.lam, state.cell_energy, state.work,
+                    sim.rest, sim.inv_mass, sim.vertex_segment, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre,
+                    sim.cell_muscle, sim.k, sim.k_active, sim.damp_b, sim.att_idx, sim.att_seg, sim.seg_order,
+                    sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia, sim.j_parent,
+                    sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc, sim.gravity,
+                    math.log(p.contraction_rate), math.log(p.relax_rate), p.min_stretch, p.rate_dt,
+                    p.volume_mode == 'actual', p.rotation_iterations, p.joint_damping, p.limit_omega_dt,
+                    p.limit_damping_ratio, p.velocity_damping, p.max_speed ** 2, info)
+    if swaps % 2:
+        state.x, state.x_back = state.x_back, state.x
+        state.v, state.v_back = state.v_back, state.v
+    done = int(info[0]) if info[0] >= 0 else acts.shape[0]
+    state.step += done
+    state.time += done * dt
+    state.kinetic_energy = float(state.work[0, -1])
+    if info[0] >= 0:
+        raise DivergenceError(state.step, int(info[1]), K.CAUSES[int(info[2])])
+
+
+def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None) -> State:
+    """Advance ``state`` in place by one step of ``dt`` seconds (None: params.dt) under ``ctrl``.
+
+    Raises DivergenceError (state left at the last good values). Returns state."""
+    dt = sim.params.dt if dt is None else float(dt)
+    if not dt > 0:
+        raise ValueError(f'dt must be > 0, got {dt}')
+    a = np.asarray(ctrl.activation, np.float64)
+    if a.shape != (sim.n_muscles,) or not np.all(np.isfinite(a)) or np.any((a < 0) | (a > 1)):
+        raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]')
+    _run(sim, state, a[None, :], dt)
+    return state
