@@ -1,0 +1,111 @@
+"""`tissue-sim build-model`: labelled slices + tissue table -> model file (paper section 2)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from tissue_sim.errors import UserError
+
+NAME = 'build-model'
+HELP = 'build the elastic bone/muscle/fat model from a label volume and a tissue table'
+
+
+def add_arguments(p):
+    from tissue_sim.core.builder import DEFAULTS as D
+    p.add_argument('labels', nargs='?', help='label volume: .nii/.nii.gz, .npz (labels + affine) or a folder of '
+                   'slice_NNNN.png with spacing.yaml (default: the bundled lower limb)')
+    p.add_argument('--tissues', metavar='TABLE.yaml', help='tissue table (required with LABELS; default: the bundled one)')
+    p.add_argument('-o', '--output', metavar='MODEL', help='model file to write (.npz; default: <table name>.model.npz)')
+    g = p.add_argument_group('settings (defaults = the paper\'s Table-1 settings)')
+    sl = g.add_mutually_exclusive_group()
+    sl.add_argument('--slice-mm', type=float, default=D['slice_mm'], help='slice spacing [mm] (default %(default)s)')
+    sl.add_argument('--slice-step', type=int, help='take every Nth slice of the volume instead')
+    g.add_argument('--muscle-rays', type=int, default=D['muscle_rays'], help='vertices per muscle polygon (default %(default)s)')
+    g.add_argument('--fat-rays', type=int, default=D['fat_rays'], help='rays of the fat tube per slice (default %(default)s)')
+    g.add_argument('--share-mm', type=float, default=D['share_mm'], help='vertex sharing threshold [mm] (default %(default)s; 0 = off)')
+    g.add_argument('--attach-mm', type=float, default=D['attach_mm'], help='bone attachment distance [mm] (default: one pixel)')
+    g.add_argument('--min-area-mm2', type=float, default=D['min_area_mm2'], help='drop smaller components [mm^2] (default %(default)s)')
+    g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
+    g.add_argument('--ray-hit', choices=('first', 'last'), default=D['ray_hit'], help='boundary crossing used along a ray (default %(default)s)')
+    g.add_argument('--bone-mesh-step', type=int, default=D['bone_mesh_step'], help='marching-cubes step [voxels] (default %(default)s)')
+    g.add_argument('--allow-missing', action='store_true', help='table labels absent from the volume: warn, do not fail')
+    p.add_argument('--json', action='store_true', help='print the Table-1 summary as one JSON object (keys = Table 1 rows)')
+    p.add_argument('--report', metavar='FILE.json', help='write the full quality report (JSON)')
+    p.add_argument('--glb', metavar='FILE.glb', help='also export the surfaces (muscles, skin, bones) as GLB')
+    p.add_argument('--vtu', metavar='FILE.vtu', help='also export the cells as VTU (ParaView)')
+
+
+def _settings(args) -> dict:
+    return {'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
+            'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm,
+            'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit,
+            'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing}
+
+
+def run(args) -> int:
+    from tissue_sim.core import builder
+    if args.labels is None:
+        if args.tissues is not None:
+            raise UserError('--tissues given without LABELS')
+        try:
+            labels, tissues = builder.default_inputs()
+        except (ImportError, AttributeError, FileNotFoundError) as e:
+            raise UserError(f'the bundled anatomy is not available ({e}); give LABELS and --tissues') from None
+    else:
+        if args.tissues is None:
+            raise UserError('LABELS needs --tissues TABLE.yaml (the tissue table)')
+        labels, tissues = args.labels, args.tissues
+    out = Path(args.output) if args.output else None
+    if out is not None and out.is_dir():
+        raise UserError(f'{out}: is a folder; give a file name for the model')
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    err = Console(stderr=True)
+    with Progress(TextColumn('[bold]build-model[/] {task.description}'), BarColumn(), TimeElapsedColumn(),
+                  console=err, transient=True, disable=args.json or not err.is_terminal) as bar:
+        task = bar.add_task('reading', total=1.0)
+
+        def progress(step, frac):
+            weights = {'slices': (0.0, 0.6), 'chains': (0.6, 0.1), 'cells': (0.7, 0.1), 'bones': (0.8, 0.2)}
+            a, w = weights.get(step, (0.0, 0.0))
+            bar.update(task, completed=a + w * frac, description=step)
+        tm, report = builder.build_model(labels, tissues, progress=progress, **_settings(args))
+    if out is None:
+        out = Path(f'{tm.name}.model.npz')
+    try:
+        tm.save(out)
+    except OSError as e:
+        raise UserError(f'{out}: cannot write the model ({e.strerror})') from None
+    if args.report:
+        Path(args.report).write_text(json.dumps(report, indent=1, default=float))
+    if args.glb or args.vtu:
+        from tissue_sim.core.builder import export
+        if args.glb:
+            export.to_glb(tm, args.glb)
+        if args.vtu:
+            export.to_vtu(tm, args.vtu)
+    t1 = report['table1']
+    if args.json:
+        print(json.dumps(dict(t1, model=str(out), build_s=report['build_s'], closed_surfaces=report['closed_surfaces'],
+                              inverted_cells=report['cells']['inverted'], warnings=len(report['warnings']))))
+        return 0
+    from rich.console import Console
+    from rich.table import Table
+    con = Console()
+    tab = Table(title=f'{tm.name}: {out} ({report["build_s"]:.2f} s)')
+    tab.add_column('Table 1 row'); tab.add_column('this model', justify='right'); tab.add_column('paper', justify='right')
+    for k, lab in builder.TABLE1_LABELS.items():
+        tab.add_row(lab, str(t1[k]), str(builder.PAPER_TABLE1[k]))
+    tab.add_row('fat vertices (distinct)', str(t1['fat_vertices_unique']), '')
+    tab.add_row('bone-attached vertices', str(t1['bone_attached_vertices']), '')
+    con.print(tab)
+    c = report['cells']
+    con.print(f'cells: {c["count"]}, inverted {c["inverted"]}, dropped degenerate {len(c["dropped_degenerate"])}, '
+              f'min volume {c["min_volume_mm3"]} mm^3; surfaces closed: {report["closed_surfaces"]}; '
+              f'median polygon/label area {report["areas"]["median_ratio"]}')
+    for w in report['warnings']:
+        con.print(f'[yellow]warning:[/] {w}')
+    if report['dropped_components']:
+        con.print(f'{len(report["dropped_components"])} small or single-slice components dropped (see --report)')
+    return 0

@@ -1,0 +1,429 @@
+"""Label volume + tissue table -> TissueModel (paper section 2; METHOD.md section 1).
+
+Pipeline: check labels against the table -> choose slices -> per slice: muscle ray polygons, fat
+rays, bone pixels -> link muscle components between slices into prism chains -> fat hexahedra ->
+vertex sharing between tissues -> bone attachment -> bone meshes -> surfaces -> TissueModel.
+See docs/builder.md for every decision and the Table-1 counting rules.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from tissue_sim.errors import UserError
+from tissue_sim.core import model as M
+
+from . import geometry, slices as S
+from .io import LabelVolume, voxel_to_model
+from .sharing import share_groups
+
+# The "paper" settings (Table 1 of Inaba et al. 2005: every 25th 1-mm slice, 12 fat rays).
+DEFAULTS = {
+    'slice_mm': 25.0,          # slice spacing [mm] (paper: every 25th slice of 1-mm Visible Human photographs)
+    'slice_step': None,        # or take every Nth slice of the volume (overrides slice_mm)
+    'muscle_rays': 10,         # polygon vertex count of every muscle cross-section
+    'fat_rays': 12,            # rays of the fat tube per slice (paper: 540 cells = 45 gaps x 12)
+    'share_mm': 6.0,           # vertex sharing threshold [mm] (paper section 2.4)
+    'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
+    'min_area_mm2': 20.0,      # smaller components of a label on a slice are dropped (reported)
+    'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
+    'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
+    'ray_hit': 'first',        # 'first' (polygon inside the region) or 'last' boundary crossing
+    'bone_mesh_step': 2,       # marching-cubes step [voxels] for bone surfaces without a mesh file
+    'allow_missing': False,    # table labels absent from the volume: warning instead of error
+}
+
+
+def settings_with_defaults(settings: dict) -> dict:
+    unknown = set(settings) - set(DEFAULTS)
+    if unknown:
+        raise UserError(f'unknown builder setting(s): {", ".join(sorted(unknown))} (known: {", ".join(DEFAULTS)})')
+    s = dict(DEFAULTS)
+    s.update({k: v for k, v in settings.items() if v is not None or k == 'attach_mm'})
+    for k in ('muscle_rays', 'fat_rays'):
+        if int(s[k]) != s[k] or s[k] < 3:
+            raise UserError(f'{k} must be an integer >= 3, got {s[k]!r}')
+        s[k] = int(s[k])
+    if s['slice_step'] is not None and (int(s['slice_step']) != s['slice_step'] or s['slice_step'] < 1):
+        raise UserError(f'slice_step must be a positive integer, got {s["slice_step"]!r}')
+    for k in ('slice_mm', 'min_cell_volume_mm3'):
+        if not (isinstance(s[k], (int, float)) and math.isfinite(s[k]) and s[k] > 0):
+            raise UserError(f'{k} must be a positive number, got {s[k]!r}')
+    for k in ('share_mm', 'min_area_mm2', 'min_fat_mm'):
+        if not (isinstance(s[k], (int, float)) and math.isfinite(s[k]) and s[k] >= 0):
+            raise UserError(f'{k} must be a number >= 0, got {s[k]!r}')
+    if s['attach_mm'] is not None and not (math.isfinite(s['attach_mm']) and s['attach_mm'] >= 0):
+        raise UserError(f'attach_mm must be >= 0, got {s["attach_mm"]!r}')
+    if s['ray_hit'] not in ('first', 'last'):
+        raise UserError(f"ray_hit must be 'first' or 'last', got {s['ray_hit']!r}")
+    return s
+
+
+def _check_labels(vol: LabelVolume, table: dict, allow_missing: bool, warnings: list):
+    counts = np.bincount(vol.labels.ravel())
+    present = set(int(x) for x in np.nonzero(counts)[0]) - {0}
+    tab = table['labels']
+    unknown = sorted(present - set(tab))
+    if unknown:
+        raise UserError(f'{vol.source}: label(s) {unknown} occur in the volume but not in the tissue table '
+                        f'{table["source"]} (add them, e.g. as fat or muscle, or relabel to 0)')
+    missing = sorted(set(tab) - present)
+    if missing:
+        desc = ', '.join(f'{m} ({tab[m]["name"]})' for m in missing)
+        if not allow_missing:
+            raise UserError(f'{vol.source}: missing labels: the tissue table lists {desc} but the volume has no such voxels '
+                            '(use --allow-missing to build without them)')
+        warnings.append(f'labels absent from the volume, skipped: {desc}')
+    if not any(tab[l]['tissue'] == 'fat' for l in present):
+        raise UserError(f'{vol.source}: the volume has no fat voxels (fat label of the table)')
+    if not any(tab[l]['tissue'] == 'bone' for l in present):
+        raise UserError(f'{vol.source}: the volume has no bone voxels')
+    return present, counts
+
+
+def _select_slices(vol: LabelVolume, s: dict) -> np.ndarray:
+    dz = vol.pixel_mm[2]
+    body_k = np.nonzero(vol.labels.reshape(-1, vol.labels.shape[2]).any(axis=0))[0]
+    if len(body_k) == 0:
+        raise UserError(f'{vol.source}: the label volume is empty (all 0)')
+    if s['slice_step'] is not None:
+        step = int(s['slice_step'])
+    else:
+        if s['slice_mm'] < dz * (1 - 1e-6):
+            raise UserError(f'wrong spacing: --slice-mm {s["slice_mm"]:g} is finer than the volume\'s slice spacing {dz:g} mm')
+        step = max(1, int(round(s['slice_mm'] / dz)))
+    ks = np.arange(body_k[0], body_k[-1] + 1, step)
+    if len(ks) < 2:
+        raise UserError(f'{vol.source}: only {len(ks)} slice(s) at a step of {step} ({step * dz:g} mm) over the '
+                        f'labelled extent {(body_k[-1] - body_k[0]) * dz:g} mm; need at least 2 (use a smaller --slice-mm)')
+    empty = [int(k) for k in ks if k not in set(body_k.tolist())]
+    if empty:
+        raise UserError(f'{vol.source}: empty slice(s) {empty[:5]} inside the labelled range {int(body_k[0])}..{int(body_k[-1])} '
+                        '(the body must be labelled on every slice used)')
+    if vol.affine[2, 2] < 0:
+        ks = ks[::-1]
+    return ks
+
+
+def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=None) -> tuple[M.TissueModel, dict]:
+    """Build the TissueModel. ``progress(step_name, fraction)`` is called as the build advances."""
+    t0 = time.perf_counter()
+    s = settings_with_defaults(settings or {})
+    prog = progress or (lambda *_: None)
+    warnings: list[str] = []
+    tab = table['labels']
+    skel = table['skeleton']
+    present, counts = _check_labels(vol, table, s['allow_missing'], warnings)
+    muscle_labels = sorted(l for l in present if tab[l]['tissue'] == 'muscle')
+    bone_labels = sorted(l for l in present if tab[l]['tissue'] == 'bone')
+    fat_labels = sorted(l for l in present if tab[l]['tissue'] == 'fat')
+    ks = _select_slices(vol, s)
+    Z = len(ks)
+    px_area_mm2 = vol.pixel_mm[0] * vol.pixel_mm[1]
+    px_mm = max(vol.pixel_mm[0], vol.pixel_mm[1])
+    attach_m = (px_mm if s['attach_mm'] is None else s['attach_mm']) / 1000.0
+    prog('slices', 0.0)
+
+    # ---------------------------------------------------------------- per slice
+    geoms, regions, fats, bonepix, dropped, slice_counts = [], [], [], [], [], []
+    maxlab = max(tab) + 1
+    for zi, k in enumerate(ks):
+        sl = np.ascontiguousarray(vol.labels[:, :, k])
+        slice_counts.append(np.bincount(sl.ravel(), minlength=maxlab))
+        g = S.slice_geom(vol.affine, int(k))
+        geoms.append(g)
+        regs, drop = S.muscle_regions(sl, g, muscle_labels, s['muscle_rays'], s['min_area_mm2'], s['ray_hit'], 0.0)
+        regions.append(regs)
+        dropped += [{'slice': zi, 'label': l, 'name': tab[l]['name'], 'area_mm2': round(a, 2), 'reason': r} for l, a, r in drop]
+        f = S.fat_rays(sl, g, bone_labels, fat_labels, s['fat_rays'], s['min_fat_mm'] / 1000.0, 0.0)
+        if not f['has_bone']:
+            warnings.append(f'slice {zi} (k={int(k)}) has no bone: fat rays start at the body centroid')
+        fats.append(f)
+        bonepix.append(S.bone_pixels(sl, g, bone_labels))
+        prog('slices', (zi + 1) / Z)
+    slice_z = np.array([g.z for g in geoms])
+    if np.any(np.diff(slice_z) <= 0):
+        raise UserError(f'{vol.source}: inconsistent slices: slice heights are not strictly monotonic')
+
+    # ---------------------------------------------------------------- muscle chains
+    n = s['muscle_rays']
+    muscle_names, muscle_groups, mforce, mfibre, mscale = [], [], [], [], []
+    pos_l, tis_l, ring_l, sl_l = [], [], [], []           # provisional vertices
+    cells_m = []                                            # (muscle, slice, bottom ids, top ids)
+    chains_m = []                                           # (muscle, [ring id arrays])
+    ring_counter = [0]
+    nv = [0]
+
+    def new_ring(p, tissue, zi):
+        ids = np.arange(nv[0], nv[0] + len(p))
+        nv[0] += len(p)
+        pos_l.append(p); tis_l.append(np.full(len(p), tissue)); ring_l.append(np.full(len(p), ring_counter[0]))
+        sl_l.append(np.full(len(p), zi))
+        ring_counter[0] += 1
+        return ids
+
+    area_rows = []
+    single = []
+    for lab in muscle_labels:
+        mi = len(muscle_names)
+        links = {}            # (zi, idx) -> idx on zi+1
+        for zi in range(Z - 1):
+            a, b = regions[zi].get(lab, []), regions[zi + 1].get(lab, [])
+            if not a or not b:
+                continue
+            ov = np.array([[ra.overlap(rb) for rb in b] for ra in a], dtype=float)
+            used_a, used_b = set(), set()
+            for flat in np.argsort(-ov, axis=None):
+                i, j = np.unravel_index(flat, ov.shape)
+                if ov[i, j] <= 0:
+                    break
+                if i in used_a or j in used_b:
+                    continue
+                links[(zi, i)] = j; used_a.add(i); used_b.add(j)
+            for i, ra in enumerate(a):       # no overlap: nearest centroid within the equivalent radius
+                if i in used_a:
+                    continue
+                best, bd = None, np.inf
+                for j, rb in enumerate(b):
+                    if j in used_b:
+                        continue
+                    dpx = np.linalg.norm(ra.centroid_px() - rb.centroid_px())
+                    req = math.sqrt(max(ra.mask.sum(), rb.mask.sum()) / math.pi)
+                    if dpx < req and dpx < bd:
+                        best, bd = j, dpx
+                if best is not None:
+                    links[(zi, i)] = best; used_b.add(best)
+        linked_to = {(zi + 1, j) for (zi, _), j in links.items()}
+        ring_ids = {}
+        chains = []
+        for zi in range(Z):
+            for i, reg in enumerate(regions[zi].get(lab, [])):
+                if (zi, i) in linked_to:
+                    continue                                   # not a chain start
+                if (zi, i) not in links:
+                    single.append({'slice': zi, 'label': lab, 'name': tab[lab]['name'], 'area_mm2': round(reg.area_mm2, 2),
+                                   'reason': 'present on one used slice only (no cell)'})
+                    continue
+                chain, z, ii = [], zi, i
+                while True:
+                    chain.append((z, ii))
+                    if (z, ii) not in links:
+                        break
+                    ii = links[(z, ii)]; z += 1
+                chains.append(chain)
+        if not chains:
+            warnings.append(f'muscle {tab[lab]["name"]} (label {lab}) gives no cell at this slice spacing: left out of the model')
+            continue
+        muscle_names.append(tab[lab]['name']); muscle_groups.append(tab[lab]['group'])
+        mforce.append(tab[lab]['max_isometric_force']); mfibre.append(tab[lab]['optimal_fibre_length'])
+        mscale.append(tab[lab]['stiffness_scale'])
+        for chain in chains:
+            rids = []
+            for (z, ii) in chain:
+                rids.append(new_ring(regions[z][lab][ii].ring, mi, z))
+            cids = []
+            for c in range(len(chain) - 1):
+                cids.append(len(cells_m))
+                cells_m.append((mi, chain[c][0], rids[c], rids[c + 1]))
+            chains_m.append((mi, rids, cids))
+        for zi in range(Z):
+            rs = regions[zi].get(lab, [])
+            if rs:
+                area_rows.append({'muscle': tab[lab]['name'], 'slice': zi,
+                                  'label_mm2': round(float(slice_counts[zi][lab]) * px_area_mm2, 2),
+                                  'polygon_mm2': round(sum(r.poly_area_mm2 for r in rs), 2)})
+    prog('chains', 1.0)
+
+    # ---------------------------------------------------------------- fat tube
+    nf = s['fat_rays']
+    fat_ring = []
+    for zi in range(Z):
+        fat_ring.append(new_ring(np.concatenate([fats[zi]['inner'], fats[zi]['outer']]), -1, zi))
+    cells_f = []
+    for zi in range(Z - 1):
+        lo, hi = fat_ring[zi], fat_ring[zi + 1]
+        for a in range(nf):
+            b = (a + 1) % nf
+            q = [a, b, nf + b, nf + a]                  # inner a, inner b, outer b, outer a
+            cells_f.append((zi, lo[q], hi[q]))
+
+    pos0 = np.concatenate(pos_l)
+    tis0 = np.concatenate(tis_l)
+    ring0 = np.concatenate(ring_l)
+    sl0 = np.concatenate(sl_l)
+    C_m, C_f = len(cells_m), len(cells_f)
+    sizes = np.array([2 * n] * C_m + [8] * C_f, dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    verts0 = np.concatenate([np.concatenate([c[2], c[3]]) for c in cells_m] + [np.concatenate([c[1], c[2]]) for c in cells_f])
+    flip = np.array([False] * C_m + [True] * C_f)
+    min_vol = s['min_cell_volume_mm3'] * 1e-9
+
+    # ---------------------------------------------------------------- vertex sharing (guarded)
+    eligible = np.ones(len(pos0), bool)
+    vol_pre = geometry.prism_volumes(pos0, offsets, verts0, flip)
+    bad_pre = np.nonzero(vol_pre < min_vol)[0]
+    for it in range(6):
+        rep = share_groups(pos0, tis0, ring0, sl0, s['share_mm'] / 1000.0, eligible)
+        uniq, inv = np.unique(rep, return_inverse=True)
+        cnt = np.bincount(inv)
+        pos = np.zeros((len(uniq), 3))
+        np.add.at(pos, inv, pos0)
+        pos /= cnt[:, None]
+        verts = inv[verts0]
+        vols = geometry.prism_volumes(pos, offsets, verts, flip)
+        bad = np.setdiff1d(np.nonzero(vols < min_vol)[0], bad_pre)
+        if len(bad) == 0:
+            break
+        # un-share every group that touches a cell the merge made degenerate, then redo
+        for c in bad:
+            groups = inv[verts0[offsets[c]:offsets[c + 1]]]
+            eligible[np.isin(inv, groups) & (cnt[inv] > 1)] = False
+    shared_group = cnt > 1
+    n_unshared = int(np.count_nonzero(~eligible))
+
+    # ---------------------------------------------------------------- degenerate cells: drop
+    keep = vols >= min_vol
+    dropped_cells = [{'cell': int(c), 'tissue': 'muscle' if c < C_m else 'fat',
+                      'muscle': muscle_names[cells_m[c][0]] if c < C_m else '',
+                      'volume_mm3': round(float(vols[c]) * 1e9, 4)} for c in np.nonzero(~keep)[0]]
+    cell_slice_all = np.array([c[1] for c in cells_m] + [c[0] for c in cells_f], dtype=np.int32)
+    cell_tissue_all = np.array([M.TISSUE_MUSCLE] * C_m + [M.TISSUE_FAT] * C_f, dtype=np.uint8)
+    cell_muscle_all = np.array([c[0] for c in cells_m] + [-1] * C_f, dtype=np.int32)
+    fat_scale = tab[fat_labels[0]]['stiffness_scale']
+    k_all = np.array([mscale[c[0]] for c in cells_m] + [fat_scale] * C_f, dtype=np.float64)
+    kc = np.nonzero(keep)[0]
+    sizes_k = sizes[kc]
+    offsets_k = np.concatenate([[0], np.cumsum(sizes_k)])
+    verts_k = np.concatenate([verts[offsets[c]:offsets[c + 1]] for c in kc]) if len(kc) else np.zeros(0, np.int64)
+    # drop vertices no kept cell uses
+    used = np.zeros(len(pos), bool); used[verts_k] = True
+    remap = np.cumsum(used) - 1
+    pos = pos[used]; verts_k = remap[verts_k]
+    shared_group = shared_group[used]
+    vslice = np.zeros(len(uniq), np.int64); vslice[inv] = sl0
+    vslice = vslice[used]
+    V = len(pos)
+    C = len(kc)
+    ctiss = cell_tissue_all[kc]
+
+    # ---------------------------------------------------------------- flags
+    flags = np.zeros(V, np.uint8)
+    cv_t = np.repeat(ctiss, sizes_k)
+    flags[verts_k[cv_t == M.TISSUE_MUSCLE]] |= M.VF_MUSCLE
+    flags[verts_k[cv_t == M.TISSUE_FAT]] |= M.VF_FAT
+    flags[shared_group] |= M.VF_SHARED
+
+    # ---------------------------------------------------------------- bone attachment
+    seg_names = skel['segment_names']
+    vseg = np.full(V, -1, np.int32)
+    vdist = np.full(V, np.inf)
+    for zi in range(Z):
+        bxy, blab = bonepix[zi]
+        on = np.nonzero(vslice == zi)[0]
+        if len(bxy) == 0 or len(on) == 0:
+            continue
+        d, j = cKDTree(bxy).query(pos[on, :2])
+        d = np.maximum(d - 0.5 * px_mm / 1000.0, 0.0)
+        vdist[on] = d
+        hit = d <= attach_m + 1e-12
+        vseg[on[hit]] = [seg_names.index(tab[int(l)]['segment']) for l in blab[j[hit]]]
+
+    # ---------------------------------------------------------------- cells: fibres
+    P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
+    fib = np.array([p[len(p) // 2:].mean(0) - p[:len(p) // 2].mean(0) for p in P]).reshape(C, 3)
+    fib /= np.linalg.norm(fib, axis=1, keepdims=True)
+
+    # ---------------------------------------------------------------- skin quads and surfaces
+    quads, qcell = [], []
+    for c in range(C):
+        if ctiss[c] == M.TISSUE_FAT:
+            v = verts_k[offsets_k[c]:offsets_k[c] + 8]
+            quads.append([v[3], v[2], v[6], v[7]])          # outer a bot, outer b bot, outer b top, outer a top
+            qcell.append(c)
+    quads = np.array(quads, np.int32).reshape(-1, 4)
+    qcell = np.array(qcell, np.int32)
+    flags[quads.ravel()] |= M.VF_SKIN
+    finv = remap[inv]                                     # provisional vertex -> final vertex
+    groups, gnames = [], []
+
+    def add(tris, name):
+        if len(tris):
+            if name not in gnames:
+                gnames.append(name)
+            groups.append((np.asarray(tris, np.int32), gnames.index(name)))
+
+    for mi, rids, cids in chains_m:
+        # a chain is split into runs of kept cells (a dropped degenerate cell opens it)
+        run = []
+        for ci, cid in enumerate(cids + [None]):
+            if cid is not None and keep[cid]:
+                if not run:
+                    run.append(finv[rids[ci]])
+                run.append(finv[rids[ci + 1]])
+            elif run:
+                add(geometry.chain_surface(run, pos), f'muscle/{muscle_names[mi]}')
+                run = []
+    if len(quads):
+        add(np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]), 'skin')
+        inner = []
+        for c in range(C):
+            if ctiss[c] == M.TISSUE_FAT:
+                v = verts_k[offsets_k[c]:offsets_k[c] + 8]
+                inner += [[v[0], v[4], v[5]], [v[0], v[5], v[1]]]      # faces the limb axis
+        add(inner, 'fat/inner')
+        caps = []
+        cs_k = cell_slice_all[kc]
+        for c in range(C):
+            if ctiss[c] != M.TISSUE_FAT:
+                continue
+            v = verts_k[offsets_k[c]:offsets_k[c] + 8]
+            if cs_k[c] == 0:                                            # bottom ring is clockwise: faces down
+                caps += [[v[0], v[1], v[2]], [v[0], v[2], v[3]]]
+            if cs_k[c] == Z - 2:                                        # top ring reversed: faces up
+                caps += [[v[7], v[6], v[5]], [v[7], v[5], v[4]]]
+        add(caps, 'fat/caps')
+    surf_t = np.concatenate([g[0] for g in groups]) if groups else np.zeros((0, 3), np.int32)
+    surf_g = np.concatenate([np.full(len(g[0]), g[1], np.int32) for g in groups]) if groups else np.zeros(0, np.int32)
+    prog('cells', 1.0)
+
+    # ---------------------------------------------------------------- bones
+    from .bones import bone_meshes
+    bnames, bseg, bvo, bverts, bto, btris, bone_info = bone_meshes(vol, tab, bone_labels, seg_names, s['bone_mesh_step'])
+    prog('bones', 1.0)
+
+    cell_vol = vols[kc]
+    tm = M.TissueModel(
+        name=table['name'],
+        rest_positions=pos, vertex_segment=vseg, vertex_flags=flags,
+        cell_offsets=offsets_k.astype(np.int64), cell_vertices=verts_k.astype(np.int32),
+        cell_tissue=ctiss, cell_muscle=cell_muscle_all[kc], cell_fibre=fib,
+        cell_slice=cell_slice_all[kc], cell_k_scale=k_all[kc],
+        skin_quads=quads, skin_quad_cell=qcell,
+        surface_triangles=surf_t.reshape(-1, 3), surface_group=surf_g, surface_group_names=tuple(gnames),
+        muscle_names=tuple(muscle_names), muscle_groups=tuple(muscle_groups),
+        muscle_max_force=np.array(mforce, np.float64), muscle_fibre_length=np.array(mfibre, np.float64),
+        bone_names=bnames, bone_segment=bseg, bone_vertex_offsets=bvo, bone_vertices=bverts,
+        bone_triangle_offsets=bto, bone_triangles=btris,
+        segment_names=skel['segment_names'], segment_parent=skel['segment_parent'],
+        segment_mass=skel['segment_mass'], segment_com=skel['segment_com'], segment_inertia=skel['segment_inertia'],
+        joint_names=skel['joint_names'], joint_type=skel['joint_type'], joint_parent=skel['joint_parent'],
+        joint_child=skel['joint_child'], joint_axis=skel['joint_axis'], joint_centre=skel['joint_centre'],
+        joint_range=skel['joint_range'], joint_rest=skel['joint_rest'],
+        slice_z=slice_z,
+        meta={'builder': 'tissue_sim.core.builder', 'source': vol.source, 'tissue_table': table['source'],
+              'joints_source': skel.get('source', ''),
+              'settings': {k: v for k, v in s.items()}, 'units': 'SI (m, kg, s, rad), model frame REP-103',
+              'slice_k': [int(k) for k in ks], 'voxel_mm': [round(x, 6) for x in vol.pixel_mm],
+              'attach_mm': attach_m * 1000.0},
+    ).validate()
+    build_s = time.perf_counter() - t0
+    from .quality import quality_report
+    report = quality_report(tm, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
+                            dropped_cells=dropped_cells, warnings=warnings, n_unshared=n_unshared,
+                            n_before_sharing=len(pos0), bone_info=bone_info, build_s=build_s)
+    return tm, report
+

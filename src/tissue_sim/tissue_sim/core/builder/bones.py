@@ -1,0 +1,63 @@
+"""Bone surface meshes: a mesh file named in the tissue table (model frame, metres), else marching
+cubes (scikit-image) of the bone's label at full resolution (``step`` voxels), closed and outward."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from tissue_sim.errors import UserError
+
+from .io import voxel_to_model
+
+
+def _mc_mesh(vol, lab, bb, step):
+    from skimage import measure
+    m = vol.labels[bb] == lab
+    step = max(1, int(step))
+    if min(m.shape) < 2 * step + 1:
+        step = 1
+    # pad with zeros so that the surface is closed and every axis is sampled to its end ((size-1) % step == 0)
+    pads = [(1, 1 + (-(n + 1)) % step) for n in m.shape]
+    crop = np.pad(m, pads).astype(np.float32)
+    verts, faces, _, _ = measure.marching_cubes(crop, level=0.5, step_size=step, allow_degenerate=False)
+    ijk = verts + [b.start - 1 for b in bb]
+    return voxel_to_model(vol.affine, ijk), faces.astype(np.int64)
+
+
+def _load_mesh(path):
+    import trimesh
+    try:
+        m = trimesh.load(str(path), force='mesh', process=True)
+    except Exception as e:
+        raise UserError(f'{path}: unreadable bone mesh ({type(e).__name__}: {e})') from None
+    if len(m.faces) == 0:
+        raise UserError(f'{path}: bone mesh has no faces')
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+def bone_meshes(vol, tab, bone_labels, seg_names, step):
+    import trimesh
+    objs = ndimage.find_objects(vol.labels, max_label=max(bone_labels))
+    names, segs, vs, ts, info = [], [], [], [], []
+    for lab in bone_labels:
+        e = tab[lab]
+        if e['mesh'] is not None:
+            v, f = _load_mesh(e['mesh'])
+            src = str(e['mesh'])
+        else:
+            v, f = _mc_mesh(vol, lab, objs[lab - 1], step)
+            src = f'marching cubes of label {lab} (step {step})'
+        m = trimesh.Trimesh(v, f, process=True)
+        if m.is_watertight and m.volume < 0:
+            m.invert()
+        names.append(e['name'])
+        segs.append(seg_names.index(e['segment']))
+        vs.append(np.asarray(m.vertices, np.float64))
+        ts.append(np.asarray(m.faces, np.int32))
+        info.append({'bone': e['name'], 'segment': e['segment'], 'surface': src, 'vertices': len(m.vertices),
+                     'triangles': len(m.faces), 'watertight': bool(m.is_watertight),
+                     'volume_cm3': round(float(abs(m.volume)) * 1e6, 3) if m.is_watertight else None})
+    vo = np.concatenate([[0], np.cumsum([len(v) for v in vs])]).astype(np.int64)
+    to = np.concatenate([[0], np.cumsum([len(t) for t in ts])]).astype(np.int64)
+    return (tuple(names), np.array(segs, np.int32), vo, np.concatenate(vs).reshape(-1, 3),
+            to, np.concatenate(ts).reshape(-1, 3).astype(np.int32), info)

@@ -1,0 +1,111 @@
+"""Quality report of a built model and its Table-1 summary (paper Table 1; docs/builder.md).
+
+Table-1 rows (keys of ``table1``):
+  bones            bone meshes in the model
+  muscles          muscles with at least one cell
+  muscle_cells     muscle prism cells
+  muscle_vertices  distinct vertices used by muscle cells (after sharing)
+  fat_cells        fat hexahedra
+  fat_vertices     fat cell-vertex incidences, 8 per hexahedron: the paper's count (540 cells -> 4320)
+  shared_vertices  vertices made by merging vertices of different tissues (paper section 2.4)
+Extra: fat_vertices_unique (distinct vertices used by fat cells), vertices (all soft-tissue vertices),
+bone_attached_vertices.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from tissue_sim.core import model as M
+
+from . import geometry
+
+PAPER_TABLE1 = {'bones': 6, 'muscles': 28, 'muscle_cells': 292, 'muscle_vertices': 2998,
+                'fat_cells': 540, 'fat_vertices': 4320, 'shared_vertices': 873}
+TABLE1_LABELS = {'bones': 'bones', 'muscles': 'muscles', 'muscle_cells': 'muscle cells',
+                 'muscle_vertices': 'muscle vertices', 'fat_cells': 'fat cells',
+                 'fat_vertices': 'fat vertices (cell-vertex incidences, as the paper)',
+                 'shared_vertices': 'shared vertices'}
+
+
+def table1(tm: M.TissueModel) -> dict:
+    mus = tm.cell_tissue == M.TISSUE_MUSCLE
+    fat = ~mus
+    sizes = np.diff(tm.cell_offsets)
+    cv_t = np.repeat(tm.cell_tissue, sizes)
+    mverts = np.unique(tm.cell_vertices[cv_t == M.TISSUE_MUSCLE])
+    fverts = np.unique(tm.cell_vertices[cv_t == M.TISSUE_FAT])
+    return {
+        'bones': len(tm.bone_names),
+        'muscles': int(len(np.unique(tm.cell_muscle[mus]))),
+        'muscle_cells': int(mus.sum()),
+        'muscle_vertices': int(len(mverts)),
+        'fat_cells': int(fat.sum()),
+        'fat_vertices': int(sizes[fat].sum()),
+        'shared_vertices': int(np.count_nonzero(tm.vertex_flags & M.VF_SHARED)),
+        'fat_vertices_unique': int(len(fverts)),
+        'vertices': tm.n_vertices,
+        'bone_attached_vertices': int(np.count_nonzero(tm.vertex_segment >= 0)),
+    }
+
+
+def cell_volumes(tm: M.TissueModel, positions=None) -> np.ndarray:
+    """Volume [m^3] of every cell, positive for a valid cell (fat rings are clockwise by contract)."""
+    pos = tm.rest_positions if positions is None else positions
+    return geometry.prism_volumes(pos, tm.cell_offsets, tm.cell_vertices, tm.cell_tissue == M.TISSUE_FAT)
+
+
+def surface_checks(tm: M.TissueModel) -> dict:
+    """Per muscle and for the fat layer: closed (watertight) surface and its enclosed volume."""
+    import trimesh
+    out = {}
+    names = tm.surface_group_names
+    fat_ids = [i for i, n in enumerate(names) if n == 'skin' or n.startswith('fat/')]
+    groups = {n: [i] for i, n in enumerate(names) if n.startswith('muscle/')}
+    if fat_ids:
+        groups['fat'] = fat_ids
+    for g, ids in groups.items():
+        tri = tm.surface_triangles[np.isin(tm.surface_group, ids)]
+        m = trimesh.Trimesh(tm.rest_positions, tri, process=False)
+        wt = bool(m.is_watertight)
+        out[g] = {'watertight': wt, 'outward': bool(wt and m.volume > 0),
+                  'volume_cm3': round(float(m.volume) * 1e6, 3) if wt else None}
+    return out
+
+
+def quality_report(tm, *, cell_vol, area_rows, fats, dropped, dropped_cells, warnings, n_unshared,
+                   n_before_sharing, bone_info, build_s) -> dict:
+    vols = cell_volumes(tm)
+    surf = surface_checks(tm)
+    ratios = {}
+    for r in area_rows:
+        if r['label_mm2'] > 0:
+            ratios.setdefault(r['muscle'], []).append(r['polygon_mm2'] / r['label_mm2'])
+    per_muscle = {m: {'median_area_ratio': round(float(np.median(v)), 3), 'min_area_ratio': round(float(np.min(v)), 3),
+                      'slices': len(v)} for m, v in ratios.items()}
+    allr = np.concatenate([np.array(v) for v in ratios.values()]) if ratios else np.zeros(0)
+    fat_rows = []
+    for zi, f in enumerate(fats):
+        ring = np.concatenate([f['inner'], f['outer'][::-1]])
+        # area of the fat ring = area(outer polygon) - area(inner polygon)
+        from .rays import polygon_area
+        a = (polygon_area(f['outer'][:, :2]) - polygon_area(f['inner'][:, :2])) * 1e6
+        fat_rows.append({'slice': zi, 'label_mm2': round(float(f['fat_area_mm2']), 1), 'tube_mm2': round(a, 1)})
+    t1 = table1(tm)
+    inverted = int(np.count_nonzero(vols <= 0))
+    return {
+        'table1': t1,
+        'paper_table1': PAPER_TABLE1,
+        'build_s': round(build_s, 3),
+        'cells': {'count': tm.n_cells, 'inverted': inverted, 'min_volume_mm3': round(float(vols.min()) * 1e9, 4) if len(vols) else None,
+                  'dropped_degenerate': dropped_cells, 'muscle_volume_cm3': round(float(vols[tm.cell_tissue == M.TISSUE_MUSCLE].sum()) * 1e6, 2),
+                  'fat_volume_cm3': round(float(vols[tm.cell_tissue == M.TISSUE_FAT].sum()) * 1e6, 2)},
+        'areas': {'rows': area_rows, 'per_muscle': per_muscle,
+                  'median_ratio': round(float(np.median(allr)), 3) if len(allr) else None, 'fat': fat_rows},
+        'surfaces': surf,
+        'closed_surfaces': all(v['watertight'] for v in surf.values()),
+        'bones': bone_info,
+        'dropped_components': dropped,
+        'sharing': {'vertices_before': n_before_sharing, 'vertices_after': tm.n_vertices,
+                    'unshared_to_avoid_inversion': n_unshared},
+        'warnings': warnings,
+    }

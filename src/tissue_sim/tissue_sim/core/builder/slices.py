@@ -1,0 +1,151 @@
+"""Per-slice extraction: muscle/bone regions -> ray polygons, fat rays, bone pixels for attachment.
+
+All coordinates returned are model frame metres (REP-103: x anterior, y left, z superior).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import ndimage
+
+from . import rays
+from .io import voxel_to_model
+
+
+@dataclasses.dataclass
+class Region:
+    """One connected component of one label on one slice."""
+    label: int
+    bbox: tuple            # (slice_i, slice_j) in full-slice pixel indices
+    mask: np.ndarray       # bool crop (the component only)
+    area_mm2: float        # label area (pixel count x pixel area)
+    origin_kind: str = ''
+    ring: np.ndarray | None = None     # (n, 3) model-frame polygon vertices, CCW from +z
+    poly_area_mm2: float = 0.0
+
+    def overlap(self, other: 'Region') -> int:
+        si = (max(self.bbox[0].start, other.bbox[0].start), min(self.bbox[0].stop, other.bbox[0].stop))
+        sj = (max(self.bbox[1].start, other.bbox[1].start), min(self.bbox[1].stop, other.bbox[1].stop))
+        if si[0] >= si[1] or sj[0] >= sj[1]:
+            return 0
+        a = self.mask[si[0] - self.bbox[0].start:si[1] - self.bbox[0].start, sj[0] - self.bbox[1].start:sj[1] - self.bbox[1].start]
+        b = other.mask[si[0] - other.bbox[0].start:si[1] - other.bbox[0].start, sj[0] - other.bbox[1].start:sj[1] - other.bbox[1].start]
+        return int(np.count_nonzero(a & b))
+
+    def centroid_px(self) -> np.ndarray:
+        ij = np.argwhere(self.mask).mean(axis=0)
+        return ij + [self.bbox[0].start, self.bbox[1].start]
+
+
+@dataclasses.dataclass
+class SliceGeom:
+    k: int
+    z: float                       # [m]
+    lin: np.ndarray                # (2, 2) voxel (i, j) -> model (x, y) metres
+    off: np.ndarray                # (2,) model xy of voxel (0, 0) on this slice
+
+    def to_model(self, ij: np.ndarray) -> np.ndarray:
+        xy = np.asarray(ij, float) @ self.lin.T + self.off
+        return np.concatenate([xy, np.full(xy.shape[:-1] + (1,), self.z)], axis=-1)
+
+    def to_pixel(self, xy: np.ndarray) -> np.ndarray:
+        return (np.asarray(xy, float)[..., :2] - self.off) @ np.linalg.inv(self.lin).T
+
+
+def slice_geom(affine: np.ndarray, k: int) -> SliceGeom:
+    o = voxel_to_model(affine, np.array([0.0, 0.0, float(k)]))
+    ei = voxel_to_model(affine, np.array([1.0, 0.0, float(k)])) - o
+    ej = voxel_to_model(affine, np.array([0.0, 1.0, float(k)])) - o
+    lin = np.array([[ei[0], ej[0]], [ei[1], ej[1]]])
+    return SliceGeom(k=k, z=float(o[2]), lin=lin, off=o[:2])
+
+
+def _pad_bbox(bb, shape, pad=2):
+    return tuple(slice(max(s.start - pad, 0), min(s.stop + pad, n)) for s, n in zip(bb, shape))
+
+
+def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: int, min_area_mm2: float,
+                   ray_hit: str, angle_offset: float) -> tuple[dict, list]:
+    """Ray polygons of every component of every muscle label on one slice.
+
+    Returns ({label: [Region, ...] (largest first)}, dropped) where dropped lists
+    (label, area_mm2, reason) for components below ``min_area_mm2`` or without a valid polygon.
+    """
+    px_area = abs(np.linalg.det(geom.lin)) * 1e6                 # mm^2 per pixel
+    objs = ndimage.find_objects(sl)
+    dirs = rays.pixel_directions(rays.ray_angles(n_rays, angle_offset), geom.lin)
+    u = np.stack([np.cos(rays.ray_angles(n_rays, angle_offset)), np.sin(rays.ray_angles(n_rays, angle_offset))], 1)
+    out, dropped = {}, []
+    for lab in labels:
+        if lab > len(objs) or objs[lab - 1] is None:
+            continue
+        bb = _pad_bbox(objs[lab - 1], sl.shape)
+        crop = sl[bb] == lab
+        comp, ncomp = ndimage.label(crop)
+        sizes = np.bincount(comp.ravel())[1:]
+        regs = []
+        for ci in np.argsort(-sizes):
+            area = float(sizes[ci]) * px_area
+            if area < min_area_mm2:
+                dropped.append((lab, area, f'component below {min_area_mm2:g} mm^2'))
+                continue
+            m = comp == ci + 1
+            sub = ndimage.find_objects(m.astype(np.int8))[0]
+            sub = _pad_bbox(sub, m.shape)
+            mm = m[sub]
+            full_bb = (slice(bb[0].start + sub[0].start, bb[0].start + sub[0].stop),
+                       slice(bb[1].start + sub[1].start, bb[1].start + sub[1].stop))
+            reg = Region(lab, full_bb, mm, area)
+            origin, reg.origin_kind = rays.ray_origin(mm)
+            d = rays.cast(mm.astype(np.float64), origin, dirs, ray_hit)
+            if not np.all(np.isfinite(d)) or np.min(d) <= 0:
+                dropped.append((lab, area, 'no polygon (ray casting failed)'))
+                continue
+            o_model = geom.to_model(origin + [full_bb[0].start, full_bb[1].start])
+            ring = np.empty((n_rays, 3))
+            ring[:, :2] = o_model[:2] + d[:, None] * u
+            ring[:, 2] = geom.z
+            reg.ring = ring
+            reg.poly_area_mm2 = rays.polygon_area(ring[:, :2]) * 1e6
+            regs.append(reg)
+        if regs:
+            out[lab] = regs
+    return out, dropped
+
+
+def fat_rays(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int], fat_labels: list[int], n_rays: int,
+             min_thickness_m: float, angle_offset: float) -> dict:
+    """Fat tube rays of one slice (paper section 2.3): from the centroid of the bone region(s), the
+    outer (skin) point is the farthest exit from the body, the inner point the farthest exit from
+    the non-fat tissue (muscle, bone); inner is kept at least ``min_thickness_m`` inside outer."""
+    body = sl > 0
+    bb = _pad_bbox(ndimage.find_objects(body.astype(np.int8))[0], sl.shape, 3)
+    crop = sl[bb]
+    bodyc = crop > 0
+    bone = np.isin(crop, bone_labels)
+    fat = np.isin(crop, fat_labels)
+    origin = np.argwhere(bone if bone.any() else bodyc).mean(axis=0)
+    ang = rays.ray_angles(n_rays, angle_offset)
+    dirs = rays.pixel_directions(ang, geom.lin)
+    u = np.stack([np.cos(ang), np.sin(ang)], 1)
+    outer = rays.cast(bodyc.astype(np.float64), origin, dirs, 'last')
+    inner = rays.cast((bodyc & ~fat).astype(np.float64), origin, dirs, 'last')
+    inner = np.where(np.isfinite(inner), inner, 0.0)
+    outer = np.where(np.isfinite(outer), outer, min_thickness_m)
+    inner = np.clip(inner, 0.05 * outer, np.maximum(outer - min_thickness_m, 0.05 * outer))
+    o_model = geom.to_model(origin + [bb[0].start, bb[1].start])
+    def pts(d):
+        p = np.empty((n_rays, 3))
+        p[:, :2] = o_model[:2] + d[:, None] * u
+        p[:, 2] = geom.z
+        return p
+    return {'origin': o_model, 'inner': pts(inner), 'outer': pts(outer), 'has_bone': bool(bone.any()),
+            'fat_area_mm2': float(np.count_nonzero(fat)) * abs(np.linalg.det(geom.lin)) * 1e6}
+
+
+def bone_pixels(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Model-frame xy [m] of the centres of all bone pixels on a slice, and their labels."""
+    m = np.isin(sl, bone_labels)
+    ij = np.argwhere(m)
+    return geom.to_model(ij)[:, :2], sl[m]

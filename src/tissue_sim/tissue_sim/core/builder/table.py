@@ -1,0 +1,219 @@
+"""The tissue table (tissues.yaml) and the joints file (joints.yaml); see docs/FORMATS.md.
+
+``load_tissue_table(path_or_dict)`` returns a plain dict::
+
+    {'name': str, 'base': Path | None,
+     'labels': {label: {'name', 'tissue', 'segment', 'group', 'max_isometric_force',
+                        'optimal_fibre_length', 'stiffness_scale', 'mesh'}},
+     'skeleton': {...}}   # from load_joints
+
+All coordinates of the joints file are model frame metres (REP-103), angles in degrees in the file,
+radians in the result. Bad input raises UserError naming the file and the key.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from tissue_sim.errors import UserError
+
+TISSUES = ('bone', 'muscle', 'fat')
+
+
+def _read_yaml(path: Path, what: str):
+    if not path.is_file():
+        raise UserError(f'{path}: no such {what} file')
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f'{path}: unreadable {what} (not valid YAML: {str(e).splitlines()[0]})') from None
+    if not isinstance(data, dict):
+        raise UserError(f'{path}: {what} must be a YAML mapping')
+    return data
+
+
+def _num(v, where, positive=False):
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise UserError(f'{where}: expected a number, got {v!r}') from None
+    if not math.isfinite(x) or (positive and x <= 0):
+        raise UserError(f'{where}: expected a {"positive " if positive else ""}finite number, got {v!r}')
+    return x
+
+
+def _vec(v, n, where):
+    if not isinstance(v, (list, tuple)) or len(v) != n:
+        raise UserError(f'{where}: expected a list of {n} numbers, got {v!r}')
+    return np.array([_num(x, where) for x in v])
+
+
+def load_tissue_table(src) -> dict:
+    """Parse and check a tissue table (path or already-parsed dict; its ``joints`` a path or a dict)."""
+    if isinstance(src, dict):
+        data, base, where = src, None, '<tissue table>'
+    else:
+        path = Path(src)
+        data, base, where = _read_yaml(path, 'tissue table'), path.parent, str(path)
+    labels_in = data.get('labels')
+    if not isinstance(labels_in, dict) or not labels_in:
+        raise UserError(f'{where}: needs a non-empty "labels" mapping (label value -> tissue entry)')
+    labels = {}
+    names = set()
+    for key, ent in labels_in.items():
+        try:
+            lab = int(key)
+        except (TypeError, ValueError):
+            raise UserError(f'{where}: label {key!r} is not an integer') from None
+        w = f'{where}: label {lab}'
+        if lab <= 0:
+            raise UserError(f'{w}: label values must be positive (0 is background)')
+        if not isinstance(ent, dict):
+            raise UserError(f'{w}: entry must be a mapping with name and tissue')
+        name, tissue = ent.get('name'), ent.get('tissue')
+        if not isinstance(name, str) or not name:
+            raise UserError(f'{w}: missing "name"')
+        if tissue not in TISSUES:
+            raise UserError(f'{w} ({name}): tissue must be one of {", ".join(TISSUES)}, got {tissue!r}')
+        if tissue != 'fat' and name in names:
+            raise UserError(f'{w}: duplicate name {name!r}')
+        names.add(name)
+        out = {'name': name, 'tissue': tissue, 'segment': ent.get('segment'), 'group': str(ent.get('group') or ''),
+               'max_isometric_force': float('nan'), 'optimal_fibre_length': float('nan'),
+               'stiffness_scale': 1.0, 'mesh': None}
+        if tissue == 'bone':
+            if not isinstance(out['segment'], str) or not out['segment']:
+                raise UserError(f'{w} ({name}): a bone must name its "segment" (a segment of the joints file)')
+            if ent.get('mesh') is not None:
+                if base is None:
+                    raise UserError(f'{w} ({name}): "mesh" needs a table file (paths are relative to it)')
+                mp = base / str(ent['mesh'])
+                if not mp.is_file():
+                    raise UserError(f'{w} ({name}): mesh file {mp} not found')
+                out['mesh'] = mp
+        if 'max_isometric_force' in ent and ent['max_isometric_force'] is not None:
+            out['max_isometric_force'] = _num(ent['max_isometric_force'], f'{w} max_isometric_force', positive=True)
+        if 'optimal_fibre_length' in ent and ent['optimal_fibre_length'] is not None:
+            out['optimal_fibre_length'] = _num(ent['optimal_fibre_length'], f'{w} optimal_fibre_length', positive=True)
+        if 'stiffness_scale' in ent and ent['stiffness_scale'] is not None:
+            out['stiffness_scale'] = _num(ent['stiffness_scale'], f'{w} stiffness_scale', positive=True)
+        labels[lab] = out
+    kinds = [e['tissue'] for e in labels.values()]
+    if 'fat' not in kinds:
+        raise UserError(f'{where}: needs a fat label (tissue: fat)')
+    if 'bone' not in kinds:
+        raise UserError(f'{where}: needs at least one bone label')
+    j = data.get('joints')
+    if j is None:
+        raise UserError(f'{where}: needs "joints" (the skeleton file, relative to the table)')
+    if isinstance(j, dict):
+        skel = load_joints(j)
+    else:
+        if base is None:
+            raise UserError(f'{where}: "joints" must be an inline mapping when the table is a dict')
+        skel = load_joints(base / str(j))
+    segs = set(skel['segment_names'])
+    for lab, e in labels.items():
+        if e['tissue'] == 'bone' and e['segment'] not in segs:
+            raise UserError(f'{where}: label {lab} ({e["name"]}): segment {e["segment"]!r} is not in the joints file '
+                            f'(has {", ".join(skel["segment_names"])})')
+    return {'name': str(data.get('name') or 'model'), 'base': base, 'source': where, 'labels': labels, 'skeleton': skel}
+
+
+def load_joints(src) -> dict:
+    """Parse the joints file (path or dict) into skeleton arrays (model frame, SI, radians)."""
+    if isinstance(src, dict):
+        data, where = src, '<joints>'
+    else:
+        data, where = _read_yaml(Path(src), 'joints'), str(src)
+    segs = data.get('segments')
+    if not isinstance(segs, list) or not segs:
+        raise UserError(f'{where}: needs a non-empty "segments" list')
+    names = []
+    for i, s in enumerate(segs):
+        if not isinstance(s, dict) or not isinstance(s.get('name'), str):
+            raise UserError(f'{where}: segment #{i} needs a "name"')
+        if s['name'] in names:
+            raise UserError(f'{where}: duplicate segment {s["name"]!r}')
+        names.append(s['name'])
+    parent = np.full(len(segs), -1, np.int32)
+    mass = np.zeros(len(segs))
+    com = np.zeros((len(segs), 3))
+    inertia = np.zeros((len(segs), 3, 3))
+    for i, s in enumerate(segs):
+        w = f'{where}: segment {s["name"]!r}'
+        p = s.get('parent')
+        if p is not None:
+            if p not in names:
+                raise UserError(f'{w}: unknown parent {p!r}')
+            parent[i] = names.index(p)
+        mass[i] = _num(s.get('mass'), f'{w} mass [kg]', positive=True)
+        com[i] = _vec(s.get('com'), 3, f'{w} com [m]')
+        I = s.get('inertia')
+        if isinstance(I, (list, tuple)) and len(I) == 3 and all(isinstance(r, (list, tuple)) for r in I):
+            inertia[i] = np.array([_vec(r, 3, f'{w} inertia') for r in I])
+        elif isinstance(I, (list, tuple)) and len(I) == 3:
+            inertia[i] = np.diag(_vec(I, 3, f'{w} inertia'))
+        else:
+            raise UserError(f'{w}: inertia must be a 3x3 matrix or 3 principal moments [kg m^2]')
+        if not np.allclose(inertia[i], inertia[i].T, atol=1e-9) or np.linalg.eigvalsh(inertia[i]).min() <= 0:
+            raise UserError(f'{w}: inertia must be symmetric positive definite')
+    if np.sum(parent == -1) != 1:
+        raise UserError(f'{where}: the skeleton needs exactly one root segment (parent: null), found {int(np.sum(parent == -1))}')
+    # cycle check
+    for i in range(len(segs)):
+        seen, k = set(), i
+        while k != -1:
+            if k in seen:
+                raise UserError(f'{where}: segment parents form a cycle at {names[i]!r}')
+            seen.add(k)
+            k = parent[k]
+    joints = data.get('joints') or []
+    if not isinstance(joints, list):
+        raise UserError(f'{where}: "joints" must be a list')
+    jn, jt, jp, jc, ja, jctr, jr, jrest = [], [], [], [], [], [], [], []
+    for i, j in enumerate(joints):
+        if not isinstance(j, dict) or not isinstance(j.get('name'), str):
+            raise UserError(f'{where}: joint #{i} needs a "name"')
+        w = f'{where}: joint {j["name"]!r}'
+        typ = j.get('type', 'hinge')
+        if typ not in ('hinge', 'fixed'):
+            raise UserError(f'{w}: type must be hinge or fixed, got {typ!r}')
+        for key in ('parent', 'child'):
+            if j.get(key) not in names:
+                raise UserError(f'{w}: {key} {j.get(key)!r} is not a segment')
+        p, c = names.index(j['parent']), names.index(j['child'])
+        if parent[c] != p:
+            raise UserError(f'{w}: child {j["child"]!r} has parent {names[parent[c]] if parent[c] >= 0 else None!r} in segments, not {j["parent"]!r}')
+        ctr = _vec(j.get('centre', j.get('center')), 3, f'{w} centre [m]')
+        if typ == 'hinge':
+            ax = _vec(j.get('axis'), 3, f'{w} axis')
+            if np.linalg.norm(ax) < 1e-9:
+                raise UserError(f'{w}: axis must be non-zero')
+            ax = ax / np.linalg.norm(ax)
+            rng = _vec(j.get('range_deg', [-180, 180]), 2, f'{w} range_deg')
+            if rng[0] > rng[1]:
+                raise UserError(f'{w}: range_deg lower > upper')
+        else:
+            ax, rng = np.array([0.0, 0.0, 1.0]), np.zeros(2)
+        rest = _num(j.get('rest_deg', 0.0), f'{w} rest_deg')
+        jn.append(j['name']); jt.append(1 if typ == 'hinge' else 0); jp.append(p); jc.append(c)
+        ja.append(ax); jctr.append(ctr); jr.append(np.radians(rng)); jrest.append(math.radians(rest))
+    children = sorted(jc)
+    nonroot = sorted(int(i) for i in np.nonzero(parent >= 0)[0])
+    if children != nonroot:
+        missing = [names[i] for i in nonroot if i not in jc]
+        raise UserError(f'{where}: every non-root segment needs exactly one joint (missing or duplicate: {missing or "duplicate"})')
+    J = len(jn)
+    return {
+        'source': str(data.get('source', '')),
+        'segment_names': tuple(names), 'segment_parent': parent, 'segment_mass': mass,
+        'segment_com': com, 'segment_inertia': inertia,
+        'joint_names': tuple(jn), 'joint_type': np.array(jt, np.uint8), 'joint_parent': np.array(jp, np.int32),
+        'joint_child': np.array(jc, np.int32), 'joint_axis': np.array(ja).reshape(J, 3),
+        'joint_centre': np.array(jctr).reshape(J, 3), 'joint_range': np.array(jr).reshape(J, 2),
+        'joint_rest': np.array(jrest, np.float64),
+    }

@@ -1,0 +1,141 @@
+"""Analytic phantoms for the model builder (and tiny models for other tests).
+
+Geometry is defined in the model frame (x anterior, y left, z up; mm here) and rasterised into a
+label volume with a NIfTI-style affine (voxel -> RAS mm). Stable API for other engineers:
+
+    make_phantom(kind) -> (labels (I, J, K) int16, affine (4, 4), table dict)
+    make_phantom_model(kind='column', **builder_settings) -> TissueModel (built by the real builder)
+    write_phantom(kind, folder, fmt='nii'|'npz'|'png') -> (labels_path, tissues_yaml_path)
+
+Kinds:
+  column     bone (two segments 'upper'/'lower' meeting at z = 12.5 mm, hinge 'knee' about +y there),
+             muscle 'flexor' (label 11, hamstrings) disc r 25 at x = -35, muscle 'extensor' (12) disc r 25
+             at x = +35, both touching the bone (r 10 at the axis); fat fills the body (r 70). z in [-100, 100].
+  tapered    column whose flexor is a cone: r = 25 (60 - z) / 160 mm for z < 60 (ends between slices).
+  two_bones  two bones in every slice: 'tibia' (r 12 at (10, -15)) on segment 'upper' and 'fibula'
+             (r 6 at (-5, 25)) on segment 'lower'; one muscle disc r 20 at (-40, 0); fat r 70.
+  split      column whose flexor is one disc below z = 0 and two discs (r 12 at y = +-14) above.
+  cshape     column whose flexor is a C-shaped (non-convex) annulus sector around the bone.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+VOX = (1.0, 1.0, 5.0)           # mm
+HALF = 80                       # in-plane half-width [voxels]
+Z0, Z1 = -100.0, 100.0          # mm
+R_BODY, R_BONE, R_MUS, X_MUS = 70.0, 10.0, 25.0, 35.0
+KNEE_Z = 12.5                   # mm
+
+
+def _grid():
+    I = J = 2 * HALF + 1
+    K = int(round((Z1 - Z0) / VOX[2])) + 1
+    affine = np.array([[-VOX[0], 0, 0, HALF * VOX[0]],
+                       [0, -VOX[1], 0, HALF * VOX[1]],
+                       [0, 0, VOX[2], Z0],
+                       [0, 0, 0, 1.0]])
+    i, j, k = np.meshgrid(np.arange(I), np.arange(J), np.arange(K), indexing='ij')
+    ras = np.stack([i, j, k], -1) @ affine[:3, :3].T + affine[:3, 3]
+    x, y, z = ras[..., 1], -ras[..., 0], ras[..., 2]      # model frame, mm
+    return (I, J, K), affine, x, y, z
+
+
+def _joints():
+    return {
+        'source': 'phantom',
+        'segments': [
+            {'name': 'upper', 'parent': None, 'mass': 8.0, 'com': [0.0, 0.0, 0.06], 'inertia': [0.1, 0.1, 0.02]},
+            {'name': 'lower', 'parent': 'upper', 'mass': 3.0, 'com': [0.0, 0.0, -0.05], 'inertia': [0.03, 0.03, 0.005]},
+        ],
+        'joints': [{'name': 'knee', 'type': 'hinge', 'parent': 'upper', 'child': 'lower', 'axis': [0, 1, 0],
+                    'centre': [0.0, 0.0, KNEE_Z / 1000.0], 'range_deg': [0, 120], 'rest_deg': 0}],
+    }
+
+
+def _table(kind):
+    labels = {
+        1: {'name': 'upper_bone', 'tissue': 'bone', 'segment': 'upper'},
+        2: {'name': 'lower_bone', 'tissue': 'bone', 'segment': 'lower'},
+        11: {'name': 'flexor', 'tissue': 'muscle', 'group': 'hamstrings', 'max_isometric_force': 1000.0,
+             'optimal_fibre_length': 0.1},
+        12: {'name': 'extensor', 'tissue': 'muscle', 'group': 'quadriceps', 'stiffness_scale': 2.0},
+        40: {'name': 'fat', 'tissue': 'fat'},
+    }
+    if kind == 'two_bones':
+        labels = {1: {'name': 'tibia', 'tissue': 'bone', 'segment': 'upper'},
+                  2: {'name': 'fibula', 'tissue': 'bone', 'segment': 'lower'},
+                  11: {'name': 'flexor', 'tissue': 'muscle', 'group': 'hamstrings'},
+                  40: {'name': 'fat', 'tissue': 'fat'}}
+    return {'name': f'phantom_{kind}', 'joints': _joints(), 'labels': labels}
+
+
+def make_phantom(kind: str = 'column'):
+    """(labels (I, J, K) int16, affine (4, 4), tissue-table dict with inline joints)."""
+    shape, affine, x, y, z = _grid()
+    lab = np.zeros(shape, np.int16)
+    r = np.hypot(x, y)
+    lab[r <= R_BODY] = 40
+    if kind == 'two_bones':
+        lab[np.hypot(x + 40, y) <= 20] = 11
+        lab[np.hypot(x - 10, y + 15) <= 12] = 1
+        lab[np.hypot(x + 5, y - 25) <= 6] = 2
+        return lab, affine, _table(kind)
+    bone = r <= R_BONE
+    lab[bone & (z >= KNEE_Z)] = 1
+    lab[bone & (z < KNEE_Z)] = 2
+    lab[np.hypot(x - X_MUS, y) <= R_MUS] = 12
+    flex = np.hypot(x + X_MUS, y) <= R_MUS
+    if kind == 'tapered':
+        flex = (np.hypot(x + X_MUS, y) <= R_MUS * (60.0 - z) / 160.0) & (z < 60.0)
+    elif kind == 'split':
+        flex = np.where(z < 0, flex, (np.hypot(x + X_MUS, y - 14) <= 12) | (np.hypot(x + X_MUS, y + 14) <= 12))
+    elif kind == 'cshape':
+        ang = np.degrees(np.arctan2(y, x))
+        flex = (r > R_BONE) & (r <= 40.0) & (np.abs(ang) > 100.0)          # C open towards +x, around the bone
+        lab[np.hypot(x - X_MUS, y) <= R_MUS] = 40
+        lab[(np.hypot(x - X_MUS - 8, y) <= 17)] = 12
+    elif kind != 'column':
+        raise ValueError(f'unknown phantom kind {kind!r} (column, tapered, two_bones, split, cshape)')
+    lab[flex & ~bone] = 11
+    return lab, affine, _table(kind)
+
+
+def make_phantom_model(kind: str = 'column', **settings):
+    """TissueModel of a phantom, built by tissue_sim.core.builder with default settings unless given."""
+    from tissue_sim.core.builder import build_model
+    lab, aff, table = make_phantom(kind)
+    tm, _ = build_model((lab, aff), table, **settings)
+    return tm
+
+
+def write_phantom(kind: str, folder, fmt: str = 'nii'):
+    """Write a phantom as files (labels + tissues.yaml + joints.yaml); returns (labels_path, table_path)."""
+    import yaml
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lab, aff, table = make_phantom(kind)
+    (folder / 'joints.yaml').write_text(yaml.safe_dump(table['joints'], sort_keys=False))
+    t = dict(table, joints='joints.yaml')
+    (folder / 'tissues.yaml').write_text(yaml.safe_dump(t, sort_keys=False))
+    if fmt == 'nii':
+        import nibabel as nib
+        p = folder / 'labels.nii.gz'
+        nib.save(nib.Nifti1Image(lab, aff), str(p))
+    elif fmt == 'npz':
+        p = folder / 'labels.npz'
+        np.savez_compressed(p, labels=lab, affine=aff)
+    elif fmt == 'png':
+        import imageio.v3 as iio
+        p = folder / 'slices'
+        p.mkdir(exist_ok=True)
+        for k in range(lab.shape[2]):
+            iio.imwrite(p / f'slice_{k:04d}.png', lab[:, :, k].T.astype(np.uint8))
+        # PNG convention: columns to the patient's left (R decreases), rows posterior (A decreases)
+        (p / 'spacing.yaml').write_text(yaml.safe_dump({'pixel_mm': [VOX[0], VOX[1]], 'slice_mm': VOX[2],
+                                                        'origin_mm': [float(aff[0, 3]), float(aff[1, 3]), float(aff[2, 3])]}))
+    else:
+        raise ValueError(fmt)
+    return p, folder / 'tissues.yaml'
