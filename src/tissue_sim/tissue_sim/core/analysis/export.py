@@ -1,0 +1,147 @@
+"""Export frames of a run for other tools.
+
+* ``frame_<n>.glb`` / ``frame_<n>.ply`` (trimesh): skin + muscles + posed bones of one frame, vertex
+  coloured (skin yellow, hamstrings red, other muscles brown, bones ivory). GLB keeps one named
+  node per part (viewers can hide the skin); PLY is one merged coloured mesh.
+* ``cells_<n>.vtu`` + ``cells.pvd`` (ParaView time series): the soft-tissue cells as an
+  unstructured grid (fat hexahedra as VTK_HEXAHEDRON, muscle prisms as fans of VTK_WEDGE sharing
+  the cell's own vertices) with cell data ``cell`` (topology cell id), ``tissue`` (1 muscle, 2 fat),
+  ``muscle`` (-1 for fat), ``area_ratio``, ``d_paper_m``, ``d_rotfree_m`` (fat; NaN elsewhere) and
+  point data ``displacement_m`` (from rest). Times in the .pvd are the simulated times [s].
+  Bones are written as ``bones_<n>.vtp`` in the same series file (part 1).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from tissue_sim.core.analysis import measure, render
+
+VTK_HEXAHEDRON = 12
+VTK_WEDGE = 13
+
+
+def _rgba(c, a=1.0):
+    return np.array([int(255 * v) for v in c] + [int(255 * a)], np.uint8)
+
+
+def frame_scene(topo, X: np.ndarray, poses: np.ndarray):
+    """trimesh.Scene of one frame: 'skin', 'muscle/<name>' and bone parts, vertex coloured."""
+    import trimesh
+    X = np.asarray(X, np.float64)
+    scene = trimesh.Scene()
+    mnames = list(topo.muscle_names)
+    for name, tri in render.surface_groups(topo).items():
+        used, inv = np.unique(tri, return_inverse=True)
+        if name.startswith('muscle/'):
+            mn = name.split('/', 1)[1]
+            k = mnames.index(mn) if mn in mnames else 0
+            col = _rgba(render.muscle_colour(mn, topo.muscle_groups[k] if mn in mnames else '', k))
+        else:
+            col = _rgba(render.FAT_YELLOW, 0.35)
+        mesh = trimesh.Trimesh(X[used], inv.reshape(-1, 3), process=False,
+                               vertex_colors=np.tile(col, (len(used), 1)))
+        scene.add_geometry(mesh, node_name=name, geom_name=name)
+    for b, v in enumerate(render.posed_bones(topo, poses)):
+        _, t = topo.bone_mesh(b)
+        if len(t):
+            mesh = trimesh.Trimesh(v, np.asarray(t, np.int64), process=False,
+                                   vertex_colors=np.tile(_rgba(render.IVORY), (len(v), 1)))
+            scene.add_geometry(mesh, node_name=f'bone/{topo.bone_names[b]}', geom_name=f'bone/{topo.bone_names[b]}')
+    return scene
+
+
+def write_meshes(topo, X, poses, out: Path, stem: str, formats=('glb', 'ply')) -> list[Path]:
+    scene = frame_scene(topo, X, poses)
+    files = []
+    for fmt in formats:
+        p = Path(out) / f'{stem}.{fmt}'
+        if fmt == 'glb':
+            scene.export(p, file_type='glb')
+        else:
+            scene.to_geometry().export(p, file_type='ply')
+        files.append(p)
+    return files
+
+
+def cell_grid_topology(topo):
+    """(VTK cell connectivity stream, cell types, owner topology cell) for all soft-tissue cells."""
+    offsets = np.asarray(topo.cell_offsets, np.int64)
+    verts = np.asarray(topo.cell_vertices, np.int64)
+    conn, types, owner = [], [], []
+    for c in range(topo.n_cells):
+        vs = verts[offsets[c]:offsets[c + 1]]
+        n = len(vs) // 2
+        if n == 4:
+            conn.append(np.concatenate([[8], vs]))
+            types.append(VTK_HEXAHEDRON)
+            owner.append(c)
+            continue
+        b, t = vs[:n], vs[n:]
+        for i in range(1, n - 1):            # VTK wedge: base (0,1,2) normal points away from (3,4,5)
+            conn.append(np.array([6, b[0], b[i + 1], b[i], t[0], t[i + 1], t[i]]))
+            types.append(VTK_WEDGE)
+            owner.append(c)
+    if not conn:
+        return np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int64)
+    return np.concatenate(conn), np.array(types, np.uint8), np.array(owner, np.int64)
+
+
+def write_vtu_series(topo, run, out: Path, ctx=None) -> list[Path]:
+    """One .vtu (cells) and .vtp (bones) per frame of ``run`` (a runio.Run) and the ``cells.pvd`` index."""
+    os.environ.setdefault('VTK_DEFAULT_OPENGL_WINDOW', 'vtkEGLRenderWindow')
+    import pyvista as pv
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    ctx = ctx or measure.prepare(topo)
+    conn, types, owner = cell_grid_topology(topo)
+    rest = np.asarray(topo.rest_positions, np.float64)
+    fat_local = np.full(topo.n_cells, -1, np.int64)
+    fat_local[ctx['fat_ids']] = np.arange(ctx['n_fat'])
+    fl = fat_local[owner]
+    area0 = measure.fat_frame(ctx, run.frames[0])[0]
+    files, entries = [], []
+    for i in range(run.n_frames):
+        X = run.frames[i].astype(np.float64)
+        a, dp, dr = measure.fat_frame(ctx, X)
+        grid = pv.UnstructuredGrid(conn, types, X)
+        grid.cell_data['cell'] = owner.astype(np.int32)
+        grid.cell_data['tissue'] = np.asarray(topo.cell_tissue)[owner].astype(np.int32)
+        grid.cell_data['muscle'] = np.asarray(topo.cell_muscle)[owner].astype(np.int32)
+        for name, v in (('area_ratio', np.divide(a, area0, out=np.full_like(a, np.nan), where=area0 > 0)),
+                        ('d_paper_m', dp), ('d_rotfree_m', dr)):
+            col = np.full(len(owner), np.nan)
+            col[fl >= 0] = v[fl[fl >= 0]]
+            grid.cell_data[name] = col
+        grid.point_data['displacement_m'] = X - rest
+        f = int(run.frame_index[i])
+        p = out / f'cells_{f:05d}.vtu'
+        grid.save(p)
+        files.append(p)
+        entries.append((run.times[i], 0, p.name))
+        bones = render.posed_bones(topo, run.segment_poses[i])
+        if bones:
+            faces = []
+            base = 0
+            for b, v in enumerate(bones):
+                _, t = topo.bone_mesh(b)
+                faces.append(np.asarray(t, np.int64) + base)
+                base += len(v)
+            tri = np.concatenate(faces)
+            bp = pv.PolyData(np.concatenate(bones), np.hstack([np.full((len(tri), 1), 3), tri]).ravel())
+            q = out / f'bones_{f:05d}.vtp'
+            bp.save(q)
+            files.append(q)
+            entries.append((run.times[i], 1, q.name))
+    pvd = out / 'cells.pvd'
+    lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+             '  <Collection>']
+    lines += [f'    <DataSet timestep="{t:.9g}" group="" part="{part}" file={quoteattr(name)}/>' for t, part, name in entries]
+    lines += ['  </Collection>', '</VTKFile>', '']
+    pvd.write_text('\n'.join(lines))
+    files.append(pvd)
+    return files
+
