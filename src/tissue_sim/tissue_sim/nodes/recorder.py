@@ -79,7 +79,7 @@ class Recorder:
             self.subscribe(topic, typ)
 
     def subscribe(self, topic, typ):
-        from rosidl_runtime_py.utilities import get_message
+        from ..ros.common import get_message
         try:
             cls = get_message(typ)
             self.writer.add_channel(topic, typ)

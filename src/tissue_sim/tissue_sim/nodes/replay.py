@@ -47,7 +47,7 @@ class Replay:
     def __init__(self, args):
         import rclpy
         from rosgraph_msgs.msg import Clock
-        from rosidl_runtime_py.utilities import get_message
+        from ..ros.common import get_message
         if not (0.0 < args.rate <= 1000.0):
             raise ValueError(f'--rate {args.rate}: must be in (0, 1000]')
         if args.start < 0:

@@ -26,6 +26,20 @@ def parse_args(parser: argparse.ArgumentParser, argv=None):
     return parser.parse_args(rest), argv
 
 
+def get_message(type_name: str):
+    """Message class of 'pkg/msg/Type' (or 'pkg/Type'); ValueError naming the problem."""
+    import importlib
+    parts = type_name.split('/')
+    if len(parts) == 2:
+        parts = [parts[0], 'msg', parts[1]]
+    if len(parts) != 3 or parts[1] != 'msg':
+        raise ValueError(f'bad message type {type_name!r} (expected pkg/msg/Type)')
+    try:
+        return getattr(importlib.import_module(f'{parts[0]}.msg'), parts[2])
+    except (ImportError, AttributeError):
+        raise ValueError(f'message type {type_name} is not installed (is its package built and sourced?)') from None
+
+
 def qos_latched():
     """Reliable, transient-local, depth 1: late joiners get the last message (topology)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy

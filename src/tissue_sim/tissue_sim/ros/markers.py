@@ -78,9 +78,11 @@ class MarkerArrayEncoder:
             raise ValueError(f'marker colouring {colouring!r}: expected one of {", ".join(COLOURINGS)}')
         self.colouring = colouring
         muscle_colour = {m: muscle_rgba(i, tm.n_muscles) for i, m in enumerate(tm.muscle_names)}
-        tris = np.asarray(tm.surface_triangles, np.int64)
+        tris = np.asarray(tm.surface_triangles, np.int64).reshape(-1, 3)
         groups = np.asarray(tm.surface_group)
         names = list(tm.surface_group_names)
+        if len(tris) == 0:               # a model without a surface (phantoms): boundary faces of the cells
+            tris, groups, names = boundary_surface(tm)
         # soft-tissue markers
         self._soft = []             # (corner vertex indices, group name)
         for g, name in enumerate(names):
@@ -200,6 +202,33 @@ class MarkerArrayEncoder:
         if corner_rgba is not None and self._colors is not None:
             self._colors[:] = corner_rgba
         return b.tobytes()
+
+
+def boundary_surface(tm):
+    """(triangles (T, 3), group (T,), group names) of the cell faces not shared by two cells, grouped
+    as 'muscle/<name>' and 'fat'. For models built without ``surface_triangles``."""
+    faces = {}
+    off, cv = np.asarray(tm.cell_offsets), np.asarray(tm.cell_vertices)
+    for c in range(tm.n_cells):
+        v = cv[off[c]:off[c + 1]]
+        n = len(v) // 2
+        bot, top = v[:n], v[n:]
+        polys = [tuple(bot[::-1]), tuple(top)]
+        polys += [(bot[i], bot[(i + 1) % n], top[(i + 1) % n], top[i]) for i in range(n)]
+        for f in polys:
+            key = tuple(sorted(int(i) for i in f))
+            faces[key] = None if key in faces else (f, c)
+    names = ['fat'] + [f'muscle/{m}' for m in tm.muscle_names]
+    tris, groups = [], []
+    for val in faces.values():
+        if val is None:
+            continue
+        f, c = val
+        g = 0 if tm.cell_tissue[c] != 1 else 1 + int(tm.cell_muscle[c])
+        for i in range(1, len(f) - 1):
+            tris.append((f[0], f[i], f[i + 1]))
+            groups.append(g)
+    return np.asarray(tris, np.int64).reshape(-1, 3), np.asarray(groups, np.int32), names
 
 
 def skin_area_ratio_per_vertex(tm, positions: np.ndarray, rest_area: np.ndarray | None = None):

@@ -1,0 +1,219 @@
+"""Real nodes over DDS (isolated domains): simulator rate, activation effect, bad-message rejection,
+recorder (SIGINT -> rosbags reads it; SIGKILL -> our reader reads it), replay."""
+import math
+import signal
+import time
+
+import numpy as np
+import pytest
+
+import rosutil  # noqa: F401  (activates the workspace before rclpy; skips if not built)
+from rosutil import isolated_domain, ros_context, run_executable, spin_until, wait_for_publishers, wait_for_subscribers
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope='module')
+def knee_model(tmp_path_factory):
+    """The solver's two-muscle knee phantom (hamstring behind, quadriceps in front), as a file."""
+    from tissue_sim.core.solver import phantom
+    p = tmp_path_factory.mktemp('model') / 'knee.npz'
+    phantom.knee().save(p)
+    return p
+
+
+def sim_args(model, *extra):
+    return ('--ros-args', '-p', f'model:={model}', *extra)
+
+
+class Collector:
+    """Arrival times (monotonic) and messages of one topic."""
+
+    def __init__(self, node, cls, topic, keep=True, raw=False, qos=10):
+        self.t, self.msgs = [], []
+        self.keep = keep
+        self.sub = node.create_subscription(cls, topic, self.cb, qos, raw=raw)
+
+    def cb(self, m):
+        self.t.append(time.monotonic())
+        if self.keep:
+            self.msgs.append(m)
+
+    def rate_over(self, t0, t1):
+        ts = [t for t in self.t if t0 <= t <= t1]
+        return (len(ts) - 1) / (ts[-1] - ts[0]) if len(ts) > 2 else 0.0, len(ts)
+
+
+def diag_values(msg):
+    return {kv.key: kv.value for kv in msg.status[0].values}
+
+
+def test_simulator_publishes_at_34hz_with_markers(knee_model):
+    import rclpy
+    from sensor_msgs.msg import JointState
+    from tissue_msgs.msg import TissueState, TissueTopology
+    from visualization_msgs.msg import MarkerArray
+    from tissue_sim.core import tissue_cdr
+    from tissue_sim.ros.common import qos_latched
+    with isolated_domain() as dom, ros_context(dom.id) as ctx, \
+            run_executable('simulator', *sim_args(knee_model), env=dom.env) as sim:
+        node = rclpy.create_node('probe', context=ctx)
+        js = Collector(node, JointState, '/joint_states', keep=False)
+        mk = Collector(node, MarkerArray, '/tissue/markers')
+        st = Collector(node, TissueState, '/tissue/state', raw=True)
+        topo = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
+        sim.wait_for_output('simulator ready', timeout=60)
+        spin_until(lambda: len(js.t) > 10 and len(mk.t) > 10, node, 30, 'frames to flow')
+        t0 = time.monotonic()
+        spin_until(lambda: time.monotonic() - t0 > 5.0, node, 10, '5 s of frames')
+        r_js, n_js = js.rate_over(t0, t0 + 5.0)
+        r_mk, n_mk = mk.rate_over(t0, t0 + 5.0)
+        print(f'joint_states {r_js:.2f} Hz ({n_js}), markers {r_mk:.2f} Hz ({n_mk})')
+        assert r_js >= 34.0 and r_mk >= 34.0
+        # markers: the whole model (every boundary face of both muscles), in 'world'
+        m = mk.msgs[-1]
+        assert {x.ns for x in m.markers} == {'tissue/muscle/hamstring', 'tissue/muscle/quadriceps'}
+        assert all(x.header.frame_id == 'world' and len(x.points) > 0 for x in m.markers)
+        # the compact state decodes, is finite, and matches the topology sent once (transient-local)
+        assert len(topo.msgs) == 1
+        tp = tissue_cdr.decode_topology(topo.msgs[0])
+        s = tissue_cdr.decode_state(st.msgs[-1])
+        assert s.vertex_positions.shape == (tp.n_vertices, 3) and np.isfinite(s.vertex_positions).all()
+        assert s.joint_names == ['knee_r'] and s.sim_time > 1.0
+        node.destroy_node()
+    assert sim.returncode == 0, sim.output
+
+
+def test_activation_flexes_the_knee_and_bad_messages_are_rejected(knee_model):
+    """Paper experiment (hamstrings only) flexes the knee (+ about +y); every kind of bad message
+    is rejected and counted while the node keeps publishing finite frames."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import JointState
+    from tissue_msgs.msg import MuscleActivation
+    with isolated_domain() as dom, ros_context(dom.id) as ctx, \
+            run_executable('simulator', *sim_args(knee_model), env=dom.env) as sim:
+        node = rclpy.create_node('probe', context=ctx)
+        js = Collector(node, JointState, '/joint_states')
+        diag = Collector(node, DiagnosticArray, '/diagnostics')
+        pub = node.create_publisher(MuscleActivation, '/tissue/activation', 10)
+        sim.wait_for_output('simulator ready', timeout=60)
+        wait_for_subscribers(node, pub, 1, timeout=30)
+        spin_until(lambda: len(js.msgs) > 5, node, 30, 'joint states')
+        # -- bad messages first: none may change the (passive, resting) knee
+        bad = [(['hamstring'], [math.nan]), (['hamstring'], [math.inf]), (['hamstring'], [-0.5]),
+               (['hamstring'], [1.5]), (['no_such_muscle'], [0.5]), (['hamstring', 'quadriceps'], [0.5])]
+        for names, values in bad:
+            m = MuscleActivation()
+            m.muscle_names = names
+            m.activations = values
+            pub.publish(m)
+        want = {'rejected_nan': '1', 'rejected_inf': '1', 'rejected_out_of_range': '2',
+                'rejected_unknown_muscle': '1', 'rejected_length_mismatch': '1'}
+        spin_until(lambda: diag.msgs and all(diag_values(diag.msgs[-1]).get(k) == v for k, v in want.items()),
+                   node, 15, f'diagnostics counting {want}')
+        n_before = len(js.msgs)
+        spin_until(lambda: len(js.msgs) > n_before + 20, node, 10, 'frames after the bad messages')
+        assert abs(js.msgs[-1].position[0]) < 1e-3, 'a rejected message moved the knee'
+        assert diag_values(diag.msgs[-1])['accepted_activations'] == '0'
+        assert 'rejected activation message' in sim.output
+        # -- the paper experiment from the activation node: hamstrings contract -> knee flexes
+        with run_executable('activation', '--profile', 'paper', env=dom.env) as act:
+            spin_until(lambda: js.msgs[-1].position[0] > 0.3, node, 30, 'knee flexion > 0.3 rad')
+            assert act.returncode is None, act.output
+        assert 'profile paper on 2 muscles' in act.output      # hamstring active, quadriceps passive (0)
+        q = np.array([m.position[0] for m in js.msgs])
+        assert np.isfinite(q).all() and np.all(np.diff(q[-20:]) > -1e-2)
+        spin_until(lambda: int(diag_values(diag.msgs[-1])['accepted_activations']) > 0, node, 5,
+                   'diagnostics counting accepted activations')
+        assert diag_values(diag.msgs[-1])['rejected_nan'] == '1'
+        node.destroy_node()
+    assert sim.returncode == 0, sim.output
+
+
+def _publish_activations(node, pub, n, period=0.01):
+    from tissue_msgs.msg import MuscleActivation
+    for i in range(n):
+        m = MuscleActivation()
+        m.header.stamp.sec, m.header.stamp.nanosec = 100, i
+        m.muscle_names = ['hamstring', 'quadriceps']
+        m.activations = [i / n, 1.0 - i / n]
+        pub.publish(m)
+        t0 = time.monotonic()
+        spin_until(lambda: time.monotonic() - t0 >= period, node, 1, 'period')
+
+
+def test_recorder_sigint_file_read_by_rosbags_then_replayed(tmp_path):
+    import rclpy
+    from rosbags.highlevel import AnyReader
+    from tissue_msgs.msg import MuscleActivation
+    from tissue_sim.core import mcapio
+    out = tmp_path / 'rec.mcap'
+    n = 60
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        pub = node.create_publisher(MuscleActivation, '/tissue/activation', 10)
+        with run_executable('recorder', '-o', out, '--only', '--topics', '/tissue/activation', env=dom.env) as rec:
+            rec.wait_for_output('recorder: writing', timeout=30)
+            wait_for_subscribers(node, pub, 1, timeout=30)
+            _publish_activations(node, pub, n)
+            t0 = time.monotonic()
+            spin_until(lambda: time.monotonic() - t0 > 1.0, node, 5, 'delivery')
+        assert rec.returncode == 0, rec.output
+        assert f'recorder: {n} messages' in rec.output, rec.output
+        # independent reader
+        with AnyReader([out]) as r:
+            got = [r.deserialize(d, c.msgtype) for c, _, d in r.messages()]
+            assert r.connections[0].msgtype == 'tissue_msgs/msg/MuscleActivation'
+        assert [m.header.stamp.nanosec for m in got] == list(range(n))
+        assert np.allclose([m.activations[0] for m in got], np.arange(n) / n)
+        summary = mcapio.scan(out)
+        assert not summary.truncated and 'versions' in summary.metadata['tissue_sim']
+        # replay on the same topic: same bytes, same order, original spacing
+        recorded = [m.data for m in mcapio.iter_messages(out)]
+        log_t = np.array([m.log_time for m in mcapio.iter_messages(out)]) * 1e-9
+        sub = Collector(node, MuscleActivation, '/tissue/activation', raw=True, qos=100)
+        with run_executable('replay', out, '--wait-subscribers', '20', env=dom.env) as rp:
+            spin_until(lambda: len(sub.msgs) >= n, node, 30, f'{n} replayed messages')
+            rp.wait_for_output('replay: published', timeout=10)
+        assert [bytes(b) for b in sub.msgs] == recorded
+        gaps_rec, gaps_play = np.diff(log_t), np.diff(sub.t)
+        assert abs(gaps_play.sum() - gaps_rec.sum()) < 0.25 * gaps_rec.sum() + 0.05
+        node.destroy_node()
+
+
+def test_recorder_killed_with_sigkill_leaves_a_readable_file(tmp_path):
+    import rclpy
+    from tissue_msgs.msg import MuscleActivation
+    from tissue_sim.core import mcapio
+    from tissue_sim.core.cdr import CdrReader
+    out = tmp_path / 'killed.mcap'
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        pub = node.create_publisher(MuscleActivation, '/tissue/activation', 10)
+        with run_executable('recorder', '-o', out, '--flush', '0.2', env=dom.env) as rec:
+            rec.wait_for_output('recorder: writing', timeout=30)
+            wait_for_subscribers(node, pub, 1, timeout=30)
+            _publish_activations(node, pub, 80)
+            t0 = time.monotonic()
+            spin_until(lambda: time.monotonic() - t0 > 1.0, node, 5, 'two flush periods')
+            rec.popen.send_signal(signal.SIGKILL)
+            rec.popen.wait(10)
+        node.destroy_node()
+    s = mcapio.scan(out)
+    assert s.truncated
+    nsec = [CdrReader(m.data).header()[0] - 100_000_000_000 for m in mcapio.iter_messages(out)]
+    assert nsec == list(range(80))        # everything flushed before the kill, in order
+
+
+def test_executables_print_usage():
+    import subprocess
+    for exe in ('simulator', 'activation', 'recorder', 'replay'):
+        r = subprocess.run([str(rosutil.exe_path(exe)), '--help'], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0 and r.stdout.startswith(f'usage: {exe}'), (exe, r.stdout, r.stderr)
+    r = subprocess.run([str(rosutil.exe_path('activation')), '--level', '2'], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and r.stderr.strip() == 'error: --level 2.0: must be in [0, 1]'
+    r = subprocess.run([str(rosutil.exe_path('simulator')), '--model', '/nope.npz'], capture_output=True, text=True,
+                       timeout=60, env=rosutil.ros_env(0))
+    assert r.returncode == 2 and 'error: /nope.npz: no such model file' in r.stderr and 'Traceback' not in r.stderr
