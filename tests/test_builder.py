@@ -1,0 +1,286 @@
+"""Model builder on analytic phantoms (tests/phantoms.py): exact counts, volumes, sharing, attachment."""
+import math
+
+import numpy as np
+import pytest
+
+from phantoms import KNEE_Z, R_BODY, R_BONE, R_MUS, X_MUS, Z0, Z1, make_phantom, make_phantom_model
+from tissue_sim.core import model as M
+from tissue_sim.core.builder import build_model, geometry
+from tissue_sim.core.builder.quality import cell_volumes, surface_checks, table1
+from tissue_sim.core.builder.rays import polygon_area
+
+H = (Z1 - Z0) / 1000.0          # m
+N_SLICES = 9                    # every 25 mm over 200 mm
+
+
+def inscribed(n, r):
+    return 0.5 * n * r * r * math.sin(2 * math.pi / n)
+
+
+@pytest.fixture(scope='module')
+def column():
+    lab, aff, tab = make_phantom('column')
+    return build_model((lab, aff), tab)
+
+
+def muscle_cells(tm, name):
+    return np.nonzero(tm.cell_muscle == tm.muscle_index(name))[0]
+
+
+def test_column_exact_counts(column):
+    tm, rep = column
+    t = rep['table1']
+    assert len(tm.slice_z) == N_SLICES
+    assert np.allclose(tm.slice_z, np.linspace(Z0, Z1, N_SLICES) / 1000.0)
+    assert t['bones'] == 2 and t['muscles'] == 2
+    assert t['muscle_cells'] == 2 * (N_SLICES - 1)
+    assert t['muscle_vertices'] == 2 * N_SLICES * 10
+    assert t['fat_cells'] == (N_SLICES - 1) * 12
+    assert t['fat_vertices'] == 8 * t['fat_cells']             # paper's count: incidences
+    assert t['fat_vertices_unique'] == N_SLICES * 24
+    assert np.all(np.diff(tm.cell_offsets)[tm.cell_tissue == M.TISSUE_MUSCLE] == 20)
+    assert np.all(np.diff(tm.cell_offsets)[tm.cell_tissue == M.TISSUE_FAT] == 8)
+    assert t == table1(tm)
+
+
+def test_column_cells_valid_and_surfaces_closed(column):
+    tm, rep = column
+    tm.validate()
+    assert rep['cells']['inverted'] == 0 and not rep['cells']['dropped_degenerate']
+    assert np.all(cell_volumes(tm) > 1e-6)
+    s = surface_checks(tm)
+    assert set(s) == {'muscle/flexor', 'muscle/extensor', 'fat'}
+    assert all(v['watertight'] and v['outward'] for v in s.values())
+    # each muscle's closed surface encloses exactly the sum of its cells
+    vols = cell_volumes(tm)
+    for name in ('flexor', 'extensor'):
+        assert s[f'muscle/{name}']['volume_cm3'] == pytest.approx(vols[muscle_cells(tm, name)].sum() * 1e6, rel=1e-6)
+
+
+def test_column_volumes_match_analytic(column):
+    tm, _ = column
+    vols = cell_volumes(tm)
+    expect = inscribed(10, R_MUS / 1000.0) * H                 # prism of the inscribed 10-gon
+    for name in ('flexor', 'extensor'):
+        assert vols[muscle_cells(tm, name)].sum() == pytest.approx(expect, rel=0.03)
+    # fat: outer 12-gon of the body minus the inner polygon (farthest exit from bone + muscles per ray)
+    ang = 2 * np.pi * np.arange(12) / 12
+    inner = []
+    for a in ang:
+        u = np.array([math.cos(a), math.sin(a)])
+        r = R_BONE
+        for cx in (X_MUS, -X_MUS):
+            p = u @ np.array([cx, 0.0])
+            disc = p * p - (cx * cx - R_MUS ** 2)
+            if disc >= 0 and p + math.sqrt(disc) > 0:
+                r = max(r, p + math.sqrt(disc))
+        inner.append(r)
+    inner = np.array(inner) / 1000.0
+    a_in = 0.5 * np.sum(inner * np.roll(inner, -1)) * math.sin(2 * np.pi / 12)
+    expect_fat = (inscribed(12, R_BODY / 1000.0) - a_in) * H
+    assert vols[tm.cell_tissue == M.TISSUE_FAT].sum() == pytest.approx(expect_fat, rel=0.03)
+
+
+def test_rings_aligned_ccw_and_on_the_contour(column):
+    tm, _ = column
+    for name, cx in (('flexor', -X_MUS), ('extensor', X_MUS)):
+        for c in muscle_cells(tm, name):
+            v = tm.rest_positions[tm.cell(c)]
+            bot, top = v[:10], v[10:]
+            assert polygon_area(bot[:, :2]) > 0 and polygon_area(top[:, :2]) > 0      # CCW from +z
+            assert np.all(top[:, 2] > bot[:, 2])
+            free = (tm.vertex_flags[tm.cell(c)[:10]] & M.VF_SHARED) == 0
+            d = bot[:, :2] * 1000.0 - [cx, 0.0]
+            ang = np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 360
+            # vertex k points along 36 k degrees (no twist) and lies on the circle (within a pixel)
+            assert np.allclose(ang[free], (36.0 * np.arange(10))[free], atol=2.0)
+            assert np.allclose(np.hypot(d[free, 0], d[free, 1]), R_MUS, atol=0.8)
+    # fat rings: inner a, inner b, outer b, outer a with a -> b counter-clockwise (so the ring is clockwise)
+    for c in np.nonzero(tm.cell_tissue == M.TISSUE_FAT)[0]:
+        v = tm.rest_positions[tm.cell(c)]
+        assert polygon_area(v[:4, :2]) < 0
+        assert np.linalg.norm(v[2, :2]) > np.linalg.norm(v[1, :2]) and np.linalg.norm(v[3, :2]) > np.linalg.norm(v[0, :2])
+
+
+def test_fibres_along_the_column(column):
+    tm, _ = column
+    mus = tm.cell_tissue == M.TISSUE_MUSCLE
+    assert np.allclose(tm.cell_fibre[mus], [0, 0, 1], atol=0.02)
+
+
+def test_sharing_merges_touching_tissues(column):
+    tm, rep = column
+    p = tm.rest_positions
+    fl = tm.vertex_flags
+    # fat ray 0 ends on the far side of the extensor at (60, 0) mm, as does extensor ray 0: one vertex
+    for z in tm.slice_z:
+        for x in (60.0, -60.0):
+            near = np.nonzero(np.linalg.norm(p - [x / 1000, 0, z], axis=1) < 1.5e-3)[0]
+            assert len(near) == 1, (x, z, near)
+            v = near[0]
+            assert fl[v] & M.VF_SHARED and fl[v] & M.VF_MUSCLE and fl[v] & M.VF_FAT
+            assert p[v, 2] == z                               # stays on the slice plane
+    assert rep['table1']['shared_vertices'] == int(np.count_nonzero(fl & M.VF_SHARED))
+    assert rep['sharing']['vertices_before'] - rep['sharing']['vertices_after'] >= rep['table1']['shared_vertices']
+
+
+def test_no_sharing_when_threshold_zero():
+    lab, aff, tab = make_phantom('column')
+    tm, rep = build_model((lab, aff), tab, share_mm=0)
+    assert rep['table1']['shared_vertices'] == 0
+    assert tm.n_vertices == 2 * N_SLICES * 10 + N_SLICES * 24
+    tm2, rep2 = build_model((lab, aff), tab, share_mm=12)
+    assert rep2['table1']['shared_vertices'] > 0 and tm2.n_vertices < tm.n_vertices
+    assert rep2['cells']['inverted'] == 0
+
+
+def test_bone_attachment(column):
+    tm, rep = column
+    p = tm.rest_positions * 1000.0
+    dist = np.hypot(p[:, 0], p[:, 1]) - R_BONE
+    att = tm.vertex_segment >= 0
+    attach_mm = tm.meta['attach_mm']
+    assert att.any()
+    assert np.all(dist[att] <= attach_mm + 1.0)
+    assert np.all(dist[~att] > attach_mm - 1.0)
+    # segment of the bone on that slice: upper above the knee, lower below
+    up = tm.segment_names.index('upper')
+    assert np.all((tm.vertex_segment[att] == up) == (p[att, 2] >= KNEE_Z))
+    # the flexor's ray 0 and the extensor's ray 5 touch the bone on every slice
+    for z in tm.slice_z:
+        for x in (-10.0, 10.0):
+            v = np.argmin(np.linalg.norm(tm.rest_positions - [x / 1000, 0, z], axis=1))
+            assert tm.vertex_segment[v] >= 0
+    # fat inner points at 90 and 270 degrees lie on the bone (no muscle there)
+    for z in tm.slice_z:
+        for y in (10.0, -10.0):
+            v = np.argmin(np.linalg.norm(tm.rest_positions - [0, y / 1000, z], axis=1))
+            assert tm.vertex_flags[v] & M.VF_FAT and tm.vertex_segment[v] >= 0
+
+
+def test_table_fields_and_skeleton(column):
+    tm, _ = column
+    f, e = tm.muscle_index('flexor'), tm.muscle_index('extensor')
+    assert tm.muscle_groups[f] == 'hamstrings' and tm.muscle_max_force[f] == 1000.0
+    assert tm.muscle_fibre_length[f] == 0.1
+    assert math.isnan(tm.muscle_max_force[e]) and math.isnan(tm.muscle_fibre_length[e])
+    assert np.all(tm.cell_k_scale[tm.cell_muscle == e] == 2.0) and np.all(tm.cell_k_scale[tm.cell_muscle == f] == 1.0)
+    assert tm.segment_names == ('upper', 'lower') and list(tm.segment_parent) == [-1, 0]
+    assert tm.joint_names == ('knee',) and tm.joint_type[0] == M.JOINT_HINGE
+    assert np.allclose(tm.joint_centre[0], [0, 0, KNEE_Z / 1000]) and np.allclose(tm.joint_range[0], np.radians([0, 120]))
+    assert tm.bone_names == ('upper_bone', 'lower_bone') and list(tm.bone_segment) == [0, 1]
+    # bones: closed surfaces whose volume matches the cylinder within 5 %
+    import trimesh
+    for b, (z0, z1) in enumerate(((KNEE_Z - 2.5, Z1), (Z0, KNEE_Z - 2.5))):
+        v, t = tm.bone_mesh(b)
+        m = trimesh.Trimesh(v, t, process=False)
+        assert m.is_watertight and m.volume > 0
+        assert m.volume == pytest.approx(math.pi * (R_BONE / 1000) ** 2 * (z1 - z0) / 1000, rel=0.08)
+    # skin quads: outer points, outward normal
+    q = tm.rest_positions[tm.skin_quads]
+    assert np.allclose(np.hypot(q[..., 0], q[..., 1]) * 1000, R_BODY, atol=0.8)
+    n = np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 1])
+    assert np.all(np.einsum('ij,ij->i', n[:, :2], q.mean(1)[:, :2]) > 0)
+    assert np.all(tm.cell_tissue[tm.skin_quad_cell] == M.TISSUE_FAT)
+    assert np.all(tm.vertex_flags[tm.skin_quads.ravel()] & M.VF_SKIN)
+
+
+def test_save_load_roundtrip(column, tmp_path):
+    tm, _ = column
+    p = tm.save(tmp_path / 'm.npz')
+    tm2 = M.TissueModel.load(p)
+    assert tm2.content_hash() == tm.content_hash()
+    assert tm2.meta['settings']['muscle_rays'] == 10
+
+
+def test_tapered_muscle_ends_between_slices():
+    lab, aff, tab = make_phantom('tapered')
+    tm, rep = build_model((lab, aff), tab)
+    f = muscle_cells(tm, 'flexor')
+    # present (area >= 20 mm^2) on z = -100 .. 25 mm: 6 rings, 5 cells; the z = 50 sliver is dropped and reported
+    assert len(f) == 5
+    assert tm.slice_z[tm.cell_slice[f]].max() == pytest.approx(0.0)
+    assert any(d['name'] == 'flexor' and d['slice'] == 6 for d in rep['dropped_components'])
+    assert surface_checks(tm)['muscle/flexor']['watertight']
+    zs = np.linspace(Z0, 25.0, 6)
+    r = R_MUS * (60.0 - zs) / 160.0 / 1000.0
+    a = inscribed(10, 1.0) * r ** 2
+    expect = sum(0.025 / 3 * (a[i] + a[i + 1] + math.sqrt(a[i] * a[i + 1])) for i in range(5))
+    assert cell_volumes(tm)[f].sum() == pytest.approx(expect, rel=0.05)
+    assert np.all(cell_volumes(tm) > 0)
+
+
+def test_two_bones_in_one_slice():
+    lab, aff, tab = make_phantom('two_bones')
+    tm, rep = build_model((lab, aff), tab)
+    assert rep['cells']['inverted'] == 0 and rep['closed_surfaces']
+    # fat rays start at the centroid of both bones' pixels
+    a1, a2 = math.pi * 12 ** 2, math.pi * 6 ** 2
+    c = (np.array([10.0, -15.0]) * a1 + np.array([-5.0, 25.0]) * a2) / (a1 + a2) / 1000.0
+    fat = np.nonzero(tm.cell_tissue == M.TISSUE_FAT)[0]
+    for cid in fat[:12]:
+        v = tm.rest_positions[tm.cell(cid)]
+        ids = tm.cell(cid)
+        for i_in, i_out in ((0, 3), (1, 2)):
+            if (tm.vertex_flags[ids[[i_in, i_out]]] & M.VF_SHARED).any():
+                continue
+            d1, d2 = v[i_in, :2] - c, v[i_out, :2] - c
+            # the inner point lies on the ray from c through the outer point (within 0.5 mm)
+            assert abs(d1[0] * d2[1] - d1[1] * d2[0]) / np.linalg.norm(d2) < 0.5e-3
+            assert d1 @ d2 > 0
+    # attachment to the nearest bone's segment
+    p = tm.rest_positions * 1000
+    att = tm.vertex_segment >= 0
+    d_tib = np.hypot(p[:, 0] - 10, p[:, 1] + 15) - 12
+    d_fib = np.hypot(p[:, 0] + 5, p[:, 1] - 25) - 6
+    assert np.any(tm.vertex_segment == 0) and np.any(tm.vertex_segment == 1)
+    assert np.all(tm.vertex_segment[att] == np.where(d_tib[att] < d_fib[att], 0, 1))
+
+
+def test_split_region_gives_two_chains():
+    lab, aff, tab = make_phantom('split')
+    tm, rep = build_model((lab, aff), tab)
+    f = muscle_cells(tm, 'flexor')
+    # one disc on z < 0 (4 slices), two discs on z >= 0 (5 slices): chain of 9 rings + chain of 5 rings
+    assert len(f) == 8 + 4
+    assert surface_checks(tm)['muscle/flexor']['watertight']
+    assert rep['cells']['inverted'] == 0
+
+
+def test_non_convex_region_uses_interior_origin():
+    lab, aff, tab = make_phantom('cshape')
+    tm, rep = build_model((lab, aff), tab)
+    f = muscle_cells(tm, 'flexor')
+    assert len(f) == N_SLICES - 1 and rep['cells']['inverted'] == 0
+    v = tm.rest_positions[np.unique(np.concatenate([tm.cell(c) for c in f]))] * 1000
+    free = (tm.vertex_flags[np.unique(np.concatenate([tm.cell(c) for c in f]))] & M.VF_SHARED) == 0
+    r = np.hypot(v[:, 0], v[:, 1])
+    ang = np.abs(np.degrees(np.arctan2(v[:, 1], v[:, 0])))
+    # 'first' crossing keeps the polygon inside the C (never across the bone or the opening)
+    assert np.all(r[free] >= R_BONE - 1.0) and np.all(r[free] <= 41.0) and np.all(ang[free] >= 98.0)
+    assert rep['areas']['per_muscle']['flexor']['median_area_ratio'] > 0.5
+
+
+def test_settings_change_counts_exactly():
+    lab, aff, tab = make_phantom('column')
+    tm, rep = build_model((lab, aff), tab, muscle_rays=6, fat_rays=8, slice_mm=10.0, share_mm=0)
+    t = rep['table1']
+    assert len(tm.slice_z) == 21
+    assert t['muscle_cells'] == 2 * 20 and t['muscle_vertices'] == 2 * 21 * 6
+    assert t['fat_cells'] == 20 * 8 and t['fat_vertices_unique'] == 21 * 16
+    tm3, rep3 = build_model((lab, aff), tab, slice_step=8)        # every 8th 5-mm slice = 40 mm
+    assert len(tm3.slice_z) == 6
+
+
+def test_phantom_model_helper():
+    tm = make_phantom_model('column')
+    assert isinstance(tm, M.TissueModel) and tm.n_cells == 16 + 96
+
+
+def test_prism_volume_of_unit_cube():
+    ring = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    pos = np.concatenate([ring, ring + [0, 0, 1]])
+    v = geometry.prism_volumes(pos, np.array([0, 8]), np.arange(8))
+    assert v[0] == pytest.approx(1.0)
+    assert geometry.prism_volumes(pos, np.array([0, 8]), np.arange(8), np.array([True]))[0] == pytest.approx(-1.0)
