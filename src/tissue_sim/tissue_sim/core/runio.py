@@ -182,12 +182,12 @@ def load_run(path, stride: int = 1, frames=None, max_frames: int | None = None) 
 
 
 # ----------------------------------------------------------------------------- writing (tests, synthetic runs)
-def write_run(path, topology: Topology, states, topology_stamp_ns: int = 0) -> Path:
+def write_run(path, topology: Topology, states, topology_stamp_ns: int = 0, chunk_size: int = 1 << 20) -> Path:
     """Write a run MCAP (project writer): the topology on /tissue/topology, then each State (or its
     CDR bytes) on /tissue/state. Used for synthetic runs and tests; real runs come from the recorder
     or a headless simulation."""
     path = Path(path)
-    with mcapio.McapWriter(path, flush_seconds=-1, metadata={'model': topology.model_name}) as w:
+    with mcapio.McapWriter(path, flush_seconds=-1, chunk_size=chunk_size, metadata={'model': topology.model_name}) as w:
         w.add_channel('/tissue/topology', TOPOLOGY_TYPE)
         w.add_channel('/tissue/state', STATE_TYPE)
         w.write('/tissue/topology', tissue_cdr.encode_topology(topology), topology_stamp_ns)

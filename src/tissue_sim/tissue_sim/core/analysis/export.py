@@ -68,21 +68,30 @@ def write_meshes(topo, X, poses, out: Path, stem: str, formats=('glb', 'ply')) -
 
 
 def cell_grid_topology(topo):
-    """(VTK cell connectivity stream, cell types, owner topology cell) for all soft-tissue cells."""
+    """(VTK cell connectivity stream, cell types, owner topology cell) for all soft-tissue cells.
+
+    VTK wants positively oriented cells; fat rings are clockwise by the model contract (inner a,
+    inner b, outer b, outer a), so cells whose rest volume is negative get their rings swapped.
+    """
+    from tissue_sim.core.analysis import deform
     offsets = np.asarray(topo.cell_offsets, np.int64)
     verts = np.asarray(topo.cell_vertices, np.int64)
+    tri, own = deform.cell_surface_triangles(offsets, verts, np.arange(topo.n_cells))
+    negative = deform.signed_volumes(topo.rest_positions, tri, own, topo.n_cells) < 0
     conn, types, owner = [], [], []
     for c in range(topo.n_cells):
         vs = verts[offsets[c]:offsets[c + 1]]
         n = len(vs) // 2
+        if negative[c]:
+            vs = np.concatenate([vs[n:], vs[:n]])
         if n == 4:
             conn.append(np.concatenate([[8], vs]))
             types.append(VTK_HEXAHEDRON)
             owner.append(c)
             continue
         b, t = vs[:n], vs[n:]
-        for i in range(1, n - 1):            # VTK wedge: base (0,1,2) normal points away from (3,4,5)
-            conn.append(np.array([6, b[0], b[i + 1], b[i], t[0], t[i + 1], t[i]]))
+        for i in range(1, n - 1):            # VTK wedge: counter-clockwise base (0,1,2) below (3,4,5)
+            conn.append(np.array([6, b[0], b[i], b[i + 1], t[0], t[i], t[i + 1]]))
             types.append(VTK_WEDGE)
             owner.append(c)
     if not conn:

@@ -143,7 +143,7 @@ def bend(X: np.ndarray, angle: float, blend: float = 0.12) -> np.ndarray:
 
 
 def bending_run(tm: M.TissueModel, path, n_frames: int = 40, rate_hz: float = 34.0,
-                max_angle: float = np.deg2rad(90)):
+                max_angle: float = np.deg2rad(90), chunk_size: int = 1 << 20):
     """Write a synthetic MCAP run of the tube flexing its knee from 0 to max_angle (smoothstep in time)."""
     from tissue_sim.core import runio, tissue_cdr
     from tissue_sim.core.analysis.deform import cell_surface_triangles, signed_volumes
@@ -171,4 +171,4 @@ def bending_run(tm: M.TissueModel, path, n_frames: int = 40, rate_hz: float = 34
             activations=np.array([min(1.0, 2 * u), 0.0], np.float32), muscle_lengths=np.array(lengths, np.float32),
             muscle_volumes=vols.astype(np.float32), segment_poses=poses, vertex_positions=X.astype(np.float32),
             kinetic_energy=0.0, elastic_energy=0.0))
-    return runio.write_run(path, topo, states)
+    return runio.write_run(path, topo, states, chunk_size=chunk_size)

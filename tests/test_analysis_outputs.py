@@ -1,0 +1,114 @@
+"""The commands end to end on a synthetic bending run: tables, summary, plots, pictures, exports, errors."""
+import argparse
+import csv
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from tissue_sim.cli import main
+from tissue_sim.commands import analyze, export_run, render
+from tissue_sim.core.analysis import synthetic
+from tissue_sim.errors import UserError
+
+
+@pytest.fixture(scope='module')
+def run_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp('run')
+    tm = synthetic.tube_model(n_around=12, n_slices=7)
+    synthetic.bending_run(tm, d / 'run_0.mcap', n_frames=24, max_angle=np.deg2rad(80))
+    return d
+
+
+def _args(mod, argv):
+    p = argparse.ArgumentParser()
+    mod.add_arguments(p)
+    return p.parse_args(argv)
+
+
+def test_analyze_writes_tables_summary_plots(run_dir, capsys):
+    assert analyze.run(_args(analyze, [str(run_dir), '-q'])) == 0
+    out = run_dir / 'analysis'
+    for f in ('fat_cells.csv', 'muscles.csv', 'joints.csv', 'frames.csv', 'summary.json',
+              'joint_angles.png', 'muscles.png', 'fat_d_distribution.png'):
+        assert (out / f).is_file() and (out / f).stat().st_size > 100, f
+    rows = list(csv.DictReader(open(out / 'fat_cells.csv')))
+    assert len(rows) == 24 * 12 * 6
+    assert {float(r['area_ratio']) for r in rows if r['frame'] == '0'} == {1.0}
+    s = json.loads((out / 'summary.json').read_text())
+    assert s['frames'] == 24 and s['joints']['knee_r']['max_deg'] == pytest.approx(80, abs=1e-6)
+    f = s['fat']
+    # bending: skin behind the knee shrinks, in front it grows; rotation makes the paper's d larger
+    assert f['area_ratio_min'] < 0.9 and f['area_ratio_max'] > 1.1
+    assert f['d_paper_max_m'] > f['d_rotfree_max_m'] > 0
+    joints = list(csv.DictReader(open(out / 'joints.csv')))
+    assert float(joints[-1]['position_deg']) == pytest.approx(80, abs=1e-6)
+    assert 'wrote' in capsys.readouterr().out
+
+
+def test_render_pictures_have_size_and_content(run_dir, tmp_path):
+    import imageio.v3 as iio
+    out = tmp_path / 'fig'
+    assert render.run(_args(render, [str(run_dir), '-o', str(out), '--times', '0,0.6', '--size', '320x240',
+                                     '--views', 'limb,knee,area,d_rotfree', '--animation', 'gif',
+                                     '--anim-frames', '5'])) == 0
+    for view in ('limb', 'knee', 'area', 'd_rotfree'):
+        a = iio.imread(out / f'{view}_f00000.png')
+        b = iio.imread(out / f'{view}_f00020.png')
+        assert a.shape == (240, 320, 3) and b.shape == (240, 320, 3)
+        assert a.std() > 5 and b.std() > 5                       # not blank
+        assert (a != 255).any(axis=2).mean() > 0.02               # something drawn on the white background
+        assert np.abs(a.astype(int) - b.astype(int)).mean() > 1   # the frames differ
+        assert iio.imread(out / f'{view}_panel.png').shape[1] == 2 * 320 + 6
+    # Fig. 8 colours: at 0 s the skin is unchanged (no saturated red/blue); bent, both appear
+    a = iio.imread(out / 'area_f00000.png').astype(int)
+    b = iio.imread(out / 'area_f00020.png').astype(int)
+    body = (slice(20, 230), slice(0, 250))                        # left of the colour bar
+
+    def red(im):
+        return ((im[..., 0] > 180) & (im[..., 1] < 120) & (im[..., 2] < 120))[body].sum()
+
+    def blue(im):
+        return ((im[..., 2] > 150) & (im[..., 0] < 120) & (im[..., 1] < 120))[body].sum()
+    assert red(a) == 0 and blue(a) == 0
+    assert red(b) > 20 and blue(b) > 20
+    gif = iio.imread(out / 'animation.gif', index=None)
+    assert gif.shape[0] == 5 and gif.shape[1:3] == (360, 480)
+
+
+def test_export_run_meshes_and_vtu_series(run_dir, tmp_path):
+    import pyvista as pv
+    import trimesh
+    out = tmp_path / 'exp'
+    assert export_run.run(_args(export_run, [str(run_dir), '-o', str(out), '--times', '0.3', '--stride', '6'])) == 0
+    scene = trimesh.load(out / 'frame_00010.glb')
+    names = set(scene.geometry)
+    assert 'skin' in names and 'muscle/biceps_femoris_long_head' in names and 'bone/tibia' in names
+    assert trimesh.load(out / 'frame_00010.ply').vertices.shape[0] > 100
+    root = ET.parse(out / 'vtu' / 'cells.pvd').getroot()
+    ds = root.findall('./Collection/DataSet')
+    assert len(ds) == 2 * 4                              # frames 0, 6, 12, 18: cells + bones each
+    g = pv.read(out / 'vtu' / ds[0].get('file'))
+    sizes = g.compute_cell_sizes(length=False, area=False)['Volume']
+    assert np.all(sizes > 0)                             # hexahedra and wedges correctly oriented
+    assert set(np.unique(g.cell_data['tissue'])) == {1, 2}
+    fat = g.cell_data['tissue'] == 2
+    assert np.all(np.isfinite(g.cell_data['area_ratio'][fat])) and np.all(np.isnan(g.cell_data['d_paper_m'][~fat]))
+    last = pv.read(out / 'vtu' / ds[-2].get('file'))
+    assert float(ds[-2].get('timestep')) == pytest.approx(18 / 34.0)
+    assert np.abs(last.point_data['displacement_m']).max() > 0.01
+
+
+def test_bad_input_is_one_error_line(tmp_path, capsys):
+    bad = tmp_path / 'x.mcap'
+    bad.write_text('hello')
+    assert main(['analyze', str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert 'error:' in err and 'not an MCAP' in err and 'Traceback' not in err
+    assert main(['render', str(tmp_path / 'missing')]) == 2
+    assert 'no such file' in capsys.readouterr().err
+    with pytest.raises(UserError, match='--views'):
+        render.run(_args(render, [str(bad), '--views', 'nonsense']))
+    with pytest.raises(UserError, match='--size'):
+        render.run(_args(render, [str(bad), '--size', 'big']))
