@@ -16,6 +16,9 @@ Kinds:
              (r 6 at (-5, 25)) on segment 'lower'; one muscle disc r 20 at (-40, 0); fat r 70.
   split      column whose flexor is one disc below z = 0 and two discs (r 12 at y = +-14) above.
   cshape     column whose flexor is a C-shaped (non-convex) annulus sector around the bone.
+  limb       a synthetic lower limb of the paper's size (hip at z = 0 down to z = -1125 mm; 6 bones,
+             28 muscles on thigh and shank, fat), 1.5 mm pixels, 2.5 mm slices: benchmark input
+             used by bench/build.py while the bundled anatomy is absent (make_limb_phantom()).
 """
 from __future__ import annotations
 
@@ -139,3 +142,72 @@ def write_phantom(kind: str, folder, fmt: str = 'nii'):
     else:
         raise ValueError(fmt)
     return p, folder / 'tissues.yaml'
+
+
+def make_limb_phantom():
+    """(labels, affine, table) of the synthetic 'limb' (see the module docstring); ~30 M voxels."""
+    px, dz = 1.5, 2.5
+    half = 70
+    zlo, zhi = -1125.0, 0.0
+    K = int(round((zhi - zlo) / dz)) + 1
+    affine = np.array([[-px, 0, 0, half * px], [0, -px, 0, half * px], [0, 0, dz, zlo], [0, 0, 0, 1.0]])
+    n = 2 * half + 1
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing='ij')
+    x = (half - j) * px          # A
+    y = (i - half) * px          # -R
+    lab = np.zeros((n, n, K), np.int16)
+    bones = {1: ('femur', 'thigh'), 2: ('patella', 'shank'), 3: ('tibia', 'shank'), 4: ('fibula', 'shank'),
+             5: ('talus', 'foot'), 6: ('calcaneus', 'foot')}
+    labels = {b: {'name': nm, 'tissue': 'bone', 'segment': sg} for b, (nm, sg) in bones.items()}
+    labels[90] = {'name': 'subcutaneous_fat', 'tissue': 'fat'}
+    muscles = []
+    for m in range(14):                                   # thigh
+        a = 2 * np.pi * m / 14
+        muscles.append((f'thigh_{m:02d}', 48 * np.cos(a), 48 * np.sin(a), 14.0, -440 + (m % 3) * 25.0, -30 - (m % 4) * 30.0,
+                        'hamstrings' if m in (6, 7, 8) else ''))
+    for m in range(12):                                   # shank
+        a = 2 * np.pi * (m + 0.5) / 12
+        muscles.append((f'shank_{m:02d}', 5 + 33 * np.cos(a), -8 + 33 * np.sin(a), 10.0, -860 + (m % 3) * 30.0, -480.0, ''))
+    muscles.append(('gastrocnemius_lat', -48, -16, 12.0, -760, -470, ''))
+    muscles.append(('gastrocnemius_med', -48, 16, 12.0, -760, -470, ''))
+    for m, mu in enumerate(muscles):
+        labels[10 + m] = {'name': mu[0], 'tissue': 'muscle', 'group': mu[6]}
+    for k in range(K):
+        z = zlo + k * dz
+        if z > -455:
+            rb = 85 - 30 * (-z) / 455
+        elif z > -880:
+            rb = 55 - 20 * (-455 - z) / 425
+        else:
+            rb = 40
+        sl = np.where(np.hypot(x, y) <= rb, 90, 0).astype(np.int16)
+        for m, (nm, cx, cy, r, z0, z1, _) in enumerate(muscles):
+            if z0 <= z <= z1:
+                sl[np.hypot(x - cx, y - cy) <= r * min(1.0, 0.4 + 0.6 * min(z - z0, z1 - z) / 60.0)] = 10 + m
+        if -450 <= z <= -20:
+            sl[np.hypot(x - 5, y) <= 14] = 1
+        if -470 <= z <= -420:
+            sl[np.hypot(x - 45, y) <= 10] = 2
+        if -880 <= z < -450:
+            sl[np.hypot(x - 10, y) <= 15] = 3
+        if -860 <= z <= -470:
+            sl[np.hypot(x + 10, y + 25) <= 7] = 4
+        if -900 <= z < -880:
+            sl[np.hypot(x - 5, y) <= 18] = 5
+        if z < -900:
+            sl[np.hypot(x + 10, y) <= 22] = 6
+        lab[:, :, k] = sl
+    joints = {
+        'source': 'synthetic limb phantom',
+        'segments': [
+            {'name': 'thigh', 'parent': None, 'mass': 10.4, 'com': [0.0, 0.0, -0.19], 'inertia': [0.18, 0.18, 0.04]},
+            {'name': 'shank', 'parent': 'thigh', 'mass': 3.4, 'com': [0.0, 0.0, -0.64], 'inertia': [0.05, 0.05, 0.006]},
+            {'name': 'foot', 'parent': 'shank', 'mass': 1.1, 'com': [0.03, 0.0, -1.0], 'inertia': [0.004, 0.004, 0.001]},
+        ],
+        'joints': [
+            {'name': 'knee_r', 'type': 'hinge', 'parent': 'thigh', 'child': 'shank', 'axis': [0, 1, 0],
+             'centre': [0.0, 0.0, -0.455], 'range_deg': [0, 120], 'rest_deg': 0},
+            {'name': 'ankle_r', 'type': 'fixed', 'parent': 'shank', 'child': 'foot', 'centre': [0.0, 0.0, -0.885]},
+        ],
+    }
+    return lab, affine, {'name': 'limb_phantom', 'joints': joints, 'labels': labels}

@@ -1,0 +1,65 @@
+"""Benchmark: build time of the default anatomy's model (METHOD.md section 1; target < 5 s).
+
+Builds the bundled lower limb with default ("paper") settings (or, while the bundled anatomy is
+absent, the synthetic 'limb' phantom of tests/phantoms.py), prints the build time (first build in
+this process, including imports, and the median of the following runs), the Table-1 rows side by
+side with the paper and their ratios. Last line: one JSON object.
+
+    .venv/bin/python bench/build.py [--runs 3]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / 'src' / 'tissue_sim'))
+sys.path.insert(0, str(ROOT / 'tests'))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--runs', type=int, default=3)
+    args = ap.parse_args()
+    t_import = time.perf_counter()
+    from tissue_sim.core import builder
+    import_s = time.perf_counter() - t_import
+    try:
+        labels, tissues = builder.default_inputs()
+        if not Path(labels).exists():
+            raise FileNotFoundError(labels)
+        src, inputs = 'bundled anatomy', (str(labels), str(tissues))
+    except (ImportError, AttributeError, FileNotFoundError):
+        from phantoms import make_limb_phantom
+        lab, aff, tab = make_limb_phantom()
+        src, inputs = 'synthetic limb phantom (bundled anatomy absent)', ((lab, aff), tab)
+    times = []
+    for i in range(1 + args.runs):
+        t0 = time.perf_counter()
+        tm, rep = builder.build_model(*inputs)
+        times.append(time.perf_counter() - t0 + (0.0 if i else import_s))
+    first, med = times[0], statistics.median(times[1:])
+    t1 = rep['table1']
+    print(f'input: {src}')
+    print(f'build time: first {first:.2f} s (cold: with imports of the builder and its libraries), median of {args.runs} more {med:.2f} s; target < 5 s')
+    print(f'{"Table 1 row":<18}{"model":>8}{"paper":>8}{"ratio":>8}')
+    ratios = {}
+    for k, lab in builder.TABLE1_LABELS.items():
+        p = builder.PAPER_TABLE1[k]
+        ratios[k] = round(t1[k] / p, 3)
+        print(f'{k:<18}{t1[k]:>8}{p:>8}{ratios[k]:>8.2f}')
+    print(f'fat vertices (distinct) {t1["fat_vertices_unique"]}; inverted cells {rep["cells"]["inverted"]}; '
+          f'closed surfaces {rep["closed_surfaces"]}; median polygon/label area {rep["areas"]["median_ratio"]}')
+    within = all(abs(r - 1) <= 0.25 for k, r in ratios.items() if k not in ('bones', 'muscles'))
+    print(json.dumps({'bench': 'build', 'input': src, 'build_s_first': round(first, 3), 'build_s_median': round(med, 3),
+                      'target_s': 5.0, 'under_target': first < 5.0 and med < 5.0, 'table1': t1,
+                      'paper_table1': builder.PAPER_TABLE1, 'ratio_to_paper': ratios, 'within_25pct': within,
+                      'inverted_cells': rep['cells']['inverted'], 'closed_surfaces': rep['closed_surfaces']}))
+
+
+if __name__ == '__main__':
+    main()
