@@ -229,3 +229,37 @@ def _npz_states(path: Path):
             yield State(int(times[i] * 1e9), 'world', i, float(times[i]), jn, jp[i], jv[i], mn,
                         act[i].astype(np.float32), ml[i].astype(np.float32), mv[i].astype(np.float32),
                         np.asarray(sp[i]).reshape(-1, 7), X[i].astype(np.float32), 0.0, 0.0)
+
+
+# ----------------------------------------------------------------------------- headless solver runs
+def record_simulation(path, tm, params=None, duration: float = 1.0, timeline=None, rate_hz: float = 34.0,
+                      dt: float | None = None, progress=None) -> Path:
+    """Run the solver headless on TissueModel ``tm`` and write the run MCAP (topology + states at
+    ``rate_hz`` of simulated time), exactly what the recorder keeps from the simulator node.
+
+    ``timeline``: as :func:`tissue_sim.core.solver.simulate` (None: all passive). Raises the solver's
+    DivergenceError if the run blows up (the frames before are kept in the file)."""
+    from tissue_sim.core import solver
+    sim = solver.compile_model(tm, params or solver.Params.paper())
+    h = sim.params.dt if dt is None else float(dt)
+    every = max(1, int(round(1.0 / (rate_hz * h))))
+    fn = solver.timeline_function(sim, timeline)
+    topo = tissue_cdr.from_model(tm, parameters_yaml=sim.params.to_yaml())
+    path = Path(path)
+    with mcapio.McapWriter(path, metadata={'model': tm.name, 'source': 'runio.record_simulation'}) as w:
+        w.add_channel('/tissue/topology', TOPOLOGY_TYPE)
+        w.add_channel('/tissue/state', STATE_TYPE)
+        w.write('/tissue/topology', tissue_cdr.encode_topology(topo), 0)
+        for t, st in solver.simulate(sim, duration, timeline, dt=h, every=every):
+            o = solver.observe(sim, st)
+            act = fn(t)
+            stamp = int(round(t * 1e9))
+            w.write('/tissue/state', tissue_cdr.encode_state(
+                stamp_ns=stamp, step=st.step, sim_time=t, joint_names=tm.joint_names,
+                joint_positions=o['joint_positions'], joint_velocities=o['joint_velocities'],
+                muscle_names=tm.muscle_names, activations=act, muscle_lengths=o['muscle_lengths'],
+                muscle_volumes=o['muscle_volumes'], segment_poses=o['segment_poses'], vertex_positions=st.x,
+                kinetic_energy=o['kinetic_energy'], elastic_energy=o['elastic_energy']), stamp)
+            if progress is not None:
+                progress(t)
+    return path

@@ -83,7 +83,7 @@ def render_run(path, out, times=None, n_frames: int = 4, size=(800, 600), views=
             clim = 2 ** max(lim, np.log2(1.05))
         rd = render.LimbRenderer(topo, view, size=size, clim=clim, d_max=dmax)
         if view == 'knee':
-            rd.set_camera(pts, focus=knee, half_height=max(0.18 * height, 0.05))
+            rd.set_camera(pts, focus=knee, half_height=max(0.18 * height, 0.8 * float(np.ptp(topo.rest_positions[:, 0])), 0.05))
         else:
             rd.set_camera(pts)
         imgs = []
