@@ -102,60 +102,81 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
 # ------------------------------------------------------------------------------------ cell forces
 @njit(cache=True)
 def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, kc, kact, damp_b,
-                volume_actual, iters, cell_energy):
-    """Elastic (+ deformation-damping) forces of all cells, accumulated into f (V, 3) (zeroed here).
+                volume_actual, iters, cell_energy, kvol, pressure, vol_gain):
+    """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
+    (zeroed here). Returns the first cell whose force is non-finite or overflowing, else -1.
 
-    Per cell: centroid c = mean x_i; rest shape X'_i = F X0_i with F = lam f f^T + s (I - f f^T)
-    (muscle cells; F = I for fat); R = rotation of A F, A = sum (x_i - c) X0_i^T, warm-started
-    from quat; goal G_i = c + R F X0_i; force k (G_i - x_i). With R the polar factor this
-    satisfies eq. (1): zero net force and zero net moment. Damping: -b (v_i - v_rigid_i), v_rigid
-    the cell's mean linear + angular velocity (conserves momentum, leaves rigid motion undamped);
-    damp_b[c] = 0 turns it off. Returns the index of the first cell with a non-finite or overflowing
-    force, else -1. cell_energy[c] = 0.5 k sum |G_i - x_i|^2."""
+    Per cell (one gather pass, one scatter pass): centroid c = mean x_i; A = sum (x_i - c) X0_i^T;
+    rest shape X'_i = F X0_i with F = lam f f^T + s (I - f f^T) for muscle cells (fibre f, s the
+    cross-section factor), F = I for fat; R = rotation of A F (warm-started from quat); goal
+    G_i = c + R F X0_i; force k (G_i - x_i). R being the polar factor, this satisfies eq. (1):
+    zero net force and moment. Volume (kvol[c] > 0): with D = A Qinv the cell's best-fit affine
+    deformation, energy 0.5 kvol (det D - 1)^2 adds -kvol (det D - 1) cof(D) Qinv X0_i (internal:
+    rotation and translation invariant), plus an integral term: pressure[c] += vol_gain * (-kvol
+    (det D - 1)) each call acts the same way, so a cell held from reaching its volume (e.g. by
+    bone-attached vertices) builds up pressure until det D = 1 (vol_gain = h / volume_relax_time;
+    0 = off). Damping: -b (v_i - v_rigid_i) with v_rigid the cell's mean
+    linear + angular velocity (momentum conserving, rigid motion undamped). cell_energy[c] gets
+    0.5 k sum |G_i - x_i|^2 + the volume energy."""
     f[:] = 0.0
     A = np.empty((3, 3))
     B = np.empty((3, 3))
     F = np.empty((3, 3))
     R = np.empty((3, 3))
     T = np.empty((3, 3))
+    D = np.empty((3, 3))
+    P = np.zeros((3, 3))
     for c in range(off.shape[0] - 1):
         a0, a1 = off[c], off[c + 1]
         n = a1 - a0
-        cx = cy = cz = 0.0
-        for p in range(a0, a1):
-            i = cv[p]
-            cx += x[i, 0]; cy += x[i, 1]; cz += x[i, 2]
-        cx /= n; cy /= n; cz /= n
+        i0 = cv[a0]
+        ox, oy, oz = x[i0, 0], x[i0, 1], x[i0, 2]          # local origin (precision)
+        b = damp_b[c]
+        sx = sy = sz = 0.0
+        svx = svy = svz = 0.0
+        lx = ly = lz = 0.0
+        yxx = yyy = yzz = yxy = yxz = yyz = 0.0
         for r in range(3):
             for s in range(3):
                 A[r, s] = 0.0
-        for p in range(a0, a1):
+        for p in range(a0, a1):                             # gather
             i = cv[p]
-            dx, dy, dz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
+            dx, dy, dz = x[i, 0] - ox, x[i, 1] - oy, x[i, 2] - oz
+            sx += dx; sy += dy; sz += dz
             X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
             A[0, 0] += dx * X; A[0, 1] += dx * Y; A[0, 2] += dx * Z
             A[1, 0] += dy * X; A[1, 1] += dy * Y; A[1, 2] += dy * Z
             A[2, 0] += dz * X; A[2, 1] += dz * Y; A[2, 2] += dz * Z
+            if b > 0.0:
+                ux, uy, uz = v[i, 0], v[i, 1], v[i, 2]
+                svx += ux; svy += uy; svz += uz
+                lx += dy * uz - dz * uy; ly += dz * ux - dx * uz; lz += dx * uy - dy * ux
+                yxx += dx * dx; yyy += dy * dy; yzz += dz * dz
+                yxy += dx * dy; yxz += dx * dz; yyz += dy * dz
+        mx, my, mz = sx / n, sy / n, sz / n
+        cx, cy, cz = ox + mx, oy + my, oz + mz
         m = cell_muscle[c]
         k = kc[c]
+        kv = kvol[c]
+        if m >= 0 or kv > 0.0:
+            for r in range(3):
+                for s in range(3):
+                    D[r, s] = A[r, 0] * Qinv[c, 0, s] + A[r, 1] * Qinv[c, 1, s] + A[r, 2] * Qinv[c, 2, s]
         if m >= 0:
             fx, fy, fz = fibre[c, 0], fibre[c, 1], fibre[c, 2]
             la = lam[m]
             k += act[m] * kact[c]
-            if volume_actual:          # current fibre stretch mu = |A Qinv f| (deformation gradient estimate)
-                ux = uy = uz = 0.0
-                for r in range(3):
-                    qf = Qinv[c, r, 0] * fx + Qinv[c, r, 1] * fy + Qinv[c, r, 2] * fz
-                    ux += A[0, r] * qf; uy += A[1, r] * qf; uz += A[2, r] * qf
-                mu = math.sqrt(ux * ux + uy * uy + uz * uz)
-                mu = min(max(mu, 0.25), 4.0)
+            if volume_actual:          # current fibre stretch mu = |D f|
+                ux = D[0, 0] * fx + D[0, 1] * fy + D[0, 2] * fz
+                uy = D[1, 0] * fx + D[1, 1] * fy + D[1, 2] * fz
+                uz = D[2, 0] * fx + D[2, 1] * fy + D[2, 2] * fz
+                mu = min(max(math.sqrt(ux * ux + uy * uy + uz * uz), 0.25), 4.0)
                 sl = 1.0 / math.sqrt(mu)
             else:
                 sl = 1.0 / math.sqrt(la)
-            fv = (fx, fy, fz)
-            for r in range(3):
-                for s in range(3):
-                    F[r, s] = (la - sl) * fv[r] * fv[s] + (sl if r == s else 0.0)
+            F[0, 0] = (la - sl) * fx * fx + sl; F[0, 1] = (la - sl) * fx * fy; F[0, 2] = (la - sl) * fx * fz
+            F[1, 0] = F[0, 1]; F[1, 1] = (la - sl) * fy * fy + sl; F[1, 2] = (la - sl) * fy * fz
+            F[2, 0] = F[0, 2]; F[2, 1] = F[1, 2]; F[2, 2] = (la - sl) * fz * fz + sl
             for r in range(3):
                 for s in range(3):
                     B[r, s] = A[r, 0] * F[0, s] + A[r, 1] * F[1, s] + A[r, 2] * F[2, s]
@@ -164,30 +185,37 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
                 for s in range(3):
                     T[r, s] = R[r, 0] * F[0, s] + R[r, 1] * F[1, s] + R[r, 2] * F[2, s]
         else:
-            extract_rotation(A, quat[c], iters, R)
-            for r in range(3):
-                for s in range(3):
-                    T[r, s] = R[r, s]
-        b = damp_b[c]
+            extract_rotation(A, quat[c], iters, T)
+        ev = 0.0
+        if kv > 0.0:                   # P = -kvol (det D - 1) cof(D) Qinv
+            c00 = D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1]; c01 = D[1, 2] * D[2, 0] - D[1, 0] * D[2, 2]
+            c02 = D[1, 0] * D[2, 1] - D[1, 1] * D[2, 0]
+            c10 = D[0, 2] * D[2, 1] - D[0, 1] * D[2, 2]; c11 = D[0, 0] * D[2, 2] - D[0, 2] * D[2, 0]
+            c12 = D[0, 1] * D[2, 0] - D[0, 0] * D[2, 1]
+            c20 = D[0, 1] * D[1, 2] - D[0, 2] * D[1, 1]; c21 = D[0, 2] * D[1, 0] - D[0, 0] * D[1, 2]
+            c22 = D[0, 0] * D[1, 1] - D[0, 1] * D[1, 0]
+            det = D[0, 0] * c00 + D[0, 1] * c01 + D[0, 2] * c02
+            g = -kv * (det - 1.0)
+            pressure[c] += vol_gain * g
+            g += pressure[c]
+            ev = 0.5 * kv * (det - 1.0) ** 2
+            for s in range(3):
+                P[0, s] = g * (c00 * Qinv[c, 0, s] + c01 * Qinv[c, 1, s] + c02 * Qinv[c, 2, s])
+                P[1, s] = g * (c10 * Qinv[c, 0, s] + c11 * Qinv[c, 1, s] + c12 * Qinv[c, 2, s])
+                P[2, s] = g * (c20 * Qinv[c, 0, s] + c21 * Qinv[c, 1, s] + c22 * Qinv[c, 2, s])
         wx = wy = wz = 0.0
         vx = vy = vz = 0.0
-        if b > 0.0:                      # the cell's rigid velocity: mean + angular (I^-1 L)
-            for p in range(a0, a1):
-                i = cv[p]
-                vx += v[i, 0]; vy += v[i, 1]; vz += v[i, 2]
-            vx /= n; vy /= n; vz /= n
-            Lx = Ly = Lz = 0.0
-            I00 = I01 = I02 = I11 = I12 = I22 = 0.0
-            for p in range(a0, a1):
-                i = cv[p]
-                rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
-                ux, uy, uz = v[i, 0] - vx, v[i, 1] - vy, v[i, 2] - vz
-                Lx += ry * uz - rz * uy; Ly += rz * ux - rx * uz; Lz += rx * uy - ry * ux
-                r2 = rx * rx + ry * ry + rz * rz
-                I00 += r2 - rx * rx; I11 += r2 - ry * ry; I22 += r2 - rz * rz
-                I01 -= rx * ry; I02 -= rx * rz; I12 -= ry * rz
-            eps = 1e-9 * (I00 + I11 + I22) + 1e-300
-            I00 += eps; I11 += eps; I22 += eps
+        if b > 0.0:                    # rigid velocity of the cell: mean + angular (I^-1 L) about c
+            vx, vy, vz = svx / n, svy / n, svz / n
+            Lx = lx - n * (my * vz - mz * vy)
+            Ly = ly - n * (mz * vx - mx * vz)
+            Lz = lz - n * (mx * vy - my * vx)
+            qxx = yxx - n * mx * mx; qyy = yyy - n * my * my; qzz = yzz - n * mz * mz
+            qxy = yxy - n * mx * my; qxz = yxz - n * mx * mz; qyz = yyz - n * my * mz
+            tr = qxx + qyy + qzz
+            eps = 1e-9 * tr + 1e-300
+            I00 = tr - qxx + eps; I11 = tr - qyy + eps; I22 = tr - qzz + eps
+            I01 = -qxy; I02 = -qxz; I12 = -qyz
             c00 = I11 * I22 - I12 * I12; c01 = I02 * I12 - I01 * I22; c02 = I01 * I12 - I02 * I11
             c11 = I00 * I22 - I02 * I02; c12 = I01 * I02 - I00 * I12; c22 = I00 * I11 - I01 * I01
             det = I00 * c00 + I01 * c01 + I02 * c02
@@ -196,22 +224,26 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
                 wy = (c01 * Lx + c11 * Ly + c12 * Lz) / det
                 wz = (c02 * Lx + c12 * Ly + c22 * Lz) / det
         e = 0.0
-        for p in range(a0, a1):
+        for p in range(a0, a1):                             # scatter
             i = cv[p]
             X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
-            gx = cx + T[0, 0] * X + T[0, 1] * Y + T[0, 2] * Z - x[i, 0]
-            gy = cy + T[1, 0] * X + T[1, 1] * Y + T[1, 2] * Z - x[i, 1]
-            gz = cz + T[2, 0] * X + T[2, 1] * Y + T[2, 2] * Z - x[i, 2]
+            rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
+            gx = T[0, 0] * X + T[0, 1] * Y + T[0, 2] * Z - rx
+            gy = T[1, 0] * X + T[1, 1] * Y + T[1, 2] * Z - ry
+            gz = T[2, 0] * X + T[2, 1] * Y + T[2, 2] * Z - rz
             e += gx * gx + gy * gy + gz * gz
             fx_, fy_, fz_ = k * gx, k * gy, k * gz
+            if kv > 0.0:
+                fx_ += P[0, 0] * X + P[0, 1] * Y + P[0, 2] * Z
+                fy_ += P[1, 0] * X + P[1, 1] * Y + P[1, 2] * Z
+                fz_ += P[2, 0] * X + P[2, 1] * Y + P[2, 2] * Z
             if b > 0.0:
-                rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
                 fx_ -= b * (v[i, 0] - vx - (wy * rz - wz * ry))
                 fy_ -= b * (v[i, 1] - vy - (wz * rx - wx * rz))
                 fz_ -= b * (v[i, 2] - vz - (wx * ry - wy * rx))
             f[i, 0] += fx_; f[i, 1] += fy_; f[i, 2] += fz_
-        cell_energy[c] = 0.5 * k * e
-        if not (e * k * k < FORCE_BOUND):      # catches NaN and overflow
+        cell_energy[c] = 0.5 * k * e + ev
+        if not (e * k * k < FORCE_BOUND) or not (ev < FORCE_BOUND):   # catches NaN and overflow
             return c
     return -1
 

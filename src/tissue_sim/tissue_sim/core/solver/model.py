@@ -55,6 +55,7 @@ class SimModel:
     k_active: np.ndarray            # (C,) added spring constant at full activation [N/m]
     damp_b: np.ndarray              # (C,) deformation-damping coefficient [N s/m]
     rest_volume: np.ndarray         # (C,) [m^3]
+    k_volume: np.ndarray            # (C,) volume penalty stiffness on det of the best-fit affine map [J] (0 = off)
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     att_idx: np.ndarray             # (A,) int32 bone-attached vertices
@@ -111,6 +112,7 @@ class State:
     seg_t: np.ndarray               # (S, 3) [m]
     lam: np.ndarray                 # (M,) fibre stretch of each muscle's rest shape (1 = rest length)
     cell_energy: np.ndarray         # (C,) elastic energy per cell at the last force evaluation
+    pressure: np.ndarray            # (C,) integral volume term of each muscle cell [J per unit det]
     step: int = 0
     time: float = 0.0               # [s]
     kinetic_energy: float = 0.0     # free vertices, last step
@@ -146,7 +148,9 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     Q = np.zeros((C, 3, 3))
     np.add.at(Q, cell_of_k, X0[:, :, None] * X0[:, None, :])
     tr = np.trace(Q, axis1=1, axis2=2)
-    Qinv = np.linalg.inv(Q + (1e-6 * tr)[:, None, None] * np.eye(3))
+    ev = np.linalg.eigvalsh(Q)
+    flat = ev[:, 0] < 1e-9 * ev[:, 2]            # degenerate (flat) rest cell: regularise, else exact inverse
+    Qinv = np.linalg.inv(Q + np.where(flat, 1e-6 * tr, 0.0)[:, None, None] * np.eye(3))
     vol = np.zeros(C)
     K.cell_volumes(rest, off, cv, vol)
     if np.any(vol == 0) or not np.all(np.isfinite(vol)):
@@ -184,6 +188,13 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     mcell /= sizes
     damp_b = 2.0 * p.damping_ratio * np.sqrt((k + k_active) * mcell) if p.damping == 'deformation' else np.zeros(C)
     vel_damp = p.velocity_damping
+    # volume penalty on the best-fit affine map D = A Qinv: kvol = volume_stiffness * k / sum_i |Qinv X0_i|^2
+    # (its stiffness at rest is then volume_stiffness * k), muscle cells only
+    k_volume = np.zeros(C)
+    if p.volume_stiffness > 0:
+        g = np.einsum('kij,kj->ki', Qinv[cell_of_k], X0)
+        g2 = np.bincount(cell_of_k, weights=np.sum(g * g, axis=1), minlength=C)
+        k_volume = np.where(muscle, p.volume_stiffness * (k + k_active) / g2, 0.0)
     # muscle length weights: cells of a muscle in the same slice gap share one gap length
     lw = np.zeros(C)
     for m in range(tm.n_muscles):
@@ -245,7 +256,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
         Qinv=_frozen(Qinv), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
-        k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), cell_sign=_frozen(sign),
+        k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
         length_weight=_frozen(lw), att_idx=_frozen(att), att_seg=_frozen(vs[att]),
         seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
         seg_mass=_frozen(seg_mass), seg_com=_frozen(seg_com), seg_inertia=_frozen(seg_I),
@@ -281,7 +292,8 @@ def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
         xp = sim.rest + scale * u
         quat[:] = (0.0, 0.0, 0.0, 1.0)
         K.cell_forces(xp, xp, f, quat, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, lam, act,
-                      sim.k, sim.k_active, zero_b, sim.params.volume_mode == 'actual', 20, e)
+                      sim.k, sim.k_active, zero_b, sim.params.volume_mode == 'actual', 20, e, sim.k_volume,
+                      np.zeros(sim.n_cells), 0.0)
         y = -(f / scale) * sim.inv_mass[:, None]
         lam_est = float(np.sum(y * u))
         u = y
@@ -295,7 +307,7 @@ def make_state(sim: SimModel) -> State:
     quat[:, 3] = 1.0
     st = State(x=sim.rest.copy(), v=np.zeros((V, 3)), f=np.zeros((V, 3)), quat=quat, q=sim.j_rest.copy(),
                qd=np.zeros(J), seg_R=np.tile(np.eye(3), (S, 1, 1)), seg_t=np.zeros((S, 3)),
-               lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C),
+               lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
                x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), work=np.zeros((max(J, 1), 8 + max(J, 1))))
     return st
 

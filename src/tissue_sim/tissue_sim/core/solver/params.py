@@ -50,6 +50,8 @@ class Params:
     relax_rate: float = 0.998             # factor (<1) by which the stretch recovers towards its target per rate_dt
     rate_dt: float = 1e-3                 # [s] time unit of contraction_rate/relax_rate (paper: per dT)
     min_stretch: float = 0.7              # fibre stretch reached at full activation; > 0, the shortening limit
+    volume_stiffness: float = 0.5         # muscle volume penalty, relative to k (0 = off; keeps each muscle cell's volume)
+    volume_relax_time: float = 0.005      # [s] integral (pressure) term restoring each muscle cell's volume; 0 = off
     volume_mode: str = 'actual'           # muscle cross-section: 'actual' = 1/sqrt(current fibre stretch), 'rest' = 1/sqrt(lambda)
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
@@ -91,7 +93,7 @@ class Params:
         for name in ('vertex_mass', 'density_muscle', 'density_fat', 'k_muscle', 'k_fat', 'youngs_muscle',
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')
-        for name in ('specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
+        for name in ('volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
         need(0 < self.relax_rate <= 1, 'relax_rate must be in (0, 1]')
