@@ -30,10 +30,8 @@ def main():
     import_s = time.perf_counter() - t_import
     try:
         labels, tissues = builder.default_inputs()
-        if not Path(labels).exists():
-            raise FileNotFoundError(labels)
         src, inputs = 'bundled anatomy', (str(labels), str(tissues))
-    except (ImportError, AttributeError, FileNotFoundError):
+    except FileNotFoundError:
         from phantoms import make_limb_phantom
         lab, aff, tab = make_limb_phantom()
         src, inputs = 'synthetic limb phantom (bundled anatomy absent)', ((lab, aff), tab)

@@ -4,7 +4,8 @@ Geometry is defined in the model frame (x anterior, y left, z up; mm here) and r
 label volume with a NIfTI-style affine (voxel -> RAS mm). Stable API for other engineers:
 
     make_phantom(kind) -> (labels (I, J, K) int16, affine (4, 4), table dict)
-    make_phantom_model(kind='column', **builder_settings) -> TissueModel (built by the real builder)
+    make_phantom_model(kind='column', **builder_settings) -> TissueModel (built by the real builder;
+        slice_mm=25 unless a slice setting is given: 9 slices)
     write_phantom(kind, folder, fmt='nii'|'npz'|'png') -> (labels_path, tissues_yaml_path)
 
 Kinds:
@@ -110,6 +111,8 @@ def make_phantom_model(kind: str = 'column', **settings):
     """TissueModel of a phantom, built by tissue_sim.core.builder with default settings unless given."""
     from tissue_sim.core.builder import build_model
     lab, aff, table = make_phantom(kind)
+    if not any(settings.get(k) is not None for k in ('slices', 'slice_mm', 'slice_step')):
+        settings['slice_mm'] = 25.0          # 9 slices over the 200-mm phantom
     tm, _ = build_model((lab, aff), table, **settings)
     return tm
 

@@ -12,6 +12,7 @@ from tissue_sim.core.builder.rays import polygon_area
 
 H = (Z1 - Z0) / 1000.0          # m
 N_SLICES = 9                    # every 25 mm over 200 mm
+P = {'slice_mm': 25.0, 'muscle_rays': 10, 'min_area_mm2': 20.0}
 
 
 def inscribed(n, r):
@@ -21,7 +22,7 @@ def inscribed(n, r):
 @pytest.fixture(scope='module')
 def column():
     lab, aff, tab = make_phantom('column')
-    return build_model((lab, aff), tab)
+    return build_model((lab, aff), tab, **P)
 
 
 def muscle_cells(tm, name):
@@ -127,10 +128,10 @@ def test_sharing_merges_touching_tissues(column):
 
 def test_no_sharing_when_threshold_zero():
     lab, aff, tab = make_phantom('column')
-    tm, rep = build_model((lab, aff), tab, share_mm=0)
+    tm, rep = build_model((lab, aff), tab, share_mm=0, **P)
     assert rep['table1']['shared_vertices'] == 0
     assert tm.n_vertices == 2 * N_SLICES * 10 + N_SLICES * 24
-    tm2, rep2 = build_model((lab, aff), tab, share_mm=12)
+    tm2, rep2 = build_model((lab, aff), tab, share_mm=12, **P)
     assert rep2['table1']['shared_vertices'] > 0 and tm2.n_vertices < tm.n_vertices
     assert rep2['cells']['inverted'] == 0
 
@@ -196,7 +197,7 @@ def test_save_load_roundtrip(column, tmp_path):
 
 def test_tapered_muscle_ends_between_slices():
     lab, aff, tab = make_phantom('tapered')
-    tm, rep = build_model((lab, aff), tab)
+    tm, rep = build_model((lab, aff), tab, **P)
     f = muscle_cells(tm, 'flexor')
     # present (area >= 20 mm^2) on z = -100 .. 25 mm: 6 rings, 5 cells; the z = 50 sliver is dropped and reported
     assert len(f) == 5
@@ -213,7 +214,7 @@ def test_tapered_muscle_ends_between_slices():
 
 def test_two_bones_in_one_slice():
     lab, aff, tab = make_phantom('two_bones')
-    tm, rep = build_model((lab, aff), tab)
+    tm, rep = build_model((lab, aff), tab, **P)
     assert rep['cells']['inverted'] == 0 and rep['closed_surfaces']
     # fat rays start at the centroid of both bones' pixels
     a1, a2 = math.pi * 12 ** 2, math.pi * 6 ** 2
@@ -240,7 +241,7 @@ def test_two_bones_in_one_slice():
 
 def test_split_region_gives_two_chains():
     lab, aff, tab = make_phantom('split')
-    tm, rep = build_model((lab, aff), tab)
+    tm, rep = build_model((lab, aff), tab, **P)
     f = muscle_cells(tm, 'flexor')
     # one disc on z < 0 (4 slices), two discs on z >= 0 (5 slices): chain of 9 rings + chain of 5 rings
     assert len(f) == 8 + 4
@@ -250,7 +251,7 @@ def test_split_region_gives_two_chains():
 
 def test_non_convex_region_uses_interior_origin():
     lab, aff, tab = make_phantom('cshape')
-    tm, rep = build_model((lab, aff), tab)
+    tm, rep = build_model((lab, aff), tab, **P)
     f = muscle_cells(tm, 'flexor')
     assert len(f) == N_SLICES - 1 and rep['cells']['inverted'] == 0
     v = tm.rest_positions[np.unique(np.concatenate([tm.cell(c) for c in f]))] * 1000
@@ -271,6 +272,14 @@ def test_settings_change_counts_exactly():
     assert t['fat_cells'] == 20 * 8 and t['fat_vertices_unique'] == 21 * 16
     tm3, rep3 = build_model((lab, aff), tab, slice_step=8)        # every 8th 5-mm slice = 40 mm
     assert len(tm3.slice_z) == 6
+    tm4, rep4 = build_model((lab, aff), tab, slices=5)             # evenly over the extent: k = 0, 10, .., 40
+    assert np.allclose(tm4.slice_z, np.linspace(Z0, Z1, 5) / 1000.0)
+    assert rep4['table1']['fat_cells'] == 4 * 12 and rep4['table1']['muscle_vertices'] == 2 * 5 * 12
+    from tissue_sim.errors import UserError
+    with pytest.raises(UserError, match='only one of'):
+        build_model((lab, aff), tab, slices=5, slice_mm=10.0)
+    with pytest.raises(UserError, match='46 slices'):
+        build_model((lab, aff), tab)                               # the paper's 46 slices do not fit 41
 
 
 def test_phantom_model_helper():

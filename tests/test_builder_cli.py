@@ -19,7 +19,12 @@ def nii(tmp_path_factory):
 
 
 def run(capsys, *argv):
-    code = main([str(a) for a in argv])
+    argv = [str(a) for a in argv]
+    if argv[0] == 'build-model' and not {'--slices', '--slice-mm', '--slice-step'} & set(argv):
+        argv += ['--slice-mm', '25']
+    if argv[0] == 'build-model' and '--muscle-rays' not in argv:
+        argv += ['--muscle-rays', '10']
+    code = main(argv)
     out, err = capsys.readouterr()
     return code, out, err
 

@@ -19,7 +19,8 @@ def add_arguments(p):
     p.add_argument('-o', '--output', metavar='MODEL', help='model file to write (.npz; default: <table name>.model.npz)')
     g = p.add_argument_group('settings (defaults = the paper\'s Table-1 settings)')
     sl = g.add_mutually_exclusive_group()
-    sl.add_argument('--slice-mm', type=float, default=D['slice_mm'], help='slice spacing [mm] (default %(default)s)')
+    sl.add_argument('--slices', type=int, help=f'number of slices evenly over the labelled extent (default {D["slices"]}, the paper\'s)')
+    sl.add_argument('--slice-mm', type=float, help='slice spacing [mm] instead (the paper: 25 mm)')
     sl.add_argument('--slice-step', type=int, help='take every Nth slice of the volume instead')
     g.add_argument('--muscle-rays', type=int, default=D['muscle_rays'], help='vertices per muscle polygon (default %(default)s)')
     g.add_argument('--fat-rays', type=int, default=D['fat_rays'], help='rays of the fat tube per slice (default %(default)s)')
@@ -37,7 +38,7 @@ def add_arguments(p):
 
 
 def _settings(args) -> dict:
-    return {'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
+    return {'slices': args.slices, 'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
             'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm,
             'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit,
             'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing}
@@ -50,7 +51,7 @@ def run(args) -> int:
             raise UserError('--tissues given without LABELS')
         try:
             labels, tissues = builder.default_inputs()
-        except (ImportError, AttributeError, FileNotFoundError) as e:
+        except FileNotFoundError as e:
             raise UserError(f'the bundled anatomy is not available ({e}); give LABELS and --tissues') from None
     else:
         if args.tissues is None:

@@ -45,10 +45,28 @@ def build_model(labels, tissues, progress=None, **settings):
 
 
 def default_inputs() -> tuple[Path, Path]:
-    """(labels, tissues) of the bundled lower-limb anatomy."""
-    from tissue_sim.core import anatomy   # lands with the bundled anatomy
-    lab = Path(getattr(anatomy, 'LABELS', None) or anatomy.labels_path())
-    tis = Path(getattr(anatomy, 'TISSUES', None) or anatomy.tissues_path())
+    """(labels, tissues) of the bundled lower-limb anatomy (tissue_sim/data/lower_limb/).
+
+    Uses ``tissue_sim.core.anatomy`` when it provides the paths, else the data folder directly.
+    Raises FileNotFoundError when the bundled anatomy is not there.
+    """
+    lab = tis = None
+    try:
+        from tissue_sim.core import anatomy
+        for a, b in (('LABELS', 'TISSUES'), ('LABELS_PATH', 'TISSUES_PATH'), ('labels_path', 'tissues_path')):
+            la, ti = getattr(anatomy, a, None), getattr(anatomy, b, None)
+            if la is not None and ti is not None:
+                lab, tis = (la() if callable(la) else la), (ti() if callable(ti) else ti)
+                break
+    except ImportError:
+        pass
+    if lab is None:
+        d = Path(__file__).resolve().parents[2] / 'data' / 'lower_limb'
+        lab, tis = d / 'labels.nii.gz', d / 'tissues.yaml'
+    lab, tis = Path(lab), Path(tis)
+    for p in (lab, tis):
+        if not p.exists():
+            raise FileNotFoundError(f'bundled anatomy file {p} is missing')
     return lab, tis
 
 

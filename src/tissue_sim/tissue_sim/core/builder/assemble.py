@@ -21,15 +21,18 @@ from . import geometry, slices as S
 from .io import LabelVolume, voxel_to_model
 from .sharing import share_groups
 
-# The "paper" settings (Table 1 of Inaba et al. 2005: every 25th 1-mm slice, 12 fat rays).
+# The "paper" settings (Table 1 of Inaba et al. 2005: Visible Human slices 1700-2878, every 25th,
+# 540 fat cells = 45 slice gaps x 12 rays). See docs/builder.md.
+SLICE_KEYS = ('slices', 'slice_mm', 'slice_step')
 DEFAULTS = {
-    'slice_mm': 25.0,          # slice spacing [mm] (paper: every 25th slice of 1-mm Visible Human photographs)
-    'slice_step': None,        # or take every Nth slice of the volume (overrides slice_mm)
-    'muscle_rays': 10,         # polygon vertex count of every muscle cross-section
+    'slices': 46,              # this many slices evenly over the labelled extent (the paper's 46 slices)
+    'slice_mm': None,          # or a slice spacing [mm] (the paper's was 25 mm over a 1178-mm stack)
+    'slice_step': None,        # or every Nth slice of the volume
+    'muscle_rays': 12,         # polygon vertex count of every muscle cross-section
     'fat_rays': 12,            # rays of the fat tube per slice (paper: 540 cells = 45 gaps x 12)
     'share_mm': 6.0,           # vertex sharing threshold [mm] (paper section 2.4)
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
-    'min_area_mm2': 20.0,      # smaller components of a label on a slice are dropped (reported)
+    'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
     'ray_hit': 'first',        # 'first' (polygon inside the region) or 'last' boundary crossing
@@ -42,7 +45,12 @@ def settings_with_defaults(settings: dict) -> dict:
     unknown = set(settings) - set(DEFAULTS)
     if unknown:
         raise UserError(f'unknown builder setting(s): {", ".join(sorted(unknown))} (known: {", ".join(DEFAULTS)})')
+    given = [k for k in SLICE_KEYS if settings.get(k) is not None]
+    if len(given) > 1:
+        raise UserError(f'give only one of {", ".join(SLICE_KEYS)} (got {", ".join(given)})')
     s = dict(DEFAULTS)
+    if given:
+        s.update({k: None for k in SLICE_KEYS})
     s.update({k: v for k, v in settings.items() if v is not None or k == 'attach_mm'})
     for k in ('muscle_rays', 'fat_rays'):
         if int(s[k]) != s[k] or s[k] < 3:
@@ -50,7 +58,11 @@ def settings_with_defaults(settings: dict) -> dict:
         s[k] = int(s[k])
     if s['slice_step'] is not None and (int(s['slice_step']) != s['slice_step'] or s['slice_step'] < 1):
         raise UserError(f'slice_step must be a positive integer, got {s["slice_step"]!r}')
+    if s['slices'] is not None and (int(s['slices']) != s['slices'] or s['slices'] < 2):
+        raise UserError(f'slices must be an integer >= 2, got {s["slices"]!r}')
     for k in ('slice_mm', 'min_cell_volume_mm3'):
+        if s[k] is None and k == 'slice_mm':
+            continue
         if not (isinstance(s[k], (int, float)) and math.isfinite(s[k]) and s[k] > 0):
             raise UserError(f'{k} must be a positive number, got {s[k]!r}')
     for k in ('share_mm', 'min_area_mm2', 'min_fat_mm'):
@@ -90,13 +102,21 @@ def _select_slices(vol: LabelVolume, s: dict) -> np.ndarray:
     body_k = np.nonzero(vol.labels.reshape(-1, vol.labels.shape[2]).any(axis=0))[0]
     if len(body_k) == 0:
         raise UserError(f'{vol.source}: the label volume is empty (all 0)')
-    if s['slice_step'] is not None:
+    if s['slices'] is not None:
+        n = int(s['slices'])
+        span = int(body_k[-1] - body_k[0])
+        if n > span + 1:
+            raise UserError(f'{vol.source}: wrong spacing: {n} slices asked for but the labelled extent has only {span + 1}')
+        ks = np.unique(np.round(np.linspace(body_k[0], body_k[-1], n)).astype(int))
+        step = None
+    elif s['slice_step'] is not None:
         step = int(s['slice_step'])
     else:
         if s['slice_mm'] < dz * (1 - 1e-6):
             raise UserError(f'wrong spacing: --slice-mm {s["slice_mm"]:g} is finer than the volume\'s slice spacing {dz:g} mm')
         step = max(1, int(round(s['slice_mm'] / dz)))
-    ks = np.arange(body_k[0], body_k[-1] + 1, step)
+    if step is not None:
+        ks = np.arange(body_k[0], body_k[-1] + 1, step)
     if len(ks) < 2:
         raise UserError(f'{vol.source}: only {len(ks)} slice(s) at a step of {step} ({step * dz:g} mm) over the '
                         f'labelled extent {(body_k[-1] - body_k[0]) * dz:g} mm; need at least 2 (use a smaller --slice-mm)')
@@ -415,7 +435,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         joint_range=skel['joint_range'], joint_rest=skel['joint_rest'],
         slice_z=slice_z,
         meta={'builder': 'tissue_sim.core.builder', 'source': vol.source, 'tissue_table': table['source'],
-              'joints_source': skel.get('source', ''),
+              'joints_source': skel.get('source', ''), 'root_joint': skel.get('root_joint'),
               'settings': {k: v for k, v in s.items()}, 'units': 'SI (m, kg, s, rad), model frame REP-103',
               'slice_k': [int(k) for k in ks], 'voxel_mm': [round(x, 6) for x in vol.pixel_mm],
               'attach_mm': attach_m * 1000.0},

@@ -175,6 +175,7 @@ def load_joints(src) -> dict:
     if not isinstance(joints, list):
         raise UserError(f'{where}: "joints" must be a list')
     jn, jt, jp, jc, ja, jctr, jr, jrest = [], [], [], [], [], [], [], []
+    root_joint = None
     for i, j in enumerate(joints):
         if not isinstance(j, dict) or not isinstance(j.get('name'), str):
             raise UserError(f'{where}: joint #{i} needs a "name"')
@@ -182,6 +183,12 @@ def load_joints(src) -> dict:
         typ = j.get('type', 'hinge')
         if typ not in ('hinge', 'fixed'):
             raise UserError(f'{w}: type must be hinge or fixed, got {typ!r}')
+        if j.get('parent') is None and j.get('child') in names and parent[names.index(j['child'])] == -1:
+            # the root segment's attachment to the world (e.g. a fixed hip): not a model joint
+            if typ != 'fixed':
+                raise UserError(f'{w}: a joint of the root segment to the world must be fixed (the root is fixed to the world)')
+            root_joint = {'name': j['name'], 'centre': [float(x) for x in _vec(j.get('centre', [0, 0, 0]), 3, f'{w} centre')]}
+            continue
         for key in ('parent', 'child'):
             if j.get(key) not in names:
                 raise UserError(f'{w}: {key} {j.get(key)!r} is not a segment')
@@ -209,7 +216,7 @@ def load_joints(src) -> dict:
         raise UserError(f'{where}: every non-root segment needs exactly one joint (missing or duplicate: {missing or "duplicate"})')
     J = len(jn)
     return {
-        'source': str(data.get('source', '')),
+        'source': str(data.get('source', '')), 'root_joint': root_joint,
         'segment_names': tuple(names), 'segment_parent': parent, 'segment_mass': mass,
         'segment_com': com, 'segment_inertia': inertia,
         'joint_names': tuple(jn), 'joint_type': np.array(jt, np.uint8), 'joint_parent': np.array(jp, np.int32),
