@@ -76,7 +76,15 @@ def settings_with_defaults(settings: dict) -> dict:
 
 
 def _check_labels(vol: LabelVolume, table: dict, allow_missing: bool, warnings: list):
-    counts = np.bincount(vol.labels.ravel())
+    lab = vol.labels
+    counts = np.zeros(1, np.int64)
+    for k0 in range(0, lab.shape[2], 16):           # slabs: contiguous in Fortran order, small temporaries
+        c = np.bincount(lab[:, :, k0:k0 + 16].ravel(order='K'))
+        if len(c) > len(counts):
+            c[:len(counts)] += counts
+            counts = c
+        else:
+            counts[:len(c)] += c
     present = set(int(x) for x in np.nonzero(counts)[0]) - {0}
     tab = table['labels']
     unknown = sorted(present - set(tab))
@@ -99,7 +107,7 @@ def _check_labels(vol: LabelVolume, table: dict, allow_missing: bool, warnings: 
 
 def _select_slices(vol: LabelVolume, s: dict) -> np.ndarray:
     dz = vol.pixel_mm[2]
-    body_k = np.nonzero(vol.labels.reshape(-1, vol.labels.shape[2]).any(axis=0))[0]
+    body_k = np.nonzero(vol.labels.any(axis=(0, 1)))[0]
     if len(body_k) == 0:
         raise UserError(f'{vol.source}: the label volume is empty (all 0)')
     if s['slices'] is not None:
@@ -152,7 +160,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     geoms, regions, fats, bonepix, dropped, slice_counts = [], [], [], [], [], []
     maxlab = max(tab) + 1
     for zi, k in enumerate(ks):
-        sl = np.ascontiguousarray(vol.labels[:, :, k])
+        sl = vol.labels[:, :, k]
         slice_counts.append(np.bincount(sl.ravel(), minlength=maxlab))
         g = S.slice_geom(vol.affine, int(k))
         geoms.append(g)

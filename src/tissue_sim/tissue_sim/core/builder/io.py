@@ -60,7 +60,8 @@ def _check_volume(labels, affine, source) -> LabelVolume:
                             'slices must be the (i, j) planes perpendicular to the body long axis (reslice the volume)')
     if abs(a[2, 2]) < 0.5 * sizes[2]:
         raise UserError(f'{source}: the slice axis (k) does not run along the body long axis (superior-inferior)')
-    return LabelVolume(np.ascontiguousarray(labels), affine, str(source))
+    # Fortran order: every (i, j) slice is one contiguous block (nibabel's native order)
+    return LabelVolume(np.asfortranarray(labels), affine, str(source))
 
 
 def _load_nifti(path: Path) -> LabelVolume:

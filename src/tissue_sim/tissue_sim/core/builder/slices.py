@@ -84,16 +84,15 @@ def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: i
         crop = sl[bb] == lab
         comp, ncomp = ndimage.label(crop)
         sizes = np.bincount(comp.ravel())[1:]
+        cobjs = ndimage.find_objects(comp)
         regs = []
         for ci in np.argsort(-sizes):
             area = float(sizes[ci]) * px_area
             if area < min_area_mm2:
                 dropped.append((lab, area, f'component below {min_area_mm2:g} mm^2'))
                 continue
-            m = comp == ci + 1
-            sub = ndimage.find_objects(m.astype(np.int8))[0]
-            sub = _pad_bbox(sub, m.shape)
-            mm = m[sub]
+            sub = _pad_bbox(cobjs[ci], comp.shape)
+            mm = comp[sub] == ci + 1
             full_bb = (slice(bb[0].start + sub[0].start, bb[0].start + sub[0].stop),
                        slice(bb[1].start + sub[1].start, bb[1].start + sub[1].stop))
             reg = Region(lab, full_bb, mm, area)
