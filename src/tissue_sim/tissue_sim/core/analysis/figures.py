@@ -81,7 +81,12 @@ def render_run(path, out, times=None, n_frames: int = 4, size=(800, 600), views=
             r = r[np.isfinite(r) & (r > 0)]
             lim = float(np.percentile(np.abs(np.log2(r)), 99)) if r.size else 0.0
             clim = 2 ** max(lim, np.log2(1.05))
-        rd = render.LimbRenderer(topo, view, size=size, clim=clim, d_max=dmax)
+        vsize = size
+        if view != 'knee':                  # tall narrow limbs: narrower pictures (size is the maximum)
+            ext = np.ptp(pts, axis=0)
+            w = int(min(size[0], max(360, size[1] * 1.3 * ext[0] / max(ext[2], 1e-9) + 220)))
+            vsize = (w, size[1])
+        rd = render.LimbRenderer(topo, view, size=vsize, clim=clim, d_max=dmax)
         if view == 'knee':
             rd.set_camera(pts, focus=knee, half_height=max(0.18 * height, 0.8 * float(np.ptp(topo.rest_positions[:, 0])), 0.05))
         else:

@@ -184,13 +184,13 @@ class LimbRenderer:
             pd.cell_data['value'] = np.zeros(int(ok.sum()))
             if kind == 'area':
                 lim = np.log2(clim) if clim else np.log2(1.3)
-                title = 'log2 skin area / frame 0\n(blue grown, red shrunk)'
+                title = 'log2 area\nvs frame 0\nblue grown\nred shrunk'
                 self.pl.add_mesh(pd, scalars='value', cmap='bwr_r', clim=(-lim, lim), show_edges=True,
                                  edge_color=(0.5, 0.5, 0.5), line_width=0.3, **_FLAT,
                                  scalar_bar_args=dict(title=title, fmt='%.2f', **_BAR))
             else:
                 dm = (d_max or 1e-3) * 1000
-                title = 'fat d [mm] (paper eq. 2)' if kind == 'd_paper' else 'fat d [mm] (rotation-free)'
+                title = 'fat d [mm]\n(paper eq. 2)' if kind == 'd_paper' else 'fat d [mm]\n(rotation-free)'
                 self.pl.add_mesh(pd, scalars='value', cmap='Reds', clim=(0, dm), show_edges=True,
                                  edge_color=(0.5, 0.5, 0.5), line_width=0.3, **_FLAT,
                                  scalar_bar_args=dict(title=title, fmt='%.1f', **_BAR))
