@@ -108,3 +108,35 @@ def test_skin_area_ratio():
 def test_bad_colouring_is_named():
     with pytest.raises(ValueError, match='marker colouring'):
         mk.MarkerArrayEncoder(tiny_model(), colouring='rainbow')
+
+
+def test_cluster_decimate_keeps_shape_and_drops_degenerate_triangles():
+    import trimesh
+    m = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    v, t = mk.cluster_decimate(np.asarray(m.vertices), np.asarray(m.faces, np.int64), 0.01)
+    assert 20 < len(t) < len(m.faces) / 3
+    assert np.all((t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2]))
+    r = np.linalg.norm(v, axis=1)
+    assert np.all(np.abs(r - 0.05) < 0.01)               # still a sphere of radius 5 cm (within a cell)
+    v0, t0 = mk.cluster_decimate(np.asarray(m.vertices), np.asarray(m.faces, np.int64), 1e-6)
+    assert len(t0) == len(m.faces)                        # a fine grid changes nothing
+
+
+def test_builder_model_markers_have_every_group_and_posed_bones():
+    """A model from the real builder (tests/phantoms.py 'two_bones'): one marker per surface group
+    and per bone-carrying segment; bone points are the bones' rest triangles."""
+    from rclpy.serialization import deserialize_message
+    from visualization_msgs.msg import MarkerArray
+    from phantoms import make_phantom_model
+    tm = make_phantom_model('two_bones')
+    enc = mk.MarkerArrayEncoder(tm)
+    x = np.asarray(tm.rest_positions)
+    msg = deserialize_message(enc.encode(1, x), MarkerArray)
+    ns = [m.ns for m in msg.markers]
+    used = sorted(set(np.asarray(tm.surface_group).tolist()))
+    assert ns[:len(used)] == [f'tissue/{tm.surface_group_names[g]}' for g in used]
+    bone_segs = sorted(set(np.asarray(tm.bone_segment).tolist()))
+    assert ns[len(used):] == [f'tissue/bone/{tm.segment_names[s]}' for s in bone_segs]
+    n_bone_pts = sum(len(m.points) for m in msg.markers if '/bone/' in m.ns)
+    assert n_bone_pts == 3 * len(tm.bone_triangles)
+    assert sum(len(m.points) for m in msg.markers if '/bone/' not in m.ns) == 3 * len(tm.surface_triangles)

@@ -105,6 +105,9 @@ class Simulator:
         P['colour_scale'] = declare(node, 'colour_scale', 0.2,
                                     'skin_area: area change at full colour (0.2 = +-20 %); fat_deformation: d at full red [m]',
                                     lo=1e-6, hi=10.0)
+        P['bone_marker_resolution'] = declare(node, 'bone_marker_resolution', 0.003,
+                                              'bone meshes in the markers are simplified by vertex clustering on '
+                                              'a grid of this size [m]; 0 = full meshes', lo=0.0, hi=0.05, read_only=True)
         P['frame_id'] = declare(node, 'frame_id', 'world', 'frame of positions and markers (REP-103)', read_only=True)
         P['max_steps_per_tick'] = declare(node, 'max_steps_per_tick', 2000, 'cap on solver steps per published frame',
                                           lo=1, hi=1000000)
@@ -120,7 +123,8 @@ class Simulator:
         self.dt = self.params.dt
         self.index_of = {n: i for i, n in enumerate(self.tm.muscle_names)}
         self.frame_id = P['frame_id']
-        self.marker_enc = mk.MarkerArrayEncoder(self.tm, self.frame_id, P['marker_colouring']) if P['publish_markers'] else None
+        self.marker_enc = mk.MarkerArrayEncoder(self.tm, self.frame_id, P['marker_colouring'],
+                                                 bone_resolution=P['bone_marker_resolution']) if P['publish_markers'] else None
         self._rest_area = None
         # warm the kernels (numba compile) before the clock starts
         warm = solver.make_state(self.sim)
@@ -148,10 +152,12 @@ class Simulator:
         self.rejected = {r: 0 for r in REASONS}
         self.accepted = 0
         self.publish_times = collections.deque(maxlen=512)
-        self.marker_ms = collections.deque(maxlen=256)
+        self.marker_ms = collections.deque(maxlen=256)          # build + publish [ms]
+        self.marker_encode_ms = collections.deque(maxlen=256)   # build only (colours + numpy CDR) [ms]
         self.step_wall = 0.0
         self.steps_done = 0
         self.sim_debt = 0.0
+        self.publish_cost = 0.0
         self.period = 1.0 / (P['publish_rate'] * HEADROOM)
         self.last_tick = time.monotonic()
         self.t_start = self.last_tick
@@ -199,16 +205,19 @@ class Simulator:
             return
         t0 = time.perf_counter()
         cap = int(self.node.get_parameter('max_steps_per_tick').value)
+        # wall-time budget for stepping in this tick: the frame rate comes first; when the solver
+        # cannot keep up, sim time falls behind (real-time factor < rate in /diagnostics)
+        budget = max(0.2 * self.period, 0.85 * self.period - self.publish_cost)
         n = 0
         try:
             if self.node.get_parameter('realtime').value:
                 self.sim_debt += wall_dt * float(self.node.get_parameter('rate').value)
-                n = min(int(self.sim_debt / self.dt + 1e-9), cap)
-                for _ in range(n):
+                want = min(int(self.sim_debt / self.dt + 1e-9), cap)
+                while n < want and time.perf_counter() - t0 < budget:
                     self.solver.step(self.sim, self.state, self.ctrl, self.dt)
-                self.sim_debt = 0.0 if n == cap else self.sim_debt - n * self.dt
+                    n += 1
+                self.sim_debt = 0.0 if n < want or n == cap else self.sim_debt - n * self.dt
             else:
-                budget = 0.75 * self.period
                 while time.perf_counter() - t0 < budget and n < cap:
                     self.solver.step(self.sim, self.state, self.ctrl, self.dt)
                     n += 1
@@ -234,7 +243,9 @@ class Simulator:
                 self.node.get_logger().error('non-finite positions; paused (call ~/reset)')
             self.maybe_diagnostics(now)
             return
+        t0 = time.perf_counter()
         self.publish_frame()
+        self.publish_cost = 0.8 * self.publish_cost + 0.2 * (time.perf_counter() - t0)
         self.publish_times.append(time.monotonic())
         self.maybe_diagnostics(now)
 
@@ -263,8 +274,12 @@ class Simulator:
         if self.marker_enc is not None and self.node.get_parameter('publish_markers').value:
             t0 = time.perf_counter()
             rgba = self.corner_colours(st.x)
-            self.pub_markers.publish(self.marker_enc.encode(stamp, st.x, obs['segment_poses'], rgba))
-            self.marker_ms.append(1e3 * (time.perf_counter() - t0))
+            data = self.marker_enc.encode(stamp, st.x, obs['segment_poses'], rgba)
+            t1 = time.perf_counter()
+            self.pub_markers.publish(data)
+            t2 = time.perf_counter()
+            self.marker_ms.append(1e3 * (t2 - t0))
+            self.marker_encode_ms.append(1e3 * (t1 - t0))
 
     def corner_colours(self, x):
         enc = self.marker_enc
@@ -290,7 +305,9 @@ class Simulator:
         return dict(publish_rate_hz=rate, real_time_factor=(self.state.time - s0) / span,
                     steps_per_s=(self.steps_done - n0) / span, sim_time=self.state.time,
                     marker_ms_mean=float(np.mean(self.marker_ms)) if self.marker_ms else 0.0,
-                    marker_ms_max=float(np.max(self.marker_ms)) if self.marker_ms else 0.0)
+                    marker_ms_max=float(np.max(self.marker_ms)) if self.marker_ms else 0.0,
+                    marker_encode_ms_mean=float(np.mean(self.marker_encode_ms)) if self.marker_encode_ms else 0.0,
+                    marker_bytes=self.marker_enc.nbytes if self.marker_enc is not None else 0)
 
     def maybe_diagnostics(self, now):
         if now - self.last_diag < float(self.node.get_parameter('diagnostics_period').value):

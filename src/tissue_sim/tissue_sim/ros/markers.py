@@ -73,7 +73,8 @@ def sequential_rgba(value: np.ndarray, scale: float, alpha: float = 0.6) -> np.n
 class MarkerArrayEncoder:
     """Precomputed MarkerArray layout for one model. ``encode`` per frame."""
 
-    def __init__(self, tm, frame_id: str = 'world', colouring: str = 'none', ns: str = 'tissue'):
+    def __init__(self, tm, frame_id: str = 'world', colouring: str = 'none', ns: str = 'tissue',
+                 bone_resolution: float = 0.0):
         if colouring not in COLOURINGS:
             raise ValueError(f'marker colouring {colouring!r}: expected one of {", ".join(COLOURINGS)}')
         self.colouring = colouring
@@ -97,6 +98,8 @@ class MarkerArrayEncoder:
             pts = []
             for b in np.flatnonzero(np.asarray(tm.bone_segment) == s):
                 v, t = tm.bone_mesh(int(b))
+                if bone_resolution > 0:
+                    v, t = cluster_decimate(np.asarray(v, np.float64), np.asarray(t, np.int64), bone_resolution)
                 if len(t):
                     pts.append(np.asarray(v, np.float64)[np.asarray(t, np.int64).ravel()])
             if pts:
@@ -202,6 +205,25 @@ class MarkerArrayEncoder:
         if corner_rgba is not None and self._colors is not None:
             self._colors[:] = corner_rgba
         return b.tobytes()
+
+
+def cluster_decimate(v: np.ndarray, t: np.ndarray, cell: float):
+    """Display decimation of a triangle mesh by vertex clustering on a grid of ``cell`` metres:
+    vertices in one cell merge at their mean, collapsed and repeated triangles are dropped."""
+    if len(v) == 0:
+        return v, t
+    keys = np.floor(v / cell).astype(np.int64)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    n = inv.max() + 1
+    nv = np.zeros((n, 3))
+    np.add.at(nv, inv, v)
+    nv /= np.bincount(inv, minlength=n)[:, None]
+    nt = inv[t]
+    keep = (nt[:, 0] != nt[:, 1]) & (nt[:, 1] != nt[:, 2]) & (nt[:, 0] != nt[:, 2])
+    nt = nt[keep]
+    _, first = np.unique(np.sort(nt, axis=1), axis=0, return_index=True)
+    return nv, nt[np.sort(first)]
 
 
 def boundary_surface(tm):
