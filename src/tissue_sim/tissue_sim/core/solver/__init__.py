@@ -9,10 +9,12 @@ MuJoCo/Newton-style API (docs/ARCHITECTURE.md, docs/solver.md)::
     for t, s in simulate(sim, 3.0, {'hamstrings': [(0, 1)]}, every=10): ...
 """
 from tissue_sim.core.solver.model import (Control, DivergenceError, SimModel, State, compile_model,
-                                          make_control, make_state, muscle_indices, reset)
+                                          make_control, make_state, muscle_indices, reset,
+                                          set_joint_positions)
 from tissue_sim.core.solver.params import Params
-from tissue_sim.core.solver.run import observe, simulate, timeline_function
+from tissue_sim.core.solver.run import observe, simulate, skeleton_energy, timeline_function
 from tissue_sim.core.solver.step import step
 
 __all__ = ['Params', 'SimModel', 'State', 'Control', 'DivergenceError', 'compile_model', 'make_state',
-           'make_control', 'reset', 'step', 'observe', 'simulate', 'timeline_function', 'muscle_indices']
+           'make_control', 'reset', 'step', 'observe', 'simulate', 'timeline_function', 'muscle_indices',
+           'set_joint_positions', 'skeleton_energy']

@@ -398,7 +398,7 @@ def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_j
         for r in range(3):
             tau += a[j, r] * (Ns[c, r] - tmp[r])
             bias += a[j, r] * (Nb[c, r] - tmp2[r])
-        rhs[j] = tau - bias - joint_damping * qd[j]
+        rhs[j] = tau - bias - joint_damping * qd[j]       # viscous joint damping, implicit (M += h c below)
         for k in range(J):
             acc = 0.0
             for s in range(S):
@@ -424,6 +424,7 @@ def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_j
             continue
         # end stop: implicit spring-damper on the predicted coordinate (stiffness from the joint's inertia)
         mjj = M[j, j]
+        M[j, j] += h * joint_damping
         wl = limit_wh / h
         kl = mjj * wl * wl
         bl = 2.0 * limit_zeta * mjj * wl

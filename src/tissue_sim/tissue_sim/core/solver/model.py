@@ -40,6 +40,7 @@ class SimModel:
     params: Params
     n_substeps: int                 # sub-steps per step at params.dt
     omega_max: float                # [rad/s] highest tissue natural frequency estimated at rest
+    damp_rate: float                # [1/s] highest damping rate of a free vertex (sum b / m + velocity damping)
     # soft tissue
     rest: np.ndarray                # (V, 3) rest positions [m]
     inv_mass: np.ndarray            # (V,) 1/kg (0 for bone-attached vertices)
@@ -265,10 +266,22 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
         muscle_index_of=names)
-    sim = SimModel(**sim_kw)
+    bsum = np.zeros(V)
+    np.add.at(bsum, cv, np.repeat(damp_b, sizes))
+    c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0
+    sim = SimModel(damp_rate=c_max, **sim_kw)
     w = estimate_omega_max(sim)
-    n_sub = p.substeps or max(1, math.ceil(w * p.dt / p.stability_limit))
+    n_sub = p.substeps or stable_substeps(w, c_max, p.dt, p.stability_limit)
     return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w))
+
+
+def stable_substeps(omega: float, c: float, dt: float, limit: float) -> int:
+    """Sub-steps so that symplectic Euler with stiffness omega^2 and damping rate c is stable with
+    margin: (omega h)^2 + 2 c h <= limit^2 (the exact bound is 4)."""
+    if omega <= 0 and c <= 0:
+        return 1
+    h = (-c + math.sqrt(c * c + omega * omega * limit * limit)) / (omega * omega) if omega > 0 else limit * limit / (2 * c)
+    return max(1, math.ceil(dt / h * (1 - 1e-12)))
 
 
 def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
@@ -321,6 +334,21 @@ def reset(sim: SimModel, state: State) -> State:
             a[...] = b
         else:
             setattr(state, f.name, b)
+    return state
+
+
+def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
+    """Pose the skeleton at joint coordinates q [rad] (and velocities qd), moving bone-attached
+    vertices with their segments; free vertices stay where they are. Returns state."""
+    q = np.asarray(q, np.float64)
+    if q.shape != (sim.n_joints,) or not np.all(np.isfinite(q)):
+        raise ValueError(f'q must be {sim.n_joints} finite joint coordinates')
+    state.q[:] = q
+    state.qd[:] = 0.0 if qd is None else qd
+    K.forward_kinematics(state.q, sim.seg_order, sim.seg_joint, sim.j_parent, sim.j_axis, sim.j_centre, sim.j_rest,
+                         state.seg_R, state.seg_t)
+    a, s = sim.att_idx, sim.att_seg
+    state.x[a] = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[a]) + state.seg_t[s]
     return state
 
 

@@ -57,7 +57,7 @@ class Params:
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
     attached_mass_to_segment: bool = True # bone-attached vertices' masses join their segment's inertia
-    joint_damping: float = 0.0            # [N m s/rad] passive viscous damping of every hinge
+    joint_damping: float = 20.0           # [N m s/rad] passive viscous damping of every hinge (implicit)
     limit_omega_dt: float = 1.0           # end-stop natural frequency x h (stiffness relative to the joint's inertia; implicit)
     limit_damping_ratio: float = 1.0      # end-stop damping, fraction of critical
     # --- numerics / safety -----------------------------------------------------------------
@@ -74,7 +74,7 @@ class Params:
     def physical(cls, **kw) -> 'Params':
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
-                    damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=0.05, max_speed=50.0)
+                    damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=1.0, max_speed=50.0)
         base.update(kw)
         return cls(**base).validate()
 

@@ -15,11 +15,13 @@ from tissue_sim.core.model import JOINT_HINGE, TISSUE_FAT, TISSUE_MUSCLE, VF_FAT
 
 
 def _model(name, rest, vseg, flags, cells, tissue, muscle, fibre, cslice, muscles, groups, slice_z,
-           n_seg=2, knee_range=(0.0, np.radians(120.0))):
+           n_seg=2, knee_range=(0.0, np.radians(120.0)), seg=None):
     off = np.concatenate([[0], np.cumsum([len(c) for c in cells])]).astype(np.int64)
     cv = np.concatenate(cells).astype(np.int32)
     C = len(cells)
-    if n_seg == 1:
+    if seg is not None:
+        pass
+    elif n_seg == 1:
         seg = dict(segment_names=('thigh',), segment_parent=np.array([-1], np.int32), segment_mass=np.array([10.0]),
                    segment_com=np.array([[0, 0, 0.2]]), segment_inertia=np.array([np.diag([0.2, 0.2, 0.04])]),
                    joint_names=(), joint_type=np.zeros(0, np.uint8), joint_parent=np.zeros(0, np.int32),
@@ -60,11 +62,14 @@ def one_cell(n_ring: int = 4, size: float = 0.02, tissue: int = TISSUE_MUSCLE) -
 
 
 def knee(n_gaps: int = 6, n_ring: int = 6, radius: float = 0.015, length: float = 0.3, arm: float = 0.04,
-         extra_muscles: int = 0, fat_sectors: int = 0, knee_range_deg=(0.0, 120.0)) -> TissueModel:
-    """Two-segment knee phantom (see module doc). Slices evenly from z = +length/2 to -length/2."""
+         extra_muscles: int = 0, fat_sectors: int = 0, knee_range_deg=(0.0, 120.0),
+         quad_arm: float | None = None) -> TissueModel:
+    """Two-segment knee phantom (see module doc). Slices evenly from z = +length/2 to -length/2.
+    arm/quad_arm: distance of the hamstring/quadriceps axis behind/in front of the knee [m]. The
+    quadriceps has no patella: past ~40 deg of flexion its line of action passes behind the axis."""
     z = np.linspace(length / 2, -length / 2, n_gaps + 1)[::-1]          # increasing z: bottom first
     rest, vseg, flags, cells, tissue, muscle, fibre, cslice = [], [], [], [], [], [], [], []
-    centres = [(-arm, 0.0), (arm, 0.0)]
+    centres = [(-arm, 0.0), (arm if quad_arm is None else quad_arm, 0.0)]
     for e in range(extra_muscles):
         a = np.pi / 2 + np.pi * (e + 0.5) / max(extra_muscles, 1) * (1 if e % 2 else -1)
         centres.append((2.0 * arm * np.cos(a), 2.0 * arm * np.sin(a)))
@@ -106,3 +111,29 @@ def knee(n_gaps: int = 6, n_ring: int = 6, radius: float = 0.015, length: float 
                 tissue.append(TISSUE_FAT); muscle.append(-1); fibre.append([0, 0, 1]); cslice.append(g)
     return _model('knee', np.array(rest), vseg, flags, cells, tissue, muscle, fibre, cslice, names, groups, z,
                   knee_range=tuple(np.radians(knee_range_deg)))
+
+
+def chain(n_links: int = 2, length: float = 0.4, mass: float = 3.0, fixed_last: bool = False) -> TissueModel:
+    """A chain of rigid links hanging from a fixed root along -z, joined by hinges about +y at
+    z = 0, -length, -2 length, ... (a multi-joint skeleton test: pendulum, double pendulum). Each
+    link is a uniform rod (COM at its middle, I = m L^2 / 12 across). One free cell far away keeps
+    the model valid; it does not touch the skeleton. fixed_last: the last joint is a fixed joint."""
+    from tissue_sim.core.model import JOINT_FIXED
+    cellm = one_cell(tissue=TISSUE_FAT)
+    rest = cellm.rest_positions + [5.0, 0.0, 0.0]
+    S = n_links + 1
+    com = np.array([[0.0, 0.0, 0.1]] + [[0.0, 0.0, -(i + 0.5) * length] for i in range(n_links)])
+    inertia = np.array([np.diag([0.01, 0.01, 0.01])] + [np.diag([mass * length ** 2 / 12, mass * length ** 2 / 12, 1e-4])
+                                                         for _ in range(n_links)])
+    types = [JOINT_HINGE] * n_links
+    if fixed_last:
+        types[-1] = JOINT_FIXED
+    seg = dict(segment_names=tuple(f'link{i}' for i in range(S)), segment_parent=np.arange(-1, S - 1, dtype=np.int32),
+               segment_mass=np.array([1.0] + [mass] * n_links), segment_com=com, segment_inertia=inertia,
+               joint_names=tuple(f'j{i}' for i in range(n_links)), joint_type=np.array(types, np.uint8),
+               joint_parent=np.arange(0, n_links, dtype=np.int32), joint_child=np.arange(1, S, dtype=np.int32),
+               joint_axis=np.tile([0.0, 1.0, 0.0], (n_links, 1)),
+               joint_centre=np.array([[0.0, 0.0, -i * length] for i in range(n_links)]),
+               joint_range=np.tile([-10.0, 10.0], (n_links, 1)), joint_rest=np.zeros(n_links))
+    return _model('chain', rest, np.full(8, -1), np.full(8, VF_FAT), [np.arange(8)], [TISSUE_FAT], [-1], [[0, 0, 1]],
+                  [0], (), (), [-0.02, 0.02], seg=seg)

@@ -7,7 +7,7 @@ import numpy as np
 from numba import njit
 
 from tissue_sim.core.solver import kernels as K
-from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State
+from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, stable_substeps
 
 
 @njit(cache=True)
@@ -51,7 +51,7 @@ def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t,
 def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
     """Advance state in place by len(acts) steps of dt under per-step activations acts (N, M)."""
     p = sim.params
-    n_sub = sim.n_substeps if dt == p.dt else max(1, math.ceil(sim.omega_max * dt / p.stability_limit), p.substeps)
+    n_sub = sim.n_substeps if dt == p.dt else (p.substeps or stable_substeps(sim.omega_max, sim.damp_rate, dt, p.stability_limit))
     h = dt / n_sub
     info = np.array([-1, -1, 0], np.int64)
     swaps = advance(acts.shape[0], n_sub, h, acts, state.x, state.v, state.x_back, state.v_back, state.f,
@@ -73,7 +73,7 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
     state.time += done * dt
     state.kinetic_energy = float(state.work[0, -1])
     if info[0] >= 0:
-        raise DivergenceError(state.step, int(info[1]), K.CAUSES[int(info[2])])
+        raise DivergenceError(state.step + 1, int(info[1]), K.CAUSES[int(info[2])])
 
 
 def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None) -> State:
