@@ -179,3 +179,26 @@ def test_export_errors(tmp_path, capsys):
     (tmp_path / 'junk.npz').write_bytes(b'junk')
     assert main(['export', str(tmp_path / 'junk.npz'), '--vtu', str(tmp_path / 'x.vtu')]) == 2
     assert 'not a tissue_sim model' in capsys.readouterr().err
+
+
+def test_bone_mesh_file_from_table(tmp_path, capsys):
+    import trimesh
+    lab, aff, table = make_phantom('column')
+    cyl = trimesh.creation.cylinder(radius=0.01, height=0.0875, sections=24)
+    cyl.apply_translation([0, 0, 0.05625])                 # the upper bone: z 12.5 .. 100 mm
+    cyl.export(tmp_path / 'upper.stl')
+    table['labels'][1]['mesh'] = 'upper.stl'
+    l, t = _write(tmp_path, lab, aff, table)
+    code, o, e = run(capsys, 'build-model', l, '--tissues', t, '-o', tmp_path / 'm.npz')
+    assert code == 0, e
+    tm = M.TissueModel.load(tmp_path / 'm.npz')
+    v, f = tm.bone_mesh(0)
+    assert len(v) == len(cyl.vertices) and np.allclose(np.sort(v[:, 2]), np.sort(cyl.vertices[:, 2]))
+    assert len(tm.bone_mesh(1)[0]) != len(cyl.vertices)    # the other bone: marching cubes
+    table['labels'][1]['mesh'] = 'missing.stl'
+    l, t = _write(tmp_path, lab, aff, table)
+    expect_error(capsys, [l, '--tissues', t], 'missing.stl', 'not found')
+    (tmp_path / 'broken.stl').write_bytes(b'solid x\nfacet nonsense\n')
+    table['labels'][1]['mesh'] = 'broken.stl'
+    l, t = _write(tmp_path, lab, aff, table)
+    expect_error(capsys, [l, '--tissues', t], 'broken.stl')
