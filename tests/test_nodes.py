@@ -217,3 +217,62 @@ def test_executables_print_usage():
     r = subprocess.run([str(rosutil.exe_path('simulator')), '--model', '/nope.npz'], capture_output=True, text=True,
                        timeout=60, env=rosutil.ros_env(0))
     assert r.returncode == 2 and 'error: /nope.npz: no such model file' in r.stderr and 'Traceback' not in r.stderr
+
+
+def _call(node, client, req, timeout=20):
+    assert client.wait_for_service(timeout_sec=timeout), f'service {client.srv_name} not available'
+    fut = client.call_async(req)
+    spin_until(fut.done, node, timeout, f'{client.srv_name} reply')
+    return fut.result()
+
+
+def test_pause_reset_services_and_divergence_is_reported_not_published(knee_model, tmp_path):
+    """~/pause stops sim time, ~/reset returns to rest; a solver divergence (forced with a tiny
+    max_speed) pauses the node with an ERROR diagnostic while frames keep flowing, never NaN."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import SetBool, Trigger
+    from tissue_msgs.msg import MuscleActivation
+    params = tmp_path / 'fragile.yaml'
+    params.write_text('max_speed: 0.05\n')        # [m/s]: a contracting hamstring exceeds it at once
+    with isolated_domain() as dom, ros_context(dom.id) as ctx, \
+            run_executable('simulator', *sim_args(knee_model, '-p', f'params:={params}', '-p', 'realtime:=false'),
+                           env=dom.env) as sim:
+        node = rclpy.create_node('probe', context=ctx)
+        js = Collector(node, JointState, '/joint_states')
+        diag = Collector(node, DiagnosticArray, '/diagnostics')
+        pause = node.create_client(SetBool, '/simulator/pause')
+        reset = node.create_client(Trigger, '/simulator/reset')
+        pub = node.create_publisher(MuscleActivation, '/tissue/activation', 10)
+        sim.wait_for_output('simulator ready', timeout=60)
+        spin_until(lambda: len(js.msgs) > 3, node, 30, 'frames')
+        stamp = lambda m: m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec   # noqa: E731
+        # as fast as possible: sim time runs faster than wall time
+        t_sim0, t_wall0 = stamp(js.msgs[-1]), time.monotonic()
+        spin_until(lambda: time.monotonic() - t_wall0 > 1.0, node, 5, '1 s')
+        assert stamp(js.msgs[-1]) - t_sim0 > 1.5
+        assert _call(node, pause, SetBool.Request(data=True)).success
+        spin_until(lambda: time.monotonic() - t_wall0 > 1.3, node, 5, 'settle')
+        n, t_paused = len(js.msgs), stamp(js.msgs[-1])
+        spin_until(lambda: len(js.msgs) > n + 10, node, 10, 'frames while paused')
+        assert stamp(js.msgs[-1]) == t_paused                   # frames flow, time stands still
+        assert _call(node, reset, Trigger.Request()).success
+        spin_until(lambda: stamp(js.msgs[-1]) < 0.5, node, 10, 'sim time back to 0')
+        assert _call(node, pause, SetBool.Request(data=False)).success
+        # divergence
+        wait_for_subscribers(node, pub, 1, timeout=20)
+        m = MuscleActivation()
+        m.muscle_names, m.activations = ['hamstring'], [1.0]
+        pub.publish(m)
+        spin_until(lambda: diag.msgs and diag.msgs[-1].status[0].level == DiagnosticStatus.ERROR, node, 20,
+                   'an ERROR diagnostic')
+        assert 'diverged' in diag.msgs[-1].status[0].message
+        n = len(js.msgs)
+        spin_until(lambda: len(js.msgs) > n + 10, node, 10, 'frames after the divergence')
+        assert all(np.isfinite(list(j.position)).all() for j in js.msgs)
+        assert 'solver diverged' in sim.output
+        resp = _call(node, pause, SetBool.Request(data=False))
+        assert not resp.success and 'reset' in resp.message
+        node.destroy_node()
+    assert sim.returncode == 0, sim.output
