@@ -195,6 +195,14 @@ def test_bone_mesh_file_from_table(tmp_path, capsys):
     v, f = tm.bone_mesh(0)
     assert len(v) == len(cyl.vertices) and np.allclose(np.sort(v[:, 2]), np.sort(cyl.vertices[:, 2]))
     assert len(tm.bone_mesh(1)[0]) != len(cyl.vertices)    # the other bone: marching cubes
+    from tissue_sim.core.builder import build_model
+    _, rep = build_model(l, t, slice_mm=25.0)
+    assert rep['bones'][0]['label_inside_mesh'] > 0.9 and not any('mesh' in w for w in rep['warnings'])
+    cyl.apply_scale(1000.0)                                 # a mesh in millimetres: reported
+    cyl.export(tmp_path / 'upper.stl')
+    _, rep = build_model(l, t, slice_mm=25.0)
+    assert rep['bones'][0]['label_inside_mesh'] < 0.1
+    assert any('upper_bone' in w and 'model frame, in metres' in w for w in rep['warnings'])
     table['labels'][1]['mesh'] = 'missing.stl'
     l, t = _write(tmp_path, lab, aff, table)
     expect_error(capsys, [l, '--tissues', t], 'missing.stl', 'not found')

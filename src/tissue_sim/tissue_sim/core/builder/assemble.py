@@ -421,6 +421,10 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ---------------------------------------------------------------- bones
     from .bones import bone_meshes
     bnames, bseg, bvo, bverts, bto, btris, bone_info = bone_meshes(vol, tab, bone_labels, seg_names, s['bone_mesh_step'])
+    for b in bone_info:
+        if b['label_inside_mesh'] is not None and b['label_inside_mesh'] < 0.5:
+            warnings.append(f'bone {b["bone"]}: only {100 * b["label_inside_mesh"]:.0f} % of its label voxels lie inside its '
+                            f'mesh ({b["surface"]}): check that the mesh is in the model frame, in metres')
     prog('bones', 1.0)
 
     cell_vol = vols[kc]

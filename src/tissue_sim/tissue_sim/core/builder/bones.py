@@ -35,6 +35,32 @@ def _load_mesh(path):
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
+def winding_number(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Generalised winding number of points w.r.t. a triangle mesh (1 inside, 0 outside a closed mesh)."""
+    out = np.zeros(len(pts))
+    for i0 in range(0, len(pts), 256):
+        P = pts[i0:i0 + 256, None, None, :]
+        A, B, C = (v[f[:, k]][None] - P[:, 0] for k in range(3))
+        la, lb, lc = (np.linalg.norm(X, axis=-1) for X in (A, B, C))
+        num = np.einsum('pfi,pfi->pf', A, np.cross(B, C))
+        den = la * lb * lc + np.einsum('pfi,pfi->pf', A, B) * lc + np.einsum('pfi,pfi->pf', B, C) * la \
+            + np.einsum('pfi,pfi->pf', C, A) * lb
+        out[i0:i0 + 256] = np.arctan2(num, den).sum(axis=1) / (2 * np.pi)
+    return out
+
+
+def label_inside_fraction(vol, lab, bb, v, f, n=300, seed=0) -> float:
+    """Fraction of a bone label's voxels (a random sample) that lie inside its mesh: ~1 when the mesh
+    and the label volume agree; near 0 for a mesh in the wrong frame or units."""
+    ijk = np.argwhere(vol.labels[bb] == lab) + [b.start for b in bb]
+    if len(ijk) == 0:
+        return float('nan')
+    rng = np.random.default_rng(seed)
+    ijk = ijk[rng.choice(len(ijk), size=min(n, len(ijk)), replace=False)]
+    w = winding_number(v, f, voxel_to_model(vol.affine, ijk.astype(float)))
+    return float(np.mean(np.abs(w) > 0.5))
+
+
 def bone_meshes(vol, tab, bone_labels, seg_names, step):
     import trimesh
     objs = ndimage.find_objects(vol.labels, max_label=max(bone_labels))
@@ -54,7 +80,10 @@ def bone_meshes(vol, tab, bone_labels, seg_names, step):
         segs.append(seg_names.index(e['segment']))
         vs.append(np.asarray(m.vertices, np.float64))
         ts.append(np.asarray(m.faces, np.int32))
+        inside = label_inside_fraction(vol, lab, objs[lab - 1], np.asarray(m.vertices), np.asarray(m.faces)) \
+            if e['mesh'] is not None else None
         info.append({'bone': e['name'], 'segment': e['segment'], 'surface': src, 'vertices': len(m.vertices),
+                     'label_inside_mesh': None if inside is None else round(inside, 3),
                      'triangles': len(m.faces), 'watertight': bool(m.is_watertight),
                      'volume_cm3': round(float(abs(m.volume)) * 1e6, 3) if m.is_watertight else None})
     vo = np.concatenate([[0], np.cumsum([len(v) for v in vs])]).astype(np.int64)
