@@ -10,8 +10,9 @@
 #   4. env.sh: the one file to source (AMENT_PREFIX_PATH with the venv AND the workspace, PATH,
 #      PYTHONPATH, LD_LIBRARY_PATH, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)
 #
-# Environment knobs: PYTHON (interpreter for the venv, default python3),
-# TISSUE_SIM_FORCE_BUILD=1 (rebuild even if nothing changed).
+# Environment knobs: PYTHON (interpreter for the venv, default python3, else python3.12/3.11),
+# TISSUE_SIM_FORCE_BUILD=1 (rebuild even if nothing changed), TISSUE_SIM_WHEELHOUSE (local wheel
+# directory, default ~/.cache/tissue_sim/wheels; "off" = install straight from the index).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -64,8 +65,25 @@ req_hash="$( { cat "${REQS[@]}"; "$VPY" -c 'import sys; print(sys.version)'; } |
 if [[ "$(cat "$PIP_STAMP" 2>/dev/null || true)" != "$req_hash" ]]; then
   say "installing pinned requirements into .venv (requirements/*.txt changed or first run)"
   t=$(date +%s)
-  "$VPY" -m pip install --disable-pip-version-check --no-input -q \
-    -r "$ROOT/requirements/ros.txt" -r "$ROOT/requirements/core.txt" -r "$ROOT/requirements/dev.txt"
+  # Through a local wheelhouse (all pinned wheels, empy's built from its sdist): a second clone on
+  # the same machine installs from it without the network. TISSUE_SIM_WHEELHOUSE=off: plain pip.
+  pip_q=(--disable-pip-version-check --no-input -q)
+  req_args=(-r "$ROOT/requirements/ros.txt" -r "$ROOT/requirements/core.txt" -r "$ROOT/requirements/dev.txt")
+  WH="${TISSUE_SIM_WHEELHOUSE:-${XDG_CACHE_HOME:-$HOME/.cache}/tissue_sim/wheels}"
+  if [[ "$WH" == off ]]; then
+    "$VPY" -m pip install "${pip_q[@]}" "${req_args[@]}"
+  elif "$VPY" -m pip install "${pip_q[@]}" --no-index --find-links "$WH" "${req_args[@]}" 2>/dev/null; then
+    say "installed from the wheelhouse $WH"
+  else
+    mkdir -p "$WH"
+    say "filling the wheelhouse $WH (downloads ~400 MB once)"
+    if "$VPY" -m pip wheel "${pip_q[@]}" --find-links "$WH" -w "$WH" "${req_args[@]}"; then
+      "$VPY" -m pip install "${pip_q[@]}" --no-index --find-links "$WH" "${req_args[@]}"
+    else
+      say "wheelhouse failed; installing directly from the index"
+      "$VPY" -m pip install "${pip_q[@]}" "${req_args[@]}"
+    fi
+  fi
   echo "$req_hash" >"$PIP_STAMP"
   say "pip install took $(( $(date +%s) - t )) s"
   rm -f "$BUILD_STAMP"   # new wheels: rebuild the workspace against them
