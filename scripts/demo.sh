@@ -59,6 +59,20 @@ REC_TOPICS=()
   >"$RUN/logs/recorder.log" 2>&1 &
 REC=$!; PIDS+=("$REC")
 
+if [ -z "${DEMO_MODEL:-}" ] && ! python -c 'from tissue_sim.core import builder; builder.default_inputs()' 2>/dev/null; then
+  # the bundled anatomy is not in this checkout: say so and use the builder's synthetic limb phantom
+  echo "demo: the bundled anatomy is missing (tissue_sim/data/lower_limb); using the synthetic limb phantom"
+  python - "$RUN/model.npz" <<'PY' || exit 1
+import sys
+sys.path.insert(0, 'tests')
+from phantoms import make_limb_phantom
+from tissue_sim.core.builder import build_model
+lab, aff, tab = make_limb_phantom()
+tm, _ = build_model((lab, aff), tab)
+tm.save(sys.argv[1])
+PY
+  DEMO_MODEL="$RUN/model.npz"
+fi
 SIM_P=(-p "params:=${DEMO_PARAMS:-paper}")
 [ -n "${DEMO_MODEL:-}" ] && SIM_P+=(-p "model:=$DEMO_MODEL")
 "$EXE/simulator" --ros-args --params-file "$ROOT/src/tissue_sim/tissue_sim/config/simulator.yaml" \

@@ -126,6 +126,7 @@ class Simulator:
         self.marker_enc = mk.MarkerArrayEncoder(self.tm, self.frame_id, P['marker_colouring'],
                                                  bone_resolution=P['bone_marker_resolution']) if P['publish_markers'] else None
         self._rest_area = None
+        self._fat_def = None
         # warm the kernels (numba compile) before the clock starts
         warm = solver.make_state(self.sim)
         solver.step(self.sim, warm, self.ctrl, self.dt)
@@ -289,7 +290,9 @@ class Simulator:
         if enc.colouring == 'skin_area':
             ratio, self._rest_area = mk.skin_area_ratio_per_vertex(self.tm, x, self._rest_area)
             return mk.diverging_rgba(ratio[enc.skin_corners], span=scale)
-        d = mk.fat_deformation_per_vertex(self.tm, x)
+        if self._fat_def is None:
+            self._fat_def = mk.FatDeformation(self.tm)
+        d = self._fat_def(x)
         return mk.sequential_rgba(d[enc.skin_corners], scale)
 
     def publish_topology(self):

@@ -275,35 +275,44 @@ def _quad_area(p, q):
     return 0.5 * (np.linalg.norm(np.cross(c - a, d - b), axis=1))
 
 
+class FatDeformation:
+    """Paper Fig. 9 quantity per vertex, precomputed for one model: ``fd(positions)`` -> (V,) [m].
+
+    d = (1/N) sum |Ro_i - r_i| per fat cell (Ro_i the rest positions about the centroid after the
+    best-fit rotation, r_i the current ones about the centroid), averaged onto the cell's vertices."""
+
+    def __init__(self, tm):
+        fat = np.flatnonzero(np.asarray(tm.cell_tissue) == 2)
+        offs, cv = np.asarray(tm.cell_offsets), np.asarray(tm.cell_vertices)
+        rest = np.asarray(tm.rest_positions, np.float64)
+        self.V = tm.n_vertices
+        self.groups = []
+        cnt = np.zeros(self.V)
+        sizes = offs[fat + 1] - offs[fat]
+        for n in np.unique(sizes):
+            cells = fat[sizes == n]
+            idx = cv[offs[cells][:, None] + np.arange(n)[None, :]]
+            R0 = rest[idx] - rest[idx].mean(axis=1, keepdims=True)
+            self.groups.append((idx, R0, int(n)))
+            cnt += np.bincount(idx.ravel(), minlength=self.V)
+        self.inv_cnt = np.where(cnt > 0, 1.0 / np.maximum(cnt, 1), 0.0)
+
+    def __call__(self, positions):
+        acc = np.zeros(self.V)
+        for idx, R0, n in self.groups:
+            X = positions[idx]
+            X = X - X.mean(axis=1, keepdims=True)
+            H = np.einsum('cni,cnj->cij', R0, X)
+            U, _, Vt = np.linalg.svd(H)
+            dsign = np.sign(np.linalg.det(U @ Vt))
+            Vt[:, -1, :] *= dsign[:, None]
+            Rot = np.transpose(U @ Vt, (0, 2, 1))           # R = V U^T maps rest onto current
+            goal = np.einsum('cij,cnj->cni', Rot, R0)
+            d = np.linalg.norm(goal - X, axis=2).mean(axis=1)
+            acc += np.bincount(idx.ravel(), weights=np.repeat(d, n), minlength=self.V)
+        return acc * self.inv_cnt
+
+
 def fat_deformation_per_vertex(tm, positions: np.ndarray):
-    """Paper Fig. 9 quantity d = (1/N) sum |Ro_i - r_i| per fat cell (Ro_i rest positions about the
-    centroid, r_i the current ones about the centroid after the best-fit rotation), averaged onto
-    the cell's vertices [m]. Returns (V,)."""
-    fat = np.flatnonzero(np.asarray(tm.cell_tissue) == 2)
-    out = np.zeros(tm.n_vertices)
-    if fat.size == 0:
-        return out
-    offs = np.asarray(tm.cell_offsets)
-    sizes = offs[fat + 1] - offs[fat]
-    acc = np.zeros(tm.n_vertices)
-    cnt = np.zeros(tm.n_vertices)
-    rest = np.asarray(tm.rest_positions)
-    for n in np.unique(sizes):
-        cells = fat[sizes == n]
-        idx = np.asarray(tm.cell_vertices)[offs[cells][:, None] + np.arange(n)[None, :]]
-        R0 = rest[idx]
-        R0 = R0 - R0.mean(axis=1, keepdims=True)
-        X = positions[idx]
-        X = X - X.mean(axis=1, keepdims=True)
-        H = np.einsum('cni,cnj->cij', R0, X)
-        U, _, Vt = np.linalg.svd(H)
-        dsign = np.sign(np.linalg.det(np.einsum('cij,cjk->cik', U, Vt)))
-        Vt[:, -1, :] *= dsign[:, None]
-        Rot = np.einsum('cji,ckj->cik', Vt, U)          # R = V U^T
-        goal = np.einsum('cij,cnj->cni', Rot, R0)
-        d = np.linalg.norm(goal - X, axis=2).mean(axis=1)
-        np.add.at(acc, idx.ravel(), np.repeat(d, n))
-        np.add.at(cnt, idx.ravel(), 1.0)
-    has = cnt > 0
-    out[has] = acc[has] / cnt[has]
-    return out
+    """One-off :class:`FatDeformation` (the node keeps an instance)."""
+    return FatDeformation(tm)(positions)
