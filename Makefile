@@ -6,7 +6,6 @@ SHELL := /bin/bash
 .DEFAULT_GOAL := help
 ENV := . ./env.sh
 PYTEST_ARGS ?=
-DEMO_ARGS ?=
 
 .PHONY: help setup demo test test-fast test-ros bench anatomy clean
 
@@ -27,10 +26,10 @@ setup:
 
 demo: setup
 	@if [ -f scripts/demo.sh ]; then \
-	  bash scripts/demo.sh $(DEMO_ARGS); \
+	  bash scripts/demo.sh; \
 	else \
 	  echo 'make demo: scripts/demo.sh not there yet; running the DDS self-check (two real nodes)'; \
-	  $(ENV) && python scripts/ros_selfcheck.py $(DEMO_ARGS); \
+	  $(ENV) && python scripts/ros_selfcheck.py; \
 	fi
 
 test: setup
@@ -51,8 +50,10 @@ bench: setup
 anatomy: setup
 	@$(ENV) && if [ -f tools/anatomy/make_anatomy.sh ]; then \
 	  bash tools/anatomy/make_anatomy.sh; \
+	elif [ -f tools/anatomy/generate.py ]; then \
+	  python -m pip install -q --no-deps -r requirements/anatomy.txt && python tools/anatomy/generate.py; \
 	else \
-	  tissue-sim make-anatomy; \
+	  echo 'make anatomy: no generator under tools/anatomy/' >&2; exit 1; \
 	fi
 
 clean:
