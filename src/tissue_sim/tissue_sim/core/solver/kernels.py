@@ -45,7 +45,8 @@ def axis_angle_mat(ax, ang, R):
 def extract_rotation(B, q, iters, R):
     """Rotational part of B (3x3) by Mueller et al. 2016 ("A Robust Method to Extract the Rotational
     Part of Deformations"): quaternion q (x, y, z, w) is warm-started, updated in place, and R gets
-    its matrix. Robust for flat and inverted B (always returns a rotation)."""
+    its matrix. Robust for flat and inverted B (always returns a rotation). Stops after iters
+    iterations or when the correction is below 1e-12 rad."""
     nrm = 0.0
     for i in range(3):
         for j in range(3):
@@ -70,8 +71,9 @@ def extract_rotation(B, q, iters, R):
         w = math.sqrt(ox * ox + oy * oy + oz * oz)
         if w < 1e-12:
             break
-        s = math.sin(0.5 * w) / w
-        dx, dy, dz, dw = ox * s, oy * s, oz * s, math.cos(0.5 * w)
+        # dq = (omega/2, 1), normalised below with q: a rotation by 2 atan(|omega|/2) about omega
+        # (= |omega| to second order; same fixed point as the exact exponential, no sin/cos)
+        dx, dy, dz, dw = 0.5 * ox, 0.5 * oy, 0.5 * oz, 1.0
         x, y, z, qw = q[0], q[1], q[2], q[3]       # q = dq * q
         nx = dw * x + dx * qw + dy * z - dz * y
         ny = dw * y - dx * z + dy * qw + dz * x
