@@ -311,3 +311,17 @@ def test_voxel_axis_flips_give_the_same_model(column, axis):
     order2 = np.lexsort(tm2.rest_positions.T.round(7))
     assert np.allclose(tm.rest_positions[order], tm2.rest_positions[order2], atol=1e-6)
     assert np.allclose(np.sort(cell_volumes(tm)), np.sort(cell_volumes(tm2)), rtol=1e-6)
+
+
+def test_best_origin_covers_at_least_the_centroid_polygon():
+    lab, aff, tab = make_phantom('cshape')
+    _, rb = build_model((lab, aff), tab, ray_origin='best', **P)
+    _, rc = build_model((lab, aff), tab, ray_origin='centroid', **P)
+    best = rb['areas']['per_muscle']['flexor']['median_area_ratio']
+    cen = rc['areas']['per_muscle']['flexor']['median_area_ratio']
+    assert best >= cen and rb['cells']['inverted'] == 0
+    # convex discs: identical polygons either way
+    assert rb['areas']['per_muscle']['extensor'] == rc['areas']['per_muscle']['extensor']
+    from tissue_sim.errors import UserError
+    with pytest.raises(UserError, match='ray_origin'):
+        build_model((lab, aff), tab, ray_origin='middle', **P)

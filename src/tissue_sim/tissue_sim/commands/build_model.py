@@ -29,6 +29,8 @@ def add_arguments(p):
     g.add_argument('--min-area-mm2', type=float, default=D['min_area_mm2'], help='drop smaller components [mm^2] (default %(default)s)')
     g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
     g.add_argument('--ray-hit', choices=('first', 'last'), default=D['ray_hit'], help='boundary crossing used along a ray (default %(default)s)')
+    g.add_argument('--ray-origin', choices=('best', 'centroid'), default=D['ray_origin'],
+                   help='origin of a region\'s rays (default %(default)s)')
     g.add_argument('--bone-mesh-step', type=int, default=D['bone_mesh_step'], help='marching-cubes step [voxels] (default %(default)s)')
     g.add_argument('--allow-missing', action='store_true', help='table labels absent from the volume: warn, do not fail')
     p.add_argument('--json', action='store_true', help='print the Table-1 summary as one JSON object (keys = Table 1 rows)')
@@ -40,7 +42,7 @@ def add_arguments(p):
 def _settings(args) -> dict:
     return {'slices': args.slices, 'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
             'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm,
-            'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit,
+            'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit, 'ray_origin': args.ray_origin,
             'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing}
 
 

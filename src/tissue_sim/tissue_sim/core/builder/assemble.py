@@ -36,6 +36,7 @@ DEFAULTS = {
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
     'ray_hit': 'first',        # 'first' (polygon inside the region) or 'last' boundary crossing
+    'ray_origin': 'best',      # 'best' (largest polygon among centroid and interior maxima) or 'centroid'
     'bone_mesh_step': 2,       # marching-cubes step [voxels] for bone surfaces without a mesh file
     'allow_missing': False,    # table labels absent from the volume: warning instead of error
 }
@@ -70,6 +71,8 @@ def settings_with_defaults(settings: dict) -> dict:
             raise UserError(f'{k} must be a number >= 0, got {s[k]!r}')
     if s['attach_mm'] is not None and not (math.isfinite(s['attach_mm']) and s['attach_mm'] >= 0):
         raise UserError(f'attach_mm must be >= 0, got {s["attach_mm"]!r}')
+    if s['ray_origin'] not in ('best', 'centroid'):
+        raise UserError(f"ray_origin must be 'best' or 'centroid', got {s['ray_origin']!r}")
     if s['ray_hit'] not in ('first', 'last'):
         raise UserError(f"ray_hit must be 'first' or 'last', got {s['ray_hit']!r}")
     return s
@@ -164,7 +167,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         slice_counts.append(np.bincount(sl.ravel(), minlength=maxlab))
         g = S.slice_geom(vol.affine, int(k))
         geoms.append(g)
-        regs, drop = S.muscle_regions(sl, g, muscle_labels, s['muscle_rays'], s['min_area_mm2'], s['ray_hit'], 0.0)
+        regs, drop = S.muscle_regions(sl, g, muscle_labels, s['muscle_rays'], s['min_area_mm2'], s['ray_hit'], 0.0,
+                                        s['ray_origin'])
         regions.append(regs)
         dropped += [{'slice': zi, 'label': l, 'name': tab[l]['name'], 'area_mm2': round(a, 2), 'reason': r} for l, a, r in drop]
         f = S.fat_rays(sl, g, bone_labels, fat_labels, s['fat_rays'], s['min_fat_mm'] / 1000.0, 0.0)

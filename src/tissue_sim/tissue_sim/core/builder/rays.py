@@ -79,3 +79,36 @@ def polygon_area(xy: np.ndarray) -> float:
     """Signed area of a closed polygon (n, 2); positive when counter-clockwise."""
     x, y = xy[:, 0], xy[:, 1]
     return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def best_origin(mask: np.ndarray, dirs_px: np.ndarray, mode: str = 'first', n_candidates: int = 6):
+    """Ray origin that maximises the ray polygon's area, among the centroid (when inside the region)
+    and the strongest distance-transform maxima (the pole of inaccessibility first). The centroid (the
+    paper's choice) is kept unless another candidate's polygon is more than 3 % larger: for convex
+    regions nothing changes; for crescents and C-shapes wrapped around a bone the polygon covers more.
+    Returns (origin (2,), kind, distances (n,) [m])."""
+    n = len(dirs_px)
+    dt = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
+    cands, kinds = [], []
+    c = np.argwhere(mask).mean(axis=0)
+    ci = np.round(c).astype(int)
+    if mask[ci[0], ci[1]]:
+        cands.append(c); kinds.append('centroid')
+    peaks = (dt == ndimage.maximum_filter(dt, size=5)) & (dt > 0)
+    pk = np.argwhere(peaks)
+    if len(pk):
+        order = np.argsort(-dt[pk[:, 0], pk[:, 1]])
+        for p in pk[order][:n_candidates]:
+            cands.append(p.astype(float)); kinds.append('pole' if not kinds or kinds == ['centroid'] else 'interior')
+    best, best_a = None, -1.0
+    sin = np.sin(2 * np.pi / n)
+    for o, kd in zip(cands, kinds):
+        d = cast(mask.astype(np.float64), o, dirs_px, mode)
+        if not np.all(np.isfinite(d)) or d.min() <= 0:
+            continue
+        a = 0.5 * sin * float(np.sum(d * np.roll(d, -1)))
+        if best is None or (a > best_a * 1.03 if best[1] == 'centroid' else a > best_a):
+            best, best_a = (o, kd, d), a
+    if best is None:
+        return c, 'none', np.full(n, np.nan)
+    return best

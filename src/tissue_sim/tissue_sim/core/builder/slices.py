@@ -66,7 +66,7 @@ def _pad_bbox(bb, shape, pad=2):
 
 
 def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: int, min_area_mm2: float,
-                   ray_hit: str, angle_offset: float) -> tuple[dict, list]:
+                   ray_hit: str, angle_offset: float, origin_mode: str = 'best') -> tuple[dict, list]:
     """Ray polygons of every component of every muscle label on one slice.
 
     Returns ({label: [Region, ...] (largest first)}, dropped) where dropped lists
@@ -96,8 +96,11 @@ def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: i
             full_bb = (slice(bb[0].start + sub[0].start, bb[0].start + sub[0].stop),
                        slice(bb[1].start + sub[1].start, bb[1].start + sub[1].stop))
             reg = Region(lab, full_bb, mm, area)
-            origin, reg.origin_kind = rays.ray_origin(mm)
-            d = rays.cast(mm.astype(np.float64), origin, dirs, ray_hit)
+            if origin_mode == 'best':
+                origin, reg.origin_kind, d = rays.best_origin(mm, dirs, ray_hit)
+            else:
+                origin, reg.origin_kind = rays.ray_origin(mm)
+                d = rays.cast(mm.astype(np.float64), origin, dirs, ray_hit)
             if not np.all(np.isfinite(d)) or np.min(d) <= 0:
                 dropped.append((lab, area, 'no polygon (ray casting failed)'))
                 continue
