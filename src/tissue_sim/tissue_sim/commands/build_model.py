@@ -81,7 +81,10 @@ def run(args) -> int:
     except OSError as e:
         raise UserError(f'{out}: cannot write the model ({e.strerror})') from None
     if args.report:
-        Path(args.report).write_text(json.dumps(report, indent=1, default=float))
+        try:
+            Path(args.report).write_text(json.dumps(report, indent=1, default=float))
+        except OSError as e:
+            raise UserError(f'{args.report}: cannot write the report ({e.strerror})') from None
     if args.glb or args.vtu:
         from tissue_sim.core.builder import export
         if args.glb:
