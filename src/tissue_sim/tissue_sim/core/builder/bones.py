@@ -38,18 +38,19 @@ def _load_mesh(path):
 def winding_number(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Generalised winding number of points w.r.t. a triangle mesh (1 inside, 0 outside a closed mesh)."""
     out = np.zeros(len(pts))
-    for i0 in range(0, len(pts), 256):
-        P = pts[i0:i0 + 256, None, None, :]
+    step = max(1, 200_000 // max(len(f), 1))
+    for i0 in range(0, len(pts), step):
+        P = pts[i0:i0 + step, None, None, :]
         A, B, C = (v[f[:, k]][None] - P[:, 0] for k in range(3))
         la, lb, lc = (np.linalg.norm(X, axis=-1) for X in (A, B, C))
         num = np.einsum('pfi,pfi->pf', A, np.cross(B, C))
         den = la * lb * lc + np.einsum('pfi,pfi->pf', A, B) * lc + np.einsum('pfi,pfi->pf', B, C) * la \
             + np.einsum('pfi,pfi->pf', C, A) * lb
-        out[i0:i0 + 256] = np.arctan2(num, den).sum(axis=1) / (2 * np.pi)
+        out[i0:i0 + step] = np.arctan2(num, den).sum(axis=1) / (2 * np.pi)
     return out
 
 
-def label_inside_fraction(vol, lab, bb, v, f, n=300, seed=0) -> float:
+def label_inside_fraction(vol, lab, bb, v, f, n=100, seed=0) -> float:
     """Fraction of a bone label's voxels (a random sample) that lie inside its mesh: ~1 when the mesh
     and the label volume agree; near 0 for a mesh in the wrong frame or units."""
     ijk = np.argwhere(vol.labels[bb] == lab) + [b.start for b in bb]

@@ -81,17 +81,26 @@ def polygon_area(xy: np.ndarray) -> float:
     return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
-def best_origin(mask: np.ndarray, dirs_px: np.ndarray, mode: str = 'first', n_candidates: int = 6):
+def best_origin(mask: np.ndarray, dirs_px: np.ndarray, mode: str = 'first', n_candidates: int = 4,
+                px_area_m2: float | None = None):
     """Ray origin that maximises the ray polygon's area, among the centroid (when inside the region)
     and the strongest distance-transform maxima (the pole of inaccessibility first). The centroid (the
     paper's choice) is kept unless another candidate's polygon is more than 3 % larger: for convex
     regions nothing changes; for crescents and C-shapes wrapped around a bone the polygon covers more.
     Returns (origin (2,), kind, distances (n,) [m])."""
     n = len(dirs_px)
-    dt = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
-    cands, kinds = [], []
+    sin = np.sin(2 * np.pi / n)
     c = np.argwhere(mask).mean(axis=0)
     ci = np.round(c).astype(int)
+    field = mask.astype(np.float64)
+    if mask[ci[0], ci[1]] and px_area_m2 is not None:
+        # fast path: the centroid's polygon already covers 90 % of the region (convex-ish regions)
+        d = cast(field, c, dirs_px, mode)
+        if np.all(np.isfinite(d)) and d.min() > 0 and \
+                0.5 * sin * float(np.sum(d * np.roll(d, -1))) >= 0.9 * np.count_nonzero(mask) * px_area_m2:
+            return c, 'centroid', d
+    dt = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
+    cands, kinds = [], []
     if mask[ci[0], ci[1]]:
         cands.append(c); kinds.append('centroid')
     peaks = (dt == ndimage.maximum_filter(dt, size=5)) & (dt > 0)
@@ -101,9 +110,8 @@ def best_origin(mask: np.ndarray, dirs_px: np.ndarray, mode: str = 'first', n_ca
         for p in pk[order][:n_candidates]:
             cands.append(p.astype(float)); kinds.append('pole' if not kinds or kinds == ['centroid'] else 'interior')
     best, best_a = None, -1.0
-    sin = np.sin(2 * np.pi / n)
     for o, kd in zip(cands, kinds):
-        d = cast(mask.astype(np.float64), o, dirs_px, mode)
+        d = cast(field, o, dirs_px, mode)
         if not np.all(np.isfinite(d)) or d.min() <= 0:
             continue
         a = 0.5 * sin * float(np.sum(d * np.roll(d, -1)))

@@ -97,7 +97,7 @@ def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: i
                        slice(bb[1].start + sub[1].start, bb[1].start + sub[1].stop))
             reg = Region(lab, full_bb, mm, area)
             if origin_mode == 'best':
-                origin, reg.origin_kind, d = rays.best_origin(mm, dirs, ray_hit)
+                origin, reg.origin_kind, d = rays.best_origin(mm, dirs, ray_hit, px_area_m2=px_area * 1e-6)
             else:
                 origin, reg.origin_kind = rays.ray_origin(mm)
                 d = rays.cast(mm.astype(np.float64), origin, dirs, ray_hit)
