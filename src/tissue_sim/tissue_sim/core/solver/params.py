@@ -132,9 +132,17 @@ class Params:
         types = {f.name: type(getattr(base, f.name)) for f in dataclasses.fields(cls)}
         for k, v in kw.items():
             t = types[k]
-            if t is float and isinstance(v, (int, float)) and not isinstance(v, bool):
-                kw[k] = float(v)
-            elif t in (bool, int, str) and not isinstance(v, t):
+            if t is float:
+                try:
+                    if isinstance(v, bool):
+                        raise ValueError
+                    kw[k] = float(v)           # also '3e7', which YAML 1.1 reads as a string
+                except (TypeError, ValueError):
+                    raise ValueError(f'solver parameters: {k} must be a number, got {v!r}') from None
+            elif t is tuple:
+                if not isinstance(v, (list, tuple)):
+                    raise ValueError(f'solver parameters: {k} must be a list of 3 numbers, got {v!r}')
+            elif t in (bool, int, str) and (not isinstance(v, t) or (t is int and isinstance(v, bool))):
                 raise ValueError(f'solver parameters: {k} must be a {t.__name__}, got {v!r}')
         return cls(**kw).validate()
 
