@@ -325,3 +325,26 @@ def test_best_origin_covers_at_least_the_centroid_polygon():
     from tissue_sim.errors import UserError
     with pytest.raises(UserError, match='ray_origin'):
         build_model((lab, aff), tab, ray_origin='middle', **P)
+
+
+def test_sharing_is_undone_where_it_would_spoil_a_cell():
+    """Merges that would shrink a cell below min_cell_volume are undone (the guard of section 2.4)."""
+    lab, aff, tab = make_phantom('split')
+    _, r0 = build_model((lab, aff), tab, slice_mm=25.0, share_mm=0)
+    tm, r = build_model((lab, aff), tab, slice_mm=25.0, share_mm=30, min_cell_volume_mm3=8000)
+    assert r0['cells']['min_volume_mm3'] > 8000
+    assert r['sharing']['unshared_to_avoid_inversion'] > 0
+    assert r['cells']['min_volume_mm3'] >= 8000 and not r['cells']['dropped_degenerate']
+    assert r['table1']['shared_vertices'] > 0
+
+
+def test_share_groups_never_take_two_vertices_of_one_ring():
+    from tissue_sim.core.builder.sharing import share_groups
+    # ring 0 (muscle 0): two vertices 2 mm apart; a fat vertex (ring 1) between them
+    pos = np.array([[0, 0, 0], [0.002, 0, 0], [0.001, 0, 0]], float)
+    rep = share_groups(pos, tissue=np.array([0, 0, -1]), ring=np.array([0, 0, 1]), slice_id=np.zeros(3, int), radius=0.005)
+    assert rep[0] != rep[1] and rep[2] in (rep[0], rep[1])
+    # different slices never merge
+    pos[2, 2] = 0.001
+    rep = share_groups(pos, tissue=np.array([0, 0, -1]), ring=np.array([0, 0, 1]), slice_id=np.array([0, 0, 1]), radius=0.005)
+    assert len(set(rep.tolist())) == 3

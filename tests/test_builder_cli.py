@@ -210,3 +210,22 @@ def test_bone_mesh_file_from_table(tmp_path, capsys):
     table['labels'][1]['mesh'] = 'broken.stl'
     l, t = _write(tmp_path, lab, aff, table)
     expect_error(capsys, [l, '--tissues', t], 'broken.stl')
+
+
+def test_png_first_slice_superior(nii, tmp_path, capsys):
+    import imageio.v3 as iio
+    lab, aff, table = make_phantom('tapered')               # not symmetric in z
+    d = tmp_path / 'png'
+    d.mkdir()
+    K = lab.shape[2]
+    for k in range(K):                                      # slice_0000 is the most superior slice
+        iio.imwrite(d / f'slice_{k:04d}.png', lab[:, :, K - 1 - k].T.astype(np.uint8))
+    top = aff[:3, :3] @ [0, 0, K - 1] + aff[:3, 3]
+    (d / 'spacing.yaml').write_text(yaml.safe_dump({'pixel_mm': [1.0, 1.0], 'slice_mm': 5.0, 'first_slice_superior': True,
+                                                    'origin_mm': [float(x) for x in top]}))
+    l, t = _write(tmp_path, lab, aff, table)
+    assert run(capsys, 'build-model', d, '--tissues', t, '-o', tmp_path / 'a.npz')[0] == 0
+    assert run(capsys, 'build-model', l, '--tissues', t, '-o', tmp_path / 'b.npz')[0] == 0
+    a, b = M.TissueModel.load(tmp_path / 'a.npz'), M.TissueModel.load(tmp_path / 'b.npz')
+    assert np.allclose(a.slice_z, b.slice_z) and a.n_cells == b.n_cells
+    assert np.allclose(np.sort(a.rest_positions, axis=0), np.sort(b.rest_positions, axis=0), atol=1e-9)
