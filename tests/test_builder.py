@@ -147,6 +147,7 @@ def test_bone_attachment(column):
     assert np.all(dist[~att] > attach_mm - 1.0)
     # segment of the bone on that slice: upper above the knee, lower below
     up = tm.segment_names.index('upper')
+    assert sum(rep['attachment'].values()) == int(att.sum()) and rep['attachment']['upper'] > 0 and rep['attachment']['lower'] > 0
     assert np.all((tm.vertex_segment[att] == up) == (p[att, 2] >= KNEE_Z))
     # the flexor's ray 0 and the extensor's ray 5 touch the bone on every slice
     for z in tm.slice_z:

@@ -104,6 +104,7 @@ def quality_report(tm, *, cell_vol, area_rows, fats, dropped, dropped_cells, war
         'surfaces': surf,
         'closed_surfaces': all(v['watertight'] for v in surf.values()),
         'bones': bone_info,
+        'attachment': {name: int(np.count_nonzero(tm.vertex_segment == i)) for i, name in enumerate(tm.segment_names)},
         'dropped_components': dropped,
         'sharing': {'vertices_before': n_before_sharing, 'vertices_after': tm.n_vertices,
                     'unshared_to_avoid_inversion': n_unshared},
