@@ -22,6 +22,15 @@ def knee_model(tmp_path_factory):
     return p
 
 
+@pytest.fixture(scope='module')
+def builder_model(tmp_path_factory):
+    """A model made by the real builder from a labelled phantom volume (bones, muscle, fat, skin)."""
+    from phantoms import make_phantom_model
+    p = tmp_path_factory.mktemp('model') / 'two_bones.npz'
+    make_phantom_model('two_bones').save(p)
+    return p
+
+
 def sim_args(model, *extra):
     return ('--ros-args', '-p', f'model:={model}', *extra)
 
@@ -48,7 +57,7 @@ def diag_values(msg):
     return {kv.key: kv.value for kv in msg.status[0].values}
 
 
-def test_simulator_publishes_at_34hz_with_markers(knee_model):
+def test_simulator_publishes_at_34hz_with_markers(builder_model):
     import rclpy
     from sensor_msgs.msg import JointState
     from tissue_msgs.msg import TissueState, TissueTopology
@@ -56,10 +65,11 @@ def test_simulator_publishes_at_34hz_with_markers(knee_model):
     from tissue_sim.core import tissue_cdr
     from tissue_sim.ros.common import qos_latched
     with isolated_domain() as dom, ros_context(dom.id) as ctx, \
-            run_executable('simulator', *sim_args(knee_model), env=dom.env) as sim:
+            run_executable('simulator', *sim_args(builder_model), env=dom.env) as sim:
         node = rclpy.create_node('probe', context=ctx)
         js = Collector(node, JointState, '/joint_states', keep=False)
-        mk = Collector(node, MarkerArray, '/tissue/markers')
+        # raw: turning each MarkerArray into Python objects here would make this probe the bottleneck
+        mk = Collector(node, MarkerArray, '/tissue/markers', raw=True)
         st = Collector(node, TissueState, '/tissue/state', raw=True)
         topo = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
         sim.wait_for_output('simulator ready', timeout=60)
@@ -70,16 +80,20 @@ def test_simulator_publishes_at_34hz_with_markers(knee_model):
         r_mk, n_mk = mk.rate_over(t0, t0 + 5.0)
         print(f'joint_states {r_js:.2f} Hz ({n_js}), markers {r_mk:.2f} Hz ({n_mk})')
         assert r_js >= 34.0 and r_mk >= 34.0
-        # markers: the whole model (every boundary face of both muscles), in 'world'
-        m = mk.msgs[-1]
-        assert {x.ns for x in m.markers} == {'tissue/muscle/hamstring', 'tissue/muscle/quadriceps'}
+        # markers: the whole model in 'world': muscle opaque, skin/fat translucent, bones opaque
+        from rclpy.serialization import deserialize_message
+        m = deserialize_message(mk.msgs[-1], MarkerArray)
+        ns = {x.ns: x for x in m.markers}
+        assert {'tissue/muscle/flexor', 'tissue/skin', 'tissue/bone/lower'} <= set(ns)
         assert all(x.header.frame_id == 'world' and len(x.points) > 0 for x in m.markers)
+        assert ns['tissue/muscle/flexor'].color.a == 1.0 and ns['tissue/skin'].color.a < 0.5
+        assert ns['tissue/bone/lower'].color.a == 1.0
         # the compact state decodes, is finite, and matches the topology sent once (transient-local)
         assert len(topo.msgs) == 1
         tp = tissue_cdr.decode_topology(topo.msgs[0])
         s = tissue_cdr.decode_state(st.msgs[-1])
         assert s.vertex_positions.shape == (tp.n_vertices, 3) and np.isfinite(s.vertex_positions).all()
-        assert s.joint_names == ['knee_r'] and s.sim_time > 1.0
+        assert s.joint_names == ['knee'] and s.sim_time > 1.0
         node.destroy_node()
     assert sim.returncode == 0, sim.output
 
