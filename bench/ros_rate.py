@@ -152,7 +152,7 @@ def main():
     py_ms, np_ms, nbytes = python_object_markers(tm, x)
     out = {
         'model': tm.name, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
-        'marker_bytes': nbytes, 'window_s': round(w1 - w0, 2), 'publish_rate_target_hz': a.rate,
+        'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2), 'publish_rate_target_hz': a.rate,
         'joint_states': js, 'markers': mkst,
         'simulator_cpu_percent_of_one_core': round(100 * (c1 - c0) / (w1 - w0), 1),
         'real_time_factor': float(d.get('real_time_factor', 'nan')), 'steps_per_s': float(d.get('steps_per_s', 'nan')),
@@ -163,7 +163,7 @@ def main():
         'numpy_speedup': round(py_ms / np_ms, 1),
         'markers_ok_34hz': bool(mkst['rate_hz'] >= 34.0), 'marker_under_5ms': bool(float(d.get('marker_ms_mean', 'nan')) < 5.0),
     }
-    print(f"model {out['model']}: {out['vertices']} vertices, MarkerArray {nbytes / 1e6:.2f} MB")
+    print(f"model {out['model']}: {out['vertices']} vertices, MarkerArray {out['marker_bytes'] / 1e6:.2f} MB")
     print(f"/joint_states  {js['rate_hz']:.2f} Hz  p50 {js['p50_ms']} ms  p99 {js['p99_ms']} ms")
     print(f"/tissue/markers {mkst['rate_hz']:.2f} Hz  p50 {mkst['p50_ms']} ms  p99 {mkst['p99_ms']} ms")
     print(f"simulator CPU {out['simulator_cpu_percent_of_one_core']} % of one core; real-time factor "
