@@ -43,10 +43,16 @@ def axis_angle_mat(ax, ang, R):
 
 @njit(cache=True)
 def extract_rotation(B, q, iters, R):
-    """Rotational part of B (3x3) by Mueller et al. 2016 ("A Robust Method to Extract the Rotational
-    Part of Deformations"): quaternion q (x, y, z, w) is warm-started, updated in place, and R gets
-    its matrix. Robust for flat and inverted B (always returns a rotation). Stops after iters
-    iterations or when the correction is below 1e-12 rad."""
+    """Rotational part of B (3x3), after Mueller et al. 2016 ("A Robust Method to Extract the
+    Rotational Part of Deformations"): the quaternion q (x, y, z, w) is warm-started, updated in place,
+    R gets its matrix; always a rotation, robust for flat and inverted B.
+
+    Each iteration maximises tr(R^T B) over a rotation increment omega: gradient g = sum_j r_j x b_j
+    (r_j, b_j the columns of R, B). Mueller's step is g / |tr(B R^T)|; here the Newton step
+    H^-1 g with H = tr(N) I - sym(N), N = B R^T, is used whenever H is positive definite (it is near
+    the solution unless B is degenerate), which converges quadratically also for thin, anisotropic
+    cells where Mueller's step crawls; otherwise Mueller's step. Steps are capped at 1 rad. Stops after
+    iters iterations or when the correction is below 1e-12 rad."""
     nrm = 0.0
     for i in range(3):
         for j in range(3):
@@ -57,23 +63,37 @@ def extract_rotation(B, q, iters, R):
         return
     inv = 1.0 / nrm
     for _ in range(iters):
-        ox = oy = oz = 0.0
-        den = 0.0
-        for j in range(3):          # columns: sum_j R[:, j] x B[:, j]
+        gx = gy = gz = 0.0
+        n00 = n01 = n02 = n11 = n12 = n22 = 0.0
+        for j in range(3):          # g = sum_j R[:, j] x B[:, j];  N = B R^T = sum_j b_j r_j^T (sym part)
             r0, r1, r2 = R[0, j], R[1, j], R[2, j]
             b0, b1, b2 = B[0, j] * inv, B[1, j] * inv, B[2, j] * inv
-            ox += r1 * b2 - r2 * b1
-            oy += r2 * b0 - r0 * b2
-            oz += r0 * b1 - r1 * b0
-            den += r0 * b0 + r1 * b1 + r2 * b2
-        den = abs(den) + 1e-9
-        ox /= den; oy /= den; oz /= den
+            gx += r1 * b2 - r2 * b1
+            gy += r2 * b0 - r0 * b2
+            gz += r0 * b1 - r1 * b0
+            n00 += b0 * r0; n11 += b1 * r1; n22 += b2 * r2
+            n01 += 0.5 * (b0 * r1 + b1 * r0); n02 += 0.5 * (b0 * r2 + b2 * r0); n12 += 0.5 * (b1 * r2 + b2 * r1)
+        tr = n00 + n11 + n22
+        h00, h11, h22 = tr - n00, tr - n11, tr - n22
+        h01, h02, h12 = -n01, -n02, -n12
+        c00 = h11 * h22 - h12 * h12; c01 = h02 * h12 - h01 * h22; c02 = h01 * h12 - h02 * h11
+        c11 = h00 * h22 - h02 * h02; c12 = h01 * h02 - h00 * h12; c22 = h00 * h11 - h01 * h01
+        det = h00 * c00 + h01 * c01 + h02 * c02
+        if h00 > 0.0 and c22 > 0.0 and det > 1e-9 * tr * tr * tr:       # Sylvester: H positive definite
+            ox = (c00 * gx + c01 * gy + c02 * gz) / det
+            oy = (c01 * gx + c11 * gy + c12 * gz) / det
+            oz = (c02 * gx + c12 * gy + c22 * gz) / det
+        else:
+            den = abs(tr) + 1e-9
+            ox, oy, oz = gx / den, gy / den, gz / den
         w = math.sqrt(ox * ox + oy * oy + oz * oz)
         if w < 1e-12:
             break
-        # dq = (omega/2, 1), normalised below with q: a rotation by 2 atan(|omega|/2) about omega
-        # (= |omega| to second order; same fixed point as the exact exponential, no sin/cos)
-        dx, dy, dz, dw = 0.5 * ox, 0.5 * oy, 0.5 * oz, 1.0
+        if w > 1.0:
+            ox /= w; oy /= w; oz /= w
+            w = 1.0
+        s = math.sin(0.5 * w) / w
+        dx, dy, dz, dw = ox * s, oy * s, oz * s, math.cos(0.5 * w)
         x, y, z, qw = q[0], q[1], q[2], q[3]       # q = dq * q
         nx = dw * x + dx * qw + dy * z - dz * y
         ny = dw * y - dx * z + dy * qw + dz * x
@@ -138,23 +158,24 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
         svx = svy = svz = 0.0
         lx = ly = lz = 0.0
         yxx = yyy = yzz = yxy = yxz = yyz = 0.0
-        for r in range(3):
-            for s in range(3):
-                A[r, s] = 0.0
+        a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0   # scalars: no aliasing with x, f
         for p in range(a0, a1):                             # gather
             i = cv[p]
             dx, dy, dz = x[i, 0] - ox, x[i, 1] - oy, x[i, 2] - oz
             sx += dx; sy += dy; sz += dz
             X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
-            A[0, 0] += dx * X; A[0, 1] += dx * Y; A[0, 2] += dx * Z
-            A[1, 0] += dy * X; A[1, 1] += dy * Y; A[1, 2] += dy * Z
-            A[2, 0] += dz * X; A[2, 1] += dz * Y; A[2, 2] += dz * Z
+            a00 += dx * X; a01 += dx * Y; a02 += dx * Z
+            a10 += dy * X; a11 += dy * Y; a12 += dy * Z
+            a20 += dz * X; a21 += dz * Y; a22 += dz * Z
             if b > 0.0:
                 ux, uy, uz = v[i, 0], v[i, 1], v[i, 2]
                 svx += ux; svy += uy; svz += uz
                 lx += dy * uz - dz * uy; ly += dz * ux - dx * uz; lz += dx * uy - dy * ux
                 yxx += dx * dx; yyy += dy * dy; yzz += dz * dz
                 yxy += dx * dy; yxz += dx * dz; yyz += dy * dz
+        A[0, 0] = a00; A[0, 1] = a01; A[0, 2] = a02
+        A[1, 0] = a10; A[1, 1] = a11; A[1, 2] = a12
+        A[2, 0] = a20; A[2, 1] = a21; A[2, 2] = a22
         mx, my, mz = sx / n, sy / n, sz / n
         cx, cy, cz = ox + mx, oy + my, oz + mz
         m = cell_muscle[c]
@@ -225,20 +246,27 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
                 wx = (c00 * Lx + c01 * Ly + c02 * Lz) / det
                 wy = (c01 * Lx + c11 * Ly + c12 * Lz) / det
                 wz = (c02 * Lx + c12 * Ly + c22 * Lz) / det
+        t00, t01, t02 = T[0, 0], T[0, 1], T[0, 2]
+        t10, t11, t12 = T[1, 0], T[1, 1], T[1, 2]
+        t20, t21, t22 = T[2, 0], T[2, 1], T[2, 2]
+        p00, p01, p02 = P[0, 0], P[0, 1], P[0, 2]
+        p10, p11, p12 = P[1, 0], P[1, 1], P[1, 2]
+        p20, p21, p22 = P[2, 0], P[2, 1], P[2, 2]
+        use_p = kv > 0.0
         e = 0.0
         for p in range(a0, a1):                             # scatter
             i = cv[p]
             X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
             rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
-            gx = T[0, 0] * X + T[0, 1] * Y + T[0, 2] * Z - rx
-            gy = T[1, 0] * X + T[1, 1] * Y + T[1, 2] * Z - ry
-            gz = T[2, 0] * X + T[2, 1] * Y + T[2, 2] * Z - rz
+            gx = t00 * X + t01 * Y + t02 * Z - rx
+            gy = t10 * X + t11 * Y + t12 * Z - ry
+            gz = t20 * X + t21 * Y + t22 * Z - rz
             e += gx * gx + gy * gy + gz * gz
             fx_, fy_, fz_ = k * gx, k * gy, k * gz
-            if kv > 0.0:
-                fx_ += P[0, 0] * X + P[0, 1] * Y + P[0, 2] * Z
-                fy_ += P[1, 0] * X + P[1, 1] * Y + P[1, 2] * Z
-                fz_ += P[2, 0] * X + P[2, 1] * Y + P[2, 2] * Z
+            if use_p:
+                fx_ += p00 * X + p01 * Y + p02 * Z
+                fy_ += p10 * X + p11 * Y + p12 * Z
+                fz_ += p20 * X + p21 * Y + p22 * Z
             if b > 0.0:
                 fx_ -= b * (v[i, 0] - vx - (wy * rz - wz * ry))
                 fy_ -= b * (v[i, 1] - vy - (wz * rx - wx * rz))
