@@ -15,10 +15,12 @@ Soft tissue
 -----------
 * ``rest_positions`` (V, 3): soft-tissue (muscle and fat) vertices at rest.
 * Cells are *prisms*: a cell with ``2n`` vertices lists its bottom ring (lower slice, ``n`` vertices)
-  then its top ring (upper slice, ``n`` vertices) in the same angular order, counter-clockwise seen
-  from +z. Muscle cells are the paper's polygonal prisms (n = polygon vertex count); fat cells are
-  the paper's hexahedra (n = 4, ring order: inner a, inner b, outer b, outer a, where a -> b is
-  counter-clockwise seen from +z and "outer" is the skin side).
+  then its top ring (upper slice, ``n`` vertices) in the same angular order. Muscle cells are the
+  paper's polygonal prisms (n = polygon vertex count), rings counter-clockwise seen from +z; fat
+  cells are the paper's hexahedra (n = 4, ring order: inner a, inner b, outer b, outer a, where
+  a -> b is counter-clockwise about the limb axis seen from +z and "outer" is the skin side; this
+  ring is therefore *clockwise* seen from +z). Code that needs a cell's orientation (signed volume)
+  must take it from the cell's tissue (or its signed rest volume), not assume one winding.
 * ``vertex_segment`` (V,): -1 for a free vertex, else the index of the skeleton segment the vertex is
   fixed to (bone-attached vertex: it moves rigidly with that segment; its rest position is its
   position in the segment's rest pose).
