@@ -231,6 +231,53 @@ def test_executables_print_usage():
     r = subprocess.run([str(rosutil.exe_path('simulator')), '--model', '/nope.npz'], capture_output=True, text=True,
                        timeout=60, env=rosutil.ros_env(0))
     assert r.returncode == 2 and 'error: /nope.npz: no such model file' in r.stderr and 'Traceback' not in r.stderr
+    r = subprocess.run([str(rosutil.exe_path('simulator')), '--ros-args', '-p', 'publish_rate:=1000.0'],
+                       capture_output=True, text=True, timeout=60, env=rosutil.ros_env(0))
+    assert r.returncode == 2 and 'publish_rate out of range' in r.stderr and 'Traceback' not in r.stderr
+
+
+def test_replay_of_a_simulator_run_restores_state_clock_and_topology(knee_model, tmp_path):
+    """Record a real simulator run, then replay it at 2x from 0.5 s in: the same TissueState bytes in
+    order, /clock equal to their stamps, the topology delivered to a late (transient-local) joiner."""
+    import rclpy
+    from rosgraph_msgs.msg import Clock
+    from tissue_msgs.msg import TissueState, TissueTopology
+    from tissue_sim.core import mcapio
+    from tissue_sim.core.cdr import CdrReader
+    from tissue_sim.ros.common import qos_latched
+    out = tmp_path / 'sim.mcap'
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        seen = Collector(node, TissueState, '/tissue/state', keep=False, raw=True)
+        with run_executable('recorder', '-o', out, env=dom.env) as rec, \
+                run_executable('simulator', *sim_args(knee_model, '-p', 'publish_markers:=false'), env=dom.env) as sim:
+            sim.wait_for_output('simulator ready', timeout=60)
+            rec.wait_for_output('recording /tissue/topology', timeout=30)
+            rec.wait_for_output('recording /tissue/state', timeout=30)
+            spin_until(lambda: len(seen.t) >= 70, node, 30, '2 s of states')
+        states = [m for m in mcapio.iter_messages(out, ['/tissue/state'])]
+        topo = [m.data for m in mcapio.iter_messages(out, ['/tissue/topology'])]
+        assert len(states) >= 60 and len(topo) == 1
+        t0 = states[0].log_time + 500_000_000
+        expect = [m.data for m in states if m.log_time >= t0]
+        stamps = [CdrReader(d).header()[0] for d in expect]
+        st = Collector(node, TissueState, '/tissue/state', raw=True, qos=100)
+        clk = Collector(node, Clock, '/clock', qos=100)
+        with run_executable('replay', out, '--rate', '2', '--start', '0.5', '--topics', '/tissue/state',
+                            '/tissue/topology', '--wait-subscribers', '20', env=dom.env) as rp:
+            # a late joiner: created only after the replay has started publishing
+            spin_until(lambda: len(st.msgs) >= 3, node, 30, 'replayed states')
+            tp = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
+            spin_until(lambda: len(st.msgs) >= len(expect) and tp.msgs, node, 30, 'the whole replay')
+            rp.wait_for_output('replay: published', timeout=20)
+        assert [bytes(b) for b in st.msgs] == expect
+        assert bytes(tp.msgs[0]) == topo[0]
+        clock_ns = [c.clock.sec * 1_000_000_000 + c.clock.nanosec for c in clk.msgs]
+        assert clock_ns[-len(stamps):] == stamps
+        span_rec = (states[-1].log_time - t0) * 1e-9
+        span_play = st.t[-1] - st.t[0]
+        assert abs(span_play - span_rec / 2) < 0.2 * span_rec / 2 + 0.1
+        node.destroy_node()
 
 
 def _call(node, client, req, timeout=20):

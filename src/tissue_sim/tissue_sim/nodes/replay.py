@@ -83,7 +83,8 @@ class Replay:
         import rclpy
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
-            if all(p.get_subscription_count() > 0 for p in self.pubs.values()):
+            pubs = list(self.pubs.values()) + ([self.pub_clock] if self.pub_clock is not None else [])
+            if all(p.get_subscription_count() > 0 for p in pubs):
                 return
             rclpy.spin_once(self.node, timeout_sec=0.05)
 

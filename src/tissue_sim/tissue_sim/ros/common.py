@@ -99,9 +99,11 @@ def main_wrapper(fn):
     """Run a node's main; a UserError/ValueError in set-up is one 'error:' line and exit code 2."""
     def wrapped(argv=None):
         from ..errors import UserError
+        from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
         try:
             return fn(argv) or 0
-        except (UserError, ValueError, FileNotFoundError) as e:
+        except (UserError, ValueError, FileNotFoundError, InvalidParameterValueException,
+                InvalidParameterTypeException) as e:
             print(f'error: {e}', file=sys.stderr)
             try:
                 import rclpy
