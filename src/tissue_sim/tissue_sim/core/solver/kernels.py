@@ -501,36 +501,42 @@ def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_j
 
 # ------------------------------------------------------------------------------------ integration
 @njit(cache=True)
-def integrate(h, x, v, f, inv_m, xn, vn, vertex_segment, rest, seg_R, seg_t, gravity, vel_damp):
-    """Symplectic Euler for free vertices (v += h (f/m + g); v *= 1 - h c_v; x += h v) into xn, vn;
-    bone-attached vertices take their segment's pose (x = R_s X + t_s, v = dx/h). Reads x, v and
-    writes xn, vn (double buffer, so a failed step leaves x, v untouched). Returns (max speed^2,
-    kinetic energy sum 0.5 m v^2 of free vertices)."""
+def integrate(h, x, v, f, inv_m, xn, vn, free_idx, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp):
+    """Symplectic Euler for the free vertices (v += h (f/m + g); v *= 1 - h c_v; x += h v) and the
+    segment pose for bone-attached ones (x = R_s X + t_s, v = dx/h). Reads x, v, writes xn, vn (double
+    buffer: a discarded step leaves x, v untouched). Returns (max speed^2, kinetic energy of the free
+    vertices)."""
     vmax2 = 0.0
     ke = 0.0
     damp = 1.0 - h * vel_damp
-    for i in range(x.shape[0]):
-        s = vertex_segment[i]
-        if s < 0:
-            im = inv_m[i]
-            a = v[i, 0] + h * (f[i, 0] * im + gravity[0])
-            b = v[i, 1] + h * (f[i, 1] * im + gravity[1])
-            c = v[i, 2] + h * (f[i, 2] * im + gravity[2])
-            a *= damp; b *= damp; c *= damp
-            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
-            xn[i, 0] = x[i, 0] + h * a; xn[i, 1] = x[i, 1] + h * b; xn[i, 2] = x[i, 2] + h * c
-            sp = a * a + b * b + c * c
-            ke += 0.5 * sp / im
-        else:
-            X, Y, Z = rest[i, 0], rest[i, 1], rest[i, 2]
-            for r in range(3):
-                xr = seg_R[s, r, 0] * X + seg_R[s, r, 1] * Y + seg_R[s, r, 2] * Z + seg_t[s, r]
-                vn[i, r] = (xr - x[i, r]) / h
-                xn[i, r] = xr
-            sp = vn[i, 0] * vn[i, 0] + vn[i, 1] * vn[i, 1] + vn[i, 2] * vn[i, 2]
+    g0, g1, g2 = h * gravity[0], h * gravity[1], h * gravity[2]
+    for k in range(free_idx.shape[0]):
+        i = free_idx[k]
+        hm = h * inv_m[i]
+        a = (v[i, 0] + hm * f[i, 0] + g0) * damp
+        b = (v[i, 1] + hm * f[i, 1] + g1) * damp
+        c = (v[i, 2] + hm * f[i, 2] + g2) * damp
+        vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
+        xn[i, 0] = x[i, 0] + h * a; xn[i, 1] = x[i, 1] + h * b; xn[i, 2] = x[i, 2] + h * c
+        sp = a * a + b * b + c * c
+        ke += sp / inv_m[i]
         if not (sp <= vmax2):
             vmax2 = sp if sp == sp else np.inf
-    return vmax2, ke
+    ih = 1.0 / h
+    for k in range(att_idx.shape[0]):
+        i = att_idx[k]
+        s = att_seg[k]
+        X, Y, Z = rest[i, 0], rest[i, 1], rest[i, 2]
+        sp = 0.0
+        for r in range(3):
+            xr = seg_R[s, r, 0] * X + seg_R[s, r, 1] * Y + seg_R[s, r, 2] * Z + seg_t[s, r]
+            d = (xr - x[i, r]) * ih
+            vn[i, r] = d
+            xn[i, r] = xr
+            sp += d * d
+        if not (sp <= vmax2):
+            vmax2 = sp if sp == sp else np.inf
+    return vmax2, 0.5 * ke
 
 
 # ------------------------------------------------------------------------------------ measures

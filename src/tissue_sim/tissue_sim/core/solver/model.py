@@ -59,6 +59,7 @@ class SimModel:
     k_volume: np.ndarray            # (C,) volume penalty stiffness on det of the best-fit affine map [J] (0 = off)
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
+    free_idx: np.ndarray            # (V - A,) int32 free vertices
     att_idx: np.ndarray             # (A,) int32 bone-attached vertices
     att_seg: np.ndarray             # (A,) int32 their segments
     # skeleton
@@ -258,7 +259,8 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         mass=_frozen(mass), vertex_segment=_frozen(vs), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
         Qinv=_frozen(Qinv), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
-        length_weight=_frozen(lw), att_idx=_frozen(att), att_seg=_frozen(vs[att]),
+        length_weight=_frozen(lw), free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
+        att_idx=_frozen(att), att_seg=_frozen(vs[att]),
         seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
         seg_mass=_frozen(seg_mass), seg_com=_frozen(seg_com), seg_inertia=_frozen(seg_I),
         j_parent=_frozen(tm.joint_parent, np.int32), j_child=_frozen(tm.joint_child, np.int32),
