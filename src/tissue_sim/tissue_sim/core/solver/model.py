@@ -151,8 +151,10 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     np.add.at(Q, cell_of_k, X0[:, :, None] * X0[:, None, :])
     tr = np.trace(Q, axis1=1, axis2=2)
     ev = np.linalg.eigvalsh(Q)
-    flat = ev[:, 0] < 1e-9 * ev[:, 2]            # degenerate (flat) rest cell: regularise, else exact inverse
-    Qinv = np.linalg.inv(Q + np.where(flat, 1e-6 * tr, 0.0)[:, None, None] * np.eye(3))
+    flat = ev[:, 0] < 1e-9 * ev[:, 2]            # degenerate (flat) rest cell: pseudo-inverse, no volume term
+    Qinv = np.linalg.inv(np.where(flat[:, None, None], np.eye(3), Q))
+    if np.any(flat):
+        Qinv[flat] = np.linalg.pinv(Q[flat], rcond=1e-9, hermitian=True)
     vol = np.zeros(C)
     K.cell_volumes(rest, off, cv, vol)
     if np.any(vol == 0) or not np.all(np.isfinite(vol)):
@@ -196,7 +198,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     if p.volume_stiffness > 0:
         g = np.einsum('kij,kj->ki', Qinv[cell_of_k], X0)
         g2 = np.bincount(cell_of_k, weights=np.sum(g * g, axis=1), minlength=C)
-        k_volume = np.where(muscle, p.volume_stiffness * (k + k_active) / g2, 0.0)
+        k_volume = np.where(muscle & ~flat, p.volume_stiffness * (k + k_active) / np.maximum(g2, 1e-300), 0.0)
     # muscle length weights: cells of a muscle in the same slice gap share one gap length
     lw = np.zeros(C)
     for m in range(tm.n_muscles):
