@@ -79,7 +79,7 @@ SIM_P=(-p "params:=${DEMO_PARAMS:-paper}")
   "${SIM_P[@]}" -p start_paused:=true >"$RUN/logs/simulator.log" 2>&1 &
 SIM=$!; PIDS+=("$SIM")
 
-echo "demo: loading the model (the first run builds the bundled anatomy: can take a minute)"
+echo "demo: loading the model (a first run builds the bundled anatomy and compiles the solver: can take a minute)"
 for _ in $(seq $((TIMEOUT * 5))); do
   grep -q 'simulator ready' "$RUN/logs/simulator.log" && break
   if ! kill -0 "$SIM" 2>/dev/null; then
