@@ -1,4 +1,6 @@
-"""Numba kernels of the solver: flat arrays in, flat arrays out, single thread, no fastmath.
+"""Numba kernels of the solver: flat arrays in, flat arrays out, single thread. No fastmath except
+floating-point contraction (fused multiply-add) in the two hot kernels: deterministic (the compiled
+code fixes the order), no reassociation, NaN/Inf semantics kept (divergence checks rely on them).
 
 Cells are CSR (``off``, ``cv``); ``X0`` (K, 3) holds each cell's rest vertex positions relative to
 the cell's rest centroid (unweighted mean), in the same order as ``cv``. All positions in metres,
@@ -92,8 +94,9 @@ def extract_rotation(B, q, iters, R):
         if w > 1.0:
             ox /= w; oy /= w; oz /= w
             w = 1.0
-        s = math.sin(0.5 * w) / w
-        dx, dy, dz, dw = ox * s, oy * s, oz * s, math.cos(0.5 * w)
+        # dq = (omega/2, 1) normalised with q below: a rotation by 2 atan(w/2) = w - w^3/12 + ... about
+        # omega (no sin/cos; the cubic error is removed by the next iteration)
+        dx, dy, dz, dw = 0.5 * ox, 0.5 * oy, 0.5 * oz, 1.0
         x, y, z, qw = q[0], q[1], q[2], q[3]       # q = dq * q
         nx = dw * x + dx * qw + dy * z - dz * y
         ny = dw * y - dx * z + dy * qw + dz * x
@@ -122,7 +125,7 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
 
 
 # ------------------------------------------------------------------------------------ cell forces
-@njit(cache=True)
+@njit(cache=True, fastmath={'contract'})
 def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, kc, kact, damp_b,
                 volume_actual, iters, cell_energy, kvol, pressure, vol_gain):
     """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
@@ -500,7 +503,7 @@ def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_j
 
 
 # ------------------------------------------------------------------------------------ integration
-@njit(cache=True)
+@njit(cache=True, fastmath={'contract'})
 def integrate(h, x, v, f, inv_m, xn, vn, free_idx, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp):
     """Symplectic Euler for the free vertices (v += h (f/m + g); v *= 1 - h c_v; x += h v) and the
     segment pose for bone-attached ones (x = R_s X + t_s, v = dx/h). Reads x, v, writes xn, vn (double
