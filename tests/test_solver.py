@@ -285,3 +285,14 @@ def test_bundled_parameter_files_load():
         path = resources.files('tissue_sim') / 'config' / name
         p = solver.Params.from_yaml(path)
         assert p == (solver.Params.paper() if 'paper' in name else solver.Params.physical())
+
+
+def test_step_n_steps_equals_repeated_steps():
+    sim = solver.compile_model(_knee(n_gaps=4), solver.Params.paper())
+    a, b = solver.make_state(sim), solver.make_state(sim)
+    ctrl = solver.make_control(sim)
+    ctrl.activation[0] = 0.7
+    for _ in range(30):
+        solver.step(sim, a, ctrl)
+    solver.step(sim, b, ctrl, n_steps=30)
+    assert a.step == b.step == 30 and a.x.tobytes() == b.x.tobytes() and a.q.tobytes() == b.q.tobytes()

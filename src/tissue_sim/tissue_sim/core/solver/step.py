@@ -77,15 +77,18 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
         raise DivergenceError(state.step + 1, int(info[1]), K.CAUSES[int(info[2])])
 
 
-def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None) -> State:
-    """Advance ``state`` in place by one step of ``dt`` seconds (None: params.dt) under ``ctrl``.
+def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None, n_steps: int = 1) -> State:
+    """Advance ``state`` in place by one step of ``dt`` seconds (None: params.dt) under ``ctrl``
+    (``n_steps`` > 1: that many steps under the same activation in one kernel call, e.g. one frame).
 
-    Raises DivergenceError (state left at the last good values). Returns state."""
+    Raises DivergenceError (state left at the last good sub-step). Returns state."""
     dt = sim.params.dt if dt is None else float(dt)
     if not dt > 0:
         raise ValueError(f'dt must be > 0, got {dt}')
+    if n_steps < 1:
+        raise ValueError(f'n_steps must be >= 1, got {n_steps}')
     a = np.asarray(ctrl.activation, np.float64)
     if a.shape != (sim.n_muscles,) or not np.all(np.isfinite(a)) or np.any((a < 0) | (a > 1)):
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]')
-    _run(sim, state, a[None, :], dt)
+    _run(sim, state, np.ascontiguousarray(np.broadcast_to(a, (int(n_steps), a.size))), dt)
     return state
