@@ -33,8 +33,8 @@ def main(argv=None) -> int:
     def on_msg(msg):
         nonlocal echoed
         msg.header.frame_id = args.tag
+        echoed += 1          # count first: a SIGINT right after publish() must not lose the count
         pub.publish(msg)
-        echoed += 1
 
     node.create_subscription(MuscleActivation, args.input, on_msg, qos)
     print(f'activation_echo: ready ({args.input} -> {args.output})', flush=True)

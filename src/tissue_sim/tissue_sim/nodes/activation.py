@@ -18,7 +18,7 @@ import argparse
 import time
 
 from ..ros import profiles
-from ..ros.common import TOPIC_ACTIVATION, TOPIC_TOPOLOGY, main_wrapper, parse_args, qos_latched, qos_stream
+from ..ros.common import TOPIC_ACTIVATION, TOPIC_TOPOLOGY, _is_rcl_error, main_wrapper, parse_args, qos_latched, qos_stream
 
 
 def build_parser():
@@ -169,10 +169,17 @@ def main(argv=None):
         rclpy.spin(n.node)
     except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
         pass
+    except Exception as e:                  # a timer callback racing SIGINT sees the context already shut down
+        if rclpy.ok() or not _is_rcl_error(e):
+            raise
     finally:
         if args.profile == 'set':
             time.sleep(0.3)          # let the reliable message reach the subscriber before leaving
-        n.node.destroy_node()
+        try:
+            n.node.destroy_node()
+        except Exception as e:
+            if not _is_rcl_error(e):
+                raise
         if rclpy.ok():
             rclpy.shutdown()
     return 0

@@ -72,6 +72,14 @@ def declare(node, name, default, description, *, lo=None, hi=None, step=None, ch
     return value
 
 
+def _is_rcl_error(e) -> bool:
+    try:
+        from rclpy._rclpy_pybind11 import RCLError
+    except ImportError:
+        return False
+    return isinstance(e, RCLError)
+
+
 def spin(node, on_shutdown=None) -> int:
     """Spin until SIGINT/SIGTERM (rclpy's handlers) or shutdown; always run ``on_shutdown``."""
     import rclpy
@@ -81,6 +89,9 @@ def spin(node, on_shutdown=None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception as e:                  # a callback racing SIGINT sees the context already shut down
+        if rclpy.ok() or not _is_rcl_error(e):
+            raise
     finally:
         try:
             if on_shutdown is not None:
