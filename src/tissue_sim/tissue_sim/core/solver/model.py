@@ -325,7 +325,7 @@ def make_state(sim: SimModel) -> State:
     st = State(x=sim.rest.copy(), v=np.zeros((V, 3)), f=np.zeros((V, 3)), quat=quat, q=sim.j_rest.copy(),
                qd=np.zeros(J), seg_R=np.tile(np.eye(3), (S, 1, 1)), seg_t=np.zeros((S, 3)),
                lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
-               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), work=np.zeros((max(J, 1), 8 + max(J, 1))))
+               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), work=np.zeros((max(J, 1), 9 + max(J, 1))))   # skeleton scratch; last column: kinetic energy
     return st
 
 
