@@ -23,7 +23,7 @@ MUSCLES = [
     # u = 0 hip centre, 1 knee centre, 2 ankle centre (linear in height within thigh and shank);
     # negative u is above the hip centre.
     ('gluteus_maximus', ('glmax1', 'glmax2', 'glmax3'), 'hip_extensors', (-0.40, 0.30)),
-    ('tensor_fasciae_latae', ('tfl',), 'hip_abductors', (-0.20, 0.18)),
+    ('tensor_fasciae_latae', ('tfl',), 'hip_abductors', (-0.15, 0.30)),
     ('sartorius', ('sart',), 'hip_flexors', (-0.12, 0.95)),
     ('rectus_femoris', ('recfem',), 'quadriceps', (0.05, 0.85)),
     ('vastus_lateralis', ('vaslat',), 'quadriceps', (0.08, 0.90)),
