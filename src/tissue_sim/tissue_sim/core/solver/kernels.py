@@ -504,8 +504,9 @@ def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_j
 
 # ------------------------------------------------------------------------------------ integration
 @njit(cache=True, fastmath={'contract'})
-def integrate(h, x, v, f, inv_m, xn, vn, free_idx, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp):
-    """Symplectic Euler for the free vertices (v += h (f/m + g); v *= 1 - h c_v; x += h v) and the
+def integrate(h, x, v, f, inv_den, mass, xn, vn, free_idx, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp):
+    """Symplectic Euler for the free vertices (v += h (f inv_den + g); v *= 1 - h c_v; x += h v; inv_den
+    = 1/m explicit, 1/(m + h b + h^2 kappa) diagonally implicit) and the
     segment pose for bone-attached ones (x = R_s X + t_s, v = dx/h). Reads x, v, writes xn, vn (double
     buffer: a discarded step leaves x, v untouched). Returns (max speed^2, kinetic energy of the free
     vertices)."""
@@ -515,14 +516,14 @@ def integrate(h, x, v, f, inv_m, xn, vn, free_idx, att_idx, att_seg, rest, seg_R
     g0, g1, g2 = h * gravity[0], h * gravity[1], h * gravity[2]
     for k in range(free_idx.shape[0]):
         i = free_idx[k]
-        hm = h * inv_m[i]
+        hm = h * inv_den[i]
         a = (v[i, 0] + hm * f[i, 0] + g0) * damp
         b = (v[i, 1] + hm * f[i, 1] + g1) * damp
         c = (v[i, 2] + hm * f[i, 2] + g2) * damp
         vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
         xn[i, 0] = x[i, 0] + h * a; xn[i, 1] = x[i, 1] + h * b; xn[i, 2] = x[i, 2] + h * c
         sp = a * a + b * b + c * c
-        ke += sp / inv_m[i]
+        ke += sp * mass[i]
         if not (sp <= vmax2):
             vmax2 = sp if sp == sp else np.inf
     ih = 1.0 / h

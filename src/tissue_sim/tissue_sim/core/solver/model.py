@@ -38,7 +38,7 @@ class SimModel:
     """Compiled, immutable model. Arrays are read-only, contiguous, ready for the numba kernels."""
     tissue: TissueModel
     params: Params
-    n_substeps: int                 # sub-steps per step at params.dt
+    n_substeps: int                 # sub-steps per step at params.dt (1 with the mass_scaled integrator)
     omega_max: float                # [rad/s] highest tissue natural frequency estimated at rest
     damp_rate: float                # [1/s] highest damping rate of a free vertex (sum b / m + velocity damping)
     # soft tissue
@@ -46,6 +46,8 @@ class SimModel:
     inv_mass: np.ndarray            # (V,) 1/kg (0 for bone-attached vertices)
     mass: np.ndarray                # (V,) kg
     vertex_segment: np.ndarray      # (V,) int32, -1 free
+    vertex_stiffness: np.ndarray    # (V,) [N/m] kappa_i = sum over the vertex's cells of k + k_active (+ volume stiffness)
+    vertex_damping: np.ndarray      # (V,) [N s/m] sum over the vertex's cells of damp_b
     off: np.ndarray                 # (C+1,) int64
     cv: np.ndarray                  # (K,) int32
     X0: np.ndarray                  # (K, 3) rest positions relative to each cell's rest centroid [m]
@@ -79,6 +81,24 @@ class SimModel:
     anc: np.ndarray                 # (J, S) bool: joint j moves segment s
     gravity: np.ndarray             # (3,)
     muscle_index_of: dict           # name -> index; group name -> list of indices
+    cache: dict = dataclasses.field(default_factory=dict, repr=False)   # per-h integration denominators (internal)
+
+    def inv_denominator(self, h: float) -> np.ndarray:
+        """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
+        1/max(m_i, h^2 kappa_i / stability_limit^2) (mass_scaled); 0 for bone-attached vertices. Cached per h."""
+        a = self.cache.get(h)
+        if a is None:
+            if self.params.integrator == 'explicit':
+                a = self.inv_mass
+            else:
+                # selective mass scaling: a vertex whose cells' summed stiffness would exceed the explicit
+                # limit at this h gets the mass that puts it at stability_limit (Gershgorin bound on omega h)
+                den = np.maximum(self.mass, h * h * self.vertex_stiffness / self.params.stability_limit ** 2)
+                a = _frozen(np.where(self.inv_mass > 0, 1.0 / den, 0.0))
+            if len(self.cache) > 16:
+                self.cache.clear()
+            self.cache[h] = a
+        return a
 
     @property
     def n_vertices(self):
@@ -256,9 +276,15 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
             names.setdefault(g, [])
         if g and g in names and g not in tm.muscle_names:
             names[g].append(i)
+    # summed stiffness and damping of each vertex's cells (the mass_scaled integrator's masses)
+    kcell = (k + k_active) * (1.0 + np.where(k_volume > 0, p.volume_stiffness, 0.0))
+    kappa = np.zeros(V)
+    np.add.at(kappa, cv, np.repeat(kcell, sizes))
+    bsum = np.zeros(V)
+    np.add.at(bsum, cv, np.repeat(damp_b, sizes))
     sim_kw = dict(
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
-        mass=_frozen(mass), vertex_segment=_frozen(vs), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
+        mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
         Qinv=_frozen(Qinv), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
         length_weight=_frozen(lw), free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
@@ -270,13 +296,21 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
         muscle_index_of=names)
-    bsum = np.zeros(V)
-    np.add.at(bsum, cv, np.repeat(damp_b, sizes))
     c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0
     sim = SimModel(damp_rate=c_max, **sim_kw)
     w = estimate_omega_max(sim)
-    n_sub = p.substeps or stable_substeps(w, c_max, p.dt, p.stability_limit)
+    n_sub = p.substeps or substeps_for(p, w, c_max, p.dt)
     return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w))
+
+
+def substeps_for(p: Params, omega: float, c: float, dt: float) -> int:
+    """Sub-steps per step of length dt: params.substeps if set; 1 for the mass_scaled integrator
+    (the scaled masses keep omega h below stability_limit); else the explicit stability estimate."""
+    if p.substeps:
+        return p.substeps
+    if p.integrator == 'mass_scaled':
+        return 1
+    return stable_substeps(omega, c, dt, p.stability_limit)
 
 
 def stable_substeps(omega: float, c: float, dt: float, limit: float) -> int:

@@ -22,6 +22,7 @@ DAMPING_MODES = ('deformation', 'velocity', 'none')
 MASS_MODES = ('uniform', 'density')
 STIFFNESS_MODES = ('given', 'modulus')
 VOLUME_MODES = ('actual', 'rest')
+INTEGRATORS = ('mass_scaled', 'explicit')
 
 
 @dataclasses.dataclass
@@ -29,7 +30,10 @@ class Params:
     preset: str = 'paper'                 # name of the preset this set started from (informative)
     # --- time ------------------------------------------------------------------------------
     dt: float = 1e-3                      # [s] step length dT of step() when dt is None
-    substeps: int = 0                     # sub-steps per step; 0 = automatic from the stability estimate
+    integrator: str = 'mass_scaled'       # 'mass_scaled': symplectic Euler, one pass per step, a vertex's mass raised to
+                                          # h^2 kappa / stability_limit^2 where its cells' summed stiffness kappa needs it;
+                                          # 'explicit': true masses, automatic sub-steps (docs/solver.md)
+    substeps: int = 0                     # sub-steps per step; 0 = automatic (explicit: stability estimate; mass_scaled: 1)
     stability_limit: float = 1.8          # automatic sub-steps keep omega_max * h below this (< 2, symplectic Euler)
     # --- soft tissue -----------------------------------------------------------------------
     mass_mode: str = 'uniform'            # 'uniform': every vertex weighs vertex_mass; 'density': from cell volumes
@@ -74,7 +78,8 @@ class Params:
     def physical(cls, **kw) -> 'Params':
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
-                    damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=1.0, max_speed=50.0)
+                    damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=1.0, max_speed=50.0,
+                    integrator='explicit')   # its strong damping (zeta 0.3, gram masses) needs the sub-steps
         base.update(kw)
         return cls(**base).validate()
 
@@ -88,6 +93,7 @@ class Params:
         need(0 < self.stability_limit < 2, 'stability_limit must be in (0, 2)')
         need(self.mass_mode in MASS_MODES, f'mass_mode must be one of {MASS_MODES}')
         need(self.stiffness_mode in STIFFNESS_MODES, f'stiffness_mode must be one of {STIFFNESS_MODES}')
+        need(self.integrator in INTEGRATORS, f'integrator must be one of {INTEGRATORS}')
         need(self.damping in DAMPING_MODES, f'damping must be one of {DAMPING_MODES}')
         need(self.volume_mode in VOLUME_MODES, f'volume_mode must be one of {VOLUME_MODES}')
         for name in ('vertex_mass', 'density_muscle', 'density_fat', 'k_muscle', 'k_fat', 'youngs_muscle',

@@ -7,12 +7,12 @@ import numpy as np
 from numba import njit
 
 from tissue_sim.core.solver import kernels as K
-from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, stable_substeps
+from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for
 
 
 @njit(cache=True)
 def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work,
-            m_rest, inv_m, free_idx, off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, att_idx, att_seg,
+            m_rest, inv_den, mass, free_idx, off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, att_idx, att_seg,
             kvol, seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent,
             j_child, j_type, j_axis, j_centre, j_rest, j_range, anc, grav, log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp,
             lim_wh, lim_z, vel_damp, vol_gain, vmax2, info):
@@ -35,7 +35,7 @@ def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t,
             ok = K.skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint,  # 2. skeleton
                                  seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, j_rest,
                                  j_range, anc, grav, jdamp, lim_wh, lim_z, seg_R, seg_t, work)
-            sp2, ke = K.integrate(h, x, v, f, inv_m, xb, vb, free_idx, att_idx, att_seg, m_rest, seg_R, seg_t,
+            sp2, ke = K.integrate(h, x, v, f, inv_den, mass, xb, vb, free_idx, att_idx, att_seg, m_rest, seg_R, seg_t,
                                    grav, vel_damp)  # 3. tissue
             if not ok or not (sp2 <= vmax2):
                 info[0], info[1], info[2] = n, -1, K.CAUSE_SKELETON if not ok else K.CAUSE_SPEED
@@ -52,13 +52,13 @@ def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t,
 def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
     """Advance state in place by len(acts) steps of dt under per-step activations acts (N, M)."""
     p = sim.params
-    n_sub = sim.n_substeps if dt == p.dt else (p.substeps or stable_substeps(sim.omega_max, sim.damp_rate, dt, p.stability_limit))
+    n_sub = sim.n_substeps if dt == p.dt else substeps_for(p, sim.omega_max, sim.damp_rate, dt)
     h = dt / n_sub
     info = np.array([-1, -1, 0], np.int64)
     swaps = advance(acts.shape[0], n_sub, h, acts, state.x, state.v, state.x_back, state.v_back, state.f,
                     state.quat, state.q, state.qd, state.seg_R, state.seg_t, state.lam, state.cell_energy,
                     state.pressure, state.work,
-                    sim.rest, sim.inv_mass, sim.free_idx, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre,
+                    sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre,
                     sim.cell_muscle, sim.k, sim.k_active, sim.damp_b, sim.att_idx, sim.att_seg, sim.k_volume, sim.seg_order,
                     sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia, sim.j_parent,
                     sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc, sim.gravity,
