@@ -148,7 +148,7 @@ def slice_targets(table, s_mm, dz, knee_z, ankle_z):
 def skin_slice(q, tri_all, reg, s_mm, grid):
     """Skin mask of the right leg in one slice (RAS mm plane S = s_mm)."""
     R0, A0, NI, NJ = grid
-    hip_z, knee_z, ankle_z = reg['z_mm']
+    _, knee_z, ankle_z = reg['z_mm']
     seg = reg['thigh'] if s_mm > knee_z else reg['shank'] if s_mm > ankle_z else reg['foot']
     L, a0, m0 = seg['L'], seg['a0'], seg['m0']
     # plane z_model = s in anny space: (L^T e_z) . (q - a0) = s - m0_z
@@ -437,11 +437,11 @@ def build(out_dir: Path, verbose=True):
     lab = lab[..., ::-1].copy()
     s_bottom = s_mm[-1]
     affine = np.array([[1.0, 0, 0, R0c], [0, 1.0, 0, A0c], [0, 0, SLICE_MM, s_bottom], [0, 0, 0, 1]])
-    write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, s_mm, reg, knee_m, ankle_m)
+    write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m)
     return lab, affine
 
 
-def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, s_mm, reg, knee_m, ankle_m):
+def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m):
     import nibabel as nib
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -464,8 +464,6 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, s_mm, 
         labels[label] = {'name': name, 'tissue': 'bone', 'segment': segment, 'mesh': fn}
     counts = np.bincount(lab.ravel(), minlength=256)
     vox = abs(np.linalg.det(affine[:3, :3]))  # mm^3
-    K = len(s_mm)
-    inside = np.ones(K, bool)
     for m, t in enumerate(table):
         lbl = MUSCLE_LABEL0 + m
         target = float(area[m].sum() * SLICE_MM)  # mm^3 within stack

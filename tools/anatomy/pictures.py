@@ -58,7 +58,7 @@ def slices_figure(lab, affine, table, out):
         ax.set_ylabel('A (mm)')
     handles = [Patch(color=lut[lbl], label=table[lbl]['name']) for lbl in sorted(used) if lbl in table]
     fig.legend(handles=handles, loc='lower center', ncol=8, fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.12, 1, 1))
+    fig.tight_layout(rect=(0, 0.16, 1, 1))
     fig.savefig(out, dpi=110)
     plt.close(fig)
 
@@ -90,7 +90,7 @@ def view3d(data, lab, affine, table, out):
     from skimage import measure
 
     lut = colours(table)
-    pl = pv.Plotter(off_screen=True, window_size=(900, 1400))
+    pl = pv.Plotter(off_screen=True, window_size=(800, 1300))
     for lbl, t in sorted(table.items()):
         if t['tissue'] == 'bone':
             mesh = pv.read(str(data / t['mesh']))
@@ -103,12 +103,12 @@ def view3d(data, lab, affine, table, out):
             v, f, _, _ = measure.marching_cubes(m.astype(np.float32), 0.5, step_size=2)
             v = (v - 1) @ np.diag(np.diag(affine)[:3]) + affine[:3, 3]
             faces = np.c_[np.full(len(f), 3), f].ravel()
-            pl.add_mesh(pv.PolyData(v, faces).smooth(20), color=lut[lbl], opacity=0.55)
+            pl.add_mesh(pv.PolyData(v, faces).smooth(n_iter=30), color=lut[lbl], opacity=1.0,
+                        smooth_shading=True)
     pl.set_background('white')
-    pl.camera_position = 'yz'
-    pl.camera.azimuth = 35
-    pl.camera.elevation = 10
+    pl.view_vector((1.0, 1.6, 0.35), viewup=(0, 0, 1))   # from antero-lateral, slightly above
     pl.reset_camera()
+    pl.camera.zoom(1.5)
     pl.screenshot(str(out))
     pl.close()
 
