@@ -125,7 +125,7 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
 
 
 # ------------------------------------------------------------------------------------ cell forces
-@njit(cache=True, fastmath={'contract', 'reassoc', 'nsz'})
+@njit(cache=True, fastmath={'contract'})
 def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, kc, kact, damp_b,
                 volume_actual, iters, cell_energy, kvol, pressure, vol_gain):
     """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
@@ -151,19 +151,6 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
     T = np.empty((3, 3))
     D = np.empty((3, 3))
     P = np.zeros((3, 3))
-    nmax = 1
-    for c in range(off.shape[0] - 1):
-        nmax = max(nmax, off[c + 1] - off[c])
-    # local buffers of one cell, each 64-byte aligned: the vectorised loops then take the same path
-    # (no alignment-dependent peeling) in every call, so results are bit-identical run to run
-    stride = (nmax + 4 + 7) & ~7
-    buf = np.zeros(13 * stride + 8)
-    b0 = ((64 - buf.ctypes.data % 64) % 64) // 8
-    px, py, pz = buf[b0:b0 + stride], buf[b0 + stride:b0 + 2 * stride], buf[b0 + 2 * stride:b0 + 3 * stride]
-    qx, qy, qz = buf[b0 + 3 * stride:b0 + 4 * stride], buf[b0 + 4 * stride:b0 + 5 * stride], buf[b0 + 5 * stride:b0 + 6 * stride]
-    ux_, uy_, uz_ = buf[b0 + 6 * stride:b0 + 7 * stride], buf[b0 + 7 * stride:b0 + 8 * stride], buf[b0 + 8 * stride:b0 + 9 * stride]
-    gx_, gy_, gz_ = buf[b0 + 9 * stride:b0 + 10 * stride], buf[b0 + 10 * stride:b0 + 11 * stride], buf[b0 + 11 * stride:b0 + 12 * stride]
-    wt = buf[b0 + 12 * stride:b0 + 13 * stride]
     for c in range(off.shape[0] - 1):
         a0, a1 = off[c], off[c + 1]
         n = a1 - a0
@@ -175,26 +162,16 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
         lx = ly = lz = 0.0
         yxx = yyy = yzz = yxy = yxz = yyz = 0.0
         a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0   # scalars: no aliasing with x, f
-        n4 = (n + 3) & ~3                                   # buffers padded with zeros to a multiple of 4 (SIMD)
-        for j in range(n):                                  # gather the cell's vertices into local buffers
-            i = cv[a0 + j]
-            px[j] = x[i, 0] - ox; py[j] = x[i, 1] - oy; pz[j] = x[i, 2] - oz
-            qx[j] = X0[a0 + j, 0]; qy[j] = X0[a0 + j, 1]; qz[j] = X0[a0 + j, 2]
-            ux_[j] = v[i, 0]; uy_[j] = v[i, 1]; uz_[j] = v[i, 2]
-            wt[j] = 1.0
-        for j in range(n, n4):
-            px[j] = py[j] = pz[j] = qx[j] = qy[j] = qz[j] = ux_[j] = uy_[j] = uz_[j] = wt[j] = 0.0
-        for j in range(n4):                                 # moments: sum x, A = sum x X0^T (SIMD over j)
-            dx, dy, dz = px[j], py[j], pz[j]
-            X, Y, Z = qx[j], qy[j], qz[j]
+        for p in range(a0, a1):                             # gather
+            i = cv[p]
+            dx, dy, dz = x[i, 0] - ox, x[i, 1] - oy, x[i, 2] - oz
             sx += dx; sy += dy; sz += dz
+            X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
             a00 += dx * X; a01 += dx * Y; a02 += dx * Z
             a10 += dy * X; a11 += dy * Y; a12 += dy * Z
             a20 += dz * X; a21 += dz * Y; a22 += dz * Z
-        if b > 0.0:                                         # linear/angular momentum, second moments
-            for j in range(n4):
-                dx, dy, dz = px[j], py[j], pz[j]
-                ux, uy, uz = ux_[j], uy_[j], uz_[j]
+            if b > 0.0:
+                ux, uy, uz = v[i, 0], v[i, 1], v[i, 2]
                 svx += ux; svy += uy; svz += uz
                 lx += dy * uz - dz * uy; ly += dz * ux - dx * uz; lz += dx * uy - dy * ux
                 yxx += dx * dx; yyy += dy * dy; yzz += dz * dz
@@ -275,25 +252,29 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
         t00, t01, t02 = T[0, 0], T[0, 1], T[0, 2]
         t10, t11, t12 = T[1, 0], T[1, 1], T[1, 2]
         t20, t21, t22 = T[2, 0], T[2, 1], T[2, 2]
-        p00 = p01 = p02 = p10 = p11 = p12 = p20 = p21 = p22 = 0.0
-        if kv > 0.0:
-            p00, p01, p02 = P[0, 0], P[0, 1], P[0, 2]
-            p10, p11, p12 = P[1, 0], P[1, 1], P[1, 2]
-            p20, p21, p22 = P[2, 0], P[2, 1], P[2, 2]
+        p00, p01, p02 = P[0, 0], P[0, 1], P[0, 2]
+        p10, p11, p12 = P[1, 0], P[1, 1], P[1, 2]
+        p20, p21, p22 = P[2, 0], P[2, 1], P[2, 2]
+        use_p = kv > 0.0
         e = 0.0
-        for j in range(n4):                                 # forces into local buffers (SIMD over j)
-            X, Y, Z = qx[j], qy[j], qz[j]
-            rx, ry, rz = px[j] - mx, py[j] - my, pz[j] - mz
+        for p in range(a0, a1):                             # scatter
+            i = cv[p]
+            X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
+            rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
             gx = t00 * X + t01 * Y + t02 * Z - rx
             gy = t10 * X + t11 * Y + t12 * Z - ry
             gz = t20 * X + t21 * Y + t22 * Z - rz
-            e += wt[j] * (gx * gx + gy * gy + gz * gz)
-            gx_[j] = k * gx + (p00 * X + p01 * Y + p02 * Z) - b * (ux_[j] - vx - (wy * rz - wz * ry))
-            gy_[j] = k * gy + (p10 * X + p11 * Y + p12 * Z) - b * (uy_[j] - vy - (wz * rx - wx * rz))
-            gz_[j] = k * gz + (p20 * X + p21 * Y + p22 * Z) - b * (uz_[j] - vz - (wx * ry - wy * rx))
-        for j in range(n):                                  # scatter
-            i = cv[a0 + j]
-            f[i, 0] += gx_[j]; f[i, 1] += gy_[j]; f[i, 2] += gz_[j]
+            e += gx * gx + gy * gy + gz * gz
+            fx_, fy_, fz_ = k * gx, k * gy, k * gz
+            if use_p:
+                fx_ += p00 * X + p01 * Y + p02 * Z
+                fy_ += p10 * X + p11 * Y + p12 * Z
+                fz_ += p20 * X + p21 * Y + p22 * Z
+            if b > 0.0:
+                fx_ -= b * (v[i, 0] - vx - (wy * rz - wz * ry))
+                fy_ -= b * (v[i, 1] - vy - (wz * rx - wx * rz))
+                fz_ -= b * (v[i, 2] - vz - (wx * ry - wy * rx))
+            f[i, 0] += fx_; f[i, 1] += fy_; f[i, 2] += fz_
         cell_energy[c] = 0.5 * k * e + ev
         if not (e * k * k < FORCE_BOUND) or not (ev < FORCE_BOUND):   # catches NaN and overflow
             return c
