@@ -20,6 +20,7 @@ CAUSE_SKELETON = 3          # non-finite joint acceleration
 CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPEED: 'vertex speed above max_speed (energy blow-up)',
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 FORCE_BOUND = 1e150
+NEWTON_DONE = 1e-5          # [rad] a Newton rotation correction below this ends the iteration (next one ~1e-10)
 
 
 # ------------------------------------------------------------------------------------ small math
@@ -54,7 +55,9 @@ def extract_rotation(B, q, iters, R):
     H^-1 g with H = tr(N) I - sym(N), N = B R^T, is used whenever H is positive definite (it is near
     the solution unless B is degenerate), which converges quadratically also for thin, anisotropic
     cells where Mueller's step crawls; otherwise Mueller's step. Steps are capped at 1 rad. Stops after
-    iters iterations or when the correction is below 1e-12 rad."""
+    iters iterations, when the correction is below 1e-12 rad, or after a Newton correction below
+    NEWTON_DONE (its successor would be of order NEWTON_DONE^2: warm-started, one iteration per step
+    is then the usual case)."""
     nrm = 0.0
     for i in range(3):
         for j in range(3):
@@ -81,10 +84,12 @@ def extract_rotation(B, q, iters, R):
         c00 = h11 * h22 - h12 * h12; c01 = h02 * h12 - h01 * h22; c02 = h01 * h12 - h02 * h11
         c11 = h00 * h22 - h02 * h02; c12 = h01 * h02 - h00 * h12; c22 = h00 * h11 - h01 * h01
         det = h00 * c00 + h01 * c01 + h02 * c02
-        if h00 > 0.0 and c22 > 0.0 and det > 1e-9 * tr * tr * tr:       # Sylvester: H positive definite
-            ox = (c00 * gx + c01 * gy + c02 * gz) / det
-            oy = (c01 * gx + c11 * gy + c12 * gz) / det
-            oz = (c02 * gx + c12 * gy + c22 * gz) / det
+        newton = h00 > 0.0 and c22 > 0.0 and det > 1e-9 * tr * tr * tr   # Sylvester: H positive definite
+        if newton:
+            idet = 1.0 / det
+            ox = (c00 * gx + c01 * gy + c02 * gz) * idet
+            oy = (c01 * gx + c11 * gy + c12 * gz) * idet
+            oz = (c02 * gx + c12 * gy + c22 * gz) * idet
         else:
             den = abs(tr) + 1e-9
             ox, oy, oz = gx / den, gy / den, gz / den
@@ -105,6 +110,8 @@ def extract_rotation(B, q, iters, R):
         n = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
         q[0], q[1], q[2], q[3] = nx * n, ny * n, nz * n, nw * n
         quat_to_mat(q, R)
+        if newton and w < NEWTON_DONE:      # quadratic convergence: the next correction would be ~w^2
+            break
 
 
 # ------------------------------------------------------------------------------------ contraction
