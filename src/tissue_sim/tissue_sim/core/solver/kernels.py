@@ -45,10 +45,18 @@ def axis_angle_mat(ax, ang, R):
 
 
 @njit(cache=True)
-def extract_rotation(B, q, iters, R):
+def _quat_row_to_mat(quat, c, R):
+    x, y, z, w = quat[c, 0], quat[c, 1], quat[c, 2], quat[c, 3]
+    R[0, 0] = 1 - 2 * (y * y + z * z); R[0, 1] = 2 * (x * y - z * w); R[0, 2] = 2 * (x * z + y * w)
+    R[1, 0] = 2 * (x * y + z * w); R[1, 1] = 1 - 2 * (x * x + z * z); R[1, 2] = 2 * (y * z - x * w)
+    R[2, 0] = 2 * (x * z - y * w); R[2, 1] = 2 * (y * z + x * w); R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True)
+def extract_rotation_at(B, quat, c, iters, R):
     """Rotational part of B (3x3), after Mueller et al. 2016 ("A Robust Method to Extract the
-    Rotational Part of Deformations"): the quaternion q (x, y, z, w) is warm-started, updated in place,
-    R gets its matrix; always a rotation, robust for flat and inverted B.
+    Rotational Part of Deformations"): the quaternion quat[c] (x, y, z, w) is warm-started, updated in
+    place, R gets its matrix; always a rotation, robust for flat and inverted B.
 
     Each iteration maximises tr(R^T B) over a rotation increment omega: gradient g = sum_j r_j x b_j
     (r_j, b_j the columns of R, B). Mueller's step is g / |tr(B R^T)|; here the Newton step
@@ -63,7 +71,7 @@ def extract_rotation(B, q, iters, R):
         for j in range(3):
             nrm += B[i, j] * B[i, j]
     nrm = math.sqrt(nrm)
-    quat_to_mat(q, R)
+    _quat_row_to_mat(quat, c, R)
     if not (nrm > 0.0) or not math.isfinite(nrm):
         return
     inv = 1.0 / nrm
@@ -102,14 +110,14 @@ def extract_rotation(B, q, iters, R):
         # dq = (omega/2, 1) normalised with q below: a rotation by 2 atan(w/2) = w - w^3/12 + ... about
         # omega (no sin/cos; the cubic error is removed by the next iteration)
         dx, dy, dz, dw = 0.5 * ox, 0.5 * oy, 0.5 * oz, 1.0
-        x, y, z, qw = q[0], q[1], q[2], q[3]       # q = dq * q
+        x, y, z, qw = quat[c, 0], quat[c, 1], quat[c, 2], quat[c, 3]       # q = dq * q
         nx = dw * x + dx * qw + dy * z - dz * y
         ny = dw * y - dx * z + dy * qw + dz * x
         nz = dw * z + dx * y - dy * x + dz * qw
         nw = dw * qw - dx * x - dy * y - dz * z
         n = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
-        q[0], q[1], q[2], q[3] = nx * n, ny * n, nz * n, nw * n
-        quat_to_mat(q, R)
+        quat[c, 0], quat[c, 1], quat[c, 2], quat[c, 3] = nx * n, ny * n, nz * n, nw * n
+        _quat_row_to_mat(quat, c, R)
         if newton and w < NEWTON_DONE:      # quadratic convergence: the next correction would be ~w^2
             break
 
@@ -134,7 +142,7 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
 # ------------------------------------------------------------------------------------ cell forces
 @njit(cache=True, fastmath={'contract'})
 def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, kc, kact, damp_b,
-                volume_actual, iters, cell_energy, kvol, pressure, vol_gain):
+                volume_actual, iters, cell_energy, kvol, pressure, vol_gain, q_tr, q_ff):
     """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
     (zeroed here). Returns the first cell whose force is non-finite or overflowing, else -1.
 
@@ -177,16 +185,17 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
             a00 += dx * X; a01 += dx * Y; a02 += dx * Z
             a10 += dy * X; a11 += dy * Y; a12 += dy * Z
             a20 += dz * X; a21 += dz * Y; a22 += dz * Z
+            yxx += dx * dx; yyy += dy * dy; yzz += dz * dz
+            yxy += dx * dy; yxz += dx * dz; yyz += dy * dz
             if b > 0.0:
                 ux, uy, uz = v[i, 0], v[i, 1], v[i, 2]
                 svx += ux; svy += uy; svz += uz
                 lx += dy * uz - dz * uy; ly += dz * ux - dx * uz; lz += dx * uy - dy * ux
-                yxx += dx * dx; yyy += dy * dy; yzz += dz * dz
-                yxy += dx * dy; yxz += dx * dz; yyz += dy * dz
         A[0, 0] = a00; A[0, 1] = a01; A[0, 2] = a02
         A[1, 0] = a10; A[1, 1] = a11; A[1, 2] = a12
         A[2, 0] = a20; A[2, 1] = a21; A[2, 2] = a22
-        mx, my, mz = sx / n, sy / n, sz / n
+        inv_n = 1.0 / n
+        mx, my, mz = sx * inv_n, sy * inv_n, sz * inv_n
         cx, cy, cz = ox + mx, oy + my, oz + mz
         m = cell_muscle[c]
         k = kc[c]
@@ -213,13 +222,14 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
             for r in range(3):
                 for s in range(3):
                     B[r, s] = A[r, 0] * F[0, s] + A[r, 1] * F[1, s] + A[r, 2] * F[2, s]
-            extract_rotation(B, quat[c], iters, R)
+            extract_rotation_at(B, quat, c, iters, R)
             for r in range(3):
                 for s in range(3):
                     T[r, s] = R[r, 0] * F[0, s] + R[r, 1] * F[1, s] + R[r, 2] * F[2, s]
         else:
-            extract_rotation(A, quat[c], iters, T)
+            extract_rotation_at(A, quat, c, iters, T)
         ev = 0.0
+        P[:, :] = 0.0
         if kv > 0.0:                   # P = -kvol (det D - 1) cof(D) Qinv
             c00 = D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1]; c01 = D[1, 2] * D[2, 0] - D[1, 0] * D[2, 2]
             c02 = D[1, 0] * D[2, 1] - D[1, 1] * D[2, 0]
@@ -236,15 +246,16 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
                 P[0, s] = g * (c00 * Qinv[c, 0, s] + c01 * Qinv[c, 1, s] + c02 * Qinv[c, 2, s])
                 P[1, s] = g * (c10 * Qinv[c, 0, s] + c11 * Qinv[c, 1, s] + c12 * Qinv[c, 2, s])
                 P[2, s] = g * (c20 * Qinv[c, 0, s] + c21 * Qinv[c, 1, s] + c22 * Qinv[c, 2, s])
+        # second moments of the current vertices about the centroid: Y = sum r r^T
+        qxx = yxx - n * mx * mx; qyy = yyy - n * my * my; qzz = yzz - n * mz * mz
+        qxy = yxy - n * mx * my; qxz = yxz - n * mx * mz; qyz = yyz - n * my * mz
         wx = wy = wz = 0.0
         vx = vy = vz = 0.0
         if b > 0.0:                    # rigid velocity of the cell: mean + angular (I^-1 L) about c
-            vx, vy, vz = svx / n, svy / n, svz / n
+            vx, vy, vz = svx * inv_n, svy * inv_n, svz * inv_n
             Lx = lx - n * (my * vz - mz * vy)
             Ly = ly - n * (mz * vx - mx * vz)
             Lz = lz - n * (mx * vy - my * vx)
-            qxx = yxx - n * mx * mx; qyy = yyy - n * my * my; qzz = yzz - n * mz * mz
-            qxy = yxy - n * mx * my; qxz = yxz - n * mx * mz; qyz = yyz - n * my * mz
             tr = qxx + qyy + qzz
             eps = 1e-9 * tr + 1e-300
             I00 = tr - qxx + eps; I11 = tr - qyy + eps; I22 = tr - qzz + eps
@@ -253,38 +264,45 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
             c11 = I00 * I22 - I02 * I02; c12 = I01 * I02 - I00 * I12; c22 = I00 * I11 - I01 * I01
             det = I00 * c00 + I01 * c01 + I02 * c02
             if det > 0.0 and math.isfinite(det):
-                wx = (c00 * Lx + c01 * Ly + c02 * Lz) / det
-                wy = (c01 * Lx + c11 * Ly + c12 * Lz) / det
-                wz = (c02 * Lx + c12 * Ly + c22 * Lz) / det
-        t00, t01, t02 = T[0, 0], T[0, 1], T[0, 2]
-        t10, t11, t12 = T[1, 0], T[1, 1], T[1, 2]
-        t20, t21, t22 = T[2, 0], T[2, 1], T[2, 2]
-        p00, p01, p02 = P[0, 0], P[0, 1], P[0, 2]
-        p10, p11, p12 = P[1, 0], P[1, 1], P[1, 2]
-        p20, p21, p22 = P[2, 0], P[2, 1], P[2, 2]
-        use_p = kv > 0.0
-        e = 0.0
+                idet = 1.0 / det
+                wx = (c00 * Lx + c01 * Ly + c02 * Lz) * idet
+                wy = (c01 * Lx + c11 * Ly + c12 * Lz) * idet
+                wz = (c02 * Lx + c12 * Ly + c22 * Lz) * idet
+        # elastic energy from the moments (R orthogonal, F symmetric, sum X0 = 0):
+        # sum |T X0_i - r_i|^2 = tr(F^2 Q) - 2 tr(T^T A) + tr(Y), Q = sum X0 X0^T (q_tr = tr Q, q_ff = f^T Q f)
+        if m >= 0:
+            fqf = q_ff[c]
+            tf2q = la * la * fqf + sl * sl * (q_tr[c] - fqf)
+        else:
+            tf2q = q_tr[c]
+        tta = (T[0, 0] * a00 + T[0, 1] * a01 + T[0, 2] * a02 + T[1, 0] * a10 + T[1, 1] * a11 + T[1, 2] * a12
+               + T[2, 0] * a20 + T[2, 1] * a21 + T[2, 2] * a22)
+        e = max(tf2q - 2.0 * tta + (qxx + qyy + qzz), 0.0)
+        # force on vertex i, elastic + volume + damping in one affine map of (X0_i, r_i, v_i):
+        # k (T X0 - r) + P X0 - b (v - vbar - w x r) = (k T + P) X0 + (b [w]x - k I) r - b v + b vbar
+        m00 = k * T[0, 0] + P[0, 0]; m01 = k * T[0, 1] + P[0, 1]; m02 = k * T[0, 2] + P[0, 2]
+        m10 = k * T[1, 0] + P[1, 0]; m11 = k * T[1, 1] + P[1, 1]; m12 = k * T[1, 2] + P[1, 2]
+        m20 = k * T[2, 0] + P[2, 0]; m21 = k * T[2, 1] + P[2, 1]; m22 = k * T[2, 2] + P[2, 2]
+        bwx, bwy, bwz = b * wx, b * wy, b * wz
+        # f0 = m X0 - k r - b v + b (vbar + w x (x_i - c)) with r = x_i - c: the constant part uses the
+        # local origin o: w x (x_i - c) = w x d_i - w x mm (d_i = x_i - o, mm = c - o)
+        kx0 = -k * mx; ky0 = -k * my; kz0 = -k * mz
+        cx0 = b * vx - (bwy * mz - bwz * my) - kx0
+        cy0 = b * vy - (bwz * mx - bwx * mz) - ky0
+        cz0 = b * vz - (bwx * my - bwy * mx) - kz0
         for p in range(a0, a1):                             # scatter
             i = cv[p]
             X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
-            rx, ry, rz = x[i, 0] - cx, x[i, 1] - cy, x[i, 2] - cz
-            gx = t00 * X + t01 * Y + t02 * Z - rx
-            gy = t10 * X + t11 * Y + t12 * Z - ry
-            gz = t20 * X + t21 * Y + t22 * Z - rz
-            e += gx * gx + gy * gy + gz * gz
-            fx_, fy_, fz_ = k * gx, k * gy, k * gz
-            if use_p:
-                fx_ += p00 * X + p01 * Y + p02 * Z
-                fy_ += p10 * X + p11 * Y + p12 * Z
-                fz_ += p20 * X + p21 * Y + p22 * Z
+            dx, dy, dz = x[i, 0] - ox, x[i, 1] - oy, x[i, 2] - oz
+            fx_ = m00 * X + m01 * Y + m02 * Z - k * dx + (bwy * dz - bwz * dy) + cx0
+            fy_ = m10 * X + m11 * Y + m12 * Z - k * dy + (bwz * dx - bwx * dz) + cy0
+            fz_ = m20 * X + m21 * Y + m22 * Z - k * dz + (bwx * dy - bwy * dx) + cz0
             if b > 0.0:
-                fx_ -= b * (v[i, 0] - vx - (wy * rz - wz * ry))
-                fy_ -= b * (v[i, 1] - vy - (wz * rx - wx * rz))
-                fz_ -= b * (v[i, 2] - vz - (wx * ry - wy * rx))
+                fx_ -= b * v[i, 0]; fy_ -= b * v[i, 1]; fz_ -= b * v[i, 2]
             f[i, 0] += fx_; f[i, 1] += fy_; f[i, 2] += fz_
         cell_energy[c] = 0.5 * k * e + ev
-        if not (e * k * k < FORCE_BOUND) or not (ev < FORCE_BOUND):   # catches NaN and overflow
-            return c
+        if not (e * k * k < FORCE_BOUND) or not (ev < FORCE_BOUND) or not (abs(m00) + abs(cx0) < FORCE_BOUND):
+            return c                   # catches NaN and overflow
     return -1
 
 

@@ -52,6 +52,8 @@ class SimModel:
     cv: np.ndarray                  # (K,) int32
     X0: np.ndarray                  # (K, 3) rest positions relative to each cell's rest centroid [m]
     Qinv: np.ndarray                # (C, 3, 3) inverse of sum X0 X0^T (fibre-stretch estimate)
+    q_tr: np.ndarray                # (C,) [m^2] tr Q, Q = sum X0 X0^T (elastic energy from moments)
+    q_ff: np.ndarray                # (C,) [m^2] f^T Q f along the cell's fibre axis f
     fibre: np.ndarray               # (C, 3)
     cell_muscle: np.ndarray         # (C,) int32
     k: np.ndarray                   # (C,) passive spring constant per cell-vertex [N/m]
@@ -175,6 +177,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     Qinv = np.linalg.inv(np.where(flat[:, None, None], np.eye(3), Q))
     if np.any(flat):
         Qinv[flat] = np.linalg.pinv(Q[flat], rcond=1e-9, hermitian=True)
+    fib = np.asarray(tm.cell_fibre, np.float64)
     vol = np.zeros(C)
     K.cell_volumes(rest, off, cv, vol)
     if np.any(vol == 0) or not np.all(np.isfinite(vol)):
@@ -285,7 +288,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     sim_kw = dict(
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
-        Qinv=_frozen(Qinv), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
+        Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(np.einsum('ci,cij,cj->c', fib, Q, fib)), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
         length_weight=_frozen(lw), free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
@@ -344,7 +347,7 @@ def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
         quat[:] = (0.0, 0.0, 0.0, 1.0)
         K.cell_forces(xp, xp, f, quat, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, lam, act,
                       sim.k, sim.k_active, zero_b, sim.params.volume_mode == 'actual', 20, e, sim.k_volume,
-                      np.zeros(sim.n_cells), 0.0)
+                      np.zeros(sim.n_cells), 0.0, sim.q_tr, sim.q_ff)
         y = -(f / scale) * sim.inv_mass[:, None]
         lam_est = float(np.sum(y * u))
         u = y

@@ -15,7 +15,7 @@ def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t,
             m_rest, inv_den, mass, free_idx, off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, att_idx, att_seg,
             kvol, seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent,
             j_child, j_type, j_axis, j_centre, j_rest, j_range, anc, grav, log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp,
-            lim_wh, lim_z, vel_damp, vol_gain, vmax2, info):
+            lim_wh, lim_z, vel_damp, vol_gain, vmax2, info, q_tr, q_ff):
     """n_steps steps of n_sub sub-steps of length h; acts (n_steps, M) activations. Positions and
     velocities alternate between (x, v) and (xb, vb); returns how many swaps happened. On failure
     info = (step, cell, cause) and everything is left at the last good sub-step."""
@@ -27,7 +27,7 @@ def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t,
             q0[:] = q; qd0[:] = qd; lam0[:] = lam
             K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)                 # 1. muscle tension
             bad = K.cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cmus, lam, act, kc, kact, damp_b,
-                                vol_actual, iters, cell_e, kvol, pres, vol_gain)
+                                vol_actual, iters, cell_e, kvol, pres, vol_gain, q_tr, q_ff)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
                 lam[:] = lam0
@@ -65,7 +65,8 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
                     math.log(p.contraction_rate), math.log(p.relax_rate), p.min_stretch, p.rate_dt,
                     p.volume_mode == 'actual', p.rotation_iterations, p.joint_damping, p.limit_omega_dt,
                     p.limit_damping_ratio, p.velocity_damping,
-                    h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, p.max_speed ** 2, info)
+                    h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, p.max_speed ** 2, info,
+                    sim.q_tr, sim.q_ff)
     if swaps % 2:
         state.x, state.x_back = state.x_back, state.x
         state.v, state.v_back = state.v_back, state.v
