@@ -65,7 +65,7 @@ class Params:
     limit_omega_dt: float = 1.0           # end-stop natural frequency x h (stiffness relative to the joint's inertia; implicit)
     limit_damping_ratio: float = 1.0      # end-stop damping, fraction of critical
     # --- numerics / safety -----------------------------------------------------------------
-    rotation_iterations: int = 2          # max iterations of the warm-started rotation extraction per cell and step
+    rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
 
     # ------------------------------------------------------------------------------ presets
