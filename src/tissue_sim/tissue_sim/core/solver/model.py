@@ -88,7 +88,7 @@ class SimModel:
     def inv_denominator(self, h: float) -> np.ndarray:
         """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
         1/max(m_i, h^2 kappa_i / stability_limit^2) (mass_scaled); 0 for bone-attached vertices. Cached per h."""
-        a = self.cache.get(h)
+        a = self.cache.get(('inv_den', h))
         if a is None:
             if self.params.integrator == 'explicit':
                 a = self.inv_mass
@@ -97,9 +97,9 @@ class SimModel:
                 # limit at this h gets the mass that puts it at stability_limit (Gershgorin bound on omega h)
                 den = np.maximum(self.mass, h * h * self.vertex_stiffness / self.params.stability_limit ** 2)
                 a = _frozen(np.where(self.inv_mass > 0, 1.0 / den, 0.0))
-            if len(self.cache) > 16:
+            if len(self.cache) > 32:
                 self.cache.clear()
-            self.cache[h] = a
+            self.cache[('inv_den', h)] = a
         return a
 
     @property

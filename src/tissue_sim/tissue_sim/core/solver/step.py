@@ -11,32 +11,40 @@ from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, Sta
 
 
 @njit(cache=True)
-def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work,
-            m_rest, inv_den, mass, free_idx, off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, att_idx, att_seg,
-            kvol, seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent,
-            j_child, j_type, j_axis, j_centre, j_rest, j_range, anc, grav, log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp,
-            lim_wh, lim_z, vel_damp, vol_gain, vmax2, info, q_tr, q_ff):
-    """n_steps steps of n_sub sub-steps of length h; acts (n_steps, M) activations. Positions and
-    velocities alternate between (x, v) and (xb, vb); returns how many swaps happened. On failure
-    info = (step, cell, cause) and everything is left at the last good sub-step."""
+def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
+    """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M), in place.
+
+    Tuples of flat arrays (built by ``_arrays``): st = mutable state, cells = cell constants,
+    tissue = vertex constants, skel = skeleton constants, num = scalar parameters. Positions and
+    velocities alternate between (x, v) and the back buffers (xb, vb); returns how many swaps
+    happened. On failure info = (step, cell, cause) and the state is left at the last good sub-step."""
+    x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work = st
+    off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, kvol, q_tr, q_ff = cells
+    rest, inv_den, mass, free_idx, att_idx, att_seg = tissue
+    seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, \
+        j_rest, j_range, anc, grav = skel
+    log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp, lim_wh, lim_z, vel_damp, vol_gain, vmax2 = num
     swaps = 0
     q0, qd0, lam0 = q.copy(), qd.copy(), lam.copy()
     for n in range(n_steps):
         act = acts[n]
         for _ in range(n_sub):
             q0[:] = q; qd0[:] = qd; lam0[:] = lam
-            K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)                 # 1. muscle tension
+            # 1. muscle tension: contraction state, then every cell's elastic + volume + damping force
+            K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)
             bad = K.cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cmus, lam, act, kc, kact, damp_b,
                                 vol_actual, iters, cell_e, kvol, pres, vol_gain, q_tr, q_ff)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
                 lam[:] = lam0
                 return swaps
-            ok = K.skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint,  # 2. skeleton
+            # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
+            ok = K.skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint,
                                  seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, j_rest,
                                  j_range, anc, grav, jdamp, lim_wh, lim_z, seg_R, seg_t, work)
-            sp2, ke = K.integrate(h, x, v, f, inv_den, mass, xb, vb, free_idx, att_idx, att_seg, m_rest, seg_R, seg_t,
-                                   grav, vel_damp)  # 3. tissue
+            # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
+            sp2, ke = K.integrate(h, x, v, f, inv_den, mass, xb, vb, free_idx, att_idx, att_seg, rest, seg_R, seg_t,
+                                  grav, vel_damp)
             if not ok or not (sp2 <= vmax2):
                 info[0], info[1], info[2] = n, -1, K.CAUSE_SKELETON if not ok else K.CAUSE_SPEED
                 q[:] = q0; qd[:] = qd0; lam[:] = lam0
@@ -49,24 +57,35 @@ def advance(n_steps, n_sub, h, acts, x, v, xb, vb, f, quat, q, qd, seg_R, seg_t,
     return swaps
 
 
+def _arrays(sim: SimModel, h: float):
+    """The constant tuples ``advance`` reads for sub-step length h (cached on the model per h)."""
+    key = ('arrays', h)
+    t = sim.cache.get(key)
+    if t is None:
+        p = sim.params
+        cells = (sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, sim.k, sim.k_active, sim.damp_b,
+                 sim.k_volume, sim.q_tr, sim.q_ff)
+        tissue = (sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.att_idx, sim.att_seg)
+        skel = (sim.seg_order, sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia,
+                sim.j_parent, sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc,
+                sim.gravity)
+        num = (math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
+               p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping), float(p.limit_omega_dt),
+               float(p.limit_damping_ratio), float(p.velocity_damping),
+               h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, float(p.max_speed) ** 2)
+        t = sim.cache[key] = (cells, tissue, skel, num)
+    return t
+
+
 def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
     """Advance state in place by len(acts) steps of dt under per-step activations acts (N, M)."""
     p = sim.params
     n_sub = sim.n_substeps if dt == p.dt else substeps_for(p, sim.omega_max, sim.damp_rate, dt)
     h = dt / n_sub
     info = np.array([-1, -1, 0], np.int64)
-    swaps = advance(acts.shape[0], n_sub, h, acts, state.x, state.v, state.x_back, state.v_back, state.f,
-                    state.quat, state.q, state.qd, state.seg_R, state.seg_t, state.lam, state.cell_energy,
-                    state.pressure, state.work,
-                    sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre,
-                    sim.cell_muscle, sim.k, sim.k_active, sim.damp_b, sim.att_idx, sim.att_seg, sim.k_volume, sim.seg_order,
-                    sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia, sim.j_parent,
-                    sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc, sim.gravity,
-                    math.log(p.contraction_rate), math.log(p.relax_rate), p.min_stretch, p.rate_dt,
-                    p.volume_mode == 'actual', p.rotation_iterations, p.joint_damping, p.limit_omega_dt,
-                    p.limit_damping_ratio, p.velocity_damping,
-                    h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, p.max_speed ** 2, info,
-                    sim.q_tr, sim.q_ff)
+    st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
+          state.seg_t, state.lam, state.cell_energy, state.pressure, state.work)
+    swaps = advance(acts.shape[0], n_sub, h, acts, st, *_arrays(sim, h), info)
     if swaps % 2:
         state.x, state.x_back = state.x_back, state.x
         state.v, state.v_back = state.v_back, state.v
