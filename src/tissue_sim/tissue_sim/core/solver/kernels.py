@@ -1,6 +1,7 @@
 """Numba kernels of the solver: flat arrays in, flat arrays out, single thread. No fastmath except
 floating-point contraction (fused multiply-add) in the two hot kernels: deterministic (the compiled
-code fixes the order), no reassociation, NaN/Inf semantics kept (divergence checks rely on them).
+code fixes the order), no reassociation (it made results depend on what ran before in the process),
+NaN/Inf semantics kept (divergence checks rely on them).
 
 Cells are CSR (``off``, ``cv``); ``X0`` (K, 3) holds each cell's rest vertex positions relative to
 the cell's rest centroid (unweighted mean), in the same order as ``cv``. All positions in metres,
@@ -157,7 +158,11 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
     bone-attached vertices) builds up pressure until det D = 1 (vol_gain = h / volume_relax_time;
     0 = off). Damping: -b (v_i - v_rigid_i) with v_rigid the cell's mean
     linear + angular velocity (momentum conserving, rigid motion undamped). cell_energy[c] gets
-    0.5 k sum |G_i - x_i|^2 + the volume energy."""
+    0.5 k sum |G_i - x_i|^2 + the volume energy, the first from the cell's moments:
+    tr(F^2 Q) - 2 tr(T^T A) + tr(Y) with q_tr = tr Q, q_ff = f^T Q f (Q = sum X0 X0^T), Y = sum r r^T.
+
+    Per cell-vertex entry the scatter applies one affine map: f_i = (k T + P) X0_i + (b [w]x - k I) r_i
+    - b v_i + b vbar (elastic + volume + damping together).
     f[:] = 0.0
     A = np.empty((3, 3))
     B = np.empty((3, 3))
