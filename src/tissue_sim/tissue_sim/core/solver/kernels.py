@@ -162,7 +162,7 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
     tr(F^2 Q) - 2 tr(T^T A) + tr(Y) with q_tr = tr Q, q_ff = f^T Q f (Q = sum X0 X0^T), Y = sum r r^T.
 
     Per cell-vertex entry the scatter applies one affine map: f_i = (k T + P) X0_i + (b [w]x - k I) r_i
-    - b v_i + b vbar (elastic + volume + damping together).
+    - b v_i + b vbar (elastic + volume + damping together)."""
     f[:] = 0.0
     A = np.empty((3, 3))
     B = np.empty((3, 3))
