@@ -83,7 +83,7 @@ class SimModel:
     anc: np.ndarray                 # (J, S) bool: joint j moves segment s
     gravity: np.ndarray             # (3,)
     muscle_index_of: dict           # name -> index; group name -> list of indices
-    cache: dict = dataclasses.field(default_factory=dict, repr=False)   # per-h integration denominators (internal)
+    cache: dict = dataclasses.field(default_factory=dict, repr=False)   # per-h arrays of the step (internal; pass cache={} to dataclasses.replace)
 
     def inv_denominator(self, h: float) -> np.ndarray:
         """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
@@ -303,7 +303,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     sim = SimModel(damp_rate=c_max, **sim_kw)
     w = estimate_omega_max(sim)
     n_sub = p.substeps or substeps_for(p, w, c_max, p.dt)
-    return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w))
+    return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w), cache={})
 
 
 def substeps_for(p: Params, omega: float, c: float, dt: float) -> int:
