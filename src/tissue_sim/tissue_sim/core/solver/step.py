@@ -7,6 +7,23 @@ import numpy as np
 from numba import njit
 
 from tissue_sim.core.solver import kernels as K
+
+
+def _drop_stale_advance_cache() -> None:
+    """numba validates advance()'s on-disk cache against this file only, but the cached machine
+    code embeds the kernels of kernels.py: drop that cache whenever kernels.py is newer."""
+    from pathlib import Path
+    here = Path(__file__).resolve()
+    try:
+        kernels_mtime = here.with_name('kernels.py').stat().st_mtime
+        for f in (here.parent / '__pycache__').glob('step.advance-*.nb[ic]'):
+            if f.stat().st_mtime < kernels_mtime:
+                f.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+_drop_stale_advance_cache()
 from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for
 
 
