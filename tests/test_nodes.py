@@ -268,11 +268,15 @@ def test_replay_of_a_simulator_run_restores_state_clock_and_topology(knee_model,
             # a late joiner: created only after the replay has started publishing
             spin_until(lambda: len(st.msgs) >= 3, node, 30, 'replayed states')
             tp = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
-            spin_until(lambda: len(st.msgs) >= len(expect) and tp.msgs, node, 30, 'the whole replay')
+            def ns(c):
+                return c.clock.sec * 1_000_000_000 + c.clock.nanosec
+            # /clock is its own topic: wait for its last message too, not only for the states'
+            spin_until(lambda: len(st.msgs) >= len(expect) and tp.msgs and clk.msgs and ns(clk.msgs[-1]) >= stamps[-1],
+                       node, 30, 'the whole replay')
             rp.wait_for_output('replay: published', timeout=20)
         assert [bytes(b) for b in st.msgs] == expect
         assert bytes(tp.msgs[0]) == topo[0]
-        clock_ns = [c.clock.sec * 1_000_000_000 + c.clock.nanosec for c in clk.msgs]
+        clock_ns = [ns(c) for c in clk.msgs]
         assert clock_ns[-len(stamps):] == stamps
         span_rec = (states[-1].log_time - t0) * 1e-9
         span_play = st.t[-1] - st.t[0]
