@@ -317,19 +317,22 @@ def snap_inside(p, region, feat):
     return (int(feat[0, i, j]), int(feat[1, i, j]))
 
 
-def add_tendons(lab, table, area, s_mm, R0, A0, verbose=True):
-    """Label the distal tendons of the knee-crossing muscles (MU.TENDONS) with their muscle's label.
+def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
+    """Distal tendons of the knee-crossing muscles (MU.TENDONS), placed before the muscles are.
 
     Per slice below the belly: a disc of MU.TENDON_RADIUS_MM centred where the OpenSim path crosses the
     slice (below the last path point, straight down from it); from MU.TENDON_SNAP_MM above the insertion
-    the disc is moved onto the nearest pixel of its insertion bone (overlapping it by 1.5 mm).  Only fat
-    pixels at least 2 mm inside the skin become tendon (never bone, never another muscle).  The tendon
-    ends when it has touched its bone over MU.TENDON_ATTACH_MM (or at the lower end of that bone).  Returns {muscle index: tendon slices}.
+    the disc is swept from the path point to the nearest pixel of its insertion bone (a capsule that
+    overlaps the bone by 1.5 mm), so the tendon both continues the one above and lies on the bone.  A tendon takes only soft tissue at least 2 mm inside the skin and no other tendon;
+    the muscles are then partitioned around it (they never lose volume to it).  The tendon ends when it
+    has touched its bone over MU.TENDON_ATTACH_MM (or at the lower end of that bone).
+    ``lab`` holds the bones only.  Returns ({slice: [(muscle index, mask), ...]}, {muscle: [slices]}).
     """
     K = lab.shape[2]
     ii, jj = np.meshgrid(np.arange(lab.shape[0]), np.arange(lab.shape[1]), indexing='ij')
     r = MU.TENDON_RADIUS_MM
-    out = {}
+    masks, out = {}, {}
+    taken = {}
     for m, t in enumerate(table):
         if t['name'] not in MU.TENDONS:
             continue
@@ -344,24 +347,34 @@ def add_tendons(lab, table, area, s_mm, R0, A0, verbose=True):
             c = np.array([c[0] - R0, c[1] - A0])
             sl = lab[..., k]
             tb = np.isin(sl, targets)
-            inner = ndimage.binary_erosion(sl > 0, iterations=2)
-            free = inner & (sl == FAT_LABEL)
-            # bone surface the tendon can reach: bone pixels with fat next to them (muscles stay)
-            exposed = tb & ndimage.binary_dilation(free, iterations=2)
-            if s <= z_ins + MU.TENDON_SNAP_MM and exposed.any():
-                bp = np.argwhere(exposed)
-                b = bp[np.argmin(np.linalg.norm(bp - c, axis=1))]
-                w = slice(max(b[0] - 3, 0), b[0] + 4), slice(max(b[1] - 3, 0), b[1] + 4)
-                u = (np.argwhere(free[w]) + [w[0].start, w[1].start] - b).mean(0)   # off the bone, into fat
-                c = b + (r - 1.5) * u / max(np.linalg.norm(u), 1e-9)
-            disc = ((ii - c[0]) ** 2 + (jj - c[1]) ** 2 <= r * r) & free
-            comp, nc = ndimage.label(disc)
-            if nc > 1:                                      # one piece: the largest
-                disc = comp == np.bincount(comp.ravel())[1:].argmax() + 1
             seen = seen or tb.any()
             if seen and not tb.any():                       # past the end of the insertion bone
                 break
-            sl[disc] = MUSCLE_LABEL0 + m
+            free = ndimage.binary_erosion(skins[k], iterations=2) & (sl == 0)
+            if k in taken:
+                free &= ~taken[k]
+            centres = [c]
+            if s <= z_ins + MU.TENDON_SNAP_MM and tb.any():
+                bp = np.argwhere(tb & ndimage.binary_dilation(free))
+                if len(bp):
+                    b = bp[np.argmin(np.linalg.norm(bp - c, axis=1))]
+                    w = slice(max(b[0] - 3, 0), b[0] + 4), slice(max(b[1] - 3, 0), b[1] + 4)
+                    u = (np.argwhere(free[w]) + [w[0].start, w[1].start] - b).mean(0)  # off the bone
+                    c1 = b + (r - 1.5) * u / max(np.linalg.norm(u), 1e-9)
+                    # the tendon fans out from its path onto the bone: a capsule from the path point
+                    # to the bone, so it overlaps the tendon above (a continuous muscle-tendon unit)
+                    n = int(np.ceil(np.linalg.norm(c1 - c))) + 1
+                    centres = [c + f * (c1 - c) for f in np.linspace(0.0, 1.0, n)]
+            disc = np.zeros_like(free)
+            for cc in centres:
+                disc |= (ii - cc[0]) ** 2 + (jj - cc[1]) ** 2 <= r * r
+            disc &= free
+            comp, nc = ndimage.label(disc)
+            if nc > 1:                                      # one piece: the largest
+                disc = comp == np.bincount(comp.ravel())[1:].argmax() + 1
+            if disc.any():
+                masks.setdefault(k, []).append((m, disc))
+                taken[k] = (taken[k] | disc) if k in taken else disc
             if (ndimage.binary_dilation(disc) & tb).any():
                 touched += 1
             ks.append(k)
@@ -369,7 +382,7 @@ def add_tendons(lab, table, area, s_mm, R0, A0, verbose=True):
         out[m] = ks
         if verbose:
             print(f'tendon {t["name"]}: S {s_mm[ks[0]]:.1f}..{s_mm[ks[-1]]:.1f} mm, on bone {touched} slices')
-    return out
+    return masks, out
 
 
 def build(out_dir: Path, verbose=True):
@@ -441,14 +454,18 @@ def build(out_dir: Path, verbose=True):
         print(f'girth scale thigh {girth[0]:.3f} shank {girth[1]:.3f}; cover shifts (mm) R '
               f'{shifts[:, 0].min()}..{shifts[:, 0].max()} A {shifts[:, 1].min()}..{shifts[:, 1].max()}')
     area = distribute(area, skins, lab, s_mm, reg['z_mm'][1])
+    tendons, tendon_slices = tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose)
     fat_t = np.zeros(K)
     for k, s in enumerate(s_mm):
         sk = skins[k]
         bone = lab[..., k] > 0
+        tendon = np.zeros_like(bone)
+        for _, tm in tendons.get(k, []):
+            tendon |= tm
         edt = ndimage.distance_transform_edt(sk)
         present = [m for m in range(len(table)) if area[m, k] > 0]
         need = area[present, k].sum()
-        cand = np.sort(edt[sk & ~bone])[::-1]
+        cand = np.sort(edt[sk & ~bone & ~tendon])[::-1]
         if need >= 1 and len(cand):
             n_need = int(min(round(need), len(cand)))
             t = cand[n_need - 1] if n_need > 0 else cand[0]
@@ -456,9 +473,11 @@ def build(out_dir: Path, verbose=True):
         else:
             t = FAT_MAX_MM
         fat_t[k] = t
-        region = (edt > t) & ~bone
+        region = (edt > t) & ~bone & ~tendon
         sl = lab[..., k]
         sl[sk & ~bone] = FAT_LABEL
+        for m, tm in tendons.get(k, []):
+            sl[tm] = MUSCLE_LABEL0 + m
         if present and region.any():
             feat = ndimage.distance_transform_edt(~region, return_distances=False, return_indices=True)
             sp = []
@@ -474,8 +493,6 @@ def build(out_dir: Path, verbose=True):
                 sl[part == n] = MUSCLE_LABEL0 + m
         if verbose and k % 10 == 0:
             print(f'slice {k:3d} S={s:7.1f} mm  muscles {len(present):2d}  fat {t:5.1f} mm', flush=True)
-
-    tendon_slices = add_tendons(lab, table, area, s_mm, R0, A0, verbose)
 
     # one piece per slice: foot-bone fragments the MakeHuman sole does not enclose are dropped
     for k in range(K):
