@@ -30,7 +30,7 @@ DEFAULTS = {
     'slice_step': None,        # or every Nth slice of the volume
     'muscle_rays': 12,         # polygon vertex count of every muscle cross-section
     'fat_rays': 12,            # rays of the fat tube per slice (paper: 540 cells = 45 gaps x 12)
-    'share_mm': 5.0,           # vertex sharing threshold [mm] (paper section 2.4 gives none; see docs/builder.md)
+    'share_mm': 3.5,           # vertex sharing threshold [mm] (paper section 2.4 gives none; see docs/builder.md)
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
