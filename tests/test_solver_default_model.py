@@ -54,12 +54,12 @@ def test_default_model_full_hamstring_contraction_is_stable_and_keeps_volume(def
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason='bundled anatomy: the hamstring tendons now reach the tibia/fibula, but only '
-                   '~8 hamstring vertices are shank-attached (one builder slice, 4-17 mm behind the knee axis) and '
-                   'the hamstring origins (ischial tuberosity) lie above the stack, so the muscles have almost no '
-                   'thigh anchor (bflh/semiten: 0 thigh-attached vertices); full activation shortens them 9-15 % '
-                   'by deforming soft tissue and the knee oscillates at 1-10 deg; passes once the proximal ends '
-                   'are anchored to the thigh/pelvis')
+@pytest.mark.xfail(strict=False, reason='bundled anatomy: the hamstring tendons now reach the tibia/fibula (8 '
+                   'shank-attached hamstring vertices, 4-17 mm behind the knee axis), yet full activation shortens '
+                   'the hamstrings only 9-15 % and the knee oscillates at 1-10 deg; attaching all 96 hamstring '
+                   'vertices below the joint line and anchoring their top rings to the thigh (experiment, not in '
+                   'the model) still gives only 1-16 deg, so the limit is the passive tissue bridging the knee / '
+                   'force balance in the solver, not the insertions; open issue')
 def test_default_model_hamstring_contraction_flexes_knee_to_limit(default_sim, hamstring_run):
     j, q, vol = hamstring_run
     lo, hi = default_sim.j_range[j]
