@@ -58,8 +58,8 @@ def test_default_model_full_hamstring_contraction_is_stable_and_keeps_volume(def
                    'shank-attached hamstring vertices, 4-17 mm behind the knee axis), yet full activation shortens '
                    'the hamstrings only 9-15 % and the knee oscillates at 1-10 deg; attaching all 96 hamstring '
                    'vertices below the joint line and anchoring their top rings to the thigh (experiment, not in '
-                   'the model) still gives only 1-16 deg, so the limit is the passive tissue bridging the knee / '
-                   'force balance in the solver, not the insertions; open issue')
+                   'the model) still gives only 1-16 deg; with k_fat / 100 the knee swings 4-31 deg: the limit is the '
+                   'passive tissue (fat tube) bridging the knee and the small moment arm, not the insertions; open')
 def test_default_model_hamstring_contraction_flexes_knee_to_limit(default_sim, hamstring_run):
     j, q, vol = hamstring_run
     lo, hi = default_sim.j_range[j]
