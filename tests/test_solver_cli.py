@@ -34,3 +34,17 @@ def test_simulate_divergence_exit_code(tmp_path, capsys):
     rc = main(['simulate', 'phantom:knee', '--params', str(p), '--duration', '0.5', '--activate', 'all=1'])
     assert rc == 1
     assert 'diverged at step' in capsys.readouterr().err
+
+
+def test_simulate_reads_the_activation_nodes_timeline_format(tmp_path, capsys):
+    """One timeline file format for the activation node and the headless run."""
+    tl = tmp_path / 'tl.yaml'
+    tl.write_text('muscles:\n  hamstrings: [[0.0, 0.0], [0.1, 1.0]]\n')
+    out = tmp_path / 'run.npz'
+    assert main(['simulate', 'phantom:knee', '--duration', '0.3', '--timeline', str(tl), '-o', str(out)]) == 0
+    with np.load(out) as z:
+        assert z['activation'][0, 0] == 0.0 and z['activation'][-1, 0] == 1.0 and z['activation'][-1, 1] == 0.0
+    capsys.readouterr()
+    tl.write_text('muscles:\n  hamstrings: [[0.0, 2.0]]\n')
+    assert main(['simulate', 'phantom:knee', '--duration', '0.1', '--timeline', str(tl)]) == 2
+    assert 'activations must be in [0, 1]' in capsys.readouterr().err

@@ -21,7 +21,7 @@ def add_arguments(p):
     p.add_argument('--activate', action='append', default=[], metavar='NAME=A[@T0[-T1]]',
                    help='activation A in [0, 1] of a muscle, a group (e.g. hamstrings) or "all", from T0 (default 0) '
                         'to T1 (default: the end) [s]; repeatable')
-    p.add_argument('--timeline', metavar='FILE.yaml', help='breakpoints {name: [[t, a], ...]} (piecewise linear)')
+    p.add_argument('--timeline', metavar='FILE.yaml', help='timeline file, same format as the activation node: muscles: {name or group: [[t, a], ...]} (piecewise linear)')
     p.add_argument('--params', default='paper', help='paper | physical | parameter file .yaml (default %(default)s)')
     p.add_argument('--dt', type=float, help='step [s] (default: the parameter set\'s dt)')
     p.add_argument('--every', type=int, default=10, help='record every N steps (default %(default)s)')
@@ -106,17 +106,13 @@ def run(args) -> int:
     params = _params(args.params)
     timeline = {}
     if args.timeline:
-        import yaml
-        path = Path(args.timeline)
-        if not path.is_file():
-            raise UserError(f'{path}: no such timeline file')
+        # the same timeline file format as `activation --profile timeline` (muscles: {name: [[t, a], ...]})
+        from tissue_sim.ros.profiles import ProfileError, load_timeline
         try:
-            tl = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as e:
-            raise UserError(f'{path}: not valid YAML ({e})') from None
-        if not isinstance(tl, dict):
-            raise UserError(f'{path}: expected a mapping name: [[t, a], ...]')
-        timeline.update(tl)
+            tl = load_timeline(args.timeline)
+        except ProfileError as e:
+            raise UserError(str(e)) from None
+        timeline.update({name: list(zip(times.tolist(), values.tolist())) for name, (times, values) in tl.items()})
     for spec in args.activate:
         name, pts = _parse_activation(spec, args.duration)
         timeline[name] = pts if name not in timeline else list(timeline[name]) + pts
