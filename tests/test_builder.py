@@ -349,3 +349,50 @@ def test_share_groups_never_take_two_vertices_of_one_ring():
     pos[2, 2] = 0.001
     rep = share_groups(pos, tissue=np.array([0, 0, -1]), ring=np.array([0, 0, 1]), slice_id=np.array([0, 0, 1]), radius=0.005)
     assert len(set(rep.tolist())) == 3
+
+
+def _anchored_table(origin='upper', insertion='lower'):
+    lab, aff, tab = make_phantom('column')
+    tab['labels'][11] = dict(tab['labels'][11], origin={'segment': origin, 'body': 'atlas'}, insertion=insertion)
+    return lab, aff, tab
+
+
+def test_muscle_origin_and_insertion_fix_the_end_rings():
+    """The table's origin/insertion fix the flexor's top ring to 'upper' and its bottom ring to
+    'lower'; with anchor_muscles=False only bone-touching vertices are fixed (the paper's rule)."""
+    lab, aff, tab = _anchored_table()
+    tm, rep = build_model((lab, aff), tab, **P)
+    plain, _ = build_model((lab, aff), tab, **P, anchor_muscles=False)
+    assert tm.meta['anchors'] == {'flexor': {'origin': ['upper', 10], 'insertion': ['lower', 10]}}
+    assert plain.meta['anchors'] == {}
+    m = tm.muscle_index('flexor')
+    cells = np.flatnonzero(tm.cell_muscle == m)
+    vs = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells]))
+    z = tm.rest_positions[vs, 2]
+    top, bot = vs[np.isclose(z, z.max())], vs[np.isclose(z, z.min())]
+    assert len(top) == len(bot) == 10
+    assert np.all(tm.vertex_segment[top] == tm.segment_names.index('upper'))
+    assert np.all(tm.vertex_segment[bot] == tm.segment_names.index('lower'))
+    # the same vertices, only the end rings' attachment differs from the plain build
+    assert np.array_equal(tm.rest_positions, plain.rest_positions)
+    changed = np.flatnonzero(tm.vertex_segment != plain.vertex_segment)
+    assert set(changed) <= set(top) | set(bot) and len(changed) > 0
+
+
+def test_anchor_is_refused_across_a_joint():
+    """A ring whose slice has no bone of the named segment is left free, with a warning (no rigid
+    lever through the joint): here the flexor's top ring names the lower segment."""
+    lab, aff, tab = _anchored_table(origin='lower')
+    tm, rep = build_model((lab, aff), tab, **P)
+    assert 'origin' not in tm.meta['anchors'].get('flexor', {})
+    assert any('flexor' in w and 'origin' in w and 'left unanchored' in w for w in rep['warnings'])
+
+
+@pytest.mark.parametrize('bad,msg', [({'segment': 'pelvis'}, "origin segment 'pelvis' is not in the joints file"),
+                                     ({'body': 'x'}, 'origin must be a segment name')])
+def test_bad_origin_is_a_clear_error(bad, msg):
+    from tissue_sim.errors import UserError
+    lab, aff, tab = make_phantom('column')
+    tab['labels'][11] = dict(tab['labels'][11], origin=bad)
+    with pytest.raises(UserError, match=msg):
+        build_model((lab, aff), tab, **P)

@@ -29,7 +29,7 @@ def _forces(sim, x, v=None, lam=None, act=None, iters=30):
                         sim.fibre, sim.cell_muscle, np.ones(M) if lam is None else lam,
                         np.zeros(M) if act is None else act, sim.k, sim.k_active, sim.damp_b,
                         sim.params.volume_mode == 'actual', iters, e, sim.k_volume, np.zeros(sim.n_cells), 0.0,
-                        sim.q_tr, sim.q_ff)
+                        sim.q_tr, sim.q_ff, sim.rest_length)
     assert bad == -1
     return f, e
 

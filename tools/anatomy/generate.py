@@ -50,6 +50,10 @@ BONES = [  # label, name, OpenSim body, meshes, segment
     (5, 'talus', 'talus_r', ('talus_rv',), 'foot'),
     (6, 'foot', None, None, 'foot'),  # calcaneus + other tarsals + metatarsals (calcn_r) + toes
 ]
+# OpenSim body of a muscle's origin/insertion -> segment of joints.yaml. The pelvis is above the stack and
+# the hip is fixed (joints.yaml), so pelvic origins attach to the root segment, which stands for it.
+BODY_SEGMENT = {'pelvis': 'thigh', 'femur_r': 'thigh', 'patella_r': 'shank', 'tibia_r': 'shank',
+                'talus_r': 'foot', 'calcn_r': 'foot', 'toes_r': 'foot'}
 MUSCLE_LABEL0 = 11
 FAT_LABEL = 40
 
@@ -120,7 +124,9 @@ def muscle_table(model):
         V = float(sum(model['muscles'][p]['max_isometric_force'] * model['muscles'][p]['optimal_fiber_length']
                       / MU.SPECIFIC_TENSION for p in parts))
         paths = [model_to_ras_mm(os_to_model(model['muscles'][p]['points'])) for p in parts]
+        first = model['muscles'][parts[0]]['bodies']
         table.append({'name': name, 'parts': parts, 'group': group, 'belly': belly,
+                      'origin_body': first[0], 'insertion_body': first[-1],
                       'max_isometric_force': F, 'volume': V,
                       'optimal_fibre_length': V * MU.SPECIFIC_TENSION / F, 'paths': paths})
     return table
@@ -552,6 +558,8 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
             'target_volume_in_stack_cm3': round(float(target / 1000.0), 1),
             'volume_in_stack_cm3': round(float((counts[lbl] - tendon_vox[m]) * vox / 1000.0), 1),
             'opensim_parts': list(t['parts']),
+            'origin': {'segment': BODY_SEGMENT[t['origin_body']], 'body': t['origin_body']},
+            'insertion': {'segment': BODY_SEGMENT[t['insertion_body']], 'body': t['insertion_body']},
         }
         if m in tendon_slices:  # output slices run upwards: original slice k is K - 1 - k
             ks = [lab.shape[2] - 1 - k for k in tendon_slices[m]]

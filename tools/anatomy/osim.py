@@ -135,7 +135,7 @@ def load(path, coords=None):
         gp = m.find('GeometryPath')
         if gp is None or not name.endswith('_r'):
             continue
-        pts = []
+        pts, pbodies = [], []
         for pp in gp.find('PathPointSet/objects'):
             if pp.tag != 'PathPoint':
                 raise ValueError(f'{name}: unsupported path point {pp.tag}')
@@ -143,9 +143,11 @@ def load(path, coords=None):
             loc = _vec(pp, 'location')
             T = bodies[body]['T']
             pts.append(T[:3, :3] @ loc + T[:3, 3])
+            pbodies.append(body)
         wraps = [w.find('wrap_object').text.strip() for w in gp.iter('PathWrap')]
         muscles[name[:-2]] = {
             'points': np.array(pts),
+            'bodies': pbodies,                     # OpenSim body of each path point (first: origin, last: insertion)
             'max_isometric_force': float(m.find('max_isometric_force').text),
             'optimal_fiber_length': float(m.find('optimal_fiber_length').text),
             'tendon_slack_length': float(m.find('tendon_slack_length').text),

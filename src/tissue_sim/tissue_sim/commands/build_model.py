@@ -26,6 +26,8 @@ def add_arguments(p):
     g.add_argument('--fat-rays', type=int, default=D['fat_rays'], help='rays of the fat tube per slice (default %(default)s)')
     g.add_argument('--share-mm', type=float, default=D['share_mm'], help='vertex sharing threshold [mm] (default %(default)s; 0 = off)')
     g.add_argument('--attach-mm', type=float, default=D['attach_mm'], help='bone attachment distance [mm] (default: one pixel)')
+    g.add_argument('--no-anchor-muscles', dest='anchor_muscles', action='store_false',
+                   help="do not fix muscle end rings to their origin/insertion segments (only bone-touching vertices, as the paper's section 2.4)")
     g.add_argument('--min-area-mm2', type=float, default=D['min_area_mm2'], help='drop smaller components [mm^2] (default %(default)s)')
     g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
     g.add_argument('--ray-hit', choices=('first', 'last'), default=D['ray_hit'], help='boundary crossing used along a ray (default %(default)s)')
@@ -41,7 +43,7 @@ def add_arguments(p):
 
 def _settings(args) -> dict:
     return {'slices': args.slices, 'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
-            'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm,
+            'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm, 'anchor_muscles': args.anchor_muscles,
             'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit, 'ray_origin': args.ray_origin,
             'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing}
 

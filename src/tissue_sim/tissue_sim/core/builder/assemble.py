@@ -32,6 +32,8 @@ DEFAULTS = {
     'fat_rays': 12,            # rays of the fat tube per slice (paper: 540 cells = 45 gaps x 12)
     'share_mm': 3.5,           # vertex sharing threshold [mm] (paper section 2.4 gives none; see docs/builder.md)
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
+    'anchor_muscles': True,    # fix muscle end rings to their origin/insertion segments (table); False = only
+                               # vertices touching bone are fixed (the paper's section 2.4 rule alone)
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
@@ -69,6 +71,8 @@ def settings_with_defaults(settings: dict) -> dict:
     for k in ('share_mm', 'min_area_mm2', 'min_fat_mm'):
         if not (isinstance(s[k], (int, float)) and math.isfinite(s[k]) and s[k] >= 0):
             raise UserError(f'{k} must be a number >= 0, got {s[k]!r}')
+    if not isinstance(s['anchor_muscles'], bool):
+        raise UserError(f'anchor_muscles must be true or false, got {s["anchor_muscles"]!r}')
     if s['attach_mm'] is not None and not (math.isfinite(s['attach_mm']) and s['attach_mm'] >= 0):
         raise UserError(f'attach_mm must be >= 0, got {s["attach_mm"]!r}')
     if s['ray_origin'] not in ('best', 'centroid'):
@@ -140,6 +144,40 @@ def _select_slices(vol: LabelVolume, s: dict) -> np.ndarray:
     return ks
 
 
+def anchor_muscle_ends(pos, vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
+                       vseg, warnings) -> dict:
+    """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
+    insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
+    attachments from anatomy atlases, section 4.2), in place on ``vseg``.
+
+    The end rings are the muscle's ring vertices on its highest (proximal, +z) and lowest slice.
+    A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
+    ring lies along that bone: a ring across a joint from its bone (a belly ending above the
+    patella, a calf muscle ending far above the foot) would become a rigid lever through the
+    joint, so it is left free and a warning says so. Returns {muscle: {end: [segment, n_vertices]}}."""
+    out = {}
+    up = slice_z[-1] >= slice_z[0]
+    for m, lab in enumerate(mlabels):
+        cells = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus == m))
+        if cells.size == 0:
+            continue
+        vs = np.unique(np.concatenate([verts[offsets[c]:offsets[c + 1]] for c in cells]))
+        zs = vslice[vs]
+        for end, zi in (('origin', zs.max() if up else zs.min()), ('insertion', zs.min() if up else zs.max())):
+            seg = tab[lab].get(end)
+            if seg is None:
+                continue
+            ring = vs[zs == zi]
+            _, blab = bonepix[zi]
+            if any(tab[int(l)]['segment'] == seg for l in np.unique(blab)):
+                vseg[ring] = seg_names.index(seg)
+                out.setdefault(tab[lab]['name'], {})[end] = [seg, int(len(ring))]
+            else:
+                warnings.append(f'muscle {tab[lab]["name"]}: no {seg} bone on the slice of its {end} ring '
+                                f'(slice {int(zi)}, z {slice_z[zi]:.3f} m): left unanchored')
+    return out
+
+
 def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=None) -> tuple[M.TissueModel, dict]:
     """Build the TissueModel. ``progress(step_name, fraction)`` is called as the build advances."""
     t0 = time.perf_counter()
@@ -183,7 +221,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
 
     # ---------------------------------------------------------------- muscle chains
     n = s['muscle_rays']
-    muscle_names, muscle_groups, mforce, mfibre, mscale = [], [], [], [], []
+    muscle_names, muscle_groups, mforce, mfibre, mscale, muscle_labels_used = [], [], [], [], [], []
     pos_l, tis_l, ring_l, sl_l = [], [], [], []           # provisional vertices
     cells_m = []                                            # (muscle, slice, bottom ids, top ids)
     chains_m = []                                           # (muscle, [ring id arrays])
@@ -250,7 +288,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         if not chains:
             warnings.append(f'muscle {tab[lab]["name"]} (label {lab}) gives no cell at this slice spacing: left out of the model')
             continue
-        muscle_names.append(tab[lab]['name']); muscle_groups.append(tab[lab]['group'])
+        muscle_names.append(tab[lab]['name']); muscle_groups.append(tab[lab]['group']); muscle_labels_used.append(lab)
         mforce.append(tab[lab]['max_isometric_force']); mfibre.append(tab[lab]['optimal_fibre_length'])
         mscale.append(tab[lab]['stiffness_scale'])
         for chain in chains:
@@ -364,6 +402,10 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         hit = d <= attach_m + 1e-12
         vseg[on[hit]] = [seg_names.index(tab[int(l)]['segment']) for l in blab[j[hit]]]
 
+    # ---------------------------------------------------------------- muscle origins and insertions
+    anchors = anchor_muscle_ends(pos, vslice, slice_z, verts_k, offsets_k, ctiss, cell_muscle_all[kc], muscle_labels_used,
+                                 tab, seg_names, bonepix, vseg, warnings) if s['anchor_muscles'] else {}
+
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
     fib = np.array([p[len(p) // 2:].mean(0) - p[:len(p) // 2].mean(0) for p in P]).reshape(C, 3)
@@ -454,7 +496,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
               'joints_source': skel.get('source', ''), 'root_joint': skel.get('root_joint'),
               'settings': {k: v for k, v in s.items()}, 'units': 'SI (m, kg, s, rad), model frame REP-103',
               'slice_k': [int(k) for k in ks], 'voxel_mm': [round(x, 6) for x in vol.pixel_mm],
-              'attach_mm': attach_m * 1000.0},
+              'attach_mm': attach_m * 1000.0, 'anchors': anchors},
     ).validate()
     build_s = time.perf_counter() - t0
     from .quality import quality_report

@@ -100,6 +100,17 @@ def load_tissue_table(src) -> dict:
             out['optimal_fibre_length'] = _num(ent['optimal_fibre_length'], f'{w} optimal_fibre_length', positive=True)
         if 'stiffness_scale' in ent and ent['stiffness_scale'] is not None:
             out['stiffness_scale'] = _num(ent['stiffness_scale'], f'{w} stiffness_scale', positive=True)
+        for end in ('origin', 'insertion'):       # muscle attachments (METHOD.md section 3): segment name
+            a = ent.get(end)
+            if a is None:
+                out[end] = None
+                continue
+            if tissue != 'muscle':
+                raise UserError(f'{w} ({name}): only muscles have an {end}')
+            seg = a.get('segment') if isinstance(a, dict) else a
+            if not isinstance(seg, str) or not seg:
+                raise UserError(f'{w} ({name}): {end} must be a segment name or a mapping with "segment", got {a!r}')
+            out[end] = seg
         labels[lab] = out
     kinds = [e['tissue'] for e in labels.values()]
     if 'fat' not in kinds:
@@ -120,6 +131,10 @@ def load_tissue_table(src) -> dict:
         if e['tissue'] == 'bone' and e['segment'] not in segs:
             raise UserError(f'{where}: label {lab} ({e["name"]}): segment {e["segment"]!r} is not in the joints file '
                             f'(has {", ".join(skel["segment_names"])})')
+        for end in ('origin', 'insertion'):
+            if e.get(end) is not None and e[end] not in segs:
+                raise UserError(f'{where}: label {lab} ({e["name"]}): {end} segment {e[end]!r} is not in the joints file '
+                                f'(has {", ".join(skel["segment_names"])})')
     return {'name': str(data.get('name') or 'model'), 'base': base, 'source': where, 'labels': labels, 'skeleton': skel}
 
 

@@ -143,7 +143,7 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
 # ------------------------------------------------------------------------------------ cell forces
 @njit(cache=True, fastmath={'contract'})
 def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, kc, kact, damp_b,
-                volume_actual, iters, cell_energy, kvol, pressure, vol_gain, q_tr, q_ff):
+                volume_actual, iters, cell_energy, kvol, pressure, vol_gain, q_tr, q_ff, rest_len):
     """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
     (zeroed here). Returns the first cell whose force is non-finite or overflowing, else -1.
 
@@ -160,6 +160,14 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
     linear + angular velocity (momentum conserving, rigid motion undamped). cell_energy[c] gets
     0.5 k sum |G_i - x_i|^2 + the volume energy, the first from the cell's moments:
     tr(F^2 Q) - 2 tr(T^T A) + tr(Y) with q_tr = tr Q, q_ff = f^T Q f (Q = sum X0 X0^T), Y = sum r r^T.
+
+    Active tension (kact[c] > 0, muscle cells): a contractile force along the cell's axis only, between
+    the centroids of its bottom ring (first n/2 vertices) and top ring (last n/2): with l the current
+    centroid distance, u its direction and rest_len[c] the rest distance, T = a kact n/4 max(l - lam
+    rest_len, 0) pulls the rings together (-2T/n u on each top vertex, +2T/n u on each bottom vertex:
+    zero net force and moment). At l = rest_len, lam = lam_min that is n_ring kact (1 - lam_min) L / 2,
+    the force the calibration (model.active_stiffness) sets. Being axial, it does not stiffen the
+    cell against bending or shear (a muscle pulls, it does not hold its shape).
 
     Per cell-vertex entry the scatter applies one affine map: f_i = (k T + P) X0_i + (b [w]x - k I) r_i
     - b v_i + b vbar (elastic + volume + damping together)."""
@@ -212,7 +220,6 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
         if m >= 0:
             fx, fy, fz = fibre[c, 0], fibre[c, 1], fibre[c, 2]
             la = lam[m]
-            k += act[m] * kact[c]
             if volume_actual:          # current fibre stretch mu = |D f|
                 ux = D[0, 0] * fx + D[0, 1] * fy + D[0, 2] * fz
                 uy = D[1, 0] * fx + D[1, 1] * fy + D[1, 2] * fz
@@ -283,6 +290,26 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
         tta = (T[0, 0] * a00 + T[0, 1] * a01 + T[0, 2] * a02 + T[1, 0] * a10 + T[1, 1] * a11 + T[1, 2] * a12
                + T[2, 0] * a20 + T[2, 1] * a21 + T[2, 2] * a22)
         e = max(tf2q - 2.0 * tta + (qxx + qyy + qzz), 0.0)
+        # active axial tension between the ring centroids (muscle cells with active stiffness)
+        tax = tay = taz = 0.0
+        ea = 0.0
+        half = n // 2
+        if m >= 0 and kact[c] > 0.0 and act[m] > 0.0:
+            ux = uy = uz = 0.0
+            for p in range(a0, a1):
+                i = cv[p]
+                if p - a0 < half:
+                    ux -= x[i, 0]; uy -= x[i, 1]; uz -= x[i, 2]
+                else:
+                    ux += x[i, 0]; uy += x[i, 1]; uz += x[i, 2]
+            ux /= half; uy /= half; uz /= half
+            ln = math.sqrt(ux * ux + uy * uy + uz * uz)
+            stretch = ln - la * rest_len[c]
+            if stretch > 0.0 and ln > 0.0:
+                ka = act[m] * kact[c] * 0.25 * n
+                tt = ka * stretch * 2.0 / (n * ln)           # per-vertex force / l, along u
+                tax, tay, taz = tt * ux, tt * uy, tt * uz
+                ea = 0.5 * ka * stretch * stretch
         # force on vertex i, elastic + volume + damping in one affine map of (X0_i, r_i, v_i):
         # k (T X0 - r) + P X0 - b (v - vbar - w x r) = (k T + P) X0 + (b [w]x - k I) r - b v + b vbar
         m00 = k * T[0, 0] + P[0, 0]; m01 = k * T[0, 1] + P[0, 1]; m02 = k * T[0, 2] + P[0, 2]
@@ -304,8 +331,12 @@ def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, 
             fz_ = m20 * X + m21 * Y + m22 * Z - k * dz + (bwx * dy - bwy * dx) + cz0
             if b > 0.0:
                 fx_ -= b * v[i, 0]; fy_ -= b * v[i, 1]; fz_ -= b * v[i, 2]
+            if p - a0 < half:
+                fx_ += tax; fy_ += tay; fz_ += taz
+            else:
+                fx_ -= tax; fy_ -= tay; fz_ -= taz
             f[i, 0] += fx_; f[i, 1] += fy_; f[i, 2] += fz_
-        cell_energy[c] = 0.5 * k * e + ev
+        cell_energy[c] = 0.5 * k * e + ev + ea
         if not (e * k * k < FORCE_BOUND) or not (ev < FORCE_BOUND) or not (abs(m00) + abs(cx0) < FORCE_BOUND):
             return c                   # catches NaN and overflow
     return -1

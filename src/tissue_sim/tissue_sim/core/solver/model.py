@@ -54,6 +54,7 @@ class SimModel:
     Qinv: np.ndarray                # (C, 3, 3) inverse of sum X0 X0^T (fibre-stretch estimate)
     q_tr: np.ndarray                # (C,) [m^2] tr Q, Q = sum X0 X0^T (elastic energy from moments)
     q_ff: np.ndarray                # (C,) [m^2] f^T Q f along the cell's fibre axis f
+    rest_length: np.ndarray         # (C,) [m] rest distance between the bottom- and top-ring centroids (active tension)
     fibre: np.ndarray               # (C, 3)
     cell_muscle: np.ndarray         # (C,) int32
     k: np.ndarray                   # (C,) passive spring constant per cell-vertex [N/m]
@@ -87,7 +88,8 @@ class SimModel:
 
     def inv_denominator(self, h: float) -> np.ndarray:
         """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
-        1/max(m_i, h^2 kappa_i / stability_limit^2) (mass_scaled); 0 for bone-attached vertices. Cached per h."""
+        1/max(m_i, h^2 kappa_i / stability_limit^2, (h^2 kappa_i + 2 h b_i) / 3.8) (mass_scaled, b_i the vertex's
+        summed damping coefficient); 0 for bone-attached vertices. Cached per h."""
         a = self.cache.get(('inv_den', h))
         if a is None:
             if self.params.integrator == 'explicit':
@@ -95,7 +97,11 @@ class SimModel:
             else:
                 # selective mass scaling: a vertex whose cells' summed stiffness would exceed the explicit
                 # limit at this h gets the mass that puts it at stability_limit (Gershgorin bound on omega h)
-                den = np.maximum(self.mass, h * h * self.vertex_stiffness / self.params.stability_limit ** 2)
+                # and, with damping rate c = b/m, (omega h)^2 + 2 c h below 95 % of the exact bound 4 (strongly
+                # damped light vertices, e.g. the physical set's, need this; the paper set's barely change)
+                kh2 = h * h * self.vertex_stiffness
+                den = np.maximum(np.maximum(self.mass, kh2 / self.params.stability_limit ** 2),
+                                 (kh2 + 2.0 * h * self.vertex_damping) / 3.8)
                 a = _frozen(np.where(self.inv_mass > 0, 1.0 / den, 0.0))
             if len(self.cache) > 32:
                 self.cache.clear()
@@ -205,10 +211,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     alen = np.zeros(C)
     K.cell_axial_lengths(rest, off, cv, alen)
     if p.specific_tension > 0 and p.min_stretch < 1:
-        area = vol / np.maximum(alen, 1e-9)
-        n_ring = sizes / 2
-        # isometric cell at lam_min pulls with ~ n_ring * k * (1 - lam_min) * length = sigma * area
-        k_active = np.where(muscle, p.specific_tension * area / (n_ring * (1 - p.min_stretch) * np.maximum(alen, 1e-9)), 0.0)
+        k_active = active_stiffness(tm, p, vol, alen, sizes)
     # damping: fraction of critical for a vertex of mean mass on one cell spring
     mcell = np.zeros(C)
     np.add.at(mcell, cell_of_k, mass[cv])
@@ -288,7 +291,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     sim_kw = dict(
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
-        Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(np.einsum('ci,cij,cj->c', fib, Q, fib)), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
+        Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(np.einsum('ci,cij,cj->c', fib, Q, fib)), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
         length_weight=_frozen(lw), free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
@@ -304,6 +307,38 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     w = estimate_omega_max(sim)
     n_sub = p.substeps or substeps_for(p, w, c_max, p.dt)
     return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w), cache={})
+
+
+def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """(C,) active spring constant [N/m] per cell at full activation.
+
+    A prism cell of axial length L whose rest shape is shortened to lam L pulls on each end ring
+    with n_ring k (1 - lam) L / 2 when held at length L (each ring vertex is displaced (1 - lam) L / 2
+    from its target). The cells of a muscle form chains in series, so every slice gap of the
+    muscle must carry the same force F: each gap's cells share F in proportion to their cross
+    section A_c = V_c / L_c, i.e. k_c = 2 F (A_c / sum A) / (n_ring (1 - lam_min) L_c).
+    F = the muscle's max isometric force from the anatomy (Rajagopal's Fmax, itself 60 N/cm^2 x PCSA)
+    scaled by specific_tension / 6e5, or specific_tension x the muscle's mean cross section when
+    the model has no force. The thin tendon cells then carry the full force instead of limiting it."""
+    C = vol.shape[0]
+    k_active = np.zeros(C)
+    L = np.maximum(alen, 1e-9)
+    area = vol / L
+    n_ring = sizes / 2
+    for m in range(tm.n_muscles):
+        cells = np.flatnonzero(tm.cell_muscle == m)
+        if cells.size == 0:
+            continue
+        _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
+        fmax = float(tm.muscle_max_force[m]) if np.isfinite(tm.muscle_max_force[m]) else 0.0
+        if fmax > 0:
+            F = fmax * p.specific_tension / 6.0e5
+        else:   # no force in the model: specific tension x mean cross section (volume / length)
+            length = float(np.sum(np.bincount(gap, weights=L[cells]) / np.bincount(gap)))
+            F = p.specific_tension * float(np.sum(vol[cells])) / length
+        share = area[cells] / np.bincount(gap, weights=area[cells])[gap]
+        k_active[cells] = 2.0 * F * share / (n_ring[cells] * (1.0 - p.min_stretch) * L[cells])
+    return k_active
 
 
 def substeps_for(p: Params, omega: float, c: float, dt: float) -> int:
@@ -347,7 +382,7 @@ def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
         quat[:] = (0.0, 0.0, 0.0, 1.0)
         K.cell_forces(xp, xp, f, quat, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, lam, act,
                       sim.k, sim.k_active, zero_b, sim.params.volume_mode == 'actual', 20, e, sim.k_volume,
-                      np.zeros(sim.n_cells), 0.0, sim.q_tr, sim.q_ff)
+                      np.zeros(sim.n_cells), 0.0, sim.q_tr, sim.q_ff, sim.rest_length)
         y = -(f / scale) * sim.inv_mass[:, None]
         lam_est = float(np.sum(y * u))
         u = y

@@ -45,7 +45,9 @@ class Params:
     k_fat: float = 5e5                    # [N/m] the same for fat cells
     youngs_muscle: float = 2.0e4          # [Pa] passive muscle modulus, 'modulus' mode
     youngs_fat: float = 3.0e3             # [Pa] fat modulus, 'modulus' mode
-    specific_tension: float = 0.0         # [Pa] active stress at full activation (physical: 6e5 = 60 N/cm^2); 0 = off
+    specific_tension: float = 0.0         # [Pa] active stress at full activation (physical: 6e5 = 60 N/cm^2); 0 = off.
+                                          # > 0: an axial active tension per muscle cell, calibrated so each muscle pulls
+                                          # with its max isometric force x specific_tension / 6e5 (model.active_stiffness)
     damping: str = 'deformation'          # 'deformation' (relative to each cell's rigid motion), 'velocity', 'none'
     damping_ratio: float = 0.05           # fraction of critical damping of one cell's mode (deformation damping)
     velocity_damping: float = 0.0         # [1/s] plain velocity damping of free vertices (any mode)
@@ -79,7 +81,8 @@ class Params:
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=1.0, max_speed=50.0,
-                    integrator='explicit')   # its strong damping (zeta 0.3, gram masses) needs the sub-steps
+                    integrator='mass_scaled', substeps=4)   # gram masses, stiff active tension: h = 0.25 ms with
+        # selective mass scaling (the light tendon/edge vertices get heavier; docs/solver.md gives the added mass)
         base.update(kw)
         return cls(**base).validate()
 

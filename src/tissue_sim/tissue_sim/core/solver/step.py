@@ -36,7 +36,7 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
     velocities alternate between (x, v) and the back buffers (xb, vb); returns how many swaps
     happened. On failure info = (step, cell, cause) and the state is left at the last good sub-step."""
     x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work = st
-    off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, kvol, q_tr, q_ff = cells
+    off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, kvol, q_tr, q_ff, rest_len = cells
     rest, inv_den, mass, free_idx, att_idx, att_seg = tissue
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, \
         j_rest, j_range, anc, grav = skel
@@ -50,7 +50,7 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
             # 1. muscle tension: contraction state, then every cell's elastic + volume + damping force
             K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)
             bad = K.cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cmus, lam, act, kc, kact, damp_b,
-                                vol_actual, iters, cell_e, kvol, pres, vol_gain, q_tr, q_ff)
+                                vol_actual, iters, cell_e, kvol, pres, vol_gain, q_tr, q_ff, rest_len)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
                 lam[:] = lam0
@@ -81,7 +81,7 @@ def _arrays(sim: SimModel, h: float):
     if t is None:
         p = sim.params
         cells = (sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, sim.k, sim.k_active, sim.damp_b,
-                 sim.k_volume, sim.q_tr, sim.q_ff)
+                 sim.k_volume, sim.q_tr, sim.q_ff, sim.rest_length)
         tissue = (sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.att_idx, sim.att_seg)
         skel = (sim.seg_order, sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia,
                 sim.j_parent, sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc,
