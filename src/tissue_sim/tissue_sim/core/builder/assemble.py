@@ -144,7 +144,7 @@ def _select_slices(vol: LabelVolume, s: dict) -> np.ndarray:
     return ks
 
 
-def anchor_muscle_ends(pos, vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
+def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
                        vseg, warnings) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
@@ -403,7 +403,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         vseg[on[hit]] = [seg_names.index(tab[int(l)]['segment']) for l in blab[j[hit]]]
 
     # ---------------------------------------------------------------- muscle origins and insertions
-    anchors = anchor_muscle_ends(pos, vslice, slice_z, verts_k, offsets_k, ctiss, cell_muscle_all[kc], muscle_labels_used,
+    anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cell_muscle_all[kc], muscle_labels_used,
                                  tab, seg_names, bonepix, vseg, warnings) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- cells: fibres
