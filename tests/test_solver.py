@@ -25,11 +25,10 @@ def _forces(sim, x, v=None, lam=None, act=None, iters=30):
     quat = np.tile([0.0, 0.0, 0.0, 1.0], (sim.n_cells, 1))
     M = max(sim.n_muscles, 1)
     e = np.zeros(sim.n_cells)
-    bad = K.cell_forces(x, np.zeros_like(x) if v is None else v, f, quat, sim.off, sim.cv, sim.X0, sim.Qinv,
-                        sim.fibre, sim.cell_muscle, np.ones(M) if lam is None else lam,
-                        np.zeros(M) if act is None else act, sim.k, sim.k_active, sim.damp_b,
-                        sim.params.volume_mode == 'actual', iters, e, sim.k_volume, np.zeros(sim.n_cells), 0.0,
-                        sim.q_tr, sim.q_ff, sim.rest_length)
+    bad = K.cell_forces(x, np.zeros_like(x) if v is None else v, f, quat, sim.cell_blocks,
+                        np.ones(M) if lam is None else lam, np.zeros(M) if act is None else act,
+                        sim.params.volume_mode == 'actual', iters, e, np.zeros(sim.n_cells), 0.0,
+                        K.cell_work(sim.cell_blocks))
     assert bad == -1
     return f, e
 

@@ -1,11 +1,12 @@
 """Numba kernels of the solver: flat arrays in, flat arrays out, single thread. No fastmath except
-floating-point contraction (fused multiply-add) in the two hot kernels: deterministic (the compiled
+floating-point contraction (fused multiply-add) in the hot kernels: deterministic (the compiled
 code fixes the order), no reassociation (it made results depend on what ran before in the process),
 NaN/Inf semantics kept (divergence checks rely on them).
 
 Cells are CSR (``off``, ``cv``); ``X0`` (K, 3) holds each cell's rest vertex positions relative to
-the cell's rest centroid (unweighted mean), in the same order as ``cv``. All positions in metres,
-model frame; forces in N (paper units in the 'paper' preset).
+the cell's rest centroid (unweighted mean), in the same order as ``cv``. The cell force kernel reads
+them packed by ``pack_cells`` into blocks of cells of one size (SIMD across cells). All positions in
+metres, model frame; forces in N (paper units in the 'paper' preset).
 """
 from __future__ import annotations
 
@@ -45,84 +46,6 @@ def axis_angle_mat(ax, ang, R):
     R[2, 0] = t * x * z - s * y; R[2, 1] = t * y * z + s * x; R[2, 2] = t * z * z + c
 
 
-@njit(cache=True)
-def _quat_row_to_mat(quat, c, R):
-    x, y, z, w = quat[c, 0], quat[c, 1], quat[c, 2], quat[c, 3]
-    R[0, 0] = 1 - 2 * (y * y + z * z); R[0, 1] = 2 * (x * y - z * w); R[0, 2] = 2 * (x * z + y * w)
-    R[1, 0] = 2 * (x * y + z * w); R[1, 1] = 1 - 2 * (x * x + z * z); R[1, 2] = 2 * (y * z - x * w)
-    R[2, 0] = 2 * (x * z - y * w); R[2, 1] = 2 * (y * z + x * w); R[2, 2] = 1 - 2 * (x * x + y * y)
-
-
-@njit(cache=True)
-def extract_rotation_at(B, quat, c, iters, R):
-    """Rotational part of B (3x3), after Mueller et al. 2016 ("A Robust Method to Extract the
-    Rotational Part of Deformations"): the quaternion quat[c] (x, y, z, w) is warm-started, updated in
-    place, R gets its matrix; always a rotation, robust for flat and inverted B.
-
-    Each iteration maximises tr(R^T B) over a rotation increment omega: gradient g = sum_j r_j x b_j
-    (r_j, b_j the columns of R, B). Mueller's step is g / |tr(B R^T)|; here the Newton step
-    H^-1 g with H = tr(N) I - sym(N), N = B R^T, is used whenever H is positive definite (it is near
-    the solution unless B is degenerate), which converges quadratically also for thin, anisotropic
-    cells where Mueller's step crawls; otherwise Mueller's step. Steps are capped at 1 rad. Stops after
-    iters iterations, when the correction is below 1e-12 rad, or after a Newton correction below
-    NEWTON_DONE (its successor would be of order NEWTON_DONE^2: warm-started, one iteration per step
-    is then the usual case)."""
-    nrm = 0.0
-    for i in range(3):
-        for j in range(3):
-            nrm += B[i, j] * B[i, j]
-    nrm = math.sqrt(nrm)
-    _quat_row_to_mat(quat, c, R)
-    if not (nrm > 0.0) or not math.isfinite(nrm):
-        return
-    inv = 1.0 / nrm
-    for _ in range(iters):
-        gx = gy = gz = 0.0
-        n00 = n01 = n02 = n11 = n12 = n22 = 0.0
-        for j in range(3):          # g = sum_j R[:, j] x B[:, j];  N = B R^T = sum_j b_j r_j^T (sym part)
-            r0, r1, r2 = R[0, j], R[1, j], R[2, j]
-            b0, b1, b2 = B[0, j] * inv, B[1, j] * inv, B[2, j] * inv
-            gx += r1 * b2 - r2 * b1
-            gy += r2 * b0 - r0 * b2
-            gz += r0 * b1 - r1 * b0
-            n00 += b0 * r0; n11 += b1 * r1; n22 += b2 * r2
-            n01 += 0.5 * (b0 * r1 + b1 * r0); n02 += 0.5 * (b0 * r2 + b2 * r0); n12 += 0.5 * (b1 * r2 + b2 * r1)
-        tr = n00 + n11 + n22
-        h00, h11, h22 = tr - n00, tr - n11, tr - n22
-        h01, h02, h12 = -n01, -n02, -n12
-        c00 = h11 * h22 - h12 * h12; c01 = h02 * h12 - h01 * h22; c02 = h01 * h12 - h02 * h11
-        c11 = h00 * h22 - h02 * h02; c12 = h01 * h02 - h00 * h12; c22 = h00 * h11 - h01 * h01
-        det = h00 * c00 + h01 * c01 + h02 * c02
-        newton = h00 > 0.0 and c22 > 0.0 and det > 1e-9 * tr * tr * tr   # Sylvester: H positive definite
-        if newton:
-            idet = 1.0 / det
-            ox = (c00 * gx + c01 * gy + c02 * gz) * idet
-            oy = (c01 * gx + c11 * gy + c12 * gz) * idet
-            oz = (c02 * gx + c12 * gy + c22 * gz) * idet
-        else:
-            den = abs(tr) + 1e-9
-            ox, oy, oz = gx / den, gy / den, gz / den
-        w = math.sqrt(ox * ox + oy * oy + oz * oz)
-        if w < 1e-12:
-            break
-        if w > 1.0:
-            ox /= w; oy /= w; oz /= w
-            w = 1.0
-        # dq = (omega/2, 1) normalised with q below: a rotation by 2 atan(w/2) = w - w^3/12 + ... about
-        # omega (no sin/cos; the cubic error is removed by the next iteration)
-        dx, dy, dz, dw = 0.5 * ox, 0.5 * oy, 0.5 * oz, 1.0
-        x, y, z, qw = quat[c, 0], quat[c, 1], quat[c, 2], quat[c, 3]       # q = dq * q
-        nx = dw * x + dx * qw + dy * z - dz * y
-        ny = dw * y - dx * z + dy * qw + dz * x
-        nz = dw * z + dx * y - dy * x + dz * qw
-        nw = dw * qw - dx * x - dy * y - dz * z
-        n = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
-        quat[c, 0], quat[c, 1], quat[c, 2], quat[c, 3] = nx * n, ny * n, nz * n, nw * n
-        _quat_row_to_mat(quat, c, R)
-        if newton and w < NEWTON_DONE:      # quadratic convergence: the next correction would be ~w^2
-            break
-
-
 # ------------------------------------------------------------------------------------ contraction
 @njit(cache=True)
 def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
@@ -141,205 +64,579 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
 
 
 # ------------------------------------------------------------------------------------ cell forces
-@njit(cache=True, fastmath={'contract'})
-def cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, kc, kact, damp_b,
-                volume_actual, iters, cell_energy, kvol, pressure, vol_gain, q_tr, q_ff, rest_len):
-    """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
-    (zeroed here). Returns the first cell whose force is non-finite or overflowing, else -1.
+# The cell kernel runs SIMD across cells. Cells of the same size n are packed into blocks of BLK lanes
+# (one cell per lane, pack_cells); every per-cell quantity is a row of BLK doubles (structure of
+# arrays), so each loop over a block's lanes is contiguous and branch-free (the branches of the
+# per-cell algebra are selects) and LLVM vectorises it: AVX2 takes 4 cells per instruction. Every row
+# a loop writes lies in one buffer at a compile-time offset (a multiple of BLK), so LLVM knows that
+# the rows do not overlap. Loops over lanes run over the whole block (a constant trip count: no
+# remainder loop); a padding lane holds a dummy cell (no stiffness, X0 = 0) whose results are
+# dropped. Only gathering the positions and velocities into the block and the scatter-add of the
+# forces are scalar (indirect addressing; AVX2 has no scatter), in a fixed order: deterministic.
+BLK = 16                    # lanes (cells) per block: a multiple of 4 (doubles per AVX2 register); 8 lanes
+                            # vectorise poorly, 32 and 64 measured 2-10 % slower (the rows outgrow L1)
 
-    Per cell (one gather pass, one scatter pass): centroid c = mean x_i; A = sum (x_i - c) X0_i^T;
-    rest shape X'_i = F X0_i with F = lam f f^T + s (I - f f^T) for muscle cells (fibre f, s the
-    cross-section factor), F = I for fat; R = rotation of A F (warm-started from quat); goal
-    G_i = c + R F X0_i; force k (G_i - x_i). R being the polar factor, this satisfies eq. (1):
-    zero net force and moment. Volume (kvol[c] > 0): with D = A Qinv the cell's best-fit affine
+# rows of the per-lane constants (pack_cells: par[block, row * BLK + lane])
+P_K = 0                     # spring constant per cell-vertex [N/m]
+P_KACT = 1                  # active stiffness [N/m] (axial tension)
+P_B = 2                     # deformation damping [N s/m]
+P_KVOL = 3                  # volume stiffness [J]
+P_QTR = 4                   # tr Q [m^2], Q = sum X0 X0^T
+P_QFF = 5                   # f^T Q f [m^2]
+P_LEN = 6                   # rest distance of the ring centroids [m]
+P_F = 7                     # fibre direction (3)
+P_QI = 10                   # Qinv (9, row-major) [1/m^2]
+N_PAR = 19
+
+# rows of the per-lane work buffer (work[0][row * BLK + lane])
+W_S = 0                     # sum d_i, d_i = x_i - x_first (a local origin, for precision) (3)
+W_A = 3                     # A = sum d_i X0_i^T (9, row-major)
+W_Y = 12                    # sum d_i d_i^T: xx, yy, zz, xy, xz, yz (6)
+W_V = 18                    # sum v_i (3); then the cell's mean velocity vbar
+W_L = 21                    # sum d_i x v_i (3)
+W_U = 24                    # sum d_i over the bottom ring (3)
+W_O = 27                    # local origin x_first [m] (3)
+W_Q = 30                    # rotation quaternion x, y, z, w (4): warm start in, result out
+W_LAM = 34                  # fibre stretch of the rest shape (1 for fat)
+W_ACT = 35                  # activation (0 for fat)
+W_MUS = 36                  # 1.0 for a muscle cell, 0.0 for fat
+W_PRES = 37                 # integral volume pressure (updated)
+W_SL = 38                   # cross-section factor s of F
+W_B = 39                    # B / |B|, B = A F (9)
+W_ON = 48                   # 1.0 while the rotation iteration of the lane runs
+W_P = 49                    # volume force map P = g cof(D) Qinv (9)
+W_EV = 58                   # volume energy [J]
+W_TRY = 59                  # tr Y, Y = sum r_i r_i^T about the centroid [m^2]
+W_W = 60                    # rigid angular velocity w [rad/s] (3)
+W_M = 63                    # force map k T + P (9)
+W_C = 72                    # constant force part (3)
+W_BW = 75                   # b w (3)
+W_TA = 78                   # active tension force on a bottom-ring vertex [N] (3)
+W_E = 81                    # cell energy [J]
+W_BAD = 82                  # 1.0 where the force is non-finite or absurd
+N_W = 83
+# The block's vertices (work[1]): slot s of every lane at rows 6 s .. 6 s + 5: x (3 rows, replaced by
+# the force), v (3 rows, damped blocks only). A separate buffer: LLVM then checks once at run time that
+# it does not overlap the per-lane rows (two offsets it cannot see apart in one buffer stop the
+# vectoriser). The moment loops take two slots per pass (half the loads and stores of the sums), so a
+# cell of odd size gets a padding slot: its own first vertex with X0 = 0, adding exact zeros.
+
+
+def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv):
+    """The block layout cell_forces reads (numpy, at compile time): cells grouped by size n (ascending),
+    each group in cell order, in blocks of BLK lanes. Returns (blocks, ids, slot_idx, slot_X0, par,
+    lane_muscle): blocks (B, 3) int64 = n, cells in the block, first slot row r0; ids (B, BLK) int32
+    cell of each lane (-1: padding); slot_idx (R, BLK) int32 vertex of slot s of each lane at row
+    r0 + s, n + n % 2 slots per block (padding lanes repeat lane 0); slot_X0 (R * 3 * BLK,) X0 of
+    slot s, axis d at ((r0 + s) * 3 + d) * BLK (0 for padding); par (B, N_PAR * BLK) per-lane
+    constants (P_* rows, 0 for padding); lane_muscle (B, BLK) int32 muscle of each lane (-1: fat or
+    padding). Read-only; the float arrays 64-byte aligned (vector loads)."""
+    sizes = np.diff(off)
+    rows = np.concatenate([np.asarray(k, float)[None], np.asarray(k_active, float)[None],
+                           np.asarray(damp_b, float)[None], np.asarray(k_volume, float)[None],
+                           np.asarray(q_tr, float)[None], np.asarray(q_ff, float)[None],
+                           np.asarray(rest_length, float)[None], np.asarray(fibre, float).T,
+                           np.asarray(Qinv, float).reshape(-1, 9).T])
+    chunks = []
+    for n in np.unique(sizes):
+        cells = np.flatnonzero(sizes == n)
+        chunks += [(int(n), cells[a:a + BLK]) for a in range(0, cells.size, BLK)]
+    B, R = len(chunks), sum(n + n % 2 for n, _ in chunks)
+    blocks = np.zeros((B, 3), np.int64)
+    ids = np.full((B, BLK), -1, np.int32)
+    lane_muscle = np.full((B, BLK), -1, np.int32)
+    slot_idx = np.zeros((R, BLK), np.int32)
+    slot_X0 = _aligned_zeros(R * 3 * BLK).reshape(R, 3, BLK)
+    par = _aligned_zeros(B * N_PAR * BLK).reshape(B, N_PAR, BLK)
+    r0 = 0
+    for b, (n, cells) in enumerate(chunks):
+        m = cells.size
+        blocks[b] = n, m, r0
+        ids[b, :m] = cells
+        lane_muscle[b, :m] = np.asarray(cell_muscle)[cells]
+        first = off[np.concatenate([cells, np.full(BLK - m, cells[0])])]
+        for s in range(n + n % 2):
+            slot_idx[r0 + s] = cv[first + s % n]
+            if s < n:
+                slot_X0[r0 + s, :, :m] = X0[off[cells] + s].T
+        par[b, :, :m] = rows[:, cells]
+        r0 += n + n % 2
+    out = blocks, ids, slot_idx, slot_X0.reshape(-1), par.reshape(B, N_PAR * BLK), lane_muscle
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
+def _aligned_zeros(size):
+    buf = np.zeros(size + 8)
+    a = (-buf.ctypes.data % 64) // 8
+    return buf[a:a + size]
+
+
+@njit(cache=True)
+def cell_work(cells):
+    """The scratch buffers of cell_forces for the layout cells (allocate once, reuse every call)."""
+    blocks = cells[0]
+    n_max = 0
+    for b in range(blocks.shape[0]):
+        n_max = max(n_max, blocks[b, 0] + blocks[b, 0] % 2)
+    return np.empty(N_W * BLK), np.empty(6 * n_max * BLK)
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy')
+def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energy, pressure, vol_gain, work):
+    """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
+    (zeroed here). Returns the lowest cell whose force is non-finite or overflowing, else -1.
+    cells: the layout of pack_cells; work: cell_work(cells). quat, cell_energy, pressure (per cell)
+    and lam, act (per muscle) as in State.
+
+    Per cell (moments of its vertices, then its 3x3 algebra, then one affine map per vertex):
+    centroid c = mean x_i; A = sum (x_i - c) X0_i^T; rest shape X'_i = F X0_i with
+    F = lam f f^T + s (I - f f^T) for muscle cells (fibre f, s the cross-section factor: 1/sqrt(lam),
+    or 1/sqrt(mu) with mu = |D f| the current fibre stretch when volume_actual), F = I for fat;
+    R = rotation of A F (Newton-Mueller iteration warm-started from quat, at most iters iterations);
+    goal G_i = c + R F X0_i; force k (G_i - x_i). R being the polar factor, this satisfies eq. (1):
+    zero net force and moment. Volume (kvol > 0): with D = A Qinv the cell's best-fit affine
     deformation, energy 0.5 kvol (det D - 1)^2 adds -kvol (det D - 1) cof(D) Qinv X0_i (internal:
-    rotation and translation invariant), plus an integral term: pressure[c] += vol_gain * (-kvol
+    rotation and translation invariant), plus an integral term: pressure += vol_gain * (-kvol
     (det D - 1)) each call acts the same way, so a cell held from reaching its volume (e.g. by
     bone-attached vertices) builds up pressure until det D = 1 (vol_gain = h / volume_relax_time;
-    0 = off). Damping: -b (v_i - v_rigid_i) with v_rigid the cell's mean
-    linear + angular velocity (momentum conserving, rigid motion undamped). cell_energy[c] gets
-    0.5 k sum |G_i - x_i|^2 + the volume energy, the first from the cell's moments:
+    0 = off). Damping (b > 0): -b (v_i - v_rigid_i) with v_rigid the cell's mean linear + angular
+    velocity (momentum conserving, rigid motion undamped). cell_energy gets 0.5 k sum |G_i - x_i|^2
+    + the volume energy + the tension energy, the first from the cell's moments:
     tr(F^2 Q) - 2 tr(T^T A) + tr(Y) with q_tr = tr Q, q_ff = f^T Q f (Q = sum X0 X0^T), Y = sum r r^T.
 
-    Active tension (kact[c] > 0, muscle cells): a contractile force along the cell's axis only, between
+    Active tension (kact > 0, muscle cells): a contractile force along the cell's axis only, between
     the centroids of its bottom ring (first n/2 vertices) and top ring (last n/2): with l the current
-    centroid distance, u its direction and rest_len[c] the rest distance, T = a kact n/4 max(l - lam
+    centroid distance, u its direction and rest_len the rest distance, T = a kact n/4 max(l - lam
     rest_len, 0) pulls the rings together (-2T/n u on each top vertex, +2T/n u on each bottom vertex:
     zero net force and moment). At l = rest_len, lam = lam_min that is n_ring kact (1 - lam_min) L / 2,
     the force the calibration (model.active_stiffness) sets. Being axial, it does not stiffen the
     cell against bending or shear (a muscle pulls, it does not hold its shape).
 
-    Per cell-vertex entry the scatter applies one affine map: f_i = (k T + P) X0_i + (b [w]x - k I) r_i
-    - b v_i + b vbar (elastic + volume + damping together)."""
+    Per cell-vertex entry one affine map gives the force: f_i = (k T + P) X0_i + (b [w]x - k I) r_i
+    - b v_i + b vbar (elastic + volume + damping together), plus the tension."""
+    blocks, ids, slot_idx, slot_X0, par, lane_muscle = cells
+    w, gv = work
     f[:] = 0.0
-    A = np.empty((3, 3))
-    B = np.empty((3, 3))
-    F = np.empty((3, 3))
-    R = np.empty((3, 3))
-    T = np.empty((3, 3))
-    D = np.empty((3, 3))
-    P = np.zeros((3, 3))
-    for c in range(off.shape[0] - 1):
-        a0, a1 = off[c], off[c + 1]
-        n = a1 - a0
-        i0 = cv[a0]
-        ox, oy, oz = x[i0, 0], x[i0, 1], x[i0, 2]          # local origin (precision)
-        b = damp_b[c]
-        sx = sy = sz = 0.0
-        svx = svy = svz = 0.0
-        lx = ly = lz = 0.0
-        yxx = yyy = yzz = yxy = yxz = yyz = 0.0
-        a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0   # scalars: no aliasing with x, f
-        for p in range(a0, a1):                             # gather
-            i = cv[p]
-            dx, dy, dz = x[i, 0] - ox, x[i, 1] - oy, x[i, 2] - oz
-            sx += dx; sy += dy; sz += dz
-            X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
-            a00 += dx * X; a01 += dx * Y; a02 += dx * Z
-            a10 += dy * X; a11 += dy * Y; a12 += dy * Z
-            a20 += dz * X; a21 += dz * Y; a22 += dz * Z
-            yxx += dx * dx; yyy += dy * dy; yzz += dz * dz
-            yxy += dx * dy; yxz += dx * dz; yyz += dy * dz
-            if b > 0.0:
-                ux, uy, uz = v[i, 0], v[i, 1], v[i, 2]
-                svx += ux; svy += uy; svz += uz
-                lx += dy * uz - dz * uy; ly += dz * ux - dx * uz; lz += dx * uy - dy * ux
-        A[0, 0] = a00; A[0, 1] = a01; A[0, 2] = a02
-        A[1, 0] = a10; A[1, 1] = a11; A[1, 2] = a12
-        A[2, 0] = a20; A[2, 1] = a21; A[2, 2] = a22
-        inv_n = 1.0 / n
-        mx, my, mz = sx * inv_n, sy * inv_n, sz * inv_n
-        cx, cy, cz = ox + mx, oy + my, oz + mz
-        m = cell_muscle[c]
-        k = kc[c]
-        kv = kvol[c]
-        if m >= 0 or kv > 0.0:
-            for r in range(3):
-                for s in range(3):
-                    D[r, s] = A[r, 0] * Qinv[c, 0, s] + A[r, 1] * Qinv[c, 1, s] + A[r, 2] * Qinv[c, 2, s]
-        if m >= 0:
-            fx, fy, fz = fibre[c, 0], fibre[c, 1], fibre[c, 2]
-            la = lam[m]
-            if volume_actual:          # current fibre stretch mu = |D f|
-                ux = D[0, 0] * fx + D[0, 1] * fy + D[0, 2] * fz
-                uy = D[1, 0] * fx + D[1, 1] * fy + D[1, 2] * fz
-                uz = D[2, 0] * fx + D[2, 1] * fy + D[2, 2] * fz
-                mu = min(max(math.sqrt(ux * ux + uy * uy + uz * uz), 0.25), 4.0)
-                sl = 1.0 / math.sqrt(mu)
-            else:
-                sl = 1.0 / math.sqrt(la)
-            F[0, 0] = (la - sl) * fx * fx + sl; F[0, 1] = (la - sl) * fx * fy; F[0, 2] = (la - sl) * fx * fz
-            F[1, 0] = F[0, 1]; F[1, 1] = (la - sl) * fy * fy + sl; F[1, 2] = (la - sl) * fy * fz
-            F[2, 0] = F[0, 2]; F[2, 1] = F[1, 2]; F[2, 2] = (la - sl) * fz * fz + sl
-            for r in range(3):
-                for s in range(3):
-                    B[r, s] = A[r, 0] * F[0, s] + A[r, 1] * F[1, s] + A[r, 2] * F[2, s]
-            extract_rotation_at(B, quat, c, iters, R)
-            for r in range(3):
-                for s in range(3):
-                    T[r, s] = R[r, 0] * F[0, s] + R[r, 1] * F[1, s] + R[r, 2] * F[2, s]
+    bad = -1
+    for b in range(blocks.shape[0]):
+        n, cnt, r0 = blocks[b, 0], blocks[b, 1], blocks[b, 2]
+        ns = n + n % 2
+        idx = slot_idx[r0:r0 + ns]
+        X0 = slot_X0[r0 * 3 * BLK:(r0 + ns) * 3 * BLK]
+        pb = par[b]
+        damped, tension = _load_block(x, v, quat, lam, act, pressure, ids[b], lane_muscle[b], pb, idx, cnt, n, w, gv)
+        _moments(w, gv, X0, n, damped, tension)
+        _cell_algebra(w, pb, n, volume_actual, vol_gain)
+        _rotations(w, iters)
+        _force_maps(w, pb, n)
+        _vertex_forces(w, gv, X0, pb, n)
+        for s in range(n):                  # scatter-add, slot by slot, lane by lane
+            g = 6 * s * BLK
+            for c in range(cnt):
+                i = idx[s, c]
+                f[i, 0] += gv[g + c]; f[i, 1] += gv[g + BLK + c]; f[i, 2] += gv[g + 2 * BLK + c]
+        for c in range(cnt):
+            j = ids[b, c]
+            for r in range(4):
+                quat[j, r] = w[(W_Q + r) * BLK + c]
+            pressure[j] = w[W_PRES * BLK + c]
+            cell_energy[j] = w[W_E * BLK + c]
+            if w[W_BAD * BLK + c] != 0.0 and (bad < 0 or j < bad):
+                bad = j
+    return bad
+
+
+@njit(cache=True)
+def _load_block(x, v, quat, lam, act, pressure, ids, mus, pb, idx, cnt, n, w, gv):
+    """Per-lane state (quaternion, pressure, the muscle's lam and activation) into the work rows, the
+    block's vertex positions (and velocities if a lane is damped) into gv. Returns (damped, tension):
+    whether any lane has damping, any lane active tension."""
+    damped = tension = False
+    for c in range(BLK):
+        qx, qy, qz, qw, pr, la, a, mu = 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
+        if c < cnt:
+            j = ids[c]
+            m = mus[c]
+            qx, qy, qz, qw = quat[j, 0], quat[j, 1], quat[j, 2], quat[j, 3]
+            pr = pressure[j]
+            if m >= 0:
+                la, a, mu = lam[m], act[m], 1.0
+                tension = tension or (pb[P_KACT * BLK + c] > 0.0 and a > 0.0)
+            damped = damped or pb[P_B * BLK + c] > 0.0
+        w[W_Q * BLK + c] = qx; w[(W_Q + 1) * BLK + c] = qy; w[(W_Q + 2) * BLK + c] = qz; w[(W_Q + 3) * BLK + c] = qw
+        w[W_PRES * BLK + c] = pr; w[W_LAM * BLK + c] = la; w[W_ACT * BLK + c] = a; w[W_MUS * BLK + c] = mu
+    for s in range(idx.shape[0]):
+        g = 6 * s * BLK
+        if damped:                  # (the padding slot of an odd-sized cell gets zero velocity: adds nothing)
+            real = s < n
+            for c in range(BLK):
+                i = idx[s, c]
+                gv[g + c] = x[i, 0]; gv[g + BLK + c] = x[i, 1]; gv[g + 2 * BLK + c] = x[i, 2]
+                gv[g + 3 * BLK + c] = v[i, 0] if real else 0.0
+                gv[g + 4 * BLK + c] = v[i, 1] if real else 0.0
+                gv[g + 5 * BLK + c] = v[i, 2] if real else 0.0
         else:
-            extract_rotation_at(A, quat, c, iters, T)
-        ev = 0.0
-        P[:, :] = 0.0
-        if kv > 0.0:                   # P = -kvol (det D - 1) cof(D) Qinv
-            c00 = D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1]; c01 = D[1, 2] * D[2, 0] - D[1, 0] * D[2, 2]
-            c02 = D[1, 0] * D[2, 1] - D[1, 1] * D[2, 0]
-            c10 = D[0, 2] * D[2, 1] - D[0, 1] * D[2, 2]; c11 = D[0, 0] * D[2, 2] - D[0, 2] * D[2, 0]
-            c12 = D[0, 1] * D[2, 0] - D[0, 0] * D[2, 1]
-            c20 = D[0, 1] * D[1, 2] - D[0, 2] * D[1, 1]; c21 = D[0, 2] * D[1, 0] - D[0, 0] * D[1, 2]
-            c22 = D[0, 0] * D[1, 1] - D[0, 1] * D[1, 0]
-            det = D[0, 0] * c00 + D[0, 1] * c01 + D[0, 2] * c02
-            g = -kv * (det - 1.0)
-            pressure[c] += vol_gain * g
-            g += pressure[c]
-            ev = 0.5 * kv * (det - 1.0) ** 2
-            for s in range(3):
-                P[0, s] = g * (c00 * Qinv[c, 0, s] + c01 * Qinv[c, 1, s] + c02 * Qinv[c, 2, s])
-                P[1, s] = g * (c10 * Qinv[c, 0, s] + c11 * Qinv[c, 1, s] + c12 * Qinv[c, 2, s])
-                P[2, s] = g * (c20 * Qinv[c, 0, s] + c21 * Qinv[c, 1, s] + c22 * Qinv[c, 2, s])
+            for c in range(BLK):
+                i = idx[s, c]
+                gv[g + c] = x[i, 0]; gv[g + BLK + c] = x[i, 1]; gv[g + 2 * BLK + c] = x[i, 2]
+    return damped, tension
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy')
+def _moments(w, gv, X0, n, damped, tension):
+    """Sums over each lane's vertices (vectorised over lanes, two slots per pass): sum d, A, sum d d^T;
+    sum v and sum d x v if damped; the bottom ring's sum d if tension."""
+    for c in range(BLK):
+        w[W_O * BLK + c] = gv[c]
+        w[(W_O + 1) * BLK + c] = gv[BLK + c]
+        w[(W_O + 2) * BLK + c] = gv[2 * BLK + c]
+        for r in range(W_S, W_L + 3):
+            w[r * BLK + c] = 0.0
+    for s2 in range((n + 1) // 2):
+        g = 12 * s2 * BLK           # slots s = 2 s2 (d, X0) and s + 1 (e, E)
+        h = 6 * s2 * BLK
+        for c in range(BLK):
+            ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
+            dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
+            ex, ey, ez = gv[g + 6 * BLK + c] - ox, gv[g + 7 * BLK + c] - oy, gv[g + 8 * BLK + c] - oz
+            X, Y, Z = X0[h + c], X0[h + BLK + c], X0[h + 2 * BLK + c]
+            EX, EY, EZ = X0[h + 3 * BLK + c], X0[h + 4 * BLK + c], X0[h + 5 * BLK + c]
+            w[W_S * BLK + c] += dx + ex; w[(W_S + 1) * BLK + c] += dy + ey; w[(W_S + 2) * BLK + c] += dz + ez
+            w[W_A * BLK + c] += dx * X + ex * EX
+            w[(W_A + 1) * BLK + c] += dx * Y + ex * EY
+            w[(W_A + 2) * BLK + c] += dx * Z + ex * EZ
+            w[(W_A + 3) * BLK + c] += dy * X + ey * EX
+            w[(W_A + 4) * BLK + c] += dy * Y + ey * EY
+            w[(W_A + 5) * BLK + c] += dy * Z + ey * EZ
+            w[(W_A + 6) * BLK + c] += dz * X + ez * EX
+            w[(W_A + 7) * BLK + c] += dz * Y + ez * EY
+            w[(W_A + 8) * BLK + c] += dz * Z + ez * EZ
+            w[W_Y * BLK + c] += dx * dx + ex * ex
+            w[(W_Y + 1) * BLK + c] += dy * dy + ey * ey
+            w[(W_Y + 2) * BLK + c] += dz * dz + ez * ez
+            w[(W_Y + 3) * BLK + c] += dx * dy + ex * ey
+            w[(W_Y + 4) * BLK + c] += dx * dz + ex * ez
+            w[(W_Y + 5) * BLK + c] += dy * dz + ey * ez
+    if damped:
+        for s2 in range((n + 1) // 2):
+            g = 12 * s2 * BLK
+            for c in range(BLK):
+                ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
+                dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
+                ex, ey, ez = gv[g + 6 * BLK + c] - ox, gv[g + 7 * BLK + c] - oy, gv[g + 8 * BLK + c] - oz
+                ux, uy, uz = gv[g + 3 * BLK + c], gv[g + 4 * BLK + c], gv[g + 5 * BLK + c]
+                tx, ty, tz = gv[g + 9 * BLK + c], gv[g + 10 * BLK + c], gv[g + 11 * BLK + c]
+                w[W_V * BLK + c] += ux + tx; w[(W_V + 1) * BLK + c] += uy + ty; w[(W_V + 2) * BLK + c] += uz + tz
+                w[W_L * BLK + c] += (dy * uz - dz * uy) + (ey * tz - ez * ty)
+                w[(W_L + 1) * BLK + c] += (dz * ux - dx * uz) + (ez * tx - ex * tz)
+                w[(W_L + 2) * BLK + c] += (dx * uy - dy * ux) + (ex * ty - ey * tx)
+    if tension:
+        for c in range(BLK):
+            for r in range(W_U, W_U + 3):
+                w[r * BLK + c] = 0.0
+        for s in range(n // 2):
+            g = 6 * s * BLK
+            for c in range(BLK):
+                w[W_U * BLK + c] += gv[g + c] - w[W_O * BLK + c]
+                w[(W_U + 1) * BLK + c] += gv[g + BLK + c] - w[(W_O + 1) * BLK + c]
+                w[(W_U + 2) * BLK + c] += gv[g + 2 * BLK + c] - w[(W_O + 2) * BLK + c]
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy')
+def _cell_algebra(w, pb, n, volume_actual, vol_gain):
+    """Per lane (vectorised): the rest shape F, B = A F normalised for the rotation, the volume term
+    (force map P, energy, pressure), tr Y and the rigid velocity (vbar, w) of the damping."""
+    inv_n = 1.0 / n
+    for c in range(BLK):
+        a00, a01, a02 = w[W_A * BLK + c], w[(W_A + 1) * BLK + c], w[(W_A + 2) * BLK + c]
+        a10, a11, a12 = w[(W_A + 3) * BLK + c], w[(W_A + 4) * BLK + c], w[(W_A + 5) * BLK + c]
+        a20, a21, a22 = w[(W_A + 6) * BLK + c], w[(W_A + 7) * BLK + c], w[(W_A + 8) * BLK + c]
+        i00, i01, i02 = pb[P_QI * BLK + c], pb[(P_QI + 1) * BLK + c], pb[(P_QI + 2) * BLK + c]
+        i10, i11, i12 = pb[(P_QI + 3) * BLK + c], pb[(P_QI + 4) * BLK + c], pb[(P_QI + 5) * BLK + c]
+        i20, i21, i22 = pb[(P_QI + 6) * BLK + c], pb[(P_QI + 7) * BLK + c], pb[(P_QI + 8) * BLK + c]
+        # D = A Qinv, the best-fit affine deformation
+        d00 = a00 * i00 + a01 * i10 + a02 * i20; d01 = a00 * i01 + a01 * i11 + a02 * i21
+        d02 = a00 * i02 + a01 * i12 + a02 * i22
+        d10 = a10 * i00 + a11 * i10 + a12 * i20; d11 = a10 * i01 + a11 * i11 + a12 * i21
+        d12 = a10 * i02 + a11 * i12 + a12 * i22
+        d20 = a20 * i00 + a21 * i10 + a22 * i20; d21 = a20 * i01 + a21 * i11 + a22 * i21
+        d22 = a20 * i02 + a21 * i12 + a22 * i22
+        # rest shape F = lam f f^T + s (I - f f^T) (muscle), B = A F (fat: B = A)
+        mus = w[W_MUS * BLK + c] != 0.0
+        la = w[W_LAM * BLK + c]
+        fx, fy, fz = pb[P_F * BLK + c], pb[(P_F + 1) * BLK + c], pb[(P_F + 2) * BLK + c]
+        if volume_actual:          # current fibre stretch mu = |D f|
+            ux = d00 * fx + d01 * fy + d02 * fz
+            uy = d10 * fx + d11 * fy + d12 * fz
+            uz = d20 * fx + d21 * fy + d22 * fz
+            sl = 1.0 / math.sqrt(min(max(math.sqrt(ux * ux + uy * uy + uz * uz), 0.25), 4.0))
+        else:
+            sl = 1.0 / math.sqrt(la)
+        w[W_SL * BLK + c] = sl
+        f00 = (la - sl) * fx * fx + sl; f01 = (la - sl) * fx * fy; f02 = (la - sl) * fx * fz
+        f11 = (la - sl) * fy * fy + sl; f12 = (la - sl) * fy * fz; f22 = (la - sl) * fz * fz + sl
+        b00 = a00 * f00 + a01 * f01 + a02 * f02 if mus else a00
+        b01 = a00 * f01 + a01 * f11 + a02 * f12 if mus else a01
+        b02 = a00 * f02 + a01 * f12 + a02 * f22 if mus else a02
+        b10 = a10 * f00 + a11 * f01 + a12 * f02 if mus else a10
+        b11 = a10 * f01 + a11 * f11 + a12 * f12 if mus else a11
+        b12 = a10 * f02 + a11 * f12 + a12 * f22 if mus else a12
+        b20 = a20 * f00 + a21 * f01 + a22 * f02 if mus else a20
+        b21 = a20 * f01 + a21 * f11 + a22 * f12 if mus else a21
+        b22 = a20 * f02 + a21 * f12 + a22 * f22 if mus else a22
+        nrm = math.sqrt(b00 * b00 + b01 * b01 + b02 * b02 + b10 * b10 + b11 * b11 + b12 * b12
+                        + b20 * b20 + b21 * b21 + b22 * b22)
+        inv = 1.0 / nrm            # scale-free iteration; a zero or non-finite B keeps the warm start
+        w[W_ON * BLK + c] = 1.0 if nrm > 0.0 and math.isfinite(nrm) else 0.0
+        w[W_B * BLK + c] = b00 * inv; w[(W_B + 1) * BLK + c] = b01 * inv; w[(W_B + 2) * BLK + c] = b02 * inv
+        w[(W_B + 3) * BLK + c] = b10 * inv; w[(W_B + 4) * BLK + c] = b11 * inv; w[(W_B + 5) * BLK + c] = b12 * inv
+        w[(W_B + 6) * BLK + c] = b20 * inv; w[(W_B + 7) * BLK + c] = b21 * inv; w[(W_B + 8) * BLK + c] = b22 * inv
+        # volume (kvol > 0): P = g cof(D) Qinv with g = -kvol (det D - 1) + the integral pressure
+        kv = pb[P_KVOL * BLK + c]
+        vol = kv > 0.0
+        c00 = d11 * d22 - d12 * d21; c01 = d12 * d20 - d10 * d22; c02 = d10 * d21 - d11 * d20
+        c10 = d02 * d21 - d01 * d22; c11 = d00 * d22 - d02 * d20; c12 = d01 * d20 - d00 * d21
+        c20 = d01 * d12 - d02 * d11; c21 = d02 * d10 - d00 * d12; c22 = d00 * d11 - d01 * d10
+        det = d00 * c00 + d01 * c01 + d02 * c02
+        g = -kv * (det - 1.0)
+        pres = w[W_PRES * BLK + c] + vol_gain * g if vol else w[W_PRES * BLK + c]
+        w[W_PRES * BLK + c] = pres
+        g += pres
+        w[W_EV * BLK + c] = 0.5 * kv * ((det - 1.0) * (det - 1.0)) if vol else 0.0
+        w[W_P * BLK + c] = g * (c00 * i00 + c01 * i10 + c02 * i20) if vol else 0.0
+        w[(W_P + 1) * BLK + c] = g * (c00 * i01 + c01 * i11 + c02 * i21) if vol else 0.0
+        w[(W_P + 2) * BLK + c] = g * (c00 * i02 + c01 * i12 + c02 * i22) if vol else 0.0
+        w[(W_P + 3) * BLK + c] = g * (c10 * i00 + c11 * i10 + c12 * i20) if vol else 0.0
+        w[(W_P + 4) * BLK + c] = g * (c10 * i01 + c11 * i11 + c12 * i21) if vol else 0.0
+        w[(W_P + 5) * BLK + c] = g * (c10 * i02 + c11 * i12 + c12 * i22) if vol else 0.0
+        w[(W_P + 6) * BLK + c] = g * (c20 * i00 + c21 * i10 + c22 * i20) if vol else 0.0
+        w[(W_P + 7) * BLK + c] = g * (c20 * i01 + c21 * i11 + c22 * i21) if vol else 0.0
+        w[(W_P + 8) * BLK + c] = g * (c20 * i02 + c21 * i12 + c22 * i22) if vol else 0.0
         # second moments of the current vertices about the centroid: Y = sum r r^T
-        qxx = yxx - n * mx * mx; qyy = yyy - n * my * my; qzz = yzz - n * mz * mz
-        qxy = yxy - n * mx * my; qxz = yxz - n * mx * mz; qyz = yyz - n * my * mz
-        wx = wy = wz = 0.0
-        vx = vy = vz = 0.0
-        if b > 0.0:                    # rigid velocity of the cell: mean + angular (I^-1 L) about c
-            vx, vy, vz = svx * inv_n, svy * inv_n, svz * inv_n
-            Lx = lx - n * (my * vz - mz * vy)
-            Ly = ly - n * (mz * vx - mx * vz)
-            Lz = lz - n * (mx * vy - my * vx)
-            tr = qxx + qyy + qzz
-            eps = 1e-9 * tr + 1e-300
-            I00 = tr - qxx + eps; I11 = tr - qyy + eps; I22 = tr - qzz + eps
-            I01 = -qxy; I02 = -qxz; I12 = -qyz
-            c00 = I11 * I22 - I12 * I12; c01 = I02 * I12 - I01 * I22; c02 = I01 * I12 - I02 * I11
-            c11 = I00 * I22 - I02 * I02; c12 = I01 * I02 - I00 * I12; c22 = I00 * I11 - I01 * I01
-            det = I00 * c00 + I01 * c01 + I02 * c02
-            if det > 0.0 and math.isfinite(det):
-                idet = 1.0 / det
-                wx = (c00 * Lx + c01 * Ly + c02 * Lz) * idet
-                wy = (c01 * Lx + c11 * Ly + c12 * Lz) * idet
-                wz = (c02 * Lx + c12 * Ly + c22 * Lz) * idet
+        mx, my, mz = w[W_S * BLK + c] * inv_n, w[(W_S + 1) * BLK + c] * inv_n, w[(W_S + 2) * BLK + c] * inv_n
+        qxx = w[W_Y * BLK + c] - n * mx * mx; qyy = w[(W_Y + 1) * BLK + c] - n * my * my
+        qzz = w[(W_Y + 2) * BLK + c] - n * mz * mz; qxy = w[(W_Y + 3) * BLK + c] - n * mx * my
+        qxz = w[(W_Y + 4) * BLK + c] - n * mx * mz; qyz = w[(W_Y + 5) * BLK + c] - n * my * mz
+        tr = qxx + qyy + qzz
+        w[W_TRY * BLK + c] = tr
+        # damping (b > 0): rigid velocity of the cell, mean vbar + angular w = I^-1 L about the centroid
+        damp = pb[P_B * BLK + c] > 0.0
+        vx, vy, vz = w[W_V * BLK + c] * inv_n, w[(W_V + 1) * BLK + c] * inv_n, w[(W_V + 2) * BLK + c] * inv_n
+        Lx = w[W_L * BLK + c] - n * (my * vz - mz * vy)
+        Ly = w[(W_L + 1) * BLK + c] - n * (mz * vx - mx * vz)
+        Lz = w[(W_L + 2) * BLK + c] - n * (mx * vy - my * vx)
+        eps = 1e-9 * tr + 1e-300
+        I00 = tr - qxx + eps; I11 = tr - qyy + eps; I22 = tr - qzz + eps
+        I01 = -qxy; I02 = -qxz; I12 = -qyz
+        e00 = I11 * I22 - I12 * I12; e01 = I02 * I12 - I01 * I22; e02 = I01 * I12 - I02 * I11
+        e11 = I00 * I22 - I02 * I02; e12 = I01 * I02 - I00 * I12; e22 = I00 * I11 - I01 * I01
+        det = I00 * e00 + I01 * e01 + I02 * e02
+        rot = damp and det > 0.0 and math.isfinite(det)
+        idet = 1.0 / det
+        w[W_W * BLK + c] = (e00 * Lx + e01 * Ly + e02 * Lz) * idet if rot else 0.0
+        w[(W_W + 1) * BLK + c] = (e01 * Lx + e11 * Ly + e12 * Lz) * idet if rot else 0.0
+        w[(W_W + 2) * BLK + c] = (e02 * Lx + e12 * Ly + e22 * Lz) * idet if rot else 0.0
+        w[W_V * BLK + c] = vx if damp else 0.0
+        w[(W_V + 1) * BLK + c] = vy if damp else 0.0
+        w[(W_V + 2) * BLK + c] = vz if damp else 0.0
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy')
+def _rotations(w, iters):
+    """Rotational part R of each lane's B (Mueller et al. 2016, "A Robust Method to Extract the
+    Rotational Part of Deformations"), vectorised over lanes: the quaternion rows (x, y, z, w) are
+    warm-started and updated; always a rotation, robust for flat and inverted B.
+
+    Each iteration maximises tr(R^T B) over a rotation increment omega: gradient g = sum_j r_j x b_j
+    (r_j, b_j the columns of R, B). Mueller's step is g / |tr(B R^T)|; here the Newton step
+    H^-1 g with H = tr(N) I - sym(N), N = B R^T, is used whenever H is positive definite (it is near
+    the solution unless B is degenerate), which converges quadratically also for thin, anisotropic
+    cells where Mueller's step crawls; otherwise Mueller's step. Steps are capped at 1 rad. A lane
+    stops after iters iterations, when its correction is below 1e-12 rad (not applied), or after a
+    Newton correction below NEWTON_DONE (its successor would be of order NEWTON_DONE^2: warm-started,
+    one iteration per step is then the usual case); the loop ends when every lane has stopped."""
+    for _ in range(iters):
+        running = 0
+        for c in range(BLK):
+            x, y, z, qw = w[W_Q * BLK + c], w[(W_Q + 1) * BLK + c], w[(W_Q + 2) * BLK + c], w[(W_Q + 3) * BLK + c]
+            r00 = 1 - 2 * (y * y + z * z); r01 = 2 * (x * y - z * qw); r02 = 2 * (x * z + y * qw)
+            r10 = 2 * (x * y + z * qw); r11 = 1 - 2 * (x * x + z * z); r12 = 2 * (y * z - x * qw)
+            r20 = 2 * (x * z - y * qw); r21 = 2 * (y * z + x * qw); r22 = 1 - 2 * (x * x + y * y)
+            b00, b01, b02 = w[W_B * BLK + c], w[(W_B + 1) * BLK + c], w[(W_B + 2) * BLK + c]
+            b10, b11, b12 = w[(W_B + 3) * BLK + c], w[(W_B + 4) * BLK + c], w[(W_B + 5) * BLK + c]
+            b20, b21, b22 = w[(W_B + 6) * BLK + c], w[(W_B + 7) * BLK + c], w[(W_B + 8) * BLK + c]
+            # g = sum_j R[:, j] x B[:, j];  N = B R^T = sum_j b_j r_j^T (symmetric part)
+            gx = (r10 * b20 - r20 * b10) + (r11 * b21 - r21 * b11) + (r12 * b22 - r22 * b12)
+            gy = (r20 * b00 - r00 * b20) + (r21 * b01 - r01 * b21) + (r22 * b02 - r02 * b22)
+            gz = (r00 * b10 - r10 * b00) + (r01 * b11 - r11 * b01) + (r02 * b12 - r12 * b02)
+            n00 = b00 * r00 + b01 * r01 + b02 * r02
+            n11 = b10 * r10 + b11 * r11 + b12 * r12
+            n22 = b20 * r20 + b21 * r21 + b22 * r22
+            n01 = 0.5 * (b00 * r10 + b10 * r00) + 0.5 * (b01 * r11 + b11 * r01) + 0.5 * (b02 * r12 + b12 * r02)
+            n02 = 0.5 * (b00 * r20 + b20 * r00) + 0.5 * (b01 * r21 + b21 * r01) + 0.5 * (b02 * r22 + b22 * r02)
+            n12 = 0.5 * (b10 * r20 + b20 * r10) + 0.5 * (b11 * r21 + b21 * r11) + 0.5 * (b12 * r22 + b22 * r12)
+            tr = n00 + n11 + n22
+            h00, h11, h22 = tr - n00, tr - n11, tr - n22
+            h01, h02, h12 = -n01, -n02, -n12
+            c00 = h11 * h22 - h12 * h12; c01 = h02 * h12 - h01 * h22; c02 = h01 * h12 - h02 * h11
+            c11 = h00 * h22 - h02 * h02; c12 = h01 * h02 - h00 * h12; c22 = h00 * h11 - h01 * h01
+            det = h00 * c00 + h01 * c01 + h02 * c02
+            newton = h00 > 0.0 and c22 > 0.0 and det > 1e-9 * tr * tr * tr   # Sylvester: H positive definite
+            sc = 1.0 / (det if newton else abs(tr) + 1e-9)         # Newton: H^-1 = cof(H) / det; Mueller: 1/|tr|
+            ox = (c00 * gx + c01 * gy + c02 * gz if newton else gx) * sc
+            oy = (c01 * gx + c11 * gy + c12 * gz if newton else gy) * sc
+            oz = (c02 * gx + c12 * gy + c22 * gz if newton else gz) * sc
+            om = math.sqrt(ox * ox + oy * oy + oz * oz)
+            move = w[W_ON * BLK + c] != 0.0 and not om < 1e-12
+            big = om > 1.0
+            cap = 1.0 / om if big else 1.0
+            ox, oy, oz = ox * cap, oy * cap, oz * cap
+            om = 1.0 if big else om
+            # dq = (omega/2, 1) normalised with q below: a rotation by 2 atan(w/2) = w - w^3/12 + ... about
+            # omega (no sin/cos; the cubic error is removed by the next iteration); q = dq * q
+            dx, dy, dz = 0.5 * ox, 0.5 * oy, 0.5 * oz
+            nx = x + dx * qw + dy * z - dz * y
+            ny = y - dx * z + dy * qw + dz * x
+            nz = z + dx * y - dy * x + dz * qw
+            nw = qw - dx * x - dy * y - dz * z
+            s = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+            w[W_Q * BLK + c] = nx * s if move else x
+            w[(W_Q + 1) * BLK + c] = ny * s if move else y
+            w[(W_Q + 2) * BLK + c] = nz * s if move else z
+            w[(W_Q + 3) * BLK + c] = nw * s if move else qw
+            on = move and not (newton and om < NEWTON_DONE)     # quadratic convergence: the next would be ~om^2
+            w[W_ON * BLK + c] = 1.0 if on else 0.0
+            running += 1 if on else 0
+        if running == 0:
+            break
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy')
+def _force_maps(w, pb, n):
+    """Per lane (vectorised): T = R F, the elastic energy, the active tension, and the coefficients
+    of the affine force map of the lane's vertices; flags a non-finite or absurd result."""
+    inv_n = 1.0 / n
+    half = n // 2
+    odd = float(n - 2 * half)
+    for c in range(BLK):
+        x, y, z, qw = w[W_Q * BLK + c], w[(W_Q + 1) * BLK + c], w[(W_Q + 2) * BLK + c], w[(W_Q + 3) * BLK + c]
+        r00 = 1 - 2 * (y * y + z * z); r01 = 2 * (x * y - z * qw); r02 = 2 * (x * z + y * qw)
+        r10 = 2 * (x * y + z * qw); r11 = 1 - 2 * (x * x + z * z); r12 = 2 * (y * z - x * qw)
+        r20 = 2 * (x * z - y * qw); r21 = 2 * (y * z + x * qw); r22 = 1 - 2 * (x * x + y * y)
+        mus = w[W_MUS * BLK + c] != 0.0
+        la, sl = w[W_LAM * BLK + c], w[W_SL * BLK + c]
+        fx, fy, fz = pb[P_F * BLK + c], pb[(P_F + 1) * BLK + c], pb[(P_F + 2) * BLK + c]
+        f00 = (la - sl) * fx * fx + sl; f01 = (la - sl) * fx * fy; f02 = (la - sl) * fx * fz
+        f11 = (la - sl) * fy * fy + sl; f12 = (la - sl) * fy * fz; f22 = (la - sl) * fz * fz + sl
+        # T = R F (muscle), R (fat): the goal positions are c + T X0_i
+        t00 = r00 * f00 + r01 * f01 + r02 * f02 if mus else r00
+        t01 = r00 * f01 + r01 * f11 + r02 * f12 if mus else r01
+        t02 = r00 * f02 + r01 * f12 + r02 * f22 if mus else r02
+        t10 = r10 * f00 + r11 * f01 + r12 * f02 if mus else r10
+        t11 = r10 * f01 + r11 * f11 + r12 * f12 if mus else r11
+        t12 = r10 * f02 + r11 * f12 + r12 * f22 if mus else r12
+        t20 = r20 * f00 + r21 * f01 + r22 * f02 if mus else r20
+        t21 = r20 * f01 + r21 * f11 + r22 * f12 if mus else r21
+        t22 = r20 * f02 + r21 * f12 + r22 * f22 if mus else r22
         # elastic energy from the moments (R orthogonal, F symmetric, sum X0 = 0):
         # sum |T X0_i - r_i|^2 = tr(F^2 Q) - 2 tr(T^T A) + tr(Y), Q = sum X0 X0^T (q_tr = tr Q, q_ff = f^T Q f)
-        if m >= 0:
-            fqf = q_ff[c]
-            tf2q = la * la * fqf + sl * sl * (q_tr[c] - fqf)
-        else:
-            tf2q = q_tr[c]
-        tta = (T[0, 0] * a00 + T[0, 1] * a01 + T[0, 2] * a02 + T[1, 0] * a10 + T[1, 1] * a11 + T[1, 2] * a12
-               + T[2, 0] * a20 + T[2, 1] * a21 + T[2, 2] * a22)
-        e = max(tf2q - 2.0 * tta + (qxx + qyy + qzz), 0.0)
-        # active axial tension between the ring centroids (muscle cells with active stiffness)
-        tax = tay = taz = 0.0
-        ea = 0.0
-        half = n // 2
-        if m >= 0 and kact[c] > 0.0 and act[m] > 0.0:
-            ux = uy = uz = 0.0
-            for p in range(a0, a1):
-                i = cv[p]
-                if p - a0 < half:
-                    ux -= x[i, 0]; uy -= x[i, 1]; uz -= x[i, 2]
-                else:
-                    ux += x[i, 0]; uy += x[i, 1]; uz += x[i, 2]
-            ux /= half; uy /= half; uz /= half
-            ln = math.sqrt(ux * ux + uy * uy + uz * uz)
-            stretch = ln - la * rest_len[c]
-            if stretch > 0.0 and ln > 0.0:
-                ka = act[m] * kact[c] * 0.25 * n
-                tt = ka * stretch * 2.0 / (n * ln)           # per-vertex force / l, along u
-                tax, tay, taz = tt * ux, tt * uy, tt * uz
-                ea = 0.5 * ka * stretch * stretch
+        fqf, qtr = pb[P_QFF * BLK + c], pb[P_QTR * BLK + c]
+        tf2q = la * la * fqf + sl * sl * (qtr - fqf) if mus else qtr
+        tta = (t00 * w[W_A * BLK + c] + t01 * w[(W_A + 1) * BLK + c] + t02 * w[(W_A + 2) * BLK + c]
+               + t10 * w[(W_A + 3) * BLK + c] + t11 * w[(W_A + 4) * BLK + c] + t12 * w[(W_A + 5) * BLK + c]
+               + t20 * w[(W_A + 6) * BLK + c] + t21 * w[(W_A + 7) * BLK + c] + t22 * w[(W_A + 8) * BLK + c])
+        e = max(tf2q - 2.0 * tta + w[W_TRY * BLK + c], 0.0)
+        # active axial tension between the ring centroids: u = (sum top x - sum bottom x) / half, the top ring
+        # the last n - half vertices (the origin o cancels but for an odd-sized cell's extra top vertex)
+        sx, sy, sz = w[W_S * BLK + c], w[(W_S + 1) * BLK + c], w[(W_S + 2) * BLK + c]
+        ux = (sx - 2.0 * w[W_U * BLK + c] + odd * w[W_O * BLK + c]) / half
+        uy = (sy - 2.0 * w[(W_U + 1) * BLK + c] + odd * w[(W_O + 1) * BLK + c]) / half
+        uz = (sz - 2.0 * w[(W_U + 2) * BLK + c] + odd * w[(W_O + 2) * BLK + c]) / half
+        a, kact = w[W_ACT * BLK + c], pb[P_KACT * BLK + c]
+        ln = math.sqrt(ux * ux + uy * uy + uz * uz)
+        stretch = ln - la * pb[P_LEN * BLK + c]
+        pull = mus and kact > 0.0 and a > 0.0 and stretch > 0.0 and ln > 0.0
+        ka = a * kact * 0.25 * n
+        tt = ka * stretch * 2.0 / (n * ln)          # per-vertex force / l, along u
+        w[W_TA * BLK + c] = tt * ux if pull else 0.0
+        w[(W_TA + 1) * BLK + c] = tt * uy if pull else 0.0
+        w[(W_TA + 2) * BLK + c] = tt * uz if pull else 0.0
+        ea = 0.5 * ka * stretch * stretch if pull else 0.0
         # force on vertex i, elastic + volume + damping in one affine map of (X0_i, r_i, v_i):
         # k (T X0 - r) + P X0 - b (v - vbar - w x r) = (k T + P) X0 + (b [w]x - k I) r - b v + b vbar
-        m00 = k * T[0, 0] + P[0, 0]; m01 = k * T[0, 1] + P[0, 1]; m02 = k * T[0, 2] + P[0, 2]
-        m10 = k * T[1, 0] + P[1, 0]; m11 = k * T[1, 1] + P[1, 1]; m12 = k * T[1, 2] + P[1, 2]
-        m20 = k * T[2, 0] + P[2, 0]; m21 = k * T[2, 1] + P[2, 1]; m22 = k * T[2, 2] + P[2, 2]
-        bwx, bwy, bwz = b * wx, b * wy, b * wz
+        k, b = pb[P_K * BLK + c], pb[P_B * BLK + c]
+        m00 = k * t00 + w[W_P * BLK + c]
+        w[W_M * BLK + c] = m00
+        w[(W_M + 1) * BLK + c] = k * t01 + w[(W_P + 1) * BLK + c]
+        w[(W_M + 2) * BLK + c] = k * t02 + w[(W_P + 2) * BLK + c]
+        w[(W_M + 3) * BLK + c] = k * t10 + w[(W_P + 3) * BLK + c]
+        w[(W_M + 4) * BLK + c] = k * t11 + w[(W_P + 4) * BLK + c]
+        w[(W_M + 5) * BLK + c] = k * t12 + w[(W_P + 5) * BLK + c]
+        w[(W_M + 6) * BLK + c] = k * t20 + w[(W_P + 6) * BLK + c]
+        w[(W_M + 7) * BLK + c] = k * t21 + w[(W_P + 7) * BLK + c]
+        w[(W_M + 8) * BLK + c] = k * t22 + w[(W_P + 8) * BLK + c]
+        bwx, bwy, bwz = b * w[W_W * BLK + c], b * w[(W_W + 1) * BLK + c], b * w[(W_W + 2) * BLK + c]
+        w[W_BW * BLK + c] = bwx; w[(W_BW + 1) * BLK + c] = bwy; w[(W_BW + 2) * BLK + c] = bwz
         # f0 = m X0 - k r - b v + b (vbar + w x (x_i - c)) with r = x_i - c: the constant part uses the
         # local origin o: w x (x_i - c) = w x d_i - w x mm (d_i = x_i - o, mm = c - o)
-        kx0 = -k * mx; ky0 = -k * my; kz0 = -k * mz
-        cx0 = b * vx - (bwy * mz - bwz * my) - kx0
-        cy0 = b * vy - (bwz * mx - bwx * mz) - ky0
-        cz0 = b * vz - (bwx * my - bwy * mx) - kz0
-        for p in range(a0, a1):                             # scatter
-            i = cv[p]
-            X, Y, Z = X0[p, 0], X0[p, 1], X0[p, 2]
-            dx, dy, dz = x[i, 0] - ox, x[i, 1] - oy, x[i, 2] - oz
-            fx_ = m00 * X + m01 * Y + m02 * Z - k * dx + (bwy * dz - bwz * dy) + cx0
-            fy_ = m10 * X + m11 * Y + m12 * Z - k * dy + (bwz * dx - bwx * dz) + cy0
-            fz_ = m20 * X + m21 * Y + m22 * Z - k * dz + (bwx * dy - bwy * dx) + cz0
-            if b > 0.0:
-                fx_ -= b * v[i, 0]; fy_ -= b * v[i, 1]; fz_ -= b * v[i, 2]
-            if p - a0 < half:
-                fx_ += tax; fy_ += tay; fz_ += taz
-            else:
-                fx_ -= tax; fy_ -= tay; fz_ -= taz
-            f[i, 0] += fx_; f[i, 1] += fy_; f[i, 2] += fz_
-        cell_energy[c] = 0.5 * k * e + ev + ea
-        if not (e * k * k < FORCE_BOUND) or not (ev < FORCE_BOUND) or not (abs(m00) + abs(cx0) < FORCE_BOUND):
-            return c                   # catches NaN and overflow
-    return -1
+        mx, my, mz = sx * inv_n, sy * inv_n, sz * inv_n
+        cx0 = b * w[W_V * BLK + c] - (bwy * mz - bwz * my) + k * mx
+        w[W_C * BLK + c] = cx0
+        w[(W_C + 1) * BLK + c] = b * w[(W_V + 1) * BLK + c] - (bwz * mx - bwx * mz) + k * my
+        w[(W_C + 2) * BLK + c] = b * w[(W_V + 2) * BLK + c] - (bwx * my - bwy * mx) + k * mz
+        ev = w[W_EV * BLK + c]
+        w[W_E * BLK + c] = 0.5 * k * e + ev + ea
+        ok = e * k * k < FORCE_BOUND and ev < FORCE_BOUND and abs(m00) + abs(cx0) < FORCE_BOUND   # False for NaN
+        w[W_BAD * BLK + c] = 0.0 if ok else 1.0
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy')
+def _vertex_forces(w, gv, X0, pb, n):
+    """The force of every vertex slot of the block (vectorised over lanes, two slots per pass), in
+    place of its gathered position: f_i = M X0_i - k d_i + b w x d_i + C - b v_i, plus the tension
+    (+ on the bottom ring, - on the top ring; on an odd-sized cell's padding slot: not scattered)."""
+    half = n // 2
+    for s2 in range((n + 1) // 2):
+        g = 12 * s2 * BLK
+        h = 6 * s2 * BLK
+        sg0 = 1.0 if 2 * s2 < half else -1.0
+        sg1 = 1.0 if 2 * s2 + 1 < half else -1.0
+        for c in range(BLK):
+            k, b = pb[P_K * BLK + c], pb[P_B * BLK + c]
+            damp = b > 0.0              # (undamped blocks do not gather the velocity rows)
+            ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
+            m00, m01, m02 = w[W_M * BLK + c], w[(W_M + 1) * BLK + c], w[(W_M + 2) * BLK + c]
+            m10, m11, m12 = w[(W_M + 3) * BLK + c], w[(W_M + 4) * BLK + c], w[(W_M + 5) * BLK + c]
+            m20, m21, m22 = w[(W_M + 6) * BLK + c], w[(W_M + 7) * BLK + c], w[(W_M + 8) * BLK + c]
+            bwx, bwy, bwz = w[W_BW * BLK + c], w[(W_BW + 1) * BLK + c], w[(W_BW + 2) * BLK + c]
+            cx0, cy0, cz0 = w[W_C * BLK + c], w[(W_C + 1) * BLK + c], w[(W_C + 2) * BLK + c]
+            tax, tay, taz = w[W_TA * BLK + c], w[(W_TA + 1) * BLK + c], w[(W_TA + 2) * BLK + c]
+            # slot 2 s2 (d, X0 = X, Y, Z)
+            X, Y, Z = X0[h + c], X0[h + BLK + c], X0[h + 2 * BLK + c]
+            dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
+            fx = m00 * X + m01 * Y + m02 * Z - k * dx + (bwy * dz - bwz * dy) + cx0
+            fy = m10 * X + m11 * Y + m12 * Z - k * dy + (bwz * dx - bwx * dz) + cy0
+            fz = m20 * X + m21 * Y + m22 * Z - k * dz + (bwx * dy - bwy * dx) + cz0
+            fx = fx - b * gv[g + 3 * BLK + c] if damp else fx
+            fy = fy - b * gv[g + 4 * BLK + c] if damp else fy
+            fz = fz - b * gv[g + 5 * BLK + c] if damp else fz
+            gv[g + c] = fx + sg0 * tax
+            gv[g + BLK + c] = fy + sg0 * tay
+            gv[g + 2 * BLK + c] = fz + sg0 * taz
+            # slot 2 s2 + 1 (e, X0 = U, V, W)
+            U, V, W = X0[h + 3 * BLK + c], X0[h + 4 * BLK + c], X0[h + 5 * BLK + c]
+            ex, ey, ez = gv[g + 6 * BLK + c] - ox, gv[g + 7 * BLK + c] - oy, gv[g + 8 * BLK + c] - oz
+            fx = m00 * U + m01 * V + m02 * W - k * ex + (bwy * ez - bwz * ey) + cx0
+            fy = m10 * U + m11 * V + m12 * W - k * ey + (bwz * ex - bwx * ez) + cy0
+            fz = m20 * U + m21 * V + m22 * W - k * ez + (bwx * ey - bwy * ex) + cz0
+            fx = fx - b * gv[g + 9 * BLK + c] if damp else fx
+            fy = fy - b * gv[g + 10 * BLK + c] if damp else fy
+            fz = fz - b * gv[g + 11 * BLK + c] if damp else fz
+            gv[g + 6 * BLK + c] = fx + sg1 * tax
+            gv[g + 7 * BLK + c] = fy + sg1 * tay
+            gv[g + 8 * BLK + c] = fz + sg1 * taz
 
 
 # ------------------------------------------------------------------------------------ skeleton

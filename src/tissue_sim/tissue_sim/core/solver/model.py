@@ -84,6 +84,7 @@ class SimModel:
     anc: np.ndarray                 # (J, S) bool: joint j moves segment s
     gravity: np.ndarray             # (3,)
     muscle_index_of: dict           # name -> index; group name -> list of indices
+    cell_blocks: tuple              # the cells again, in SIMD blocks by size: what cell_forces reads (pack_cells)
     cache: dict = dataclasses.field(default_factory=dict, repr=False)   # per-h arrays of the step (internal; pass cache={} to dataclasses.replace)
 
     def inv_denominator(self, h: float) -> np.ndarray:
@@ -288,10 +289,11 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     np.add.at(kappa, cv, np.repeat(kcell, sizes))
     bsum = np.zeros(V)
     np.add.at(bsum, cv, np.repeat(damp_b, sizes))
+    q_ff = np.einsum('ci,cij,cj->c', fib, Q, fib)
     sim_kw = dict(
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
-        Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(np.einsum('ci,cij,cj->c', fib, Q, fib)), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
+        Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(q_ff), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
         length_weight=_frozen(lw), free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
@@ -301,7 +303,8 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_type=_frozen(tm.joint_type, np.uint8), j_axis=_frozen(tm.joint_axis, np.float64),
         j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
-        muscle_index_of=names)
+        muscle_index_of=names,
+        cell_blocks=K.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv))
     c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0
     sim = SimModel(damp_rate=c_max, **sim_kw)
     w = estimate_omega_max(sim)
@@ -374,15 +377,19 @@ def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
     lam, act = np.ones(M), np.ones(M)
     e = np.zeros(sim.n_cells)
     scale = 1e-6 * max(np.ptp(sim.rest, axis=0).max(), 1e-3)
-    zero_b = np.zeros(sim.n_cells)
+    blocks, ids, slot_idx, slot_X0, par, lane_muscle = sim.cell_blocks
+    par = par.copy()
+    par[:, K.P_B * K.BLK:(K.P_B + 1) * K.BLK] = 0.0          # no damping
+    par.flags.writeable = False                               # read-only as in the model: one compiled kernel
+    cells = (blocks, ids, slot_idx, slot_X0, par, lane_muscle)
+    work = K.cell_work(cells)
     lam_est = 0.0
     for _ in range(iters):
         u /= np.linalg.norm(u)
         xp = sim.rest + scale * u
         quat[:] = (0.0, 0.0, 0.0, 1.0)
-        K.cell_forces(xp, xp, f, quat, sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, lam, act,
-                      sim.k, sim.k_active, zero_b, sim.params.volume_mode == 'actual', 20, e, sim.k_volume,
-                      np.zeros(sim.n_cells), 0.0, sim.q_tr, sim.q_ff, sim.rest_length)
+        K.cell_forces(xp, xp, f, quat, cells, lam, act, sim.params.volume_mode == 'actual', 20, e,
+                      np.zeros(sim.n_cells), 0.0, work)
         y = -(f / scale) * sim.inv_mass[:, None]
         lam_est = float(np.sum(y * u))
         u = y

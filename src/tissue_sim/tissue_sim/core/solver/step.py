@@ -31,26 +31,24 @@ from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, Sta
 def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M), in place.
 
-    Tuples of flat arrays (built by ``_arrays``): st = mutable state, cells = cell constants,
+    Tuples of flat arrays (built by ``_arrays``): st = mutable state, cells = the cells in SIMD blocks,
     tissue = vertex constants, skel = skeleton constants, num = scalar parameters. Positions and
     velocities alternate between (x, v) and the back buffers (xb, vb); returns how many swaps
     happened. On failure info = (step, cell, cause) and the state is left at the last good sub-step."""
     x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work = st
-    off, cv, X0, Qinv, fibre, cmus, kc, kact, damp_b, kvol, q_tr, q_ff, rest_len = cells
     rest, inv_den, mass, free_idx, att_idx, att_seg = tissue
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, \
         j_rest, j_range, anc, grav = skel
     log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp, lim_wh, lim_z, vel_damp, vol_gain, vmax2 = num
     swaps = 0
-    q0, qd0, lam0 = q.copy(), qd.copy(), lam.copy()
+    q0, qd0, lam0, cell_work = q.copy(), qd.copy(), lam.copy(), K.cell_work(cells)
     for n in range(n_steps):
         act = acts[n]
         for _ in range(n_sub):
             q0[:] = q; qd0[:] = qd; lam0[:] = lam
             # 1. muscle tension: contraction state, then every cell's elastic + volume + damping force
             K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)
-            bad = K.cell_forces(x, v, f, quat, off, cv, X0, Qinv, fibre, cmus, lam, act, kc, kact, damp_b,
-                                vol_actual, iters, cell_e, kvol, pres, vol_gain, q_tr, q_ff, rest_len)
+            bad = K.cell_forces(x, v, f, quat, cells, lam, act, vol_actual, iters, cell_e, pres, vol_gain, cell_work)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
                 lam[:] = lam0
@@ -80,8 +78,7 @@ def _arrays(sim: SimModel, h: float):
     t = sim.cache.get(key)
     if t is None:
         p = sim.params
-        cells = (sim.off, sim.cv, sim.X0, sim.Qinv, sim.fibre, sim.cell_muscle, sim.k, sim.k_active, sim.damp_b,
-                 sim.k_volume, sim.q_tr, sim.q_ff, sim.rest_length)
+        cells = sim.cell_blocks
         tissue = (sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.att_idx, sim.att_seg)
         skel = (sim.seg_order, sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia,
                 sim.j_parent, sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc,
@@ -125,7 +122,11 @@ def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None, n_
     if n_steps < 1:
         raise ValueError(f'n_steps must be >= 1, got {n_steps}')
     a = np.asarray(ctrl.activation, np.float64)
-    if a.shape != (sim.n_muscles,) or not np.all(np.isfinite(a)) or np.any((a < 0) | (a > 1)):
+    # min and max propagate NaN, so the range test also rejects non-finite values (one pass each: this
+    # runs every step(), where numpy's per-call overhead on a few values is a noticeable share)
+    if a.shape != (sim.n_muscles,) or (a.size and not (a.min() >= 0.0 and a.max() <= 1.0)):
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]')
-    _run(sim, state, np.ascontiguousarray(np.broadcast_to(a, (int(n_steps), a.size))), dt)
+    acts = np.empty((int(n_steps), a.size))
+    acts[:] = a
+    _run(sim, state, acts, dt)
     return state
