@@ -16,15 +16,6 @@ from tissue_sim.core.model import JOINT_HINGE
 
 
 @pytest.fixture(scope='module')
-def default_tm():
-    from tissue_sim.core import builder
-    try:
-        return builder.default_model()
-    except FileNotFoundError as e:
-        pytest.skip(f'bundled anatomy not available: {e}')
-
-
-@pytest.fixture(scope='module')
 def default_sim(default_tm):
     return solver.compile_model(default_tm, solver.Params.paper())
 

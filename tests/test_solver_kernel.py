@@ -365,15 +365,6 @@ def _mixed_cells(rng, sizes_counts, n_vertices=400, n_muscles=3):
 
 
 # ------------------------------------------------------------------------------------ tests
-@pytest.fixture(scope='module')
-def default_tm():
-    from tissue_sim.core import builder
-    try:
-        return builder.default_model()
-    except FileNotFoundError as e:
-        pytest.skip(f'bundled anatomy not available: {e}')
-
-
 @pytest.mark.parametrize('preset', ['paper', 'physical'])
 def test_matches_the_per_cell_kernel_on_the_default_model(default_tm, preset):
     sim = solver.compile_model(default_tm, getattr(solver.Params, preset)())
