@@ -344,6 +344,19 @@ def _moments(w, gv, X0, n, damped, tension):
                 w[(W_U + 2) * BLK + c] += gv[g + 2 * BLK + c] - w[(W_O + 2) * BLK + c]
 
 
+@njit(cache=True, inline='always')
+def _times_rest_map(m00, m01, m02, m10, m11, m12, m20, m21, m22, la, sl, fx, fy, fz, mus):
+    """M F for a muscle cell (F = la f f^T + sl (I - f f^T), the contracted rest shape's map; fibre f),
+    M itself for fat (F = I). Inlined into the lane loops (a select, not a branch: they stay vectorised)."""
+    f00 = (la - sl) * fx * fx + sl; f01 = (la - sl) * fx * fy; f02 = (la - sl) * fx * fz
+    f11 = (la - sl) * fy * fy + sl; f12 = (la - sl) * fy * fz; f22 = (la - sl) * fz * fz + sl
+    return (m00 * f00 + m01 * f01 + m02 * f02 if mus else m00, m00 * f01 + m01 * f11 + m02 * f12 if mus else m01,
+            m00 * f02 + m01 * f12 + m02 * f22 if mus else m02, m10 * f00 + m11 * f01 + m12 * f02 if mus else m10,
+            m10 * f01 + m11 * f11 + m12 * f12 if mus else m11, m10 * f02 + m11 * f12 + m12 * f22 if mus else m12,
+            m20 * f00 + m21 * f01 + m22 * f02 if mus else m20, m20 * f01 + m21 * f11 + m22 * f12 if mus else m21,
+            m20 * f02 + m21 * f12 + m22 * f22 if mus else m22)
+
+
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
 def _cell_algebra(w, pb, n, volume_actual, vol_gain):
     """Per lane (vectorised): the rest shape F, B = A F normalised for the rotation, the volume term
@@ -375,17 +388,8 @@ def _cell_algebra(w, pb, n, volume_actual, vol_gain):
         else:
             sl = 1.0 / math.sqrt(la)
         w[W_SL * BLK + c] = sl
-        f00 = (la - sl) * fx * fx + sl; f01 = (la - sl) * fx * fy; f02 = (la - sl) * fx * fz
-        f11 = (la - sl) * fy * fy + sl; f12 = (la - sl) * fy * fz; f22 = (la - sl) * fz * fz + sl
-        b00 = a00 * f00 + a01 * f01 + a02 * f02 if mus else a00
-        b01 = a00 * f01 + a01 * f11 + a02 * f12 if mus else a01
-        b02 = a00 * f02 + a01 * f12 + a02 * f22 if mus else a02
-        b10 = a10 * f00 + a11 * f01 + a12 * f02 if mus else a10
-        b11 = a10 * f01 + a11 * f11 + a12 * f12 if mus else a11
-        b12 = a10 * f02 + a11 * f12 + a12 * f22 if mus else a12
-        b20 = a20 * f00 + a21 * f01 + a22 * f02 if mus else a20
-        b21 = a20 * f01 + a21 * f11 + a22 * f12 if mus else a21
-        b22 = a20 * f02 + a21 * f12 + a22 * f22 if mus else a22
+        b00, b01, b02, b10, b11, b12, b20, b21, b22 = _times_rest_map(a00, a01, a02, a10, a11, a12, a20, a21, a22,
+                                                                      la, sl, fx, fy, fz, mus)   # B = A F
         nrm = math.sqrt(b00 * b00 + b01 * b01 + b02 * b02 + b10 * b10 + b11 * b11 + b12 * b12
                         + b20 * b20 + b21 * b21 + b22 * b22)
         inv = 1.0 / nrm            # scale-free iteration; a zero or non-finite B keeps the warm start
@@ -528,18 +532,9 @@ def _force_maps(w, pb, n):
         mus = w[W_MUS * BLK + c] != 0.0
         la, sl = w[W_LAM * BLK + c], w[W_SL * BLK + c]
         fx, fy, fz = pb[P_F * BLK + c], pb[(P_F + 1) * BLK + c], pb[(P_F + 2) * BLK + c]
-        f00 = (la - sl) * fx * fx + sl; f01 = (la - sl) * fx * fy; f02 = (la - sl) * fx * fz
-        f11 = (la - sl) * fy * fy + sl; f12 = (la - sl) * fy * fz; f22 = (la - sl) * fz * fz + sl
         # T = R F (muscle), R (fat): the goal positions are c + T X0_i
-        t00 = r00 * f00 + r01 * f01 + r02 * f02 if mus else r00
-        t01 = r00 * f01 + r01 * f11 + r02 * f12 if mus else r01
-        t02 = r00 * f02 + r01 * f12 + r02 * f22 if mus else r02
-        t10 = r10 * f00 + r11 * f01 + r12 * f02 if mus else r10
-        t11 = r10 * f01 + r11 * f11 + r12 * f12 if mus else r11
-        t12 = r10 * f02 + r11 * f12 + r12 * f22 if mus else r12
-        t20 = r20 * f00 + r21 * f01 + r22 * f02 if mus else r20
-        t21 = r20 * f01 + r21 * f11 + r22 * f12 if mus else r21
-        t22 = r20 * f02 + r21 * f12 + r22 * f22 if mus else r22
+        t00, t01, t02, t10, t11, t12, t20, t21, t22 = _times_rest_map(r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                                                                      la, sl, fx, fy, fz, mus)
         # elastic energy from the moments (R orthogonal, F symmetric, sum X0 = 0):
         # sum |T X0_i - r_i|^2 = tr(F^2 Q) - 2 tr(T^T A) + tr(Y), Q = sum X0 X0^T (q_tr = tr Q, q_ff = f^T Q f)
         fqf, qtr = pb[P_QFF * BLK + c], pb[P_QTR * BLK + c]
