@@ -286,17 +286,20 @@ def _load_block(x, v, quat, lam, act, pressure, ids, mus, pb, idx, cnt, n, w, gv
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
 def _moments(w, gv, X0, n, damped, tension):
-    """Sums over each lane's vertices (vectorised over lanes, two slots per pass): sum d, A, sum d d^T;
-    sum v and sum d x v if damped; the bottom ring's sum d if tension."""
+    """Sums over each lane's vertices (vectorised over lanes, two slots per pass, one pass): sum d, A,
+    sum d d^T; sum v and sum d x v if damped; the bottom ring's sum d if tension (else zeros)."""
+    half = n // 2
     for c in range(BLK):
         w[W_O * BLK + c] = gv[c]
         w[(W_O + 1) * BLK + c] = gv[BLK + c]
         w[(W_O + 2) * BLK + c] = gv[2 * BLK + c]
-        for r in range(W_S, W_L + 3):
+        for r in range(W_S, W_U + 3):
             w[r * BLK + c] = 0.0
     for s2 in range((n + 1) // 2):
         g = 12 * s2 * BLK           # slots s = 2 s2 (d, X0) and s + 1 (e, E)
         h = 6 * s2 * BLK
+        b0 = 1.0 if tension and 2 * s2 < half else 0.0          # bottom-ring weights of the two slots
+        b1 = 1.0 if tension and 2 * s2 + 1 < half else 0.0
         for c in range(BLK):
             ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
             dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
@@ -319,29 +322,20 @@ def _moments(w, gv, X0, n, damped, tension):
             w[(W_Y + 3) * BLK + c] += dx * dy + ex * ey
             w[(W_Y + 4) * BLK + c] += dx * dz + ex * ez
             w[(W_Y + 5) * BLK + c] += dy * dz + ey * ez
-    if damped:
-        for s2 in range((n + 1) // 2):
-            g = 12 * s2 * BLK
-            for c in range(BLK):
-                ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
-                dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
-                ex, ey, ez = gv[g + 6 * BLK + c] - ox, gv[g + 7 * BLK + c] - oy, gv[g + 8 * BLK + c] - oz
-                ux, uy, uz = gv[g + 3 * BLK + c], gv[g + 4 * BLK + c], gv[g + 5 * BLK + c]
-                tx, ty, tz = gv[g + 9 * BLK + c], gv[g + 10 * BLK + c], gv[g + 11 * BLK + c]
-                w[W_V * BLK + c] += ux + tx; w[(W_V + 1) * BLK + c] += uy + ty; w[(W_V + 2) * BLK + c] += uz + tz
-                w[W_L * BLK + c] += (dy * uz - dz * uy) + (ey * tz - ez * ty)
-                w[(W_L + 1) * BLK + c] += (dz * ux - dx * uz) + (ez * tx - ex * tz)
-                w[(W_L + 2) * BLK + c] += (dx * uy - dy * ux) + (ex * ty - ey * tx)
-    if tension:
-        for c in range(BLK):
-            for r in range(W_U, W_U + 3):
-                w[r * BLK + c] = 0.0
-        for s in range(n // 2):
-            g = 6 * s * BLK
-            for c in range(BLK):
-                w[W_U * BLK + c] += gv[g + c] - w[W_O * BLK + c]
-                w[(W_U + 1) * BLK + c] += gv[g + BLK + c] - w[(W_O + 1) * BLK + c]
-                w[(W_U + 2) * BLK + c] += gv[g + 2 * BLK + c] - w[(W_O + 2) * BLK + c]
+            w[W_U * BLK + c] += b0 * dx + b1 * ex
+            w[(W_U + 1) * BLK + c] += b0 * dy + b1 * ey
+            w[(W_U + 2) * BLK + c] += b0 * dz + b1 * ez
+            # velocities: the rows are not gathered for an undamped block (a select, not a branch)
+            ux = gv[g + 3 * BLK + c] if damped else 0.0
+            uy = gv[g + 4 * BLK + c] if damped else 0.0
+            uz = gv[g + 5 * BLK + c] if damped else 0.0
+            tx = gv[g + 9 * BLK + c] if damped else 0.0
+            ty = gv[g + 10 * BLK + c] if damped else 0.0
+            tz = gv[g + 11 * BLK + c] if damped else 0.0
+            w[W_V * BLK + c] += ux + tx; w[(W_V + 1) * BLK + c] += uy + ty; w[(W_V + 2) * BLK + c] += uz + tz
+            w[W_L * BLK + c] += (dy * uz - dz * uy) + (ey * tz - ez * ty)
+            w[(W_L + 1) * BLK + c] += (dz * ux - dx * uz) + (ez * tx - ex * tz)
+            w[(W_L + 2) * BLK + c] += (dx * uy - dy * ux) + (ex * ty - ey * tx)
 
 
 @njit(cache=True, inline='always')
@@ -702,13 +696,20 @@ def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_j
     # tissue wrench per segment (force, moment about the world origin), summed up the tree
     Fs = np.zeros((S, 3))
     Ns = np.zeros((S, 3))
-    for k in range(att_idx.shape[0]):
-        i = att_idx[k]
+    # (summed in registers over each run of one segment: compile_model sorts the list by segment)
+    k = 0
+    while k < att_idx.shape[0]:
         s = att_seg[k]
-        Fs[s, 0] += f[i, 0]; Fs[s, 1] += f[i, 1]; Fs[s, 2] += f[i, 2]
-        Ns[s, 0] += x[i, 1] * f[i, 2] - x[i, 2] * f[i, 1]
-        Ns[s, 1] += x[i, 2] * f[i, 0] - x[i, 0] * f[i, 2]
-        Ns[s, 2] += x[i, 0] * f[i, 1] - x[i, 1] * f[i, 0]
+        f0 = f1 = f2 = n0 = n1 = n2 = 0.0
+        while k < att_idx.shape[0] and att_seg[k] == s:
+            i = att_idx[k]
+            f0 += f[i, 0]; f1 += f[i, 1]; f2 += f[i, 2]
+            n0 += x[i, 1] * f[i, 2] - x[i, 2] * f[i, 1]
+            n1 += x[i, 2] * f[i, 0] - x[i, 0] * f[i, 2]
+            n2 += x[i, 0] * f[i, 1] - x[i, 1] * f[i, 0]
+            k += 1
+        Fs[s, 0] += f0; Fs[s, 1] += f1; Fs[s, 2] += f2
+        Ns[s, 0] += n0; Ns[s, 1] += n1; Ns[s, 2] += n2
     # recursive Newton-Euler, qdd = 0, base acceleration -g (gravity), forward pass
     w = np.zeros((S, 3))
     al = np.zeros((S, 3))
@@ -857,28 +858,27 @@ def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_j
 
 # ------------------------------------------------------------------------------------ integration
 @njit(cache=True, fastmath={'contract'})
-def integrate(h, x, v, f, inv_den, mass, xn, vn, free_idx, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp):
+def integrate(h, x, v, f, inv_den, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp, vmax2):
     """Symplectic Euler for the free vertices (v += h (f inv_den + g); v *= 1 - h c_v; x += h v; inv_den
-    = 1/m explicit, 1/(m + h b + h^2 kappa) diagonally implicit) and the
-    segment pose for bone-attached ones (x = R_s X + t_s, v = dx/h). Reads x, v, writes xn, vn (double
-    buffer: a discarded step leaves x, v untouched). Returns (max speed^2, kinetic energy of the free
-    vertices)."""
-    vmax2 = 0.0
-    ke = 0.0
+    = 1/m explicit, 1/(m + h b + h^2 kappa) diagonally implicit) and the segment pose for bone-attached
+    ones (x = R_s X + t_s, v = dx/h). Reads x, v, writes xn, vn (double buffer: a discarded step leaves
+    x, v untouched). Returns how many vertices are faster than sqrt(vmax2) or not finite.
+
+    The first loop runs over every vertex in order on flat views (no index list: LLVM vectorises it);
+    a bone-attached vertex (inv_den 0) is computed there too, not counted, and overwritten by the second."""
+    nfast = 0
     damp = 1.0 - h * vel_damp
     g0, g1, g2 = h * gravity[0], h * gravity[1], h * gravity[2]
-    for k in range(free_idx.shape[0]):
-        i = free_idx[k]
+    xf, vf, ff, xnf, vnf = x.reshape(-1), v.reshape(-1), f.reshape(-1), xn.reshape(-1), vn.reshape(-1)
+    for i in range(inv_den.shape[0]):
         hm = h * inv_den[i]
-        a = (v[i, 0] + hm * f[i, 0] + g0) * damp
-        b = (v[i, 1] + hm * f[i, 1] + g1) * damp
-        c = (v[i, 2] + hm * f[i, 2] + g2) * damp
-        vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
-        xn[i, 0] = x[i, 0] + h * a; xn[i, 1] = x[i, 1] + h * b; xn[i, 2] = x[i, 2] + h * c
+        a = (vf[3 * i] + hm * ff[3 * i] + g0) * damp
+        b = (vf[3 * i + 1] + hm * ff[3 * i + 1] + g1) * damp
+        c = (vf[3 * i + 2] + hm * ff[3 * i + 2] + g2) * damp
+        vnf[3 * i] = a; vnf[3 * i + 1] = b; vnf[3 * i + 2] = c
+        xnf[3 * i] = xf[3 * i] + h * a; xnf[3 * i + 1] = xf[3 * i + 1] + h * b; xnf[3 * i + 2] = xf[3 * i + 2] + h * c
         sp = a * a + b * b + c * c
-        ke += sp * mass[i]
-        if not (sp <= vmax2):
-            vmax2 = sp if sp == sp else np.inf
+        nfast += 0 if sp <= vmax2 or hm == 0.0 else 1      # (NaN counts)
     ih = 1.0 / h
     for k in range(att_idx.shape[0]):
         i = att_idx[k]
@@ -891,9 +891,18 @@ def integrate(h, x, v, f, inv_den, mass, xn, vn, free_idx, att_idx, att_seg, res
             vn[i, r] = d
             xn[i, r] = xr
             sp += d * d
-        if not (sp <= vmax2):
-            vmax2 = sp if sp == sp else np.inf
-    return vmax2, 0.5 * ke
+        nfast += 0 if sp <= vmax2 else 1
+    return nfast
+
+
+@njit(cache=True)
+def kinetic_energy(v, mass, free_idx):
+    """Kinetic energy [J] of the free vertices."""
+    ke = 0.0
+    for k in range(free_idx.shape[0]):
+        i = free_idx[k]
+        ke += (v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]) * mass[i]
+    return 0.5 * ke
 
 
 # ------------------------------------------------------------------------------------ measures

@@ -65,7 +65,7 @@ class SimModel:
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     free_idx: np.ndarray            # (V - A,) int32 free vertices
-    att_idx: np.ndarray             # (A,) int32 bone-attached vertices
+    att_idx: np.ndarray             # (A,) int32 bone-attached vertices, grouped by segment (ascending vertex within)
     att_seg: np.ndarray             # (A,) int32 their segments
     # skeleton
     seg_order: np.ndarray           # (S,) parents before children
@@ -263,6 +263,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     seg_I = np.array(tm.segment_inertia, float)
     vs = np.asarray(tm.vertex_segment, np.int32)
     att = np.flatnonzero(vs >= 0).astype(np.int32)
+    att = att[np.argsort(vs[att], kind='stable')]      # grouped by segment (skeleton_step sums each run)
     if p.attached_mass_to_segment:
         for s in range(S):
             sel = att[vs[att] == s]

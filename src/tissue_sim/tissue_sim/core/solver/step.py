@@ -52,23 +52,24 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
                 lam[:] = lam0
+                work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
             ok = K.skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint,
                                  seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, j_rest,
                                  j_range, anc, grav, jdamp, lim_wh, lim_z, seg_R, seg_t, work)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
-            sp2, ke = K.integrate(h, x, v, f, inv_den, mass, xb, vb, free_idx, att_idx, att_seg, rest, seg_R, seg_t,
-                                  grav, vel_damp)
-            if not ok or not (sp2 <= vmax2):
+            fast = K.integrate(h, x, v, f, inv_den, xb, vb, att_idx, att_seg, rest, seg_R, seg_t, grav, vel_damp, vmax2)
+            if not ok or fast:
                 info[0], info[1], info[2] = n, -1, K.CAUSE_SKELETON if not ok else K.CAUSE_SPEED
                 q[:] = q0; qd[:] = qd0; lam[:] = lam0
                 K.forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t)
+                work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
                 return swaps
             x, xb = xb, x
             v, vb = vb, v
             swaps += 1
-            work[0, work.shape[1] - 1] = ke
+    work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
     return swaps
 
 
