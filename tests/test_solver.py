@@ -28,7 +28,7 @@ def _forces(sim, x, v=None, lam=None, act=None, iters=30):
     bad = K.cell_forces(x, np.zeros_like(x) if v is None else v, f, quat, sim.cell_blocks,
                         np.ones(M) if lam is None else lam, np.zeros(M) if act is None else act,
                         sim.params.volume_mode == 'actual', iters, e, np.zeros(sim.n_cells), 0.0,
-                        K.cell_work(sim.cell_blocks))
+                        K.cell_work(sim.cell_blocks), np.empty(sim.n_cells))
     assert bad == -1
     return f, e
 
@@ -321,3 +321,18 @@ def test_mass_scaled_integrator_one_pass_and_agrees_with_explicit():
         q[name] = math.degrees(o['joint_positions'][0])
     assert q['ex'] > 10.0 and abs(q['ms'] - q['ex']) < 0.05 * q['ex']
     assert q['stiff'] > 10.0                       # stable and flexing with 4x the paper's stiffness, one pass per step
+
+
+def test_force_velocity_curve():
+    """Hill's hyperbola when shortening (a/F0 = 0.25), 0 at and beyond v_max, 1 at rest with one slope
+    (5) on both sides, rising monotonically to the eccentric plateau when lengthening."""
+    fv = K.force_velocity
+    assert fv(0.0, 1.4) == 1.0 and fv(-1.0, 1.4) == 0.0 and fv(-3.0, 1.4) == 0.0
+    assert fv(-0.5, 1.4) == pytest.approx(0.5 / 3.0)            # (1 - 0.5) / (1 + 0.5 / 0.25)
+    vs = np.linspace(-1.2, 5.0, 2001)
+    f = np.array([fv(x, 1.4) for x in vs])
+    assert np.all(np.diff(f) >= 0) and f.min() == 0.0 and f.max() < 1.4 and fv(1e6, 1.4) == pytest.approx(1.4, rel=1e-6)
+    e = 1e-7
+    assert (fv(e, 1.4) - 1.0) / e == pytest.approx(5.0, rel=1e-4)
+    assert (1.0 - fv(-e, 1.4)) / e == pytest.approx(5.0, rel=1e-4)
+    assert fv(0.3, 1.0) == 1.0                                  # no eccentric gain: flat when lengthening

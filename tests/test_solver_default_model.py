@@ -110,3 +110,32 @@ def test_default_model_stays_at_rest(default_tm, preset):
     for t, st in solver.simulate(sim, 5.0 if preset == 'paper' else 2.0, None, every=5000, state=st):
         pass
     assert np.abs(st.x - sim.rest).max() < 1e-9 and np.abs(st.q).max() < 1e-9
+
+
+def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim):
+    """Hill force-velocity (physical set: v_max 10 rest lengths/s): under a step of full hamstring
+    activation the knee flexes more slowly than without it (a shortening muscle pulls less) and reaches
+    the same end stop; the muscle velocity the factor uses follows the rate of the observed muscle
+    lengths; with it off none is computed."""
+    off = solver.compile_model(default_tm, solver.Params.physical(max_contraction_velocity=0.0))
+    j = _knee(physical_sim)
+    ham = solver.muscle_indices(physical_sim, 'hamstrings')
+    res = {}
+    for name, sim in (('on', physical_sim), ('off', off)):
+        st, ctl = solver.make_state(sim), solver.make_control(sim)
+        ctl.activation[ham] = 1.0
+        q, L, v = [], [], []
+        for _ in range(40):                      # 0.8 s in 20-ms frames
+            solver.step(sim, st, ctl, n_steps=20)
+            o = solver.observe(sim, st)
+            q.append(o['joint_positions'][j]); L.append(o['muscle_lengths'][ham]); v.append(st.muscle_velocity[ham])
+        res[name] = np.array(q), np.array(L), np.array(v)
+    (q_on, L_on, v_on), (q_off, _, v_off) = res['on'], res['off']
+    k = 14                                       # t = 0.3 s, the knee swinging (measured 72 vs 87 deg)
+    assert q_on[k] < q_off[k] - math.radians(5)
+    hi = physical_sim.j_range[j][1]
+    assert abs(q_on[-1] - hi) < math.radians(1.5) and abs(q_off[-1] - hi) < math.radians(1.5)
+    fd = (L_on[k + 1] - L_on[k - 1]) / 0.04      # [m/s] central difference of the observed lengths
+    assert np.all(v_on[k] < 0.0) and v_on[k].min() < -0.2      # shortening (the short head slowest)
+    assert np.allclose(v_on[k], fd, rtol=0.2, atol=0.01), (v_on[k], fd)
+    assert np.all(v_off == 0.0)

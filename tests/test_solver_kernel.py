@@ -307,7 +307,16 @@ def _run_both(x, v, quat, lam, act, pressure, vol_gain, volume_actual, iters, cs
     for new in (True, False):
         f, q, p, e = np.zeros_like(x), quat.copy(), pressure.copy(), np.zeros(off.size - 1)
         if new:
-            bad = K.cell_forces(x, v, f, q, cells, lam, act, volume_actual, iters, e, p, vol_gain, K.cell_work(cells))
+            ln = np.full(off.size - 1, np.nan)
+            bad = K.cell_forces(x, v, f, q, cells, lam, act, volume_actual, iters, e, p, vol_gain, K.cell_work(cells), ln)
+            # the axial length it reports: the ring-centroid distance (even sizes; odd: |sum top - sum bottom| / half)
+            sizes = np.diff(off)
+            ref = np.empty(off.size - 1)
+            K.cell_axial_lengths(x, off, cv, ref)
+            even = sizes % 2 == 0
+            assert np.allclose(ln[even], ref[even], rtol=1e-12, atol=1e-15, equal_nan=True), 'cell_length'
+            fin = np.array([np.isfinite(x[cv[off[c]:off[c + 1]]]).all() for c in range(off.size - 1)])
+            assert np.all(np.isfinite(ln[fin])), 'cell_length'
         else:
             bad = _reference_cell_forces(x, v, f, q, off, cv, X0, Qinv, fibre, cell_muscle, lam, act, k, k_active,
                                          damp_b, volume_actual, iters, e, k_volume, p, vol_gain, q_tr, q_ff,

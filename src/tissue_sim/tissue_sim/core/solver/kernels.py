@@ -63,6 +63,40 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
             lam[m] = min(lam[m] * math.exp(-log_r * h_over_ref), target)
 
 
+# ------------------------------------------------------------------------------------ force-velocity
+FV_HILL_A = 0.25            # Hill's a / F0: curvature of the shortening branch (Hill 1938)
+FV_SLOPE = 1.0 + 1.0 / FV_HILL_A    # d f_v / d vn at vn = 0 (5): the lengthening branch has the same slope (C1)
+
+
+@njit(cache=True)
+def force_velocity(vn, fv_max):
+    """Hill force-velocity factor of the active force at the normalised fibre velocity vn = v / (v_max L0)
+    (lengthening > 0). Shortening: (1 + vn) / (1 - vn / a), a = 0.25 (Hill's hyperbola; 0 at and below
+    vn = -1). Lengthening: fv_max - (fv_max - 1) b / (b + vn), b = (fv_max - 1) / 5: 1 at rest with the
+    same slope 5 as the shortening branch, rising to the eccentric plateau fv_max."""
+    if vn <= -1.0:
+        return 0.0
+    if vn <= 0.0:
+        return (1.0 + vn) / (1.0 - vn / FV_HILL_A)
+    b = (fv_max - 1.0) / FV_SLOPE
+    return fv_max - (fv_max - 1.0) * b / (b + vn) if b > 0.0 else 1.0
+
+
+@njit(cache=True)
+def muscle_velocity(cell_length, mcells, mcell_muscle, mcell_weight, mlen, mvel, h, alpha, scratch):
+    """Per muscle: its length sum_c w_c l_c [m] over its cells (l_c = cell_length, w_c the length weight);
+    its lengthening velocity [m/s] by the backward difference over h, low-pass filtered in place:
+    mvel += alpha (raw - mvel). mlen holds the previous length; mlen < 0 (a fresh or re-posed state)
+    only records it."""
+    scratch[:] = 0.0
+    for k in range(mcells.shape[0]):
+        scratch[mcell_muscle[k]] += mcell_weight[k] * cell_length[mcells[k]]
+    for m in range(mlen.shape[0]):
+        if mlen[m] >= 0.0:
+            mvel[m] += alpha * ((scratch[m] - mlen[m]) / h - mvel[m])
+        mlen[m] = scratch[m]
+
+
 # ------------------------------------------------------------------------------------ cell forces
 # The cell kernel runs SIMD across cells. Cells of the same size n are packed into blocks of BLK lanes
 # (one cell per lane, pack_cells); every per-cell quantity is a row of BLK doubles (structure of
@@ -114,7 +148,8 @@ W_BW = 75                   # b w (3)
 W_TA = 78                   # active tension force on a bottom-ring vertex [N] (3)
 W_E = 81                    # cell energy [J]
 W_BAD = 82                  # 1.0 where the force is non-finite or absurd
-N_W = 83
+W_LN = 83                   # axial length: distance of the ring centroids [m]
+N_W = 84
 # The block's vertices (work[1]): slot s of every lane at rows 6 s .. 6 s + 5: x (3 rows, replaced by
 # the force), v (3 rows, damped blocks only). A separate buffer: LLVM then checks once at run time that
 # it does not overlap the per-lane rows (two offsets it cannot see apart in one buffer stop the
@@ -184,11 +219,14 @@ def cell_work(cells):
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energy, pressure, vol_gain, work):
+def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energy, pressure, vol_gain, work,
+                cell_length):
     """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
     (zeroed here). Returns the lowest cell whose force is non-finite or overflowing, else -1.
     cells: the layout of pack_cells; work: cell_work(cells). quat, cell_energy, pressure (per cell)
-    and lam, act (per muscle) as in State.
+    and lam, act (per muscle) as in State; act is the activation of the active tension (the solver passes
+    it times the force-velocity factor). cell_length (C,) gets each cell's axial length: the distance
+    between its bottom- and top-ring centroids [m] (an odd-sized cell: |sum top - sum bottom| / (n // 2)).
 
     Per cell (moments of its vertices, then its 3x3 algebra, then one affine map per vertex):
     centroid c = mean x_i; A = sum (x_i - c) X0_i^T; rest shape X'_i = F X0_i with
@@ -226,8 +264,8 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
         idx = slot_idx[r0:r0 + ns]
         X0 = slot_X0[r0 * 3 * BLK:(r0 + ns) * 3 * BLK]
         pb = par[b]
-        damped, tension = _load_block(x, v, quat, lam, act, pressure, ids[b], lane_muscle[b], pb, idx, cnt, n, w, gv)
-        _moments(w, gv, X0, n, damped, tension)
+        damped = _load_block(x, v, quat, lam, act, pressure, ids[b], lane_muscle[b], pb, idx, cnt, n, w, gv)
+        _moments(w, gv, X0, n, damped)
         _cell_algebra(w, pb, n, volume_actual, vol_gain)
         _rotations(w, iters)
         _force_maps(w, pb, n)
@@ -243,6 +281,7 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
                 quat[j, r] = w[(W_Q + r) * BLK + c]
             pressure[j] = w[W_PRES * BLK + c]
             cell_energy[j] = w[W_E * BLK + c]
+            cell_length[j] = w[W_LN * BLK + c]
             if w[W_BAD * BLK + c] != 0.0 and (bad < 0 or j < bad):
                 bad = j
     return bad
@@ -251,9 +290,9 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
 @njit(cache=True)
 def _load_block(x, v, quat, lam, act, pressure, ids, mus, pb, idx, cnt, n, w, gv):
     """Per-lane state (quaternion, pressure, the muscle's lam and activation) into the work rows, the
-    block's vertex positions (and velocities if a lane is damped) into gv. Returns (damped, tension):
-    whether any lane has damping, any lane active tension."""
-    damped = tension = False
+    block's vertex positions (and velocities if a lane is damped) into gv. Returns whether any lane
+    has damping."""
+    damped = False
     for c in range(BLK):
         qx, qy, qz, qw, pr, la, a, mu = 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
         if c < cnt:
@@ -263,7 +302,6 @@ def _load_block(x, v, quat, lam, act, pressure, ids, mus, pb, idx, cnt, n, w, gv
             pr = pressure[j]
             if m >= 0:
                 la, a, mu = lam[m], act[m], 1.0
-                tension = tension or (pb[P_KACT * BLK + c] > 0.0 and a > 0.0)
             damped = damped or pb[P_B * BLK + c] > 0.0
         w[W_Q * BLK + c] = qx; w[(W_Q + 1) * BLK + c] = qy; w[(W_Q + 2) * BLK + c] = qz; w[(W_Q + 3) * BLK + c] = qw
         w[W_PRES * BLK + c] = pr; w[W_LAM * BLK + c] = la; w[W_ACT * BLK + c] = a; w[W_MUS * BLK + c] = mu
@@ -281,13 +319,13 @@ def _load_block(x, v, quat, lam, act, pressure, ids, mus, pb, idx, cnt, n, w, gv
             for c in range(BLK):
                 i = idx[s, c]
                 gv[g + c] = x[i, 0]; gv[g + BLK + c] = x[i, 1]; gv[g + 2 * BLK + c] = x[i, 2]
-    return damped, tension
+    return damped
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def _moments(w, gv, X0, n, damped, tension):
+def _moments(w, gv, X0, n, damped):
     """Sums over each lane's vertices (vectorised over lanes, two slots per pass, one pass): sum d, A,
-    sum d d^T; sum v and sum d x v if damped; the bottom ring's sum d if tension (else zeros)."""
+    sum d d^T; the bottom ring's sum d; sum v and sum d x v if damped (else zeros)."""
     half = n // 2
     for c in range(BLK):
         w[W_O * BLK + c] = gv[c]
@@ -298,8 +336,8 @@ def _moments(w, gv, X0, n, damped, tension):
     for s2 in range((n + 1) // 2):
         g = 12 * s2 * BLK           # slots s = 2 s2 (d, X0) and s + 1 (e, E)
         h = 6 * s2 * BLK
-        b0 = 1.0 if tension and 2 * s2 < half else 0.0          # bottom-ring weights of the two slots
-        b1 = 1.0 if tension and 2 * s2 + 1 < half else 0.0
+        b0 = 1.0 if 2 * s2 < half else 0.0          # bottom-ring weights of the two slots
+        b1 = 1.0 if 2 * s2 + 1 < half else 0.0
         for c in range(BLK):
             ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
             dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
@@ -545,6 +583,7 @@ def _force_maps(w, pb, n):
         uz = (sz - 2.0 * w[(W_U + 2) * BLK + c] + odd * w[(W_O + 2) * BLK + c]) / half
         a, kact = w[W_ACT * BLK + c], pb[P_KACT * BLK + c]
         ln = math.sqrt(ux * ux + uy * uy + uz * uz)
+        w[W_LN * BLK + c] = ln
         stretch = ln - la * pb[P_LEN * BLK + c]
         pull = mus and kact > 0.0 and a > 0.0 and stretch > 0.0 and ln > 0.0
         ka = a * kact * 0.25 * n

@@ -64,6 +64,7 @@ class SimModel:
     k_volume: np.ndarray            # (C,) volume penalty stiffness on det of the best-fit affine map [J] (0 = off)
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
+    muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
     free_idx: np.ndarray            # (V - A,) int32 free vertices
     att_idx: np.ndarray             # (A,) int32 bone-attached vertices, grouped by segment (ascending vertex within)
     att_seg: np.ndarray             # (A,) int32 their segments
@@ -144,6 +145,9 @@ class State:
     lam: np.ndarray                 # (M,) fibre stretch of each muscle's rest shape (1 = rest length)
     cell_energy: np.ndarray         # (C,) elastic energy per cell at the last force evaluation
     pressure: np.ndarray            # (C,) integral volume term of each muscle cell [J per unit det]
+    cell_length: np.ndarray = None  # (C,) [m] axial length of each cell (ring-centroid distance) at the last force evaluation
+    muscle_length: np.ndarray = None    # (M,) [m] muscle lengths at the last force evaluation (force-velocity on; -1: not yet)
+    muscle_velocity: np.ndarray = None  # (M,) [m/s] lengthening velocity of each muscle, low-pass filtered (force-velocity on)
     step: int = 0
     time: float = 0.0               # [s]
     kinetic_energy: float = 0.0     # free vertices, last step
@@ -296,7 +300,10 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
         Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(q_ff), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
-        length_weight=_frozen(lw), free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
+        length_weight=_frozen(lw),
+        muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
+                                               minlength=tm.n_muscles)[:tm.n_muscles]),
+        free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
         seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
         seg_mass=_frozen(seg_mass), seg_com=_frozen(seg_com), seg_inertia=_frozen(seg_I),
@@ -390,7 +397,7 @@ def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
         xp = sim.rest + scale * u
         quat[:] = (0.0, 0.0, 0.0, 1.0)
         K.cell_forces(xp, xp, f, quat, cells, lam, act, sim.params.volume_mode == 'actual', 20, e,
-                      np.zeros(sim.n_cells), 0.0, work)
+                      np.zeros(sim.n_cells), 0.0, work, np.empty(sim.n_cells))
         y = -(f / scale) * sim.inv_mass[:, None]
         lam_est = float(np.sum(y * u))
         u = y
@@ -405,6 +412,8 @@ def make_state(sim: SimModel) -> State:
     st = State(x=sim.rest.copy(), v=np.zeros((V, 3)), f=np.zeros((V, 3)), quat=quat, q=sim.j_rest.copy(),
                qd=np.zeros(J), seg_R=np.tile(np.eye(3), (S, 1, 1)), seg_t=np.zeros((S, 3)),
                lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
+               cell_length=np.zeros(C), muscle_length=np.full(max(sim.n_muscles, 0), -1.0),
+               muscle_velocity=np.zeros(max(sim.n_muscles, 0)),
                x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), work=np.zeros((max(J, 1), 9 + max(J, 1))))   # skeleton scratch; last column: kinetic energy
     return st
 
@@ -433,6 +442,8 @@ def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
                          state.seg_R, state.seg_t)
     a, s = sim.att_idx, sim.att_seg
     state.x[a] = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[a]) + state.seg_t[s]
+    state.muscle_length[:] = -1.0        # a jump, not a motion: the force-velocity estimate starts again
+    state.muscle_velocity[:] = 0.0
     return state
 
 

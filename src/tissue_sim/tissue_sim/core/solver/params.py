@@ -59,6 +59,10 @@ class Params:
     volume_stiffness: float = 0.5         # muscle volume penalty, relative to k (0 = off; keeps each muscle cell's volume)
     volume_relax_time: float = 0.005      # [s] integral (pressure) term restoring each muscle cell's volume; 0 = off
     volume_mode: str = 'actual'           # muscle cross-section: 'actual' = 1/sqrt(current fibre stretch), 'rest' = 1/sqrt(lambda)
+    max_contraction_velocity: float = 0.0 # [1/s] Hill force-velocity of the active tension: v_max in rest lengths per second
+                                          # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
+    fv_max_lengthening: float = 1.4       # eccentric plateau of the force-velocity factor (x isometric; Thelen 2003)
+    fv_filter_time: float = 0.005         # [s] low-pass time constant of the muscle velocity the factor uses
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
@@ -81,7 +85,7 @@ class Params:
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=1.0, max_speed=50.0,
-                    integrator='mass_scaled', substeps=4)   # gram masses, stiff active tension: h = 0.25 ms with
+                    integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0)   # gram masses, stiff active tension: h = 0.25 ms with
         # selective mass scaling (the light tendon/edge vertices get heavier; docs/solver.md gives the added mass)
         base.update(kw)
         return cls(**base).validate()
@@ -102,7 +106,8 @@ class Params:
         for name in ('vertex_mass', 'density_muscle', 'density_fat', 'k_muscle', 'k_fat', 'youngs_muscle',
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')
-        for name in ('volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
+        need(self.fv_max_lengthening >= 1, 'fv_max_lengthening must be >= 1')
+        for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
         need(0 < self.relax_rate <= 1, 'relax_rate must be in (0, 1]')

@@ -35,23 +35,31 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
     tissue = vertex constants, skel = skeleton constants, num = scalar parameters. Positions and
     velocities alternate between (x, v) and the back buffers (xb, vb); returns how many swaps
     happened. On failure info = (step, cell, cause) and the state is left at the last good sub-step."""
-    x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work = st
-    rest, inv_den, mass, free_idx, att_idx, att_seg = tissue
+    x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work, cell_len, mlen, mvel = st
+    rest, inv_den, mass, free_idx, att_idx, att_seg, mcells, mcell_muscle, mcell_weight, inv_vl0 = tissue
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, \
         j_rest, j_range, anc, grav = skel
-    log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp, lim_wh, lim_z, vel_damp, vol_gain, vmax2 = num
+    log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp, lim_wh, lim_z, vel_damp, vol_gain, vmax2, \
+        fv_on, fv_max, fv_alpha = num
     swaps = 0
     q0, qd0, lam0, cell_work = q.copy(), qd.copy(), lam.copy(), K.cell_work(cells)
+    mlen0, mvel0, act_t, mscratch = mlen.copy(), mvel.copy(), np.empty(lam.shape[0]), np.empty(lam.shape[0])
     for n in range(n_steps):
         act = acts[n]
         for _ in range(n_sub):
-            q0[:] = q; qd0[:] = qd; lam0[:] = lam
-            # 1. muscle tension: contraction state, then every cell's elastic + volume + damping force
+            q0[:] = q; qd0[:] = qd; lam0[:] = lam; mlen0[:] = mlen; mvel0[:] = mvel
+            # 1. muscle tension: contraction state, the active tension's activation x the force-velocity
+            # factor (muscle velocity from the last evaluation), then every cell's elastic + volume + damping force
             K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)
-            bad = K.cell_forces(x, v, f, quat, cells, lam, act, vol_actual, iters, cell_e, pres, vol_gain, cell_work)
+            for m in range(act_t.shape[0]):
+                act_t[m] = act[m] * K.force_velocity(mvel[m] * inv_vl0[m], fv_max) if fv_on else act[m]
+            bad = K.cell_forces(x, v, f, quat, cells, lam, act_t, vol_actual, iters, cell_e, pres, vol_gain, cell_work,
+                                cell_len)
+            if fv_on:
+                K.muscle_velocity(cell_len, mcells, mcell_muscle, mcell_weight, mlen, mvel, h, fv_alpha, mscratch)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
-                lam[:] = lam0
+                lam[:] = lam0; mlen[:] = mlen0; mvel[:] = mvel0
                 work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
@@ -62,7 +70,7 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
             fast = K.integrate(h, x, v, f, inv_den, xb, vb, att_idx, att_seg, rest, seg_R, seg_t, grav, vel_damp, vmax2)
             if not ok or fast:
                 info[0], info[1], info[2] = n, -1, K.CAUSE_SKELETON if not ok else K.CAUSE_SPEED
-                q[:] = q0; qd[:] = qd0; lam[:] = lam0
+                q[:] = q0; qd[:] = qd0; lam[:] = lam0; mlen[:] = mlen0; mvel[:] = mvel0
                 K.forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t)
                 work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
                 return swaps
@@ -80,14 +88,20 @@ def _arrays(sim: SimModel, h: float):
     if t is None:
         p = sim.params
         cells = sim.cell_blocks
-        tissue = (sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.att_idx, sim.att_seg)
+        mcells = np.flatnonzero(sim.cell_muscle >= 0).astype(np.int32)
+        vl0 = p.max_contraction_velocity * sim.muscle_rest_length
+        inv_vl0 = np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0)
+        tissue = (sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.att_idx, sim.att_seg, mcells,
+                  sim.cell_muscle[mcells], sim.length_weight[mcells], inv_vl0)
         skel = (sim.seg_order, sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia,
                 sim.j_parent, sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc,
                 sim.gravity)
         num = (math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping), float(p.limit_omega_dt),
                float(p.limit_damping_ratio), float(p.velocity_damping),
-               h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, float(p.max_speed) ** 2)
+               h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, float(p.max_speed) ** 2,
+               p.max_contraction_velocity > 0 and p.specific_tension > 0, float(p.fv_max_lengthening),
+               h / (p.fv_filter_time + h))
         t = sim.cache[key] = (cells, tissue, skel, num)
     return t
 
@@ -99,7 +113,8 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float) -> None:
     h = dt / n_sub
     info = np.array([-1, -1, 0], np.int64)
     st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
-          state.seg_t, state.lam, state.cell_energy, state.pressure, state.work)
+          state.seg_t, state.lam, state.cell_energy, state.pressure, state.work, state.cell_length,
+          state.muscle_length, state.muscle_velocity)
     swaps = advance(acts.shape[0], n_sub, h, acts, st, *_arrays(sim, h), info)
     if swaps % 2:
         state.x, state.x_back = state.x_back, state.x
