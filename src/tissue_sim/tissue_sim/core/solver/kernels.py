@@ -15,6 +15,26 @@ import math
 import numpy as np
 from numba import njit
 
+
+def _noalias_option() -> dict:
+    """The jit option that marks a function's array arguments noalias (LLVM), as {'_noalias': True}.
+
+    numba has the flag (Flags.noalias: every pointer argument gets LLVM's noalias attribute) but no
+    public jit option for it; this registers one on the CPU target (numba pinned in requirements/core.txt).
+    It lets LLVM vectorise a loop that loads through an index array (the fused gather of _moments):
+    without it LLVM cannot rule out that the stores of the loop write into the gathered arrays. Returns {}
+    (the same code, not vectorised: slower, same results) if a numba version lacks the internals."""
+    try:
+        from numba.core import cpu, options
+        if not hasattr(cpu.CPUTargetOptions, '_noalias'):
+            cpu.CPUTargetOptions._noalias = options.TargetOptions.Mapping('noalias')
+        return {'_noalias': True}
+    except (ImportError, AttributeError):      # pragma: no cover - other numba versions
+        return {}
+
+
+NOALIAS = _noalias_option()
+
 CAUSE_OK = 0
 CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
 CAUSE_SPEED = 2             # a vertex exceeded max_speed (energy blow-up)
@@ -105,8 +125,9 @@ def muscle_velocity(cell_length, mcells, mcell_muscle, mcell_weight, mlen, mvel,
 # a loop writes lies in one buffer at a compile-time offset (a multiple of BLK), so LLVM knows that
 # the rows do not overlap. Loops over lanes run over the whole block (a constant trip count: no
 # remainder loop); a padding lane holds a dummy cell (no stiffness, X0 = 0) whose results are
-# dropped. Only gathering the positions and velocities into the block and the scatter-add of the
-# forces are scalar (indirect addressing; AVX2 has no scatter), in a fixed order: deterministic.
+# dropped. The gather of the block's positions and velocities is fused into the moment loop, which
+# LLVM vectorises with scalar loads once the arrays are marked noalias (NOALIAS); the scatter-add of
+# the forces is scalar (AVX2 has no scatter; lanes may share a vertex), in a fixed order: deterministic.
 BLK = 16                    # lanes (cells) per block: a multiple of 4 (doubles per AVX2 register); 8 lanes
                             # vectorise poorly, 32 and 64 measured 2-10 % slower (the rows outgrow L1)
 
@@ -151,7 +172,7 @@ W_BAD = 82                  # 1.0 where the force is non-finite or absurd
 W_LN = 83                   # axial length: distance of the ring centroids [m]
 N_W = 84
 # The block's vertices (work[1]): slot s of every lane at rows 6 s .. 6 s + 5: x (3 rows, replaced by
-# the force), v (3 rows, damped blocks only). A separate buffer: LLVM then checks once at run time that
+# the force), v (3 rows; zero in a padding slot). A separate buffer: LLVM then checks once at run time that
 # it does not overlap the per-lane rows (two offsets it cannot see apart in one buffer stop the
 # vectoriser). The moment loops take two slots per pass (half the loads and stores of the sums), so a
 # cell of odd size gets a padding slot: its own first vertex with X0 = 0, adding exact zeros.
@@ -257,6 +278,7 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
     blocks, ids, slot_idx, slot_X0, par, lane_muscle = cells
     w, gv = work
     f[:] = 0.0
+    xf, vf, ff = x.reshape(-1), v.reshape(-1), f.reshape(-1)
     bad = -1
     for b in range(blocks.shape[0]):
         n, cnt, r0 = blocks[b, 0], blocks[b, 1], blocks[b, 2]
@@ -264,8 +286,8 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
         idx = slot_idx[r0:r0 + ns]
         X0 = slot_X0[r0 * 3 * BLK:(r0 + ns) * 3 * BLK]
         pb = par[b]
-        damped = _load_block(x, v, quat, lam, act, pressure, ids[b], lane_muscle[b], pb, idx, cnt, n, w, gv)
-        _moments(w, gv, X0, n, damped)
+        _load_lanes(quat, lam, act, pressure, ids[b], lane_muscle[b], cnt, w)
+        _moments(w, gv, X0, n, xf, vf, idx)
         _cell_algebra(w, pb, n, volume_actual, vol_gain)
         _rotations(w, iters)
         _force_maps(w, pb, n)
@@ -273,8 +295,8 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
         for s in range(n):                  # scatter-add, slot by slot, lane by lane
             g = 6 * s * BLK
             for c in range(cnt):
-                i = idx[s, c]
-                f[i, 0] += gv[g + c]; f[i, 1] += gv[g + BLK + c]; f[i, 2] += gv[g + 2 * BLK + c]
+                i = 3 * np.uint32(idx[s, c])
+                ff[i] += gv[g + c]; ff[i + 1] += gv[g + BLK + c]; ff[i + 2] += gv[g + 2 * BLK + c]
         for c in range(cnt):
             j = ids[b, c]
             for r in range(4):
@@ -288,11 +310,8 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
 
 
 @njit(cache=True)
-def _load_block(x, v, quat, lam, act, pressure, ids, mus, pb, idx, cnt, n, w, gv):
-    """Per-lane state (quaternion, pressure, the muscle's lam and activation) into the work rows, the
-    block's vertex positions (and velocities if a lane is damped) into gv. Returns whether any lane
-    has damping."""
-    damped = False
+def _load_lanes(quat, lam, act, pressure, ids, mus, cnt, w):
+    """Per-lane state (quaternion, pressure, the muscle's lam and activation) into the work rows."""
     for c in range(BLK):
         qx, qy, qz, qw, pr, la, a, mu = 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
         if c < cnt:
@@ -302,35 +321,22 @@ def _load_block(x, v, quat, lam, act, pressure, ids, mus, pb, idx, cnt, n, w, gv
             pr = pressure[j]
             if m >= 0:
                 la, a, mu = lam[m], act[m], 1.0
-            damped = damped or pb[P_B * BLK + c] > 0.0
         w[W_Q * BLK + c] = qx; w[(W_Q + 1) * BLK + c] = qy; w[(W_Q + 2) * BLK + c] = qz; w[(W_Q + 3) * BLK + c] = qw
         w[W_PRES * BLK + c] = pr; w[W_LAM * BLK + c] = la; w[W_ACT * BLK + c] = a; w[W_MUS * BLK + c] = mu
-    for s in range(idx.shape[0]):
-        g = 6 * s * BLK
-        if damped:                  # (the padding slot of an odd-sized cell gets zero velocity: adds nothing)
-            real = s < n
-            for c in range(BLK):
-                i = idx[s, c]
-                gv[g + c] = x[i, 0]; gv[g + BLK + c] = x[i, 1]; gv[g + 2 * BLK + c] = x[i, 2]
-                gv[g + 3 * BLK + c] = v[i, 0] if real else 0.0
-                gv[g + 4 * BLK + c] = v[i, 1] if real else 0.0
-                gv[g + 5 * BLK + c] = v[i, 2] if real else 0.0
-        else:
-            for c in range(BLK):
-                i = idx[s, c]
-                gv[g + c] = x[i, 0]; gv[g + BLK + c] = x[i, 1]; gv[g + 2 * BLK + c] = x[i, 2]
-    return damped
 
 
-@njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def _moments(w, gv, X0, n, damped):
-    """Sums over each lane's vertices (vectorised over lanes, two slots per pass, one pass): sum d, A,
-    sum d d^T; the bottom ring's sum d; sum v and sum d x v if damped (else zeros)."""
+@njit(cache=True, fastmath={'contract'}, error_model='numpy', **NOALIAS)
+def _moments(w, gv, X0, n, x, v, idx):
+    """Gathers the block's vertex positions and velocities (x, v flat (3V,), idx the slot rows) into gv
+    and sums over each lane's vertices in the same pass (vectorised over lanes, two slots per pass): sum d,
+    A, sum d d^T; the bottom ring's sum d; sum v and sum d x v (used by damped lanes only). noalias: w and
+    gv must not overlap x, v, X0 or idx (x and v may be the same array: both are only read)."""
     half = n // 2
     for c in range(BLK):
-        w[W_O * BLK + c] = gv[c]
-        w[(W_O + 1) * BLK + c] = gv[BLK + c]
-        w[(W_O + 2) * BLK + c] = gv[2 * BLK + c]
+        i = 3 * np.uint32(idx[0, c])
+        w[W_O * BLK + c] = x[i]
+        w[(W_O + 1) * BLK + c] = x[i + 1]
+        w[(W_O + 2) * BLK + c] = x[i + 2]
         for r in range(W_S, W_U + 3):
             w[r * BLK + c] = 0.0
     for s2 in range((n + 1) // 2):
@@ -338,10 +344,16 @@ def _moments(w, gv, X0, n, damped):
         h = 6 * s2 * BLK
         b0 = 1.0 if 2 * s2 < half else 0.0          # bottom-ring weights of the two slots
         b1 = 1.0 if 2 * s2 + 1 < half else 0.0
+        real1 = 1.0 if 2 * s2 + 1 < n else 0.0          # 0: the padding slot of an odd-sized cell
         for c in range(BLK):
+            i0, i1 = 3 * np.uint32(idx[2 * s2, c]), 3 * np.uint32(idx[2 * s2 + 1, c])
+            px, py, pz = x[i0], x[i0 + 1], x[i0 + 2]
+            qx, qy, qz = x[i1], x[i1 + 1], x[i1 + 2]
+            gv[g + c] = px; gv[g + BLK + c] = py; gv[g + 2 * BLK + c] = pz
+            gv[g + 6 * BLK + c] = qx; gv[g + 7 * BLK + c] = qy; gv[g + 8 * BLK + c] = qz
             ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
-            dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
-            ex, ey, ez = gv[g + 6 * BLK + c] - ox, gv[g + 7 * BLK + c] - oy, gv[g + 8 * BLK + c] - oz
+            dx, dy, dz = px - ox, py - oy, pz - oz
+            ex, ey, ez = qx - ox, qy - oy, qz - oz
             X, Y, Z = X0[h + c], X0[h + BLK + c], X0[h + 2 * BLK + c]
             EX, EY, EZ = X0[h + 3 * BLK + c], X0[h + 4 * BLK + c], X0[h + 5 * BLK + c]
             w[W_S * BLK + c] += dx + ex; w[(W_S + 1) * BLK + c] += dy + ey; w[(W_S + 2) * BLK + c] += dz + ez
@@ -363,13 +375,11 @@ def _moments(w, gv, X0, n, damped):
             w[W_U * BLK + c] += b0 * dx + b1 * ex
             w[(W_U + 1) * BLK + c] += b0 * dy + b1 * ey
             w[(W_U + 2) * BLK + c] += b0 * dz + b1 * ez
-            # velocities: the rows are not gathered for an undamped block (a select, not a branch)
-            ux = gv[g + 3 * BLK + c] if damped else 0.0
-            uy = gv[g + 4 * BLK + c] if damped else 0.0
-            uz = gv[g + 5 * BLK + c] if damped else 0.0
-            tx = gv[g + 9 * BLK + c] if damped else 0.0
-            ty = gv[g + 10 * BLK + c] if damped else 0.0
-            tz = gv[g + 11 * BLK + c] if damped else 0.0
+            # velocities (an odd-sized cell's padding slot: zero)
+            ux, uy, uz = v[i0], v[i0 + 1], v[i0 + 2]
+            tx, ty, tz = v[i1] * real1, v[i1 + 1] * real1, v[i1 + 2] * real1
+            gv[g + 3 * BLK + c] = ux; gv[g + 4 * BLK + c] = uy; gv[g + 5 * BLK + c] = uz
+            gv[g + 9 * BLK + c] = tx; gv[g + 10 * BLK + c] = ty; gv[g + 11 * BLK + c] = tz
             w[W_V * BLK + c] += ux + tx; w[(W_V + 1) * BLK + c] += uy + ty; w[(W_V + 2) * BLK + c] += uz + tz
             w[W_L * BLK + c] += (dy * uz - dz * uy) + (ey * tz - ez * ty)
             w[(W_L + 1) * BLK + c] += (dz * ux - dx * uz) + (ez * tx - ex * tz)
@@ -633,7 +643,6 @@ def _vertex_forces(w, gv, X0, pb, n):
         sg1 = 1.0 if 2 * s2 + 1 < half else -1.0
         for c in range(BLK):
             k, b = pb[P_K * BLK + c], pb[P_B * BLK + c]
-            damp = b > 0.0              # (undamped blocks do not gather the velocity rows)
             ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
             m00, m01, m02 = w[W_M * BLK + c], w[(W_M + 1) * BLK + c], w[(W_M + 2) * BLK + c]
             m10, m11, m12 = w[(W_M + 3) * BLK + c], w[(W_M + 4) * BLK + c], w[(W_M + 5) * BLK + c]
@@ -647,9 +656,9 @@ def _vertex_forces(w, gv, X0, pb, n):
             fx = m00 * X + m01 * Y + m02 * Z - k * dx + (bwy * dz - bwz * dy) + cx0
             fy = m10 * X + m11 * Y + m12 * Z - k * dy + (bwz * dx - bwx * dz) + cy0
             fz = m20 * X + m21 * Y + m22 * Z - k * dz + (bwx * dy - bwy * dx) + cz0
-            fx = fx - b * gv[g + 3 * BLK + c] if damp else fx
-            fy = fy - b * gv[g + 4 * BLK + c] if damp else fy
-            fz = fz - b * gv[g + 5 * BLK + c] if damp else fz
+            fx = fx - b * gv[g + 3 * BLK + c]
+            fy = fy - b * gv[g + 4 * BLK + c]
+            fz = fz - b * gv[g + 5 * BLK + c]
             gv[g + c] = fx + sg0 * tax
             gv[g + BLK + c] = fy + sg0 * tay
             gv[g + 2 * BLK + c] = fz + sg0 * taz
@@ -659,9 +668,9 @@ def _vertex_forces(w, gv, X0, pb, n):
             fx = m00 * U + m01 * V + m02 * W - k * ex + (bwy * ez - bwz * ey) + cx0
             fy = m10 * U + m11 * V + m12 * W - k * ey + (bwz * ex - bwx * ez) + cy0
             fz = m20 * U + m21 * V + m22 * W - k * ez + (bwx * ey - bwy * ex) + cz0
-            fx = fx - b * gv[g + 9 * BLK + c] if damp else fx
-            fy = fy - b * gv[g + 10 * BLK + c] if damp else fy
-            fz = fz - b * gv[g + 11 * BLK + c] if damp else fz
+            fx = fx - b * gv[g + 9 * BLK + c]
+            fy = fy - b * gv[g + 10 * BLK + c]
+            fz = fz - b * gv[g + 11 * BLK + c]
             gv[g + 6 * BLK + c] = fx + sg1 * tax
             gv[g + 7 * BLK + c] = fy + sg1 * tay
             gv[g + 8 * BLK + c] = fz + sg1 * taz
