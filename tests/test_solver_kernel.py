@@ -457,8 +457,8 @@ def test_the_fused_gather_is_compiled_noalias():
     ir = njit(fastmath={'contract'}, error_model='numpy', **K.NOALIAS)(fn)
     w, gv = np.zeros(K.N_W * K.BLK), np.zeros(6 * 2 * K.BLK)
     x = np.arange(30.0)
-    ir(w, gv, np.zeros(2 * 3 * K.BLK), 2, x, x, np.zeros((2, K.BLK), np.int32) + 3)
+    ir(w, gv, np.zeros(2 * 3 * K.BLK), 2, x, x, np.zeros((2, K.BLK), np.uint32) + 9)    # vertex 3: offset 3 * 3
     text = next(iter(ir.inspect_llvm().values()))
     define = next(line for line in text.splitlines() if line.startswith('define') and '_moments' in line)
     assert define.count('noalias') >= 8                     # retptr, excinfo + the data pointers of the arrays
-    assert w[K.W_O * K.BLK] == 9.0 and gv[0] == 9.0          # gathered x[3 * 3] through the slot index
+    assert w[K.W_O * K.BLK] == 9.0 and gv[0] == 9.0          # gathered x[3 * 3] through the slot offset

@@ -140,8 +140,9 @@ P_QTR = 4                   # tr Q [m^2], Q = sum X0 X0^T
 P_QFF = 5                   # f^T Q f [m^2]
 P_LEN = 6                   # rest distance of the ring centroids [m]
 P_F = 7                     # fibre direction (3)
-P_QI = 10                   # Qinv (9, row-major) [1/m^2]
-N_PAR = 19
+P_G = 10                    # Qinv f (3) [1/m^2]: D f = A (Qinv f), the current fibre stretch vector
+P_DQ = 13                   # det Qinv [1/m^6]: det D = det A det Qinv, cof(D) Qinv = det Qinv cof(A)
+N_PAR = 14
 
 # rows of the per-lane work buffer (work[0][row * BLK + lane])
 W_S = 0                     # sum d_i, d_i = x_i - x_first (a local origin, for precision) (3)
@@ -157,9 +158,9 @@ W_ACT = 35                  # activation (0 for fat)
 W_MUS = 36                  # 1.0 for a muscle cell, 0.0 for fat
 W_PRES = 37                 # integral volume pressure (updated)
 W_SL = 38                   # cross-section factor s of F
-W_B = 39                    # B / |B|, B = A F (9)
+W_B = 39                    # B = A F (9)
 W_ON = 48                   # 1.0 while the rotation iteration of the lane runs
-W_P = 49                    # volume force map P = g cof(D) Qinv (9)
+W_P = 49                    # volume force map P = g cof(D) Qinv = g det(Qinv) cof(A) (9)
 W_EV = 58                   # volume energy [J]
 W_TRY = 59                  # tr Y, Y = sum r_i r_i^T about the centroid [m^2]
 W_W = 60                    # rigid angular velocity w [rad/s] (3)
@@ -170,7 +171,8 @@ W_TA = 78                   # active tension force on a bottom-ring vertex [N] (
 W_E = 81                    # cell energy [J]
 W_BAD = 82                  # 1.0 where the force is non-finite or absurd
 W_LN = 83                   # axial length: distance of the ring centroids [m]
-N_W = 84
+W_NB2 = 84                  # |B|^2 (Frobenius): the scale of B for the regularised Mueller step
+N_W = 85
 # The block's vertices (work[1]): slot s of every lane at rows 6 s .. 6 s + 5: x (3 rows, replaced by
 # the force), v (3 rows; zero in a padding slot). A separate buffer: LLVM then checks once at run time that
 # it does not overlap the per-lane rows (two offsets it cannot see apart in one buffer stop the
@@ -182,17 +184,19 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     """The block layout cell_forces reads (numpy, at compile time): cells grouped by size n (ascending),
     each group in cell order, in blocks of BLK lanes. Returns (blocks, ids, slot_idx, slot_X0, par,
     lane_muscle): blocks (B, 3) int64 = n, cells in the block, first slot row r0; ids (B, BLK) int32
-    cell of each lane (-1: padding); slot_idx (R, BLK) int32 vertex of slot s of each lane at row
-    r0 + s, n + n % 2 slots per block (padding lanes repeat lane 0); slot_X0 (R * 3 * BLK,) X0 of
+    cell of each lane (-1: padding); slot_idx (R, BLK) uint32 3 x the vertex of slot s of each lane at
+    row r0 + s (its offset in the flat position array: unsigned, so no negative-index wrap-around),
+    n + n % 2 slots per block (padding lanes repeat lane 0); slot_X0 (R * 3 * BLK,) X0 of
     slot s, axis d at ((r0 + s) * 3 + d) * BLK (0 for padding); par (B, N_PAR * BLK) per-lane
     constants (P_* rows, 0 for padding); lane_muscle (B, BLK) int32 muscle of each lane (-1: fat or
     padding). Read-only; the float arrays 64-byte aligned (vector loads)."""
     sizes = np.diff(off)
+    Qi = np.asarray(Qinv, float).reshape(-1, 3, 3)
     rows = np.concatenate([np.asarray(k, float)[None], np.asarray(k_active, float)[None],
                            np.asarray(damp_b, float)[None], np.asarray(k_volume, float)[None],
                            np.asarray(q_tr, float)[None], np.asarray(q_ff, float)[None],
                            np.asarray(rest_length, float)[None], np.asarray(fibre, float).T,
-                           np.asarray(Qinv, float).reshape(-1, 9).T])
+                           np.einsum('cij,cj->ci', Qi, np.asarray(fibre, float)).T, np.linalg.det(Qi)[None]])
     chunks = []
     for n in np.unique(sizes):
         cells = np.flatnonzero(sizes == n)
@@ -201,7 +205,7 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     blocks = np.zeros((B, 3), np.int64)
     ids = np.full((B, BLK), -1, np.int32)
     lane_muscle = np.full((B, BLK), -1, np.int32)
-    slot_idx = np.zeros((R, BLK), np.int32)
+    slot_idx = np.zeros((R, BLK), np.uint32)
     slot_X0 = _aligned_zeros(R * 3 * BLK).reshape(R, 3, BLK)
     par = _aligned_zeros(B * N_PAR * BLK).reshape(B, N_PAR, BLK)
     r0 = 0
@@ -212,7 +216,7 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
         lane_muscle[b, :m] = np.asarray(cell_muscle)[cells]
         first = off[np.concatenate([cells, np.full(BLK - m, cells[0])])]
         for s in range(n + n % 2):
-            slot_idx[r0 + s] = cv[first + s % n]
+            slot_idx[r0 + s] = 3 * cv[first + s % n]
             if s < n:
                 slot_X0[r0 + s, :, :m] = X0[off[cells] + s].T
         par[b, :, :m] = rows[:, cells]
@@ -257,7 +261,8 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
     goal G_i = c + R F X0_i; force k (G_i - x_i). R being the polar factor, this satisfies eq. (1):
     zero net force and moment. Volume (kvol > 0): with D = A Qinv the cell's best-fit affine
     deformation, energy 0.5 kvol (det D - 1)^2 adds -kvol (det D - 1) cof(D) Qinv X0_i (internal:
-    rotation and translation invariant), plus an integral term: pressure += vol_gain * (-kvol
+    rotation and translation invariant; computed as det D = det A det Qinv, cof(D) Qinv = det Qinv
+    cof(A), Qinv being symmetric, so D is never formed), plus an integral term: pressure += vol_gain * (-kvol
     (det D - 1)) each call acts the same way, so a cell held from reaching its volume (e.g. by
     bone-attached vertices) builds up pressure until det D = 1 (vol_gain = h / volume_relax_time;
     0 = off). Damping (b > 0): -b (v_i - v_rigid_i) with v_rigid the cell's mean linear + angular
@@ -292,11 +297,7 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
         _rotations(w, iters)
         _force_maps(w, pb, n)
         _vertex_forces(w, gv, X0, pb, n)
-        for s in range(n):                  # scatter-add, slot by slot, lane by lane
-            g = 6 * s * BLK
-            for c in range(cnt):
-                i = 3 * np.uint32(idx[s, c])
-                ff[i] += gv[g + c]; ff[i + 1] += gv[g + BLK + c]; ff[i + 2] += gv[g + 2 * BLK + c]
+        _scatter(ff, gv, idx, n, cnt)
         for c in range(cnt):
             j = ids[b, c]
             for r in range(4):
@@ -307,6 +308,16 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
             if w[W_BAD * BLK + c] != 0.0 and (bad < 0 or j < bad):
                 bad = j
     return bad
+
+
+@njit(cache=True)
+def _scatter(ff, gv, idx, n, cnt):
+    """Adds the block's vertex forces (gv) into f (flat), slot by slot, lane by lane (a fixed order)."""
+    for s in range(n):
+        g = 6 * s * BLK
+        for c in range(cnt):
+            i = idx[s, c]
+            ff[i] += gv[g + c]; ff[i + 1] += gv[g + BLK + c]; ff[i + 2] += gv[g + 2 * BLK + c]
 
 
 @njit(cache=True)
@@ -333,7 +344,7 @@ def _moments(w, gv, X0, n, x, v, idx):
     gv must not overlap x, v, X0 or idx (x and v may be the same array: both are only read)."""
     half = n // 2
     for c in range(BLK):
-        i = 3 * np.uint32(idx[0, c])
+        i = idx[0, c]
         w[W_O * BLK + c] = x[i]
         w[(W_O + 1) * BLK + c] = x[i + 1]
         w[(W_O + 2) * BLK + c] = x[i + 2]
@@ -346,7 +357,7 @@ def _moments(w, gv, X0, n, x, v, idx):
         b1 = 1.0 if 2 * s2 + 1 < half else 0.0
         real1 = 1.0 if 2 * s2 + 1 < n else 0.0          # 0: the padding slot of an odd-sized cell
         for c in range(BLK):
-            i0, i1 = 3 * np.uint32(idx[2 * s2, c]), 3 * np.uint32(idx[2 * s2 + 1, c])
+            i0, i1 = idx[2 * s2, c], idx[2 * s2 + 1, c]
             px, py, pz = x[i0], x[i0 + 1], x[i0 + 2]
             qx, qy, qz = x[i1], x[i1 + 1], x[i1 + 2]
             gv[g + c] = px; gv[g + BLK + c] = py; gv[g + 2 * BLK + c] = pz
@@ -401,65 +412,64 @@ def _times_rest_map(m00, m01, m02, m10, m11, m12, m20, m21, m22, la, sl, fx, fy,
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
 def _cell_algebra(w, pb, n, volume_actual, vol_gain):
-    """Per lane (vectorised): the rest shape F, B = A F normalised for the rotation, the volume term
+    """Per lane (vectorised): the rest shape F, B = A F for the rotation, the volume term
     (force map P, energy, pressure), tr Y and the rigid velocity (vbar, w) of the damping."""
     inv_n = 1.0 / n
+    # the cross-section factor first, in a short loop of its own (a chain of two square roots and a
+    # division: short loops let the processor overlap the chains of several lanes)
+    for c in range(BLK):
+        if volume_actual:          # current fibre stretch mu = |D f|, D f = A (Qinv f)
+            gx, gy, gz = pb[P_G * BLK + c], pb[(P_G + 1) * BLK + c], pb[(P_G + 2) * BLK + c]
+            ux = w[W_A * BLK + c] * gx + w[(W_A + 1) * BLK + c] * gy + w[(W_A + 2) * BLK + c] * gz
+            uy = w[(W_A + 3) * BLK + c] * gx + w[(W_A + 4) * BLK + c] * gy + w[(W_A + 5) * BLK + c] * gz
+            uz = w[(W_A + 6) * BLK + c] * gx + w[(W_A + 7) * BLK + c] * gy + w[(W_A + 8) * BLK + c] * gz
+            w[W_SL * BLK + c] = 1.0 / math.sqrt(min(max(math.sqrt(ux * ux + uy * uy + uz * uz), 0.25), 4.0))
+        else:
+            w[W_SL * BLK + c] = 1.0 / math.sqrt(w[W_LAM * BLK + c])
     for c in range(BLK):
         a00, a01, a02 = w[W_A * BLK + c], w[(W_A + 1) * BLK + c], w[(W_A + 2) * BLK + c]
         a10, a11, a12 = w[(W_A + 3) * BLK + c], w[(W_A + 4) * BLK + c], w[(W_A + 5) * BLK + c]
         a20, a21, a22 = w[(W_A + 6) * BLK + c], w[(W_A + 7) * BLK + c], w[(W_A + 8) * BLK + c]
-        i00, i01, i02 = pb[P_QI * BLK + c], pb[(P_QI + 1) * BLK + c], pb[(P_QI + 2) * BLK + c]
-        i10, i11, i12 = pb[(P_QI + 3) * BLK + c], pb[(P_QI + 4) * BLK + c], pb[(P_QI + 5) * BLK + c]
-        i20, i21, i22 = pb[(P_QI + 6) * BLK + c], pb[(P_QI + 7) * BLK + c], pb[(P_QI + 8) * BLK + c]
-        # D = A Qinv, the best-fit affine deformation
-        d00 = a00 * i00 + a01 * i10 + a02 * i20; d01 = a00 * i01 + a01 * i11 + a02 * i21
-        d02 = a00 * i02 + a01 * i12 + a02 * i22
-        d10 = a10 * i00 + a11 * i10 + a12 * i20; d11 = a10 * i01 + a11 * i11 + a12 * i21
-        d12 = a10 * i02 + a11 * i12 + a12 * i22
-        d20 = a20 * i00 + a21 * i10 + a22 * i20; d21 = a20 * i01 + a21 * i11 + a22 * i21
-        d22 = a20 * i02 + a21 * i12 + a22 * i22
         # rest shape F = lam f f^T + s (I - f f^T) (muscle), B = A F (fat: B = A)
         mus = w[W_MUS * BLK + c] != 0.0
         la = w[W_LAM * BLK + c]
         fx, fy, fz = pb[P_F * BLK + c], pb[(P_F + 1) * BLK + c], pb[(P_F + 2) * BLK + c]
-        if volume_actual:          # current fibre stretch mu = |D f|
-            ux = d00 * fx + d01 * fy + d02 * fz
-            uy = d10 * fx + d11 * fy + d12 * fz
-            uz = d20 * fx + d21 * fy + d22 * fz
-            sl = 1.0 / math.sqrt(min(max(math.sqrt(ux * ux + uy * uy + uz * uz), 0.25), 4.0))
-        else:
-            sl = 1.0 / math.sqrt(la)
-        w[W_SL * BLK + c] = sl
+        sl = w[W_SL * BLK + c]
         b00, b01, b02, b10, b11, b12, b20, b21, b22 = _times_rest_map(a00, a01, a02, a10, a11, a12, a20, a21, a22,
                                                                       la, sl, fx, fy, fz, mus)   # B = A F
-        nrm = math.sqrt(b00 * b00 + b01 * b01 + b02 * b02 + b10 * b10 + b11 * b11 + b12 * b12
-                        + b20 * b20 + b21 * b21 + b22 * b22)
-        inv = 1.0 / nrm            # scale-free iteration; a zero or non-finite B keeps the warm start
-        w[W_ON * BLK + c] = 1.0 if nrm > 0.0 and math.isfinite(nrm) else 0.0
-        w[W_B * BLK + c] = b00 * inv; w[(W_B + 1) * BLK + c] = b01 * inv; w[(W_B + 2) * BLK + c] = b02 * inv
-        w[(W_B + 3) * BLK + c] = b10 * inv; w[(W_B + 4) * BLK + c] = b11 * inv; w[(W_B + 5) * BLK + c] = b12 * inv
-        w[(W_B + 6) * BLK + c] = b20 * inv; w[(W_B + 7) * BLK + c] = b21 * inv; w[(W_B + 8) * BLK + c] = b22 * inv
-        # volume (kvol > 0): P = g cof(D) Qinv with g = -kvol (det D - 1) + the integral pressure
+        # the rotation iteration is scale-free (B is not normalised: a square root and a division less on
+        # the lane's longest chain); a zero or non-finite B keeps the warm start
+        nrm2 = ((b00 * b00 + b01 * b01 + b02 * b02) + (b10 * b10 + b11 * b11 + b12 * b12)
+                + (b20 * b20 + b21 * b21 + b22 * b22))
+        w[W_ON * BLK + c] = 1.0 if nrm2 > 0.0 and math.isfinite(nrm2) else 0.0
+        w[W_NB2 * BLK + c] = nrm2
+        w[W_B * BLK + c] = b00; w[(W_B + 1) * BLK + c] = b01; w[(W_B + 2) * BLK + c] = b02
+        w[(W_B + 3) * BLK + c] = b10; w[(W_B + 4) * BLK + c] = b11; w[(W_B + 5) * BLK + c] = b12
+        w[(W_B + 6) * BLK + c] = b20; w[(W_B + 7) * BLK + c] = b21; w[(W_B + 8) * BLK + c] = b22
+        # volume (kvol > 0): with D = A Qinv the best-fit affine deformation, P = g cof(D) Qinv and
+        # g = -kvol (det D - 1) + the integral pressure; cof(D) Qinv = det(Qinv) cof(A) and
+        # det D = det A det Qinv (Qinv symmetric), so D itself is never formed
         kv = pb[P_KVOL * BLK + c]
         vol = kv > 0.0
-        c00 = d11 * d22 - d12 * d21; c01 = d12 * d20 - d10 * d22; c02 = d10 * d21 - d11 * d20
-        c10 = d02 * d21 - d01 * d22; c11 = d00 * d22 - d02 * d20; c12 = d01 * d20 - d00 * d21
-        c20 = d01 * d12 - d02 * d11; c21 = d02 * d10 - d00 * d12; c22 = d00 * d11 - d01 * d10
-        det = d00 * c00 + d01 * c01 + d02 * c02
+        c00 = a11 * a22 - a12 * a21; c01 = a12 * a20 - a10 * a22; c02 = a10 * a21 - a11 * a20
+        c10 = a02 * a21 - a01 * a22; c11 = a00 * a22 - a02 * a20; c12 = a01 * a20 - a00 * a21
+        c20 = a01 * a12 - a02 * a11; c21 = a02 * a10 - a00 * a12; c22 = a00 * a11 - a01 * a10
+        dq = pb[P_DQ * BLK + c]
+        det = (a00 * c00 + a01 * c01 + a02 * c02) * dq
         g = -kv * (det - 1.0)
         pres = w[W_PRES * BLK + c] + vol_gain * g if vol else w[W_PRES * BLK + c]
         w[W_PRES * BLK + c] = pres
-        g += pres
+        g = (g + pres) * dq
         w[W_EV * BLK + c] = 0.5 * kv * ((det - 1.0) * (det - 1.0)) if vol else 0.0
-        w[W_P * BLK + c] = g * (c00 * i00 + c01 * i10 + c02 * i20) if vol else 0.0
-        w[(W_P + 1) * BLK + c] = g * (c00 * i01 + c01 * i11 + c02 * i21) if vol else 0.0
-        w[(W_P + 2) * BLK + c] = g * (c00 * i02 + c01 * i12 + c02 * i22) if vol else 0.0
-        w[(W_P + 3) * BLK + c] = g * (c10 * i00 + c11 * i10 + c12 * i20) if vol else 0.0
-        w[(W_P + 4) * BLK + c] = g * (c10 * i01 + c11 * i11 + c12 * i21) if vol else 0.0
-        w[(W_P + 5) * BLK + c] = g * (c10 * i02 + c11 * i12 + c12 * i22) if vol else 0.0
-        w[(W_P + 6) * BLK + c] = g * (c20 * i00 + c21 * i10 + c22 * i20) if vol else 0.0
-        w[(W_P + 7) * BLK + c] = g * (c20 * i01 + c21 * i11 + c22 * i21) if vol else 0.0
-        w[(W_P + 8) * BLK + c] = g * (c20 * i02 + c21 * i12 + c22 * i22) if vol else 0.0
+        w[W_P * BLK + c] = g * c00 if vol else 0.0
+        w[(W_P + 1) * BLK + c] = g * c01 if vol else 0.0
+        w[(W_P + 2) * BLK + c] = g * c02 if vol else 0.0
+        w[(W_P + 3) * BLK + c] = g * c10 if vol else 0.0
+        w[(W_P + 4) * BLK + c] = g * c11 if vol else 0.0
+        w[(W_P + 5) * BLK + c] = g * c12 if vol else 0.0
+        w[(W_P + 6) * BLK + c] = g * c20 if vol else 0.0
+        w[(W_P + 7) * BLK + c] = g * c21 if vol else 0.0
+        w[(W_P + 8) * BLK + c] = g * c22 if vol else 0.0
         # second moments of the current vertices about the centroid: Y = sum r r^T
         mx, my, mz = w[W_S * BLK + c] * inv_n, w[(W_S + 1) * BLK + c] * inv_n, w[(W_S + 2) * BLK + c] * inv_n
         qxx = w[W_Y * BLK + c] - n * mx * mx; qyy = w[(W_Y + 1) * BLK + c] - n * my * my
@@ -499,7 +509,8 @@ def _rotations(w, iters):
     (r_j, b_j the columns of R, B). Mueller's step is g / |tr(B R^T)|; here the Newton step
     H^-1 g with H = tr(N) I - sym(N), N = B R^T, is used whenever H is positive definite (it is near
     the solution unless B is degenerate), which converges quadratically also for thin, anisotropic
-    cells where Mueller's step crawls; otherwise Mueller's step. Steps are capped at 1 rad. A lane
+    cells where Mueller's step crawls; otherwise Mueller's step (regularised: g / (|tr| + 1e-9 |B|)).
+    Both are scale-free, so B is used as it is (not normalised). Steps are capped at 1 rad. A lane
     stops after iters iterations, when its correction is below 1e-12 rad (not applied), or after a
     Newton correction below NEWTON_DONE (its successor would be of order NEWTON_DONE^2: warm-started,
     one iteration per step is then the usual case); the loop ends when every lane has stopped."""
@@ -530,29 +541,30 @@ def _rotations(w, iters):
             c11 = h00 * h22 - h02 * h02; c12 = h01 * h02 - h00 * h12; c22 = h00 * h11 - h01 * h01
             det = h00 * c00 + h01 * c01 + h02 * c02
             newton = h00 > 0.0 and c22 > 0.0 and det > 1e-9 * tr * tr * tr   # Sylvester: H positive definite
-            sc = 1.0 / (det if newton else abs(tr) + 1e-9)         # Newton: H^-1 = cof(H) / det; Mueller: 1/|tr|
+            eps = 1e-9 * math.sqrt(w[W_NB2 * BLK + c])               # (B is not normalised)
+            sc = 1.0 / (det if newton else abs(tr) + eps)           # Newton: H^-1 = cof(H) / det; Mueller: 1/|tr|
             ox = (c00 * gx + c01 * gy + c02 * gz if newton else gx) * sc
             oy = (c01 * gx + c11 * gy + c12 * gz if newton else gy) * sc
             oz = (c02 * gx + c12 * gy + c22 * gz if newton else gz) * sc
-            om = math.sqrt(ox * ox + oy * oy + oz * oz)
-            move = w[W_ON * BLK + c] != 0.0 and not om < 1e-12
-            big = om > 1.0
-            cap = 1.0 / om if big else 1.0
-            ox, oy, oz = ox * cap, oy * cap, oz * cap
-            om = 1.0 if big else om
-            # dq = (omega/2, 1) normalised with q below: a rotation by 2 atan(w/2) = w - w^3/12 + ... about
-            # omega (no sin/cos; the cubic error is removed by the next iteration); q = dq * q
-            dx, dy, dz = 0.5 * ox, 0.5 * oy, 0.5 * oz
-            nx = x + dx * qw + dy * z - dz * y
-            ny = y - dx * z + dy * qw + dz * x
-            nz = z + dx * y - dy * x + dz * qw
-            nw = qw - dx * x - dy * y - dz * z
-            s = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+            # dq = (omega/2, 1) normalised: a rotation by 2 atan(w/2) = w - w^3/12 + ... about omega (no
+            # sin/cos; the cubic error is removed by the next iteration); q = dq * q, omega capped at 1 rad.
+            # |dq * q| = |dq| |q| gives the normalisation without waiting for the product (a shorter chain).
+            om2 = ox * ox + oy * oy + oz * oz
+            move = w[W_ON * BLK + c] != 0.0 and not om2 < 1e-24
+            big = om2 > 1.0
+            cap = 0.5 / math.sqrt(om2) if big else 0.5
+            om2 = 1.0 if big else om2
+            s = 1.0 / math.sqrt((x * x + y * y + z * z + qw * qw) * (1.0 + 0.25 * om2))
+            px = ox * qw + oy * z - oz * y
+            py = -ox * z + oy * qw + oz * x
+            pz = ox * y - oy * x + oz * qw
+            pw = -ox * x - oy * y - oz * z
+            nx, ny, nz, nw = x + cap * px, y + cap * py, z + cap * pz, qw + cap * pw
             w[W_Q * BLK + c] = nx * s if move else x
             w[(W_Q + 1) * BLK + c] = ny * s if move else y
             w[(W_Q + 2) * BLK + c] = nz * s if move else z
             w[(W_Q + 3) * BLK + c] = nw * s if move else qw
-            on = move and not (newton and om < NEWTON_DONE)     # quadratic convergence: the next would be ~om^2
+            on = move and not (newton and om2 < NEWTON_DONE * NEWTON_DONE)   # quadratic convergence: the next ~om^2
             w[W_ON * BLK + c] = 1.0 if on else 0.0
             running += 1 if on else 0
         if running == 0:
@@ -581,9 +593,9 @@ def _force_maps(w, pb, n):
         # sum |T X0_i - r_i|^2 = tr(F^2 Q) - 2 tr(T^T A) + tr(Y), Q = sum X0 X0^T (q_tr = tr Q, q_ff = f^T Q f)
         fqf, qtr = pb[P_QFF * BLK + c], pb[P_QTR * BLK + c]
         tf2q = la * la * fqf + sl * sl * (qtr - fqf) if mus else qtr
-        tta = (t00 * w[W_A * BLK + c] + t01 * w[(W_A + 1) * BLK + c] + t02 * w[(W_A + 2) * BLK + c]
-               + t10 * w[(W_A + 3) * BLK + c] + t11 * w[(W_A + 4) * BLK + c] + t12 * w[(W_A + 5) * BLK + c]
-               + t20 * w[(W_A + 6) * BLK + c] + t21 * w[(W_A + 7) * BLK + c] + t22 * w[(W_A + 8) * BLK + c])
+        tta = ((t00 * w[W_A * BLK + c] + t01 * w[(W_A + 1) * BLK + c] + t02 * w[(W_A + 2) * BLK + c])
+               + (t10 * w[(W_A + 3) * BLK + c] + t11 * w[(W_A + 4) * BLK + c] + t12 * w[(W_A + 5) * BLK + c])
+               + (t20 * w[(W_A + 6) * BLK + c] + t21 * w[(W_A + 7) * BLK + c] + t22 * w[(W_A + 8) * BLK + c]))
         e = max(tf2q - 2.0 * tta + w[W_TRY * BLK + c], 0.0)
         # active axial tension between the ring centroids: u = (sum top x - sum bottom x) / half, the top ring
         # the last n - half vertices (the origin o cancels but for an odd-sized cell's extra top vertex)
@@ -927,19 +939,30 @@ def integrate(h, x, v, f, inv_den, xn, vn, att_idx, att_seg, rest, seg_R, seg_t,
         xnf[3 * i] = xf[3 * i] + h * a; xnf[3 * i + 1] = xf[3 * i + 1] + h * b; xnf[3 * i + 2] = xf[3 * i + 2] + h * c
         sp = a * a + b * b + c * c
         nfast += 0 if sp <= vmax2 or hm == 0.0 else 1      # (NaN counts)
+    # bone-attached vertices, by runs of one segment (compile_model sorts them by segment): the pose in
+    # registers, flat views and unsigned indices (no negative-index wrap-around)
     ih = 1.0 / h
-    for k in range(att_idx.shape[0]):
-        i = att_idx[k]
+    rf = rest.reshape(-1)
+    k = 0
+    while k < att_idx.shape[0]:
         s = att_seg[k]
-        X, Y, Z = rest[i, 0], rest[i, 1], rest[i, 2]
-        sp = 0.0
-        for r in range(3):
-            xr = seg_R[s, r, 0] * X + seg_R[s, r, 1] * Y + seg_R[s, r, 2] * Z + seg_t[s, r]
-            d = (xr - x[i, r]) * ih
-            vn[i, r] = d
-            xn[i, r] = xr
-            sp += d * d
-        nfast += 0 if sp <= vmax2 else 1
+        e = k + 1
+        while e < att_idx.shape[0] and att_seg[e] == s:
+            e += 1
+        r00, r01, r02, t0 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2], seg_t[s, 0]
+        r10, r11, r12, t1 = seg_R[s, 1, 0], seg_R[s, 1, 1], seg_R[s, 1, 2], seg_t[s, 1]
+        r20, r21, r22, t2 = seg_R[s, 2, 0], seg_R[s, 2, 1], seg_R[s, 2, 2], seg_t[s, 2]
+        for kk in range(k, e):
+            i = 3 * np.uint32(att_idx[kk])
+            X, Y, Z = rf[i], rf[i + 1], rf[i + 2]
+            a = r00 * X + r01 * Y + r02 * Z + t0
+            b = r10 * X + r11 * Y + r12 * Z + t1
+            c = r20 * X + r21 * Y + r22 * Z + t2
+            da, db, dc = (a - xf[i]) * ih, (b - xf[i + 1]) * ih, (c - xf[i + 2]) * ih
+            vnf[i] = da; vnf[i + 1] = db; vnf[i + 2] = dc
+            xnf[i] = a; xnf[i + 1] = b; xnf[i + 2] = c
+            nfast += 0 if da * da + db * db + dc * dc <= vmax2 else 1
+        k = e
     return nfast
 
 
