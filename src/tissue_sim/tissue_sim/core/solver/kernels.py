@@ -172,7 +172,9 @@ W_E = 81                    # cell energy [J]
 W_BAD = 82                  # 1.0 where the force is non-finite or absurd
 W_LN = 83                   # axial length: distance of the ring centroids [m]
 W_NB2 = 84                  # |B|^2 (Frobenius): the scale of B for the regularised Mueller step
-N_W = 85
+W_OM = 85                   # rotation correction omega of the current iteration (3)
+W_NT = 88                   # 1.0 where that correction is a Newton step
+N_W = 89
 # The block's vertices (work[1]): slot s of every lane at rows 6 s .. 6 s + 5: x (3 rows, replaced by
 # the force), v (3 rows; zero in a padding slot). A separate buffer: LLVM then checks once at run time that
 # it does not overlap the per-lane rows (two offsets it cannot see apart in one buffer stop the
@@ -546,6 +548,13 @@ def _rotations(w, iters):
             ox = (c00 * gx + c01 * gy + c02 * gz if newton else gx) * sc
             oy = (c01 * gx + c11 * gy + c12 * gz if newton else gy) * sc
             oz = (c02 * gx + c12 * gy + c22 * gz if newton else gz) * sc
+            w[W_OM * BLK + c] = ox; w[(W_OM + 1) * BLK + c] = oy; w[(W_OM + 2) * BLK + c] = oz
+            w[W_NT * BLK + c] = 1.0 if newton else 0.0
+        # the update in a loop of its own (two short chains overlap across lanes better than one long one)
+        for c in range(BLK):
+            x, y, z, qw = w[W_Q * BLK + c], w[(W_Q + 1) * BLK + c], w[(W_Q + 2) * BLK + c], w[(W_Q + 3) * BLK + c]
+            ox, oy, oz = w[W_OM * BLK + c], w[(W_OM + 1) * BLK + c], w[(W_OM + 2) * BLK + c]
+            newton = w[W_NT * BLK + c] != 0.0
             # dq = (omega/2, 1) normalised: a rotation by 2 atan(w/2) = w - w^3/12 + ... about omega (no
             # sin/cos; the cubic error is removed by the next iteration); q = dq * q, omega capped at 1 rad.
             # |dq * q| = |dq| |q| gives the normalisation without waiting for the product (a shorter chain).
