@@ -342,14 +342,50 @@ def _csr(sim):
             sim.k_volume, sim.q_tr, sim.q_ff, sim.rest_length)
 
 
-def _mixed_cells(rng, sizes_counts, n_vertices=400, n_muscles=3):
-    """Random cells (vertices drawn from a shared pool, so cells share vertices) of the given sizes:
-    CSR arrays and per-cell constants as compile_model computes them, and a packed layout."""
+def _mixed_cells(rng, sizes_counts, n_vertices=400, n_muscles=3, fat_sizes=()):
+    """Random cells (vertices drawn from a shared pool, so cells share vertices, but no two share a ring)
+    of the given sizes: CSR arrays and per-cell constants as compile_model computes them, and a packed
+    layout. Cells of a size in fat_sizes are all fat (no volume, no tension)."""
     rest = rng.normal(scale=0.02, size=(n_vertices, 3))
     sizes = np.concatenate([np.full(c, n) for n, c in sizes_counts])
     rng.shuffle(sizes)                                   # sizes interleaved in cell order
     off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     cv = np.concatenate([rng.choice(n_vertices, n, replace=False) for n in sizes]).astype(np.int32)
+    return (rest,) + _cells(rng, rest, off, cv, n_muscles, np.isin(sizes, fat_sizes))
+
+
+def _stacked_cells(rng, columns, ring=6, n_muscles=3):
+    """Prisms stacked in columns, each cell's top ring the next one's bottom ring (shared vertices), as
+    the model builder makes them: columns = [(number of cells, closed), ...]; a closed column is a loop of
+    cells around an axis (its last cell's top ring is its first cell's bottom ring: a cycle of rings)."""
+    rest, off, cv, nv = [], [0], [], 0
+    for c, (cells, closed) in enumerate(columns):
+        n_rings = cells if closed else cells + 1
+        angle = np.arange(ring) * 2 * np.pi / ring
+        first = nv
+        for r in range(n_rings):
+            if closed:                  # rings around the z axis of this column, radius 0.1
+                phi = 2 * np.pi * r / n_rings
+                centre = np.array([0.1 * np.cos(phi), 0.1 * np.sin(phi), 0.2 * c])
+                radial, up = np.array([np.cos(phi), np.sin(phi), 0.0]), np.array([0.0, 0.0, 1.0])
+            else:
+                centre, radial, up = np.array([0.05 * c, 0.0, 0.01 * r]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+            rest.append(centre + 0.004 * (np.cos(angle)[:, None] * radial + np.sin(angle)[:, None] * up)
+                        + rng.normal(scale=3e-4, size=(ring, 3)))
+            nv += ring
+        for k in range(cells):
+            bottom = first + ring * k
+            top = first + ring * ((k + 1) % n_rings)
+            cv += list(range(bottom, bottom + ring)) + list(range(top, top + ring))
+            off.append(off[-1] + 2 * ring)
+    rest = np.concatenate(rest)
+    off, cv = np.array(off, np.int64), np.array(cv, np.int32)
+    return (rest,) + _cells(rng, rest, off, cv, n_muscles, np.zeros(off.size - 1, bool))
+
+
+def _cells(rng, rest, off, cv, n_muscles, fat):
+    """Per-cell constants (random, as compile_model computes them from rest) and the packed layout."""
+    sizes = np.diff(off)
     C = sizes.size
     cell_of = np.repeat(np.arange(C), sizes)
     cent = np.zeros((C, 3))
@@ -360,7 +396,7 @@ def _mixed_cells(rng, sizes_counts, n_vertices=400, n_muscles=3):
     np.add.at(Q, cell_of, X0[:, :, None] * X0[:, None, :])
     fibre = rng.normal(size=(C, 3))
     fibre /= np.linalg.norm(fibre, axis=1)[:, None]
-    muscle = np.where(rng.random(C) < 0.6, rng.integers(0, n_muscles, C), -1).astype(np.int32)
+    muscle = np.where((rng.random(C) < 0.6) & ~fat, rng.integers(0, n_muscles, C), -1).astype(np.int32)
     k = rng.uniform(50.0, 200.0, C)
     k_active = np.where((muscle >= 0) & (rng.random(C) < 0.7), rng.uniform(10.0, 80.0, C), 0.0)
     damp_b = np.where(rng.random(C) < 0.7, rng.uniform(0.1, 2.0, C), 0.0)
@@ -369,8 +405,23 @@ def _mixed_cells(rng, sizes_counts, n_vertices=400, n_muscles=3):
     K.cell_axial_lengths(rest, off, cv, rest_length)
     csr = (off, cv, X0, np.linalg.inv(Q), fibre, muscle, k, k_active, damp_b, k_volume, np.trace(Q, axis1=1, axis2=2),
            np.einsum('ci,cij,cj->c', fibre, Q, fibre), rest_length)
-    return rest, csr, K.pack_cells(off, cv, X0, muscle, k, k_active, damp_b, k_volume, csr[10], csr[11],
-                                   rest_length, fibre, csr[3])
+    return csr, K.pack_cells(off, cv, X0, muscle, k, k_active, damp_b, k_volume, csr[10], csr[11],
+                             rest_length, fibre, csr[3])
+
+
+def _ring_entries(cells):
+    """How many ring-vertex entries the layout computes (real slots of real lanes)."""
+    rings = cells[2]
+    return int((rings[:, 0] * rings[:, 3]).sum())
+
+
+def _random_state(rng, rest, C):
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    x = rest @ R.T * 1.05 + rng.normal(scale=0.002, size=rest.shape) + [0.1, -0.2, 0.3]
+    v = rng.normal(scale=0.3, size=rest.shape)
+    quat = rng.normal(size=(C, 4))                       # warm starts away from the answer: several iterations
+    quat /= np.linalg.norm(quat, axis=1)[:, None]
+    return x, v, quat
 
 
 # ------------------------------------------------------------------------------------ tests
@@ -392,22 +443,44 @@ def test_matches_the_per_cell_kernel_on_the_default_model(default_tm, preset):
 @pytest.mark.parametrize('volume_actual,iters', [(True, 1), (False, 20), (True, 0)])
 def test_matches_the_per_cell_kernel_on_mixed_cell_sizes(volume_actual, iters):
     rng = np.random.default_rng(7)
-    # sizes: odd (a padding slot), small, several blocks with a partial last one, a single cell
-    rest, csr, cells = _mixed_cells(rng, [(5, 7), (8, 2 * K.BLK + 3), (12, K.BLK - 1), (24, 9), (9, 1)])
+    # sizes: odd (rings of two sizes, a padding slot), small, several blocks, a single cell, an all-fat size
+    # (the kernel's version compiled without muscle, volume and tension)
+    rest, csr, cells = _mixed_cells(rng, [(5, 7), (8, 2 * K.BLK + 3), (12, K.BLK - 1), (24, 9), (9, 1), (6, 20)],
+                                    fat_sizes=(6,))
     C = csr[0].size - 1
-    blocks, ids = cells[0], cells[1]
+    groups, ids = cells[0], cells[1]
     assert np.array_equal(np.sort(ids[ids >= 0]), np.arange(C))          # every cell in exactly one lane
-    assert np.all(blocks[:, 1] <= K.BLK) and len(set(blocks[:, 0])) == 5
-    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    x = rest @ R.T * 1.05 + rng.normal(scale=0.002, size=rest.shape) + [0.1, -0.2, 0.3]
-    v = rng.normal(scale=0.3, size=rest.shape)
-    quat = rng.normal(size=(C, 4))                       # warm starts away from the answer: several iterations
-    quat /= np.linalg.norm(quat, axis=1)[:, None]
+    assert sorted(groups[:, 0]) == [5, 6, 8, 9, 12, 24]                  # one group of lanes per size
+    assert groups[groups[:, 0] == 6, 4].tolist() == [1] and groups[groups[:, 0] != 6, 4].sum() == 0   # plain
+    assert _ring_entries(cells) == csr[0][-1]                            # nothing shared: every ring once per cell
+    x, v, quat = _random_state(rng, rest, C)
     lam, act = np.array([0.7, 1.0, 0.85]), np.array([1.0, 0.0, 0.4])
     pressure = rng.normal(scale=0.5, size=C)
     new, ref = _run_both(x, v, quat, lam, act, pressure, 0.05, volume_actual, iters, csr, cells)
     _assert_agree(new, ref)
     assert iters == 0 or np.abs(new[2] - quat).max() > 0.1               # the rotations did move
+
+
+def test_shared_rings_are_computed_once_and_agree():
+    """Columns of prisms (the builder's shape): each shared ring is summed and forced once for its two
+    cells. Columns longer than a lane (cut: the ring at a cut twice), shorter ones (lanes pass from one
+    column to the next through a dummy position) and a closed loop of cells (a cycle of rings)."""
+    rng = np.random.default_rng(5)
+    columns = [(120, False), (3, False), (1, False), (60, True), (47, False), (29, False)]
+    rest, csr, cells = _stacked_cells(rng, columns)
+    C = csr[0].size - 1
+    ids = cells[1]
+    assert np.array_equal(np.sort(ids[ids >= 0]), np.arange(C))
+    distinct_rings = sum(n if closed else n + 1 for n, closed in columns)
+    entries = _ring_entries(cells)
+    assert entries < 0.6 * csr[0][-1]                                     # vs 12 entries per cell
+    assert distinct_rings * 6 <= entries <= (distinct_rings + K.BLK + 1) * 6     # at most one extra ring per cut
+    x, v, quat = _random_state(rng, rest, C)
+    lam, act = np.array([0.75, 1.0, 0.9]), np.array([1.0, 0.3, 0.0])
+    pressure = rng.normal(scale=0.5, size=C)
+    for volume_actual, iters in ((True, 1), (False, 20)):
+        new, ref = _run_both(x, v, quat, lam, act, pressure, 0.05, volume_actual, iters, csr, cells)
+        _assert_agree(new, ref)
 
 
 def test_divergence_names_the_lowest_bad_cell():
@@ -449,16 +522,16 @@ def test_bit_identical_across_processes(preset):
 
 def test_the_fused_gather_is_compiled_noalias():
     """The pinned numba takes the noalias option (else the fused gather silently stays scalar: right
-    results, ~10 % slower), and _moments is compiled with it: every array argument noalias in its IR."""
+    results, ~10 % slower), and _ring_moments is compiled with it: every array argument noalias in its IR."""
     assert K.NOALIAS == {'_noalias': True}
     from numba.core import compiler
     assert 'noalias' in compiler.Flags.options              # the flag the option maps to still exists
-    fn = K._moments.py_func
+    fn = K._ring_moments.py_func
     ir = njit(fastmath={'contract'}, error_model='numpy', **K.NOALIAS)(fn)
-    w, gv = np.zeros(K.N_W * K.BLK), np.zeros(6 * 2 * K.BLK)
+    rs, gv = np.zeros(K.N_R * K.BLK), np.zeros(6 * 2 * K.BLK)
     x = np.arange(30.0)
-    ir(w, gv, np.zeros(2 * 3 * K.BLK), 2, x, x, np.zeros((2, K.BLK), np.uint32) + 9)    # vertex 3: offset 3 * 3
+    ir(rs, gv, np.zeros(2 * 3 * K.BLK), 2, 2, x, x, np.zeros((2, K.BLK), np.uint32) + 9)    # vertex 3: offset 3 * 3
     text = next(iter(ir.inspect_llvm().values()))
-    define = next(line for line in text.splitlines() if line.startswith('define') and '_moments' in line)
+    define = next(line for line in text.splitlines() if line.startswith('define') and '_ring_moments' in line)
     assert define.count('noalias') >= 8                     # retptr, excinfo + the data pointers of the arrays
-    assert w[K.W_O * K.BLK] == 9.0 and gv[0] == 9.0          # gathered x[3 * 3] through the slot offset
+    assert rs[K.R_O * K.BLK] == 9.0 and gv[0] == 9.0         # gathered x[3 * 3] through the slot offset

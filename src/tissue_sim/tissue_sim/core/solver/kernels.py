@@ -118,16 +118,31 @@ def muscle_velocity(cell_length, mcells, mcell_muscle, mcell_weight, mlen, mvel,
 
 
 # ------------------------------------------------------------------------------------ cell forces
-# The cell kernel runs SIMD across cells. Cells of the same size n are packed into blocks of BLK lanes
-# (one cell per lane, pack_cells); every per-cell quantity is a row of BLK doubles (structure of
-# arrays), so each loop over a block's lanes is contiguous and branch-free (the branches of the
-# per-cell algebra are selects) and LLVM vectorises it: AVX2 takes 4 cells per instruction. Every row
-# a loop writes lies in one buffer at a compile-time offset (a multiple of BLK), so LLVM knows that
-# the rows do not overlap. Loops over lanes run over the whole block (a constant trip count: no
-# remainder loop); a padding lane holds a dummy cell (no stiffness, X0 = 0) whose results are
-# dropped. The gather of the block's positions and velocities is fused into the moment loop, which
-# LLVM vectorises with scalar loads once the arrays are marked noalias (NOALIAS); the scatter-add of
-# the forces is scalar (AVX2 has no scatter; lanes may share a vertex), in a fixed order: deterministic.
+# The cell kernel runs SIMD across cells, and shares the work of the vertices two cells have in common.
+#
+# Rings. Every cell is two rings: its bottom ring (its first n // 2 vertices) and its top ring (the
+# rest). In a model built from a stack of sections the top ring of a cell is the bottom ring of the
+# next cell of its column (the same vertices, the same rest shape): pack_cells links such cells into
+# chains. The vertex sums (moments) and the per-vertex forces are computed once per ring, in the ring's
+# own frame (origin: its first vertex now; rest shape: its vertices about the ring's rest centroid),
+# and each cell combines its two rings' sums (_combine) and hands each ring the coefficients of its
+# force map (_ring_coefs); a shared ring gets those of both its cells added, so its vertices are
+# gathered, forced and scatter-added once instead of twice. Same equations as per cell; only the
+# order of the sums differs (the bundled anatomy: 12,384 cell-vertex entries, ~7,100 ring-vertex entries).
+#
+# Lanes. A block is one position along BLK lanes (one cell per lane, structure of arrays: every
+# per-cell quantity is a row of BLK doubles, so each loop over a block's lanes is contiguous and
+# branch-free: the branches of the per-cell algebra are selects, and LLVM vectorises it, AVX2 taking
+# 4 cells per instruction). Lane l runs along chains of cells of one size n: position j holds a cell
+# between ring j (its bottom) and ring j + 1 (its top), so the ring sums a cell needs sit in the same
+# lane of the two ring blocks around it (no gather between rings and cells). Where a lane passes from
+# one chain to the next, a dummy position (no stiffness: its results are dropped) lies between the two
+# chains' end rings. Loops over lanes run over the whole block (a constant trip count); every row a
+# loop writes lies in one buffer at a compile-time offset (a multiple of BLK), so LLVM knows that the
+# rows do not overlap. The gather of a ring block's positions and velocities is fused into its moment
+# loop, which LLVM vectorises with scalar loads once the arrays are marked noalias (NOALIAS); the
+# scatter-add of the forces is scalar (AVX2 has no scatter; lanes may share a vertex), in a fixed
+# order: deterministic.
 BLK = 16                    # lanes (cells) per block: a multiple of 4 (doubles per AVX2 register); 8 lanes
                             # vectorise poorly, 32 and 64 measured 2-10 % slower (the rows outgrow L1)
 
@@ -142,9 +157,21 @@ P_LEN = 6                   # rest distance of the ring centroids [m]
 P_F = 7                     # fibre direction (3)
 P_G = 10                    # Qinv f (3) [1/m^2]: D f = A (Qinv f), the current fibre stretch vector
 P_DQ = 13                   # det Qinv [1/m^6]: det D = det A det Qinv, cof(D) Qinv = det Qinv cof(A)
-N_PAR = 14
+P_PB = 14                   # rest centroid of the bottom ring relative to the cell's rest centroid [m] (3)
+P_PT = 17                   # the same for the top ring (3)
+P_ON = 20                   # 1.0 for a cell, 0.0 for a dummy position
+N_PAR = 21
 
-# rows of the per-lane work buffer (work[0][row * BLK + lane])
+# rows of a ring block's sums (ring buffers: rs[row * BLK + lane]); d_i = x_i - o, o the ring's first vertex
+R_S = 0                     # sum d_i (3)
+R_A = 3                     # sum d_i Xr_i^T (9), Xr_i the vertex's rest position about the ring's rest centroid
+R_Y = 12                    # sum d_i d_i^T: xx, yy, zz, xy, xz, yz (6)
+R_V = 18                    # sum v_i (3)
+R_L = 21                    # sum d_i x v_i (3)
+R_O = 24                    # the ring's origin o [m] (3)
+N_R = 27
+
+# rows of the per-lane work buffer (work[0][row * BLK + lane]); the cell's sums relative to its bottom ring's origin
 W_S = 0                     # sum d_i, d_i = x_i - x_first (a local origin, for precision) (3)
 W_A = 3                     # A = sum d_i X0_i^T (9, row-major)
 W_Y = 12                    # sum d_i d_i^T: xx, yy, zz, xy, xz, yz (6)
@@ -174,59 +201,181 @@ W_LN = 83                   # axial length: distance of the ring centroids [m]
 W_NB2 = 84                  # |B|^2 (Frobenius): the scale of B for the regularised Mueller step
 W_OM = 85                   # rotation correction omega of the current iteration (3)
 W_NT = 88                   # 1.0 where that correction is a Newton step
-N_W = 89
-# The block's vertices (work[1]): slot s of every lane at rows 6 s .. 6 s + 5: x (3 rows, replaced by
-# the force), v (3 rows; zero in a padding slot). A separate buffer: LLVM then checks once at run time that
-# it does not overlap the per-lane rows (two offsets it cannot see apart in one buffer stop the
-# vectoriser). The moment loops take two slots per pass (half the loads and stores of the sums), so a
-# cell of odd size gets a padding slot: its own first vertex with X0 = 0, adding exact zeros.
+W_DT = 89                   # the top ring's origin relative to the bottom ring's [m] (3)
+# the force map of a ring's vertex i, in the ring's frame: f_i = M Xr_i - k d_i + bw x d_i + C - b v_i
+W_RM = 92                   # M (9): the sum of its cells' force maps k T + P
+W_RC = 101                  # C (3)
+W_RBW = 104                 # bw (3)
+W_RK = 107                  # k
+W_RB = 108                  # b
+W_H = 109                   # the same 17 rows: the top ring's share of the cell at the previous position
+N_W = W_H + 17
+# A ring block's vertices (gv, one buffer per ring block being worked on): slot s of every lane at rows
+# 6 s .. 6 s + 5: x (3 rows, replaced by the force), v (3 rows; zero in a padding slot). Separate buffers:
+# LLVM then checks once at run time that they do not overlap the per-lane rows (two offsets it cannot
+# see apart in one buffer stop the vectoriser). The moment loops take two slots per pass (half the loads
+# and stores of the sums), so a ring of odd size gets a padding slot: its own first vertex with Xr = 0,
+# adding exact zeros.
 
 
 def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv):
-    """The block layout cell_forces reads (numpy, at compile time): cells grouped by size n (ascending),
-    each group in cell order, in blocks of BLK lanes. Returns (blocks, ids, slot_idx, slot_X0, par,
-    lane_muscle): blocks (B, 3) int64 = n, cells in the block, first slot row r0; ids (B, BLK) int32
-    cell of each lane (-1: padding); slot_idx (R, BLK) uint32 3 x the vertex of slot s of each lane at
-    row r0 + s (its offset in the flat position array: unsigned, so no negative-index wrap-around),
-    n + n % 2 slots per block (padding lanes repeat lane 0); slot_X0 (R * 3 * BLK,) X0 of
-    slot s, axis d at ((r0 + s) * 3 + d) * BLK (0 for padding); par (B, N_PAR * BLK) per-lane
-    constants (P_* rows, 0 for padding); lane_muscle (B, BLK) int32 muscle of each lane (-1: fat or
-    padding). Read-only; the float arrays 64-byte aligned (vector loads)."""
+    """The layout cell_forces reads (numpy, at compile time). Returns (groups, ids, rings, ring_idx,
+    ring_X0, par, lane_muscle):
+
+    - groups (G, 4) int64: per cell size n (ascending): n, positions L, first cell block, first ring block
+      (a group has L cell blocks and L + 1 ring blocks);
+    - ids (Bc, BLK) int32: the cell of each lane of each cell block (-1: a dummy position);
+    - rings (Br, 4) int64 per ring block: real slots, slots (even), first slot row r0, real lanes (a prefix);
+    - ring_idx (R, BLK) uint32: 3 x the vertex of slot s of each lane at row r0 + s (its offset in the flat
+      position array: unsigned, so no negative-index wrap-around; a padding slot or lane repeats a vertex);
+    - ring_X0 (R * 3 * BLK,): the slot's rest position about its ring's rest centroid, axis d at
+      ((r0 + s) * 3 + d) * BLK (0 for padding);
+    - par (Bc, N_PAR * BLK): per-lane constants (P_* rows, 0 for a dummy);
+    - lane_muscle (Bc, BLK) int32: muscle of each lane (-1: fat or dummy);
+    - lane_of (C,) int64: the lane of each cell, b * BLK + lane (the order of the kernel's per-cell state).
+
+    Chains: cell c continues into cell d when c's top ring and d's bottom ring are the same vertices with
+    the same rest shape about their centroids (to 1e-12 of the cells' size), both cells have the same even
+    size, and no other cell claims either ring that way. Chains are laid end to end and cut into at most
+    BLK lanes of equal length (a cut costs one ring computed twice, a change of chain one dummy position).
+    Read-only; the float arrays 64-byte aligned (vector loads)."""
+    off = np.asarray(off, np.int64)
+    cv = np.asarray(cv)
+    X0 = np.asarray(X0, float)
     sizes = np.diff(off)
+    C = sizes.size
+    half = sizes // 2
     Qi = np.asarray(Qinv, float).reshape(-1, 3, 3)
+    pb = np.array([X0[off[c]:off[c] + half[c]].mean(0) for c in range(C)]).reshape(C, 3)
+    pt = np.array([X0[off[c] + half[c]:off[c + 1]].mean(0) for c in range(C)]).reshape(C, 3)
     rows = np.concatenate([np.asarray(k, float)[None], np.asarray(k_active, float)[None],
                            np.asarray(damp_b, float)[None], np.asarray(k_volume, float)[None],
                            np.asarray(q_tr, float)[None], np.asarray(q_ff, float)[None],
                            np.asarray(rest_length, float)[None], np.asarray(fibre, float).T,
-                           np.einsum('cij,cj->ci', Qi, np.asarray(fibre, float)).T, np.linalg.det(Qi)[None]])
-    chunks = []
+                           np.einsum('cij,cj->ci', Qi, np.asarray(fibre, float)).T, np.linalg.det(Qi)[None],
+                           pb.T, pt.T, np.ones((1, C))])
+    # the chains
+    tol = 1e-12 * max(float(np.abs(X0).max()) if X0.size else 0.0, 1e-300)
+    bottoms, tops = {}, {}
+    for c in range(C):
+        if sizes[c] % 2 == 0 and sizes[c] > 0:
+            a, m, e = off[c], off[c] + half[c], off[c + 1]
+            bottoms.setdefault((sizes[c], frozenset(cv[a:m].tolist())), []).append(c)
+            tops.setdefault((sizes[c], frozenset(cv[m:e].tolist())), []).append(c)
+    nxt = np.full(C, -1)
+    has_prev = np.zeros(C, bool)
+    for key, below in tops.items():
+        above = bottoms.get(key, [])
+        if len(below) != 1 or len(above) != 1 or below[0] == above[0]:
+            continue
+        c, d = below[0], above[0]
+        top_shape = dict(zip(cv[off[c] + half[c]:off[c + 1]].tolist(), X0[off[c] + half[c]:off[c + 1]] - pt[c]))
+        bottom = X0[off[d]:off[d] + half[d]] - pb[d]
+        if all(np.abs(top_shape[i] - r).max() <= tol for i, r in zip(cv[off[d]:off[d] + half[d]].tolist(), bottom)):
+            nxt[c], has_prev[d] = d, True
+    chains, seen = [], np.zeros(C, bool)
+    for starts in (np.flatnonzero(~has_prev), np.arange(C)):      # then what is left: cycles, cut at their lowest cell
+        for c in starts:
+            if not seen[c]:
+                chain = []
+                while c >= 0 and not seen[c]:
+                    seen[c] = True
+                    chain.append(int(c))
+                    c = nxt[c]
+                chains.append(chain)
+    # per size: lanes of equal length
+    groups, cell_blocks, ring_blocks = [], [], []
     for n in np.unique(sizes):
-        cells = np.flatnonzero(sizes == n)
-        chunks += [(int(n), cells[a:a + BLK]) for a in range(0, cells.size, BLK)]
-    B, R = len(chunks), sum(n + n % 2 for n, _ in chunks)
-    blocks = np.zeros((B, 3), np.int64)
-    ids = np.full((B, BLK), -1, np.int32)
-    lane_muscle = np.full((B, BLK), -1, np.int32)
-    slot_idx = np.zeros((R, BLK), np.uint32)
-    slot_X0 = _aligned_zeros(R * 3 * BLK).reshape(R, 3, BLK)
-    par = _aligned_zeros(B * N_PAR * BLK).reshape(B, N_PAR, BLK)
+        mine = [ch for ch in chains if sizes[ch[0]] == n]
+        L = -(-sum(map(len, mine)) // BLK)
+        while (lanes := _fill_lanes(mine, nxt, L)) is None:
+            L += 1
+        lanes.sort(key=len, reverse=True)                      # real rings then form a prefix of the lanes
+        seq = np.full((BLK, L), -1)
+        for lane, cells in enumerate(lanes):
+            seq[lane, :len(cells)] = cells
+        cs = np.concatenate(mine)
+        plain = bool(np.all(np.asarray(cell_muscle)[cs] < 0) and np.all(rows[3, cs] == 0) and np.all(rows[1, cs] == 0))
+        groups.append((int(n), L, len(cell_blocks), len(ring_blocks), int(plain)))
+        cell_blocks += [seq[:, j] for j in range(L)]
+        for j in range(L + 1):
+            ring = []
+            for lane in range(BLK):
+                below = seq[lane, j - 1] if j > 0 else -1
+                above = seq[lane, j] if j < L else -1
+                if below >= 0:
+                    a, e, centre = off[below] + half[below], off[below + 1], pt[below]
+                elif above >= 0:
+                    a, e, centre = off[above], off[above] + half[above], pb[above]
+                else:
+                    ring.append(None)
+                    continue
+                ring.append((cv[a:e], X0[a:e] - centre))
+            ring_blocks.append(ring)
+    # the arrays
+    Bc, Br = len(cell_blocks), len(ring_blocks)
+    ids = np.full((Bc, BLK), -1, np.int32)
+    lane_muscle = np.full((Bc, BLK), -1, np.int32)
+    par = _aligned_zeros(Bc * N_PAR * BLK).reshape(Bc, N_PAR, BLK)
+    for b, cells in enumerate(cell_blocks):
+        real = cells >= 0
+        ids[b, real] = cells[real]
+        lane_muscle[b, real] = np.asarray(cell_muscle)[cells[real]]
+        par[b][:, real] = rows[:, cells[real]]
+    rings = np.zeros((Br, 4), np.int64)
     r0 = 0
-    for b, (n, cells) in enumerate(chunks):
-        m = cells.size
-        blocks[b] = n, m, r0
-        ids[b, :m] = cells
-        lane_muscle[b, :m] = np.asarray(cell_muscle)[cells]
-        first = off[np.concatenate([cells, np.full(BLK - m, cells[0])])]
-        for s in range(n + n % 2):
-            slot_idx[r0 + s] = 3 * cv[first + s % n]
-            if s < n:
-                slot_X0[r0 + s, :, :m] = X0[off[cells] + s].T
-        par[b, :, :m] = rows[:, cells]
-        r0 += n + n % 2
-    out = blocks, ids, slot_idx, slot_X0.reshape(-1), par.reshape(B, N_PAR * BLK), lane_muscle
-    for a in out:
-        a.flags.writeable = False
+    for q, ring in enumerate(ring_blocks):
+        real = [r for r in ring if r is not None]
+        cnt = len(real)
+        assert all(r is not None for r in ring[:cnt]), 'real rings are a prefix of the lanes'
+        m_real = max((len(r[0]) for r in real), default=1)
+        assert all(len(r[0]) == m_real for r in real), 'the rings of a block have one size'
+        rings[q] = m_real, m_real + m_real % 2, r0, cnt
+        r0 += m_real + m_real % 2
+    ring_idx = np.zeros((r0, BLK), np.uint32)
+    ring_X0 = _aligned_zeros(r0 * 3 * BLK).reshape(r0, 3, BLK)
+    pad_vertex = 3 * int(cv[0]) if cv.size else 0
+    for q, ring in enumerate(ring_blocks):
+        m_real, m, a = rings[q, 0], rings[q, 1], rings[q, 2]
+        for lane, r in enumerate(ring):
+            if r is None:
+                ring_idx[a:a + m, lane] = pad_vertex
+                continue
+            verts, shape = r
+            ring_idx[a:a + m, lane] = 3 * verts[0]
+            ring_idx[a:a + m_real, lane] = 3 * verts
+            ring_X0[a:a + m_real, :, lane] = shape
+    lane_of = np.zeros(C, np.int64)
+    real = ids >= 0
+    lane_of[ids[real]] = np.flatnonzero(real.reshape(-1))
+    out = (np.array(groups, np.int64).reshape(-1, 5), ids, rings, ring_idx, ring_X0.reshape(-1),
+           par.reshape(Bc, N_PAR * BLK), lane_muscle, lane_of)
+    for arr in out:
+        arr.flags.writeable = False
     return out
+
+
+CELLS_PAR = 5               # the index of par in pack_cells' tuple
+
+
+def _fill_lanes(chains, nxt, L):
+    """Chains laid end to end into lanes of at most L positions (-1: a dummy between two chains), or
+    None if more than BLK lanes would be needed."""
+    lanes = [[]]
+    for chain in chains:
+        for c in chain:
+            lane = lanes[-1]
+            cont = bool(lane) and lane[-1] >= 0 and nxt[lane[-1]] == c
+            need = 1 if not lane or cont else 2
+            if len(lane) + need > L:
+                if len(lanes) == BLK:
+                    return None
+                lanes.append([])
+                lane, need = lanes[-1], 1
+            if need == 2:
+                lane.append(-1)
+            lane.append(c)
+    return lanes
 
 
 def _aligned_zeros(size):
@@ -237,23 +386,67 @@ def _aligned_zeros(size):
 
 @njit(cache=True)
 def cell_work(cells):
-    """The scratch buffers of cell_forces for the layout cells (allocate once, reuse every call)."""
-    blocks = cells[0]
-    n_max = 0
-    for b in range(blocks.shape[0]):
-        n_max = max(n_max, blocks[b, 0] + blocks[b, 0] % 2)
-    return np.empty(N_W * BLK), np.empty(6 * n_max * BLK)
+    """The scratch buffers of lane_forces for the layout cells (allocate once, reuse every call): the
+    per-lane rows, the sums of two ring blocks and their gathered vertices, and the per-cell state in lane
+    order (quaternion rows x, y, z, w of block b at (4 b + r) BLK; pressure, energy, axial length at b BLK;
+    to_lanes and from_lanes convert)."""
+    rings = cells[2]
+    n_lanes = cells[1].shape[0] * BLK
+    m_max = 2
+    for q in range(rings.shape[0]):
+        m_max = max(m_max, rings[q, 1])
+    return (np.empty(N_W * BLK), np.empty(N_R * BLK), np.empty(N_R * BLK), np.empty(6 * m_max * BLK),
+            np.empty(6 * m_max * BLK), np.empty(4 * n_lanes), np.empty(n_lanes), np.zeros(n_lanes), np.zeros(n_lanes))
+
+
+@njit(cache=True)
+def to_lanes(quat, pressure, cells, work):
+    """The per-cell state (quat (C, 4), pressure (C,)) into the lane-ordered copies of work (a dummy
+    lane: the identity rotation, no pressure)."""
+    ids = cells[1]
+    lq, lp = work[5], work[6]
+    for b in range(ids.shape[0]):
+        for c in range(BLK):
+            j = ids[b, c]
+            for r in range(4):
+                lq[(4 * b + r) * BLK + c] = quat[j, r] if j >= 0 else (1.0 if r == 3 else 0.0)
+            lp[b * BLK + c] = pressure[j] if j >= 0 else 0.0
+
+
+@njit(cache=True)
+def from_lanes(work, cells, quat, pressure, cell_energy, cell_length):
+    """The lane-ordered per-cell state of work back into the per-cell arrays."""
+    lane_of = cells[7]
+    lq, lp, le, ll = work[5], work[6], work[7], work[8]
+    for j in range(lane_of.shape[0]):
+        a = lane_of[j]
+        b, c = a // BLK, a % BLK
+        for r in range(4):
+            quat[j, r] = lq[(4 * b + r) * BLK + c]
+        pressure[j] = lp[a]
+        cell_energy[j] = le[a]
+        cell_length[j] = ll[a]
+
+
+def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energy, pressure, vol_gain, work,
+                cell_length):
+    """lane_forces on per-cell state: quat, pressure (read and updated), cell_energy, cell_length
+    (written) per cell as in State. Returns the lowest bad cell or -1 (see lane_forces)."""
+    to_lanes(quat, pressure, cells, work)
+    bad = lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work)
+    from_lanes(work, cells, quat, pressure, cell_energy, cell_length)
+    return bad
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energy, pressure, vol_gain, work,
-                cell_length):
+def lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
     """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
     (zeroed here). Returns the lowest cell whose force is non-finite or overflowing, else -1.
-    cells: the layout of pack_cells; work: cell_work(cells). quat, cell_energy, pressure (per cell)
-    and lam, act (per muscle) as in State; act is the activation of the active tension (the solver passes
-    it times the force-velocity factor). cell_length (C,) gets each cell's axial length: the distance
-    between its bottom- and top-ring centroids [m] (an odd-sized cell: |sum top - sum bottom| / (n // 2)).
+    cells: the layout of pack_cells; work: cell_work(cells), holding each cell's rotation quaternion and
+    pressure (read and updated), energy and axial length (written) in lane order (to_lanes, from_lanes);
+    lam, act (per muscle) as in State; act is the activation of the active tension (the solver passes
+    it times the force-velocity factor). The axial length is the distance between the cell's bottom- and
+    top-ring centroids [m] (an odd-sized cell: |sum top - sum bottom| / (n // 2)).
 
     Per cell (moments of its vertices, then its 3x3 algebra, then one affine map per vertex):
     centroid c = mean x_i; A = sum (x_i - c) X0_i^T; rest shape X'_i = F X0_i with
@@ -281,40 +474,57 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
     cell against bending or shear (a muscle pulls, it does not hold its shape).
 
     Per cell-vertex entry one affine map gives the force: f_i = (k T + P) X0_i + (b [w]x - k I) r_i
-    - b v_i + b vbar (elastic + volume + damping together), plus the tension."""
-    blocks, ids, slot_idx, slot_X0, par, lane_muscle = cells
-    w, gv = work
+    - b v_i + b vbar (elastic + volume + damping together), plus the tension. The cell's moments come
+    from its two rings' sums and the maps of the (up to) two cells of a ring are added into one map of
+    the ring's vertices (see the layout notes above): per position of a lane, the next ring's sums, the
+    cell's algebra, then the forces of the cell's bottom ring, which is then complete."""
+    groups, ids, rings, ring_idx, ring_X0, par, lane_muscle = cells[:7]
+    w, rs0, rs1, gv0, gv1, lq, lp, le, ll = work
     f[:] = 0.0
     xf, vf, ff = x.reshape(-1), v.reshape(-1), f.reshape(-1)
     bad = -1
-    for b in range(blocks.shape[0]):
-        n, cnt, r0 = blocks[b, 0], blocks[b, 1], blocks[b, 2]
-        ns = n + n % 2
-        idx = slot_idx[r0:r0 + ns]
-        X0 = slot_X0[r0 * 3 * BLK:(r0 + ns) * 3 * BLK]
-        pb = par[b]
-        _load_lanes(quat, lam, act, pressure, ids[b], lane_muscle[b], cnt, w)
-        _moments(w, gv, X0, n, xf, vf, idx)
-        _cell_algebra(w, pb, n, volume_actual, vol_gain)
-        _rotations(w, iters)
-        _force_maps(w, pb, n)
-        _vertex_forces(w, gv, X0, pb, n)
-        _scatter(ff, gv, idx, n, cnt)
-        for c in range(cnt):
-            j = ids[b, c]
-            for r in range(4):
-                quat[j, r] = w[(W_Q + r) * BLK + c]
-            pressure[j] = w[W_PRES * BLK + c]
-            cell_energy[j] = w[W_E * BLK + c]
-            cell_length[j] = w[W_LN * BLK + c]
-            if w[W_BAD * BLK + c] != 0.0 and (bad < 0 or j < bad):
-                bad = j
+    for gi in range(groups.shape[0]):
+        n, L, b0, q0, plain = groups[gi, 0], groups[gi, 1], groups[gi, 2], groups[gi, 3], groups[gi, 4] != 0
+        m_real, m, r0 = rings[q0, 0], rings[q0, 1], rings[q0, 2]
+        w[W_H * BLK:N_W * BLK] = 0.0        # no cell below the first ring
+        _ring_moments(rs0, gv0, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], m, m_real, xf, vf, ring_idx[r0:r0 + m])
+        for j in range(L + 1):
+            rb, rt, gb, gt = (rs0, rs1, gv0, gv1) if j % 2 == 0 else (rs1, rs0, gv1, gv0)
+            if j < L:           # the cell at position j, between ring j (rb, gb) and ring j + 1 (rt, gt)
+                q = q0 + j + 1
+                m_real, m, r0 = rings[q, 0], rings[q, 1], rings[q, 2]
+                _ring_moments(rt, gt, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], m, m_real, xf, vf,
+                              ring_idx[r0:r0 + m])
+                b = b0 + j
+                pb = par[b]
+                at = np.uint64(b * BLK)         # the block's lanes in the lane-ordered state (unsigned: no wrap-around)
+                _load_muscles(lam, act, lane_muscle[b], w)
+                _combine(w, rb, rt, pb, n, lq, lp, at)
+                if plain:       # no muscle, volume or tension in the group: a version compiled without them
+                    _cell_algebra(w, pb, n, volume_actual, vol_gain, True)
+                    _rotations(w, iters)
+                    _force_maps(w, pb, n, True)
+                else:
+                    _cell_algebra(w, pb, n, volume_actual, vol_gain, None)
+                    _rotations(w, iters)
+                    _force_maps(w, pb, n, None)
+                _ring_coefs(w, pb, lq, lp, le, ll, at)
+                for c in range(BLK):
+                    cell = ids[b, c]
+                    if w[W_BAD * BLK + c] != 0.0 and cell >= 0 and (bad < 0 or cell < bad):
+                        bad = cell
+            else:               # the group's last ring: the share of the cell below it only
+                _last_ring_coefs(w)
+            q = q0 + j          # ring j is complete: its vertices' forces
+            m_real, m, r0, cnt = rings[q, 0], rings[q, 1], rings[q, 2], rings[q, 3]
+            _ring_forces(w, gb, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], rb, m)
+            _scatter(ff, gb, ring_idx[r0:r0 + m], m_real, cnt)
     return bad
 
 
 @njit(cache=True)
 def _scatter(ff, gv, idx, n, cnt):
-    """Adds the block's vertex forces (gv) into f (flat), slot by slot, lane by lane (a fixed order)."""
+    """Adds the ring block's vertex forces (gv) into f (flat), slot by slot, lane by lane (a fixed order)."""
     for s in range(n):
         g = 6 * s * BLK
         for c in range(cnt):
@@ -323,80 +533,136 @@ def _scatter(ff, gv, idx, n, cnt):
 
 
 @njit(cache=True)
-def _load_lanes(quat, lam, act, pressure, ids, mus, cnt, w):
-    """Per-lane state (quaternion, pressure, the muscle's lam and activation) into the work rows."""
+def _load_muscles(lam, act, mus, w):
+    """Per lane: the muscle's lam and activation (1 and 0 for fat or a dummy) and the muscle flag."""
     for c in range(BLK):
-        qx, qy, qz, qw, pr, la, a, mu = 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
-        if c < cnt:
-            j = ids[c]
-            m = mus[c]
-            qx, qy, qz, qw = quat[j, 0], quat[j, 1], quat[j, 2], quat[j, 3]
-            pr = pressure[j]
-            if m >= 0:
-                la, a, mu = lam[m], act[m], 1.0
-        w[W_Q * BLK + c] = qx; w[(W_Q + 1) * BLK + c] = qy; w[(W_Q + 2) * BLK + c] = qz; w[(W_Q + 3) * BLK + c] = qw
-        w[W_PRES * BLK + c] = pr; w[W_LAM * BLK + c] = la; w[W_ACT * BLK + c] = a; w[W_MUS * BLK + c] = mu
+        m = mus[c]
+        la, a, mu = 1.0, 0.0, 0.0
+        if m >= 0:
+            la, a, mu = lam[m], act[m], 1.0
+        w[W_LAM * BLK + c] = la; w[W_ACT * BLK + c] = a; w[W_MUS * BLK + c] = mu
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy', **NOALIAS)
-def _moments(w, gv, X0, n, x, v, idx):
-    """Gathers the block's vertex positions and velocities (x, v flat (3V,), idx the slot rows) into gv
-    and sums over each lane's vertices in the same pass (vectorised over lanes, two slots per pass): sum d,
-    A, sum d d^T; the bottom ring's sum d; sum v and sum d x v (used by damped lanes only). noalias: w and
-    gv must not overlap x, v, X0 or idx (x and v may be the same array: both are only read)."""
-    half = n // 2
+def _ring_moments(rs, gv, X0, m, m_real, x, v, idx):
+    """Gathers the ring block's vertex positions and velocities (x, v flat (3V,), idx the slot rows) into
+    gv and sums over each lane's ring in the same pass (vectorised over lanes, two slots per pass), in the
+    ring's frame (origin: its first vertex): sum d, sum d Xr^T, sum d d^T, sum v and sum d x v. Slots from
+    m_real on are padding (the first vertex again, Xr = 0: zero velocity, exact zeros in every sum).
+    noalias: rs and gv must not overlap x, v, X0 or idx (x and v may be the same array: both are only read)."""
     for c in range(BLK):
         i = idx[0, c]
-        w[W_O * BLK + c] = x[i]
-        w[(W_O + 1) * BLK + c] = x[i + 1]
-        w[(W_O + 2) * BLK + c] = x[i + 2]
-        for r in range(W_S, W_U + 3):
-            w[r * BLK + c] = 0.0
-    for s2 in range((n + 1) // 2):
+        rs[R_O * BLK + c] = x[i]
+        rs[(R_O + 1) * BLK + c] = x[i + 1]
+        rs[(R_O + 2) * BLK + c] = x[i + 2]
+        for r in range(R_S, R_L + 3):
+            rs[r * BLK + c] = 0.0
+    for s2 in range(m // 2):
         g = 12 * s2 * BLK           # slots s = 2 s2 (d, X0) and s + 1 (e, E)
         h = 6 * s2 * BLK
-        b0 = 1.0 if 2 * s2 < half else 0.0          # bottom-ring weights of the two slots
-        b1 = 1.0 if 2 * s2 + 1 < half else 0.0
-        real1 = 1.0 if 2 * s2 + 1 < n else 0.0          # 0: the padding slot of an odd-sized cell
+        real1 = 1.0 if 2 * s2 + 1 < m_real else 0.0          # 0: the padding slot of an odd-sized ring
         for c in range(BLK):
             i0, i1 = idx[2 * s2, c], idx[2 * s2 + 1, c]
             px, py, pz = x[i0], x[i0 + 1], x[i0 + 2]
             qx, qy, qz = x[i1], x[i1 + 1], x[i1 + 2]
             gv[g + c] = px; gv[g + BLK + c] = py; gv[g + 2 * BLK + c] = pz
             gv[g + 6 * BLK + c] = qx; gv[g + 7 * BLK + c] = qy; gv[g + 8 * BLK + c] = qz
-            ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
+            ox, oy, oz = rs[R_O * BLK + c], rs[(R_O + 1) * BLK + c], rs[(R_O + 2) * BLK + c]
             dx, dy, dz = px - ox, py - oy, pz - oz
             ex, ey, ez = qx - ox, qy - oy, qz - oz
             X, Y, Z = X0[h + c], X0[h + BLK + c], X0[h + 2 * BLK + c]
             EX, EY, EZ = X0[h + 3 * BLK + c], X0[h + 4 * BLK + c], X0[h + 5 * BLK + c]
-            w[W_S * BLK + c] += dx + ex; w[(W_S + 1) * BLK + c] += dy + ey; w[(W_S + 2) * BLK + c] += dz + ez
-            w[W_A * BLK + c] += dx * X + ex * EX
-            w[(W_A + 1) * BLK + c] += dx * Y + ex * EY
-            w[(W_A + 2) * BLK + c] += dx * Z + ex * EZ
-            w[(W_A + 3) * BLK + c] += dy * X + ey * EX
-            w[(W_A + 4) * BLK + c] += dy * Y + ey * EY
-            w[(W_A + 5) * BLK + c] += dy * Z + ey * EZ
-            w[(W_A + 6) * BLK + c] += dz * X + ez * EX
-            w[(W_A + 7) * BLK + c] += dz * Y + ez * EY
-            w[(W_A + 8) * BLK + c] += dz * Z + ez * EZ
-            w[W_Y * BLK + c] += dx * dx + ex * ex
-            w[(W_Y + 1) * BLK + c] += dy * dy + ey * ey
-            w[(W_Y + 2) * BLK + c] += dz * dz + ez * ez
-            w[(W_Y + 3) * BLK + c] += dx * dy + ex * ey
-            w[(W_Y + 4) * BLK + c] += dx * dz + ex * ez
-            w[(W_Y + 5) * BLK + c] += dy * dz + ey * ez
-            w[W_U * BLK + c] += b0 * dx + b1 * ex
-            w[(W_U + 1) * BLK + c] += b0 * dy + b1 * ey
-            w[(W_U + 2) * BLK + c] += b0 * dz + b1 * ez
-            # velocities (an odd-sized cell's padding slot: zero)
+            rs[R_S * BLK + c] += dx + ex; rs[(R_S + 1) * BLK + c] += dy + ey; rs[(R_S + 2) * BLK + c] += dz + ez
+            rs[R_A * BLK + c] += dx * X + ex * EX
+            rs[(R_A + 1) * BLK + c] += dx * Y + ex * EY
+            rs[(R_A + 2) * BLK + c] += dx * Z + ex * EZ
+            rs[(R_A + 3) * BLK + c] += dy * X + ey * EX
+            rs[(R_A + 4) * BLK + c] += dy * Y + ey * EY
+            rs[(R_A + 5) * BLK + c] += dy * Z + ey * EZ
+            rs[(R_A + 6) * BLK + c] += dz * X + ez * EX
+            rs[(R_A + 7) * BLK + c] += dz * Y + ez * EY
+            rs[(R_A + 8) * BLK + c] += dz * Z + ez * EZ
+            rs[R_Y * BLK + c] += dx * dx + ex * ex
+            rs[(R_Y + 1) * BLK + c] += dy * dy + ey * ey
+            rs[(R_Y + 2) * BLK + c] += dz * dz + ez * ez
+            rs[(R_Y + 3) * BLK + c] += dx * dy + ex * ey
+            rs[(R_Y + 4) * BLK + c] += dx * dz + ex * ez
+            rs[(R_Y + 5) * BLK + c] += dy * dz + ey * ez
+            # velocities (an odd-sized ring's padding slot: zero)
             ux, uy, uz = v[i0], v[i0 + 1], v[i0 + 2]
             tx, ty, tz = v[i1] * real1, v[i1 + 1] * real1, v[i1 + 2] * real1
             gv[g + 3 * BLK + c] = ux; gv[g + 4 * BLK + c] = uy; gv[g + 5 * BLK + c] = uz
             gv[g + 9 * BLK + c] = tx; gv[g + 10 * BLK + c] = ty; gv[g + 11 * BLK + c] = tz
-            w[W_V * BLK + c] += ux + tx; w[(W_V + 1) * BLK + c] += uy + ty; w[(W_V + 2) * BLK + c] += uz + tz
-            w[W_L * BLK + c] += (dy * uz - dz * uy) + (ey * tz - ez * ty)
-            w[(W_L + 1) * BLK + c] += (dz * ux - dx * uz) + (ez * tx - ex * tz)
-            w[(W_L + 2) * BLK + c] += (dx * uy - dy * ux) + (ex * ty - ey * tx)
+            rs[R_V * BLK + c] += ux + tx; rs[(R_V + 1) * BLK + c] += uy + ty; rs[(R_V + 2) * BLK + c] += uz + tz
+            rs[R_L * BLK + c] += (dy * uz - dz * uy) + (ey * tz - ez * ty)
+            rs[(R_L + 1) * BLK + c] += (dz * ux - dx * uz) + (ez * tx - ex * tz)
+            rs[(R_L + 2) * BLK + c] += (dx * uy - dy * ux) + (ex * ty - ey * tx)
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy', **NOALIAS)
+def _combine(w, rb, rt, pb, n, lq, lp, at):
+    """Per lane (vectorised): the cell's moments about its bottom ring's origin o from its bottom ring's
+    sums rb and its top ring's sums rt. With the top ring's origin at o + e (e = W_DT), its vertex i at
+    d_i = d'_i + e, and each ring's rest shape Xr about its own rest centroid, X0_i = Xr_i + p (p = P_PB,
+    P_PT: the ring's rest centroid about the cell's; sum Xr = 0): sum d = Sb + St + nt e;
+    A = Ab + Sb pb^T + At + (St + nt e) pt^T; Y = Yb + Yt + e St^T + St e^T + nt e e^T;
+    sum v = Vb + Vt; sum d x v = Lb + Lt + e x Vt; the bottom ring's sum d = Sb. A dummy lane gets A = 0
+    (its rotation then does not run; a product, not a select: LLVM turns selects into masked loads).
+    Also loads the block's rotation warm start and pressure from the lane-ordered state (lq, lp at lane at)."""
+    nt = float(n - n // 2)
+    a4 = np.uint64(4) * at
+    for c in range(BLK):
+        u = np.uint64(c)
+        w[W_Q * BLK + c] = lq[a4 + u]
+        w[(W_Q + 1) * BLK + c] = lq[a4 + np.uint64(BLK) + u]
+        w[(W_Q + 2) * BLK + c] = lq[a4 + np.uint64(2 * BLK) + u]
+        w[(W_Q + 3) * BLK + c] = lq[a4 + np.uint64(3 * BLK) + u]
+        w[W_PRES * BLK + c] = lp[at + u]
+    for c in range(BLK):
+        on = pb[P_ON * BLK + c]
+        ox, oy, oz = rb[R_O * BLK + c], rb[(R_O + 1) * BLK + c], rb[(R_O + 2) * BLK + c]
+        ex, ey, ez = rt[R_O * BLK + c] - ox, rt[(R_O + 1) * BLK + c] - oy, rt[(R_O + 2) * BLK + c] - oz
+        bx, by, bz = rb[R_S * BLK + c], rb[(R_S + 1) * BLK + c], rb[(R_S + 2) * BLK + c]
+        sx, sy, sz = rt[R_S * BLK + c], rt[(R_S + 1) * BLK + c], rt[(R_S + 2) * BLK + c]
+        tx, ty, tz = sx + nt * ex, sy + nt * ey, sz + nt * ez
+        w[W_O * BLK + c] = ox; w[(W_O + 1) * BLK + c] = oy; w[(W_O + 2) * BLK + c] = oz
+        w[W_DT * BLK + c] = ex; w[(W_DT + 1) * BLK + c] = ey; w[(W_DT + 2) * BLK + c] = ez
+        w[W_U * BLK + c] = bx; w[(W_U + 1) * BLK + c] = by; w[(W_U + 2) * BLK + c] = bz
+        w[W_S * BLK + c] = bx + tx; w[(W_S + 1) * BLK + c] = by + ty; w[(W_S + 2) * BLK + c] = bz + tz
+        px, py, pz = pb[P_PB * BLK + c], pb[(P_PB + 1) * BLK + c], pb[(P_PB + 2) * BLK + c]
+        qx, qy, qz = pb[P_PT * BLK + c], pb[(P_PT + 1) * BLK + c], pb[(P_PT + 2) * BLK + c]
+        a00 = (rb[R_A * BLK + c] + bx * px) + (rt[R_A * BLK + c] + tx * qx)
+        a01 = (rb[(R_A + 1) * BLK + c] + bx * py) + (rt[(R_A + 1) * BLK + c] + tx * qy)
+        a02 = (rb[(R_A + 2) * BLK + c] + bx * pz) + (rt[(R_A + 2) * BLK + c] + tx * qz)
+        a10 = (rb[(R_A + 3) * BLK + c] + by * px) + (rt[(R_A + 3) * BLK + c] + ty * qx)
+        a11 = (rb[(R_A + 4) * BLK + c] + by * py) + (rt[(R_A + 4) * BLK + c] + ty * qy)
+        a12 = (rb[(R_A + 5) * BLK + c] + by * pz) + (rt[(R_A + 5) * BLK + c] + ty * qz)
+        a20 = (rb[(R_A + 6) * BLK + c] + bz * px) + (rt[(R_A + 6) * BLK + c] + tz * qx)
+        a21 = (rb[(R_A + 7) * BLK + c] + bz * py) + (rt[(R_A + 7) * BLK + c] + tz * qy)
+        a22 = (rb[(R_A + 8) * BLK + c] + bz * pz) + (rt[(R_A + 8) * BLK + c] + tz * qz)
+        w[W_A * BLK + c] = a00 * on
+        w[(W_A + 1) * BLK + c] = a01 * on
+        w[(W_A + 2) * BLK + c] = a02 * on
+        w[(W_A + 3) * BLK + c] = a10 * on
+        w[(W_A + 4) * BLK + c] = a11 * on
+        w[(W_A + 5) * BLK + c] = a12 * on
+        w[(W_A + 6) * BLK + c] = a20 * on
+        w[(W_A + 7) * BLK + c] = a21 * on
+        w[(W_A + 8) * BLK + c] = a22 * on
+        # e St^T + St e^T + nt e e^T = e (St + nt e)^T + St e^T
+        w[W_Y * BLK + c] = rb[R_Y * BLK + c] + rt[R_Y * BLK + c] + (ex * tx + sx * ex)
+        w[(W_Y + 1) * BLK + c] = rb[(R_Y + 1) * BLK + c] + rt[(R_Y + 1) * BLK + c] + (ey * ty + sy * ey)
+        w[(W_Y + 2) * BLK + c] = rb[(R_Y + 2) * BLK + c] + rt[(R_Y + 2) * BLK + c] + (ez * tz + sz * ez)
+        w[(W_Y + 3) * BLK + c] = rb[(R_Y + 3) * BLK + c] + rt[(R_Y + 3) * BLK + c] + (ex * ty + sx * ey)
+        w[(W_Y + 4) * BLK + c] = rb[(R_Y + 4) * BLK + c] + rt[(R_Y + 4) * BLK + c] + (ex * tz + sx * ez)
+        w[(W_Y + 5) * BLK + c] = rb[(R_Y + 5) * BLK + c] + rt[(R_Y + 5) * BLK + c] + (ey * tz + sy * ez)
+        vx, vy, vz = rt[R_V * BLK + c], rt[(R_V + 1) * BLK + c], rt[(R_V + 2) * BLK + c]
+        w[W_V * BLK + c] = rb[R_V * BLK + c] + vx
+        w[(W_V + 1) * BLK + c] = rb[(R_V + 1) * BLK + c] + vy
+        w[(W_V + 2) * BLK + c] = rb[(R_V + 2) * BLK + c] + vz
+        w[W_L * BLK + c] = rb[R_L * BLK + c] + rt[R_L * BLK + c] + (ey * vz - ez * vy)
+        w[(W_L + 1) * BLK + c] = rb[(R_L + 1) * BLK + c] + rt[(R_L + 1) * BLK + c] + (ez * vx - ex * vz)
+        w[(W_L + 2) * BLK + c] = rb[(R_L + 2) * BLK + c] + rt[(R_L + 2) * BLK + c] + (ex * vy - ey * vx)
 
 
 @njit(cache=True, inline='always')
@@ -413,14 +679,16 @@ def _times_rest_map(m00, m01, m02, m10, m11, m12, m20, m21, m22, la, sl, fx, fy,
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def _cell_algebra(w, pb, n, volume_actual, vol_gain):
+def _cell_algebra(w, pb, n, volume_actual, vol_gain, plain):
     """Per lane (vectorised): the rest shape F, B = A F for the rotation, the volume term
     (force map P, energy, pressure), tr Y and the rigid velocity (vbar, w) of the damping."""
     inv_n = 1.0 / n
     # the cross-section factor first, in a short loop of its own (a chain of two square roots and a
     # division: short loops let the processor overlap the chains of several lanes)
     for c in range(BLK):
-        if volume_actual:          # current fibre stretch mu = |D f|, D f = A (Qinv f)
+        if plain is not None:      # (a group of plain cells: F = I, sl unused)
+            w[W_SL * BLK + c] = 1.0
+        elif volume_actual:        # current fibre stretch mu = |D f|, D f = A (Qinv f)
             gx, gy, gz = pb[P_G * BLK + c], pb[(P_G + 1) * BLK + c], pb[(P_G + 2) * BLK + c]
             ux = w[W_A * BLK + c] * gx + w[(W_A + 1) * BLK + c] * gy + w[(W_A + 2) * BLK + c] * gz
             uy = w[(W_A + 3) * BLK + c] * gx + w[(W_A + 4) * BLK + c] * gy + w[(W_A + 5) * BLK + c] * gz
@@ -433,7 +701,7 @@ def _cell_algebra(w, pb, n, volume_actual, vol_gain):
         a10, a11, a12 = w[(W_A + 3) * BLK + c], w[(W_A + 4) * BLK + c], w[(W_A + 5) * BLK + c]
         a20, a21, a22 = w[(W_A + 6) * BLK + c], w[(W_A + 7) * BLK + c], w[(W_A + 8) * BLK + c]
         # rest shape F = lam f f^T + s (I - f f^T) (muscle), B = A F (fat: B = A)
-        mus = w[W_MUS * BLK + c] != 0.0
+        mus = w[W_MUS * BLK + c] != 0.0 if plain is None else False
         la = w[W_LAM * BLK + c]
         fx, fy, fz = pb[P_F * BLK + c], pb[(P_F + 1) * BLK + c], pb[(P_F + 2) * BLK + c]
         sl = w[W_SL * BLK + c]
@@ -452,7 +720,7 @@ def _cell_algebra(w, pb, n, volume_actual, vol_gain):
         # g = -kvol (det D - 1) + the integral pressure; cof(D) Qinv = det(Qinv) cof(A) and
         # det D = det A det Qinv (Qinv symmetric), so D itself is never formed
         kv = pb[P_KVOL * BLK + c]
-        vol = kv > 0.0
+        vol = kv > 0.0 if plain is None else False
         c00 = a11 * a22 - a12 * a21; c01 = a12 * a20 - a10 * a22; c02 = a10 * a21 - a11 * a20
         c10 = a02 * a21 - a01 * a22; c11 = a00 * a22 - a02 * a20; c12 = a01 * a20 - a00 * a21
         c20 = a01 * a12 - a02 * a11; c21 = a02 * a10 - a00 * a12; c22 = a00 * a11 - a01 * a10
@@ -581,7 +849,7 @@ def _rotations(w, iters):
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def _force_maps(w, pb, n):
+def _force_maps(w, pb, n, plain):
     """Per lane (vectorised): T = R F, the elastic energy, the active tension, and the coefficients
     of the affine force map of the lane's vertices; flags a non-finite or absurd result."""
     inv_n = 1.0 / n
@@ -592,7 +860,7 @@ def _force_maps(w, pb, n):
         r00 = 1 - 2 * (y * y + z * z); r01 = 2 * (x * y - z * qw); r02 = 2 * (x * z + y * qw)
         r10 = 2 * (x * y + z * qw); r11 = 1 - 2 * (x * x + z * z); r12 = 2 * (y * z - x * qw)
         r20 = 2 * (x * z - y * qw); r21 = 2 * (y * z + x * qw); r22 = 1 - 2 * (x * x + y * y)
-        mus = w[W_MUS * BLK + c] != 0.0
+        mus = w[W_MUS * BLK + c] != 0.0 if plain is None else False
         la, sl = w[W_LAM * BLK + c], w[W_SL * BLK + c]
         fx, fy, fz = pb[P_F * BLK + c], pb[(P_F + 1) * BLK + c], pb[(P_F + 2) * BLK + c]
         # T = R F (muscle), R (fat): the goal positions are c + T X0_i
@@ -651,50 +919,117 @@ def _force_maps(w, pb, n):
         w[W_BAD * BLK + c] = 0.0 if ok else 1.0
 
 
+@njit(cache=True, fastmath={'contract'}, error_model='numpy', **NOALIAS)
+def _ring_coefs(w, pb, lq, lp, le, ll, at):
+    """Per lane (vectorised): the force map of the cell's bottom ring, complete now (the share of the cell
+    below it, W_H, plus this cell's), and this cell's share of its top ring's map (into W_H). In a ring's
+    frame (d_i = x_i - o_ring, Xr_i about the ring's rest centroid) the cell's map f_i = M X0_i - k d_i +
+    bw x d_i + C - b v_i (+ the tension: + on the bottom ring, - on the top ring) reads M Xr_i - k d_i +
+    bw x d_i + C' - b v_i, with C' = C + M pb + ta on the bottom ring and C' = C + M pt - k e + bw x e - ta
+    on the top ring (o_top = o + e). A dummy lane adds nothing (its shares times P_ON = 0). Also stores the
+    block's rotation, pressure, energy and axial length into the lane-ordered state (lq, lp, le, ll at lane at)."""
+    a4 = np.uint64(4) * at
+    for c in range(BLK):
+        u = np.uint64(c)
+        lq[a4 + u] = w[W_Q * BLK + c]
+        lq[a4 + np.uint64(BLK) + u] = w[(W_Q + 1) * BLK + c]
+        lq[a4 + np.uint64(2 * BLK) + u] = w[(W_Q + 2) * BLK + c]
+        lq[a4 + np.uint64(3 * BLK) + u] = w[(W_Q + 3) * BLK + c]
+        lp[at + u] = w[W_PRES * BLK + c]
+        le[at + u] = w[W_E * BLK + c]
+        ll[at + u] = w[W_LN * BLK + c]
+    for c in range(BLK):
+        on = pb[P_ON * BLK + c]
+        k, b = pb[P_K * BLK + c], pb[P_B * BLK + c]
+        m00, m01, m02 = w[W_M * BLK + c], w[(W_M + 1) * BLK + c], w[(W_M + 2) * BLK + c]
+        m10, m11, m12 = w[(W_M + 3) * BLK + c], w[(W_M + 4) * BLK + c], w[(W_M + 5) * BLK + c]
+        m20, m21, m22 = w[(W_M + 6) * BLK + c], w[(W_M + 7) * BLK + c], w[(W_M + 8) * BLK + c]
+        bwx, bwy, bwz = w[W_BW * BLK + c], w[(W_BW + 1) * BLK + c], w[(W_BW + 2) * BLK + c]
+        cx, cy, cz = w[W_C * BLK + c], w[(W_C + 1) * BLK + c], w[(W_C + 2) * BLK + c]
+        tax, tay, taz = w[W_TA * BLK + c], w[(W_TA + 1) * BLK + c], w[(W_TA + 2) * BLK + c]
+        px, py, pz = pb[P_PB * BLK + c], pb[(P_PB + 1) * BLK + c], pb[(P_PB + 2) * BLK + c]
+        qx, qy, qz = pb[P_PT * BLK + c], pb[(P_PT + 1) * BLK + c], pb[(P_PT + 2) * BLK + c]
+        ex, ey, ez = w[W_DT * BLK + c], w[(W_DT + 1) * BLK + c], w[(W_DT + 2) * BLK + c]
+        # the bottom ring: the share of the cell below + this cell's
+        w[W_RM * BLK + c] = w[W_H * BLK + c] + m00 * on
+        w[(W_RM + 1) * BLK + c] = w[(W_H + 1) * BLK + c] + m01 * on
+        w[(W_RM + 2) * BLK + c] = w[(W_H + 2) * BLK + c] + m02 * on
+        w[(W_RM + 3) * BLK + c] = w[(W_H + 3) * BLK + c] + m10 * on
+        w[(W_RM + 4) * BLK + c] = w[(W_H + 4) * BLK + c] + m11 * on
+        w[(W_RM + 5) * BLK + c] = w[(W_H + 5) * BLK + c] + m12 * on
+        w[(W_RM + 6) * BLK + c] = w[(W_H + 6) * BLK + c] + m20 * on
+        w[(W_RM + 7) * BLK + c] = w[(W_H + 7) * BLK + c] + m21 * on
+        w[(W_RM + 8) * BLK + c] = w[(W_H + 8) * BLK + c] + m22 * on
+        w[W_RC * BLK + c] = w[(W_H + 9) * BLK + c] + ((cx + (m00 * px + m01 * py + m02 * pz)) + tax) * on
+        w[(W_RC + 1) * BLK + c] = w[(W_H + 10) * BLK + c] + ((cy + (m10 * px + m11 * py + m12 * pz)) + tay) * on
+        w[(W_RC + 2) * BLK + c] = w[(W_H + 11) * BLK + c] + ((cz + (m20 * px + m21 * py + m22 * pz)) + taz) * on
+        w[W_RBW * BLK + c] = w[(W_H + 12) * BLK + c] + bwx * on
+        w[(W_RBW + 1) * BLK + c] = w[(W_H + 13) * BLK + c] + bwy * on
+        w[(W_RBW + 2) * BLK + c] = w[(W_H + 14) * BLK + c] + bwz * on
+        w[W_RK * BLK + c] = w[(W_H + 15) * BLK + c] + k * on
+        w[W_RB * BLK + c] = w[(W_H + 16) * BLK + c] + b * on
+        # this cell's share of its top ring
+        w[W_H * BLK + c] = m00 * on
+        w[(W_H + 1) * BLK + c] = m01 * on
+        w[(W_H + 2) * BLK + c] = m02 * on
+        w[(W_H + 3) * BLK + c] = m10 * on
+        w[(W_H + 4) * BLK + c] = m11 * on
+        w[(W_H + 5) * BLK + c] = m12 * on
+        w[(W_H + 6) * BLK + c] = m20 * on
+        w[(W_H + 7) * BLK + c] = m21 * on
+        w[(W_H + 8) * BLK + c] = m22 * on
+        w[(W_H + 9) * BLK + c] = (((cx + (m00 * qx + m01 * qy + m02 * qz)) - k * ex + (bwy * ez - bwz * ey)) - tax) * on
+        w[(W_H + 10) * BLK + c] = (((cy + (m10 * qx + m11 * qy + m12 * qz)) - k * ey + (bwz * ex - bwx * ez)) - tay) * on
+        w[(W_H + 11) * BLK + c] = (((cz + (m20 * qx + m21 * qy + m22 * qz)) - k * ez + (bwx * ey - bwy * ex)) - taz) * on
+        w[(W_H + 12) * BLK + c] = bwx * on
+        w[(W_H + 13) * BLK + c] = bwy * on
+        w[(W_H + 14) * BLK + c] = bwz * on
+        w[(W_H + 15) * BLK + c] = k * on
+        w[(W_H + 16) * BLK + c] = b * on
+
+
+@njit(cache=True)
+def _last_ring_coefs(w):
+    """A group's last ring block: its map is the share of the cells below it only."""
+    for r in range(17):
+        for c in range(BLK):
+            w[(W_RM + r) * BLK + c] = w[(W_H + r) * BLK + c]
+
+
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def _vertex_forces(w, gv, X0, pb, n):
-    """The force of every vertex slot of the block (vectorised over lanes, two slots per pass), in
-    place of its gathered position: f_i = M X0_i - k d_i + b w x d_i + C - b v_i, plus the tension
-    (+ on the bottom ring, - on the top ring; on an odd-sized cell's padding slot: not scattered)."""
-    half = n // 2
-    for s2 in range((n + 1) // 2):
+def _ring_forces(w, gv, X0, ro, m):
+    """The force of every vertex slot of the ring block (vectorised over lanes, two slots per pass), in
+    place of its gathered position: f_i = M Xr_i - k d_i + bw x d_i + C - b v_i with the ring's map
+    (W_R* rows) and d_i = x_i - o (o: the ring's origin, in its sums ro)."""
+    for s2 in range(m // 2):
         g = 12 * s2 * BLK
         h = 6 * s2 * BLK
-        sg0 = 1.0 if 2 * s2 < half else -1.0
-        sg1 = 1.0 if 2 * s2 + 1 < half else -1.0
         for c in range(BLK):
-            k, b = pb[P_K * BLK + c], pb[P_B * BLK + c]
-            ox, oy, oz = w[W_O * BLK + c], w[(W_O + 1) * BLK + c], w[(W_O + 2) * BLK + c]
-            m00, m01, m02 = w[W_M * BLK + c], w[(W_M + 1) * BLK + c], w[(W_M + 2) * BLK + c]
-            m10, m11, m12 = w[(W_M + 3) * BLK + c], w[(W_M + 4) * BLK + c], w[(W_M + 5) * BLK + c]
-            m20, m21, m22 = w[(W_M + 6) * BLK + c], w[(W_M + 7) * BLK + c], w[(W_M + 8) * BLK + c]
-            bwx, bwy, bwz = w[W_BW * BLK + c], w[(W_BW + 1) * BLK + c], w[(W_BW + 2) * BLK + c]
-            cx0, cy0, cz0 = w[W_C * BLK + c], w[(W_C + 1) * BLK + c], w[(W_C + 2) * BLK + c]
-            tax, tay, taz = w[W_TA * BLK + c], w[(W_TA + 1) * BLK + c], w[(W_TA + 2) * BLK + c]
+            k, b = w[W_RK * BLK + c], w[W_RB * BLK + c]
+            ox, oy, oz = ro[R_O * BLK + c], ro[(R_O + 1) * BLK + c], ro[(R_O + 2) * BLK + c]
+            m00, m01, m02 = w[W_RM * BLK + c], w[(W_RM + 1) * BLK + c], w[(W_RM + 2) * BLK + c]
+            m10, m11, m12 = w[(W_RM + 3) * BLK + c], w[(W_RM + 4) * BLK + c], w[(W_RM + 5) * BLK + c]
+            m20, m21, m22 = w[(W_RM + 6) * BLK + c], w[(W_RM + 7) * BLK + c], w[(W_RM + 8) * BLK + c]
+            bwx, bwy, bwz = w[W_RBW * BLK + c], w[(W_RBW + 1) * BLK + c], w[(W_RBW + 2) * BLK + c]
+            cx0, cy0, cz0 = w[W_RC * BLK + c], w[(W_RC + 1) * BLK + c], w[(W_RC + 2) * BLK + c]
             # slot 2 s2 (d, X0 = X, Y, Z)
             X, Y, Z = X0[h + c], X0[h + BLK + c], X0[h + 2 * BLK + c]
             dx, dy, dz = gv[g + c] - ox, gv[g + BLK + c] - oy, gv[g + 2 * BLK + c] - oz
             fx = m00 * X + m01 * Y + m02 * Z - k * dx + (bwy * dz - bwz * dy) + cx0
             fy = m10 * X + m11 * Y + m12 * Z - k * dy + (bwz * dx - bwx * dz) + cy0
             fz = m20 * X + m21 * Y + m22 * Z - k * dz + (bwx * dy - bwy * dx) + cz0
-            fx = fx - b * gv[g + 3 * BLK + c]
-            fy = fy - b * gv[g + 4 * BLK + c]
-            fz = fz - b * gv[g + 5 * BLK + c]
-            gv[g + c] = fx + sg0 * tax
-            gv[g + BLK + c] = fy + sg0 * tay
-            gv[g + 2 * BLK + c] = fz + sg0 * taz
+            gv[g + c] = fx - b * gv[g + 3 * BLK + c]
+            gv[g + BLK + c] = fy - b * gv[g + 4 * BLK + c]
+            gv[g + 2 * BLK + c] = fz - b * gv[g + 5 * BLK + c]
             # slot 2 s2 + 1 (e, X0 = U, V, W)
             U, V, W = X0[h + 3 * BLK + c], X0[h + 4 * BLK + c], X0[h + 5 * BLK + c]
             ex, ey, ez = gv[g + 6 * BLK + c] - ox, gv[g + 7 * BLK + c] - oy, gv[g + 8 * BLK + c] - oz
             fx = m00 * U + m01 * V + m02 * W - k * ex + (bwy * ez - bwz * ey) + cx0
             fy = m10 * U + m11 * V + m12 * W - k * ey + (bwz * ex - bwx * ez) + cy0
             fz = m20 * U + m21 * V + m22 * W - k * ez + (bwx * ey - bwy * ex) + cz0
-            fx = fx - b * gv[g + 9 * BLK + c]
-            fy = fy - b * gv[g + 10 * BLK + c]
-            fz = fz - b * gv[g + 11 * BLK + c]
-            gv[g + 6 * BLK + c] = fx + sg1 * tax
-            gv[g + 7 * BLK + c] = fy + sg1 * tay
-            gv[g + 8 * BLK + c] = fz + sg1 * taz
+            gv[g + 6 * BLK + c] = fx - b * gv[g + 9 * BLK + c]
+            gv[g + 7 * BLK + c] = fy - b * gv[g + 10 * BLK + c]
+            gv[g + 8 * BLK + c] = fz - b * gv[g + 11 * BLK + c]
 
 
 # ------------------------------------------------------------------------------------ skeleton

@@ -385,11 +385,10 @@ def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
     lam, act = np.ones(M), np.ones(M)
     e = np.zeros(sim.n_cells)
     scale = 1e-6 * max(np.ptp(sim.rest, axis=0).max(), 1e-3)
-    blocks, ids, slot_idx, slot_X0, par, lane_muscle = sim.cell_blocks
-    par = par.copy()
+    par = sim.cell_blocks[K.CELLS_PAR].copy()
     par[:, K.P_B * K.BLK:(K.P_B + 1) * K.BLK] = 0.0          # no damping
     par.flags.writeable = False                               # read-only as in the model: one compiled kernel
-    cells = (blocks, ids, slot_idx, slot_X0, par, lane_muscle)
+    cells = tuple(par if i == K.CELLS_PAR else a for i, a in enumerate(sim.cell_blocks))
     work = K.cell_work(cells)
     lam_est = 0.0
     for _ in range(iters):

@@ -36,13 +36,14 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
     velocities alternate between (x, v) and the back buffers (xb, vb); returns how many swaps
     happened. On failure info = (step, cell, cause) and the state is left at the last good sub-step."""
     x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, work, cell_len, mlen, mvel = st
-    rest, inv_den, mass, free_idx, att_idx, att_seg, mcells, mcell_muscle, mcell_weight, inv_vl0 = tissue
+    rest, inv_den, mass, free_idx, att_idx, att_seg, mlanes, mcell_muscle, mcell_weight, inv_vl0 = tissue
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, \
         j_rest, j_range, anc, grav = skel
     log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp, lim_wh, lim_z, vel_damp, vol_gain, vmax2, \
         fv_on, fv_max, fv_alpha = num
     swaps = 0
     q0, qd0, lam0, cell_work = q.copy(), qd.copy(), lam.copy(), K.cell_work(cells)
+    K.to_lanes(quat, pres, cells, cell_work)        # the cell kernel's per-cell state, in its lane order
     mlen0, mvel0, act_t, mscratch = mlen.copy(), mvel.copy(), np.empty(lam.shape[0]), np.empty(lam.shape[0])
     for n in range(n_steps):
         act = acts[n]
@@ -53,14 +54,14 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
             K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)
             for m in range(act_t.shape[0]):
                 act_t[m] = act[m] * K.force_velocity(mvel[m] * inv_vl0[m], fv_max) if fv_on else act[m]
-            bad = K.cell_forces(x, v, f, quat, cells, lam, act_t, vol_actual, iters, cell_e, pres, vol_gain, cell_work,
-                                cell_len)
+            bad = K.lane_forces(x, v, f, cells, lam, act_t, vol_actual, iters, vol_gain, cell_work)
             if fv_on:
-                K.muscle_velocity(cell_len, mcells, mcell_muscle, mcell_weight, mlen, mvel, h, fv_alpha, mscratch)
+                K.muscle_velocity(cell_work[8], mlanes, mcell_muscle, mcell_weight, mlen, mvel, h, fv_alpha, mscratch)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
                 lam[:] = lam0; mlen[:] = mlen0; mvel[:] = mvel0
                 work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
+                K.from_lanes(cell_work, cells, quat, pres, cell_e, cell_len)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
             ok = K.skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint,
@@ -73,11 +74,13 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
                 q[:] = q0; qd[:] = qd0; lam[:] = lam0; mlen[:] = mlen0; mvel[:] = mvel0
                 K.forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t)
                 work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
+                K.from_lanes(cell_work, cells, quat, pres, cell_e, cell_len)
                 return swaps
             x, xb = xb, x
             v, vb = vb, v
             swaps += 1
     work[0, work.shape[1] - 1] = K.kinetic_energy(v, mass, free_idx)
+    K.from_lanes(cell_work, cells, quat, pres, cell_e, cell_len)
     return swaps
 
 
@@ -91,7 +94,8 @@ def _arrays(sim: SimModel, h: float):
         mcells = np.flatnonzero(sim.cell_muscle >= 0).astype(np.int32)
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length
         inv_vl0 = np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0)
-        tissue = (sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.att_idx, sim.att_seg, mcells,
+        mlanes = cells[7][mcells]                       # their lanes (the kernel keeps axial lengths in lane order)
+        tissue = (sim.rest, sim.inv_denominator(h), sim.mass, sim.free_idx, sim.att_idx, sim.att_seg, mlanes,
                   sim.cell_muscle[mcells], sim.length_weight[mcells], inv_vl0)
         skel = (sim.seg_order, sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia,
                 sim.j_parent, sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc,
