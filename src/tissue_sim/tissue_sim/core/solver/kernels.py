@@ -4,8 +4,9 @@ code fixes the order), no reassociation (it made results depend on what ran befo
 NaN/Inf semantics kept (divergence checks rely on them).
 
 Cells are CSR (``off``, ``cv``); ``X0`` (K, 3) holds each cell's rest vertex positions relative to
-the cell's rest centroid (unweighted mean), in the same order as ``cv``. The cell force kernel reads
-them packed by ``pack_cells`` into blocks of cells of one size (SIMD across cells). All positions in
+the cell's rest centroid (unweighted mean), in the same order as ``cv``. The cell force kernel
+(``lane_forces``) reads them laid out by ``pack_cells``: rings shared by two cells once, SIMD lanes
+running along chains of cells of one size (see the notes before ``BLK``). All positions in
 metres, model frame; forces in N (paper units in the 'paper' preset).
 """
 from __future__ import annotations
@@ -21,7 +22,7 @@ def _noalias_option() -> dict:
 
     numba has the flag (Flags.noalias: every pointer argument gets LLVM's noalias attribute) but no
     public jit option for it; this registers one on the CPU target (numba pinned in requirements/core.txt).
-    It lets LLVM vectorise a loop that loads through an index array (the fused gather of _moments):
+    It lets LLVM vectorise a loop that loads through an index array (the fused gather of _ring_moments):
     without it LLVM cannot rule out that the stores of the loop write into the gathered arrays. Returns {}
     (the same code, not vectorised: slower, same results) if a numba version lacks the internals."""
     try:
@@ -219,7 +220,7 @@ N_W = W_H + 17
 
 
 def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv):
-    """The layout cell_forces reads (numpy, at compile time). Returns (groups, ids, rings, ring_idx,
+    """The layout lane_forces reads (numpy, at compile time). Returns (groups, ids, rings, ring_idx,
     ring_X0, par, lane_muscle):
 
     - groups (G, 4) int64: per cell size n (ascending): n, positions L, first cell block, first ring block

@@ -85,7 +85,7 @@ class SimModel:
     anc: np.ndarray                 # (J, S) bool: joint j moves segment s
     gravity: np.ndarray             # (3,)
     muscle_index_of: dict           # name -> index; group name -> list of indices
-    cell_blocks: tuple              # the cells again, in SIMD blocks by size: what cell_forces reads (pack_cells)
+    cell_blocks: tuple              # the cells again, as the kernel reads them: rings, chains, SIMD lanes (pack_cells)
     cache: dict = dataclasses.field(default_factory=dict, repr=False)   # per-h arrays of the step (internal; pass cache={} to dataclasses.replace)
 
     def inv_denominator(self, h: float) -> np.ndarray:
