@@ -385,6 +385,9 @@ def _aligned_zeros(size):
     return buf[a:a + size]
 
 
+WORK_LENGTH = 8             # the index in cell_work's tuple of the axial lengths in lane order
+
+
 @njit(cache=True)
 def cell_work(cells):
     """The scratch buffers of lane_forces for the layout cells (allocate once, reuse every call): the
@@ -401,24 +404,26 @@ def cell_work(cells):
 
 
 @njit(cache=True)
-def to_lanes(quat, pressure, cells, work):
-    """The per-cell state (quat (C, 4), pressure (C,)) into the lane-ordered copies of work (a dummy
-    lane: the identity rotation, no pressure)."""
+def to_lanes(quat, pressure, cell_energy, cell_length, cells, work):
+    """The per-cell state (quat (C, 4), pressure, cell_energy, cell_length (C,)) into the lane-ordered
+    copies of work (a dummy lane: the identity rotation, zeros)."""
     ids = cells[1]
-    lq, lp = work[5], work[6]
+    lq, lp, le, ll = work[5], work[6], work[7], work[WORK_LENGTH]
     for b in range(ids.shape[0]):
         for c in range(BLK):
             j = ids[b, c]
             for r in range(4):
                 lq[(4 * b + r) * BLK + c] = quat[j, r] if j >= 0 else (1.0 if r == 3 else 0.0)
             lp[b * BLK + c] = pressure[j] if j >= 0 else 0.0
+            le[b * BLK + c] = cell_energy[j] if j >= 0 else 0.0
+            ll[b * BLK + c] = cell_length[j] if j >= 0 else 0.0
 
 
 @njit(cache=True)
 def from_lanes(work, cells, quat, pressure, cell_energy, cell_length):
     """The lane-ordered per-cell state of work back into the per-cell arrays."""
     lane_of = cells[7]
-    lq, lp, le, ll = work[5], work[6], work[7], work[8]
+    lq, lp, le, ll = work[5], work[6], work[7], work[WORK_LENGTH]
     for j in range(lane_of.shape[0]):
         a = lane_of[j]
         b, c = a // BLK, a % BLK
@@ -433,7 +438,7 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
                 cell_length):
     """lane_forces on per-cell state: quat, pressure (read and updated), cell_energy, cell_length
     (written) per cell as in State. Returns the lowest bad cell or -1 (see lane_forces)."""
-    to_lanes(quat, pressure, cells, work)
+    to_lanes(quat, pressure, cell_energy, cell_length, cells, work)
     bad = lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work)
     from_lanes(work, cells, quat, pressure, cell_energy, cell_length)
     return bad

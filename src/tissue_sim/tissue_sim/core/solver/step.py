@@ -43,7 +43,7 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
         fv_on, fv_max, fv_alpha = num
     swaps = 0
     q0, qd0, lam0, cell_work = q.copy(), qd.copy(), lam.copy(), K.cell_work(cells)
-    K.to_lanes(quat, pres, cells, cell_work)        # the cell kernel's per-cell state, in its lane order
+    K.to_lanes(quat, pres, cell_e, cell_len, cells, cell_work)     # the cell kernel's per-cell state, in its lane order
     mlen0, mvel0, act_t, mscratch = mlen.copy(), mvel.copy(), np.empty(lam.shape[0]), np.empty(lam.shape[0])
     for n in range(n_steps):
         act = acts[n]
@@ -56,7 +56,7 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, info):
                 act_t[m] = act[m] * K.force_velocity(mvel[m] * inv_vl0[m], fv_max) if fv_on else act[m]
             bad = K.lane_forces(x, v, f, cells, lam, act_t, vol_actual, iters, vol_gain, cell_work)
             if fv_on:
-                K.muscle_velocity(cell_work[8], mlanes, mcell_muscle, mcell_weight, mlen, mvel, h, fv_alpha, mscratch)
+                K.muscle_velocity(cell_work[K.WORK_LENGTH], mlanes, mcell_muscle, mcell_weight, mlen, mvel, h, fv_alpha, mscratch)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
                 lam[:] = lam0; mlen[:] = mlen0; mvel[:] = mvel0
