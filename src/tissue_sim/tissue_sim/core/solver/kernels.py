@@ -687,7 +687,9 @@ def _times_rest_map(m00, m01, m02, m10, m11, m12, m20, m21, m22, la, sl, fx, fy,
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
 def _cell_algebra(w, pb, n, volume_actual, vol_gain, plain):
     """Per lane (vectorised): the rest shape F, B = A F for the rotation, the volume term
-    (force map P, energy, pressure), tr Y and the rigid velocity (vbar, w) of the damping."""
+    (force map P, energy, pressure), tr Y and the rigid velocity (vbar, w) of the damping. plain: None,
+    or True for a group without muscle cells, volume or tension (pack_cells' flag): numba then compiles a
+    version in which F = I and the volume term are constants, and LLVM drops the dead parts."""
     inv_n = 1.0 / n
     # the cross-section factor first, in a short loop of its own (a chain of two square roots and a
     # division: short loops let the processor overlap the chains of several lanes)
@@ -857,7 +859,8 @@ def _rotations(w, iters):
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
 def _force_maps(w, pb, n, plain):
     """Per lane (vectorised): T = R F, the elastic energy, the active tension, and the coefficients
-    of the affine force map of the lane's vertices; flags a non-finite or absurd result."""
+    of the affine force map of the lane's vertices; flags a non-finite or absurd result. plain: as in
+    _cell_algebra (no muscle: T = R, no tension)."""
     inv_n = 1.0 / n
     half = n // 2
     odd = float(n - 2 * half)
