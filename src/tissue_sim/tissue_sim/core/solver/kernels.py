@@ -48,15 +48,6 @@ NEWTON_DONE = 1e-5          # [rad] a Newton rotation correction below this ends
 
 # ------------------------------------------------------------------------------------ small math
 @njit(cache=True)
-def quat_to_mat(q, R):
-    """Unit quaternion (x, y, z, w) -> rotation matrix R (3, 3), written in place."""
-    x, y, z, w = q[0], q[1], q[2], q[3]
-    R[0, 0] = 1 - 2 * (y * y + z * z); R[0, 1] = 2 * (x * y - z * w); R[0, 2] = 2 * (x * z + y * w)
-    R[1, 0] = 2 * (x * y + z * w); R[1, 1] = 1 - 2 * (x * x + z * z); R[1, 2] = 2 * (y * z - x * w)
-    R[2, 0] = 2 * (x * z - y * w); R[2, 1] = 2 * (y * z + x * w); R[2, 2] = 1 - 2 * (x * x + y * y)
-
-
-@njit(cache=True)
 def axis_angle_mat(ax, ang, R):
     """Rotation by ang [rad] about unit axis ax (Rodrigues), written into R."""
     c, s = math.cos(ang), math.sin(ang)
