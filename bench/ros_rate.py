@@ -13,6 +13,7 @@ the solver's knee phantom scaled up) in its own ROS domain, then this process su
   serialising it, vs the numpy CDR encoder (ratio).
 
 Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom]
+      [--params paper|physical|FILE] [--as-fast-as-possible]
 Last line: one JSON object.
 """
 import argparse
@@ -83,6 +84,9 @@ def main():
     ap.add_argument('--phantom', action='store_true', help='use the knee phantom with extra muscles and fat')
     ap.add_argument('--rate', type=float, default=34.0, help='publish_rate (default 34)')
     ap.add_argument('--colouring', default='none', help='marker colouring (none, skin_area, fat_deformation)')
+    ap.add_argument('--params', default='', help="parameter set of the node (paper, physical or a YAML file; '' = the node's default)")
+    ap.add_argument('--as-fast-as-possible', action='store_true',
+                    help='realtime:=false (steps/s then measures the node\'s stepping, not the real-time pace)')
     a = ap.parse_args()
 
     import rclpy
@@ -115,7 +119,9 @@ def main():
     os.environ.update(ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     log = open(tmp / 'simulator.log', 'w+')
     sim = subprocess.Popen([str(EXE / 'simulator'), '--ros-args', '-p', f'model:={model}',
-                            '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}'],
+                            '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}']
+                           + (['-p', f'params:={a.params}'] if a.params else [])
+                           + (['-p', 'realtime:=false'] if a.as_fast_as_possible else []),
                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         rclpy.init()
@@ -151,7 +157,7 @@ def main():
     x = np.asarray(tm.rest_positions, np.float64)
     py_ms, np_ms, nbytes = python_object_markers(tm, x)
     out = {
-        'model': tm.name, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
+        'model': tm.name, 'params': a.params or 'default', 'realtime': not a.as_fast_as_possible, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
         'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2), 'publish_rate_target_hz': a.rate,
         'joint_states': js, 'markers': mkst,
         'simulator_cpu_percent_of_one_core': round(100 * (c1 - c0) / (w1 - w0), 1),
