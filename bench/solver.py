@@ -76,6 +76,7 @@ class NumpyStep:
         P = int(sizes.max())
         C = sim.n_cells
         self.idx = np.zeros((C, P), np.int64)
+        self.skel_work = np.zeros((max(sim.n_joints, 1), 9))      # skeleton_step scratch
         self.mask = np.zeros((C, P), bool)
         self.X0 = np.zeros((C, P, 3))
         for c in range(C):
@@ -116,7 +117,7 @@ class NumpyStep:
         K.skeleton_step(h, st.q, st.qd, f, st.x, sim.att_idx, sim.att_seg, sim.seg_order, sim.seg_parent,
                         sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia, sim.j_parent, sim.j_child,
                         sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc, sim.gravity,
-                        p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, st.seg_R, st.seg_t, st.work)
+                        p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, st.seg_R, st.seg_t, self.skel_work)
         # 3. soft tissue (the solver's integrator: 1/m, or the scaled masses of 'mass_scaled')
         free = sim.inv_mass > 0
         st.v[free] += h * f[free] * sim.inv_denominator(h)[free, None]

@@ -40,6 +40,7 @@ CAUSE_OK = 0
 CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
 CAUSE_SPEED = 2             # a vertex exceeded max_speed (energy blow-up)
 CAUSE_SKELETON = 3          # non-finite joint acceleration
+CAUSE_ACTIVATION = 4        # an activation outside [0, 1] or not finite (input error: nothing is done)
 CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPEED: 'vertex speed above max_speed (energy blow-up)',
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 FORCE_BOUND = 1e150
@@ -384,30 +385,32 @@ def cell_work(cells):
     """The scratch buffers of lane_forces for the layout cells (allocate once, reuse every call): the
     per-lane rows, the sums of two ring blocks and their gathered vertices, and the per-cell state in lane
     order (quaternion rows x, y, z, w of block b at (4 b + r) BLK; pressure, energy, axial length at b BLK;
-    to_lanes and from_lanes convert)."""
+    to_lanes and from_lanes convert; a dummy lane holds the identity rotation and zeros for good)."""
     rings = cells[2]
     n_lanes = cells[1].shape[0] * BLK
     m_max = 2
     for q in range(rings.shape[0]):
         m_max = max(m_max, rings[q, 1])
+    lq = np.zeros(4 * n_lanes)
+    for b in range(cells[1].shape[0]):
+        lq[(4 * b + 3) * BLK:(4 * b + 4) * BLK] = 1.0
     return (np.empty(N_W * BLK), np.empty(N_R * BLK), np.empty(N_R * BLK), np.empty(6 * m_max * BLK),
-            np.empty(6 * m_max * BLK), np.empty(4 * n_lanes), np.empty(n_lanes), np.zeros(n_lanes), np.zeros(n_lanes))
+            np.empty(6 * m_max * BLK), lq, np.zeros(n_lanes), np.zeros(n_lanes), np.zeros(n_lanes))
 
 
 @njit(cache=True)
 def to_lanes(quat, pressure, cell_energy, cell_length, cells, work):
     """The per-cell state (quat (C, 4), pressure, cell_energy, cell_length (C,)) into the lane-ordered
-    copies of work (a dummy lane: the identity rotation, zeros)."""
-    ids = cells[1]
+    copies of work (dummy lanes are left as cell_work made them)."""
+    lane_of = cells[7]
     lq, lp, le, ll = work[5], work[6], work[7], work[WORK_LENGTH]
-    for b in range(ids.shape[0]):
-        for c in range(BLK):
-            j = ids[b, c]
-            for r in range(4):
-                lq[(4 * b + r) * BLK + c] = quat[j, r] if j >= 0 else (1.0 if r == 3 else 0.0)
-            lp[b * BLK + c] = pressure[j] if j >= 0 else 0.0
-            le[b * BLK + c] = cell_energy[j] if j >= 0 else 0.0
-            ll[b * BLK + c] = cell_length[j] if j >= 0 else 0.0
+    for j in range(lane_of.shape[0]):
+        a = np.uint64(lane_of[j])
+        i = a + np.uint64(3 * BLK) * (a // np.uint64(BLK))          # ((4 b) BLK + c) for a = b BLK + c
+        lq[i] = quat[j, 0]; lq[i + BLK] = quat[j, 1]; lq[i + 2 * BLK] = quat[j, 2]; lq[i + 3 * BLK] = quat[j, 3]
+        lp[a] = pressure[j]
+        le[a] = cell_energy[j]
+        ll[a] = cell_length[j]
 
 
 @njit(cache=True)
@@ -416,10 +419,9 @@ def from_lanes(work, cells, quat, pressure, cell_energy, cell_length):
     lane_of = cells[7]
     lq, lp, le, ll = work[5], work[6], work[7], work[WORK_LENGTH]
     for j in range(lane_of.shape[0]):
-        a = lane_of[j]
-        b, c = a // BLK, a % BLK
-        for r in range(4):
-            quat[j, r] = lq[(4 * b + r) * BLK + c]
+        a = np.uint64(lane_of[j])
+        i = a + np.uint64(3 * BLK) * (a // np.uint64(BLK))
+        quat[j, 0] = lq[i]; quat[j, 1] = lq[i + BLK]; quat[j, 2] = lq[i + 2 * BLK]; quat[j, 3] = lq[i + 3 * BLK]
         pressure[j] = lp[a]
         cell_energy[j] = le[a]
         cell_length[j] = ll[a]

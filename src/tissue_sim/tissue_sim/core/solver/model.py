@@ -150,13 +150,18 @@ class State:
     muscle_velocity: np.ndarray = None  # (M,) [m/s] lengthening velocity of each muscle, low-pass filtered (force-velocity on)
     step: int = 0
     time: float = 0.0               # [s]
-    kinetic_energy: float = 0.0     # free vertices, last step
     x_back: np.ndarray = None       # double buffers (internal)
     v_back: np.ndarray = None
-    work: np.ndarray = None         # skeleton scratch
+    free_mass: np.ndarray = None    # (V,) [kg] vertex masses, 0 for bone-attached vertices (model constant)
+
+    @property
+    def kinetic_energy(self) -> float:
+        """Kinetic energy [J] of the free vertices (computed when read, not by every step)."""
+        return 0.5 * float(np.dot(self.free_mass, np.einsum('ij,ij->i', self.v, self.v)))
 
     def copy(self) -> 'State':
-        return State(**{f.name: (getattr(self, f.name).copy() if isinstance(getattr(self, f.name), np.ndarray)
+        return State(**{f.name: (getattr(self, f.name).copy()
+                                 if isinstance(getattr(self, f.name), np.ndarray) and f.name != 'free_mass'
                                  else getattr(self, f.name)) for f in dataclasses.fields(self)})
 
 
@@ -413,7 +418,7 @@ def make_state(sim: SimModel) -> State:
                lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
                cell_length=np.zeros(C), muscle_length=np.full(max(sim.n_muscles, 0), -1.0),
                muscle_velocity=np.zeros(max(sim.n_muscles, 0)),
-               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), work=np.zeros((max(J, 1), 9 + max(J, 1))))   # skeleton scratch; last column: kinetic energy
+               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), free_mass=np.where(sim.inv_mass > 0, sim.mass, 0.0))
     return st
 
 
