@@ -238,7 +238,7 @@ class Simulator:
     def step_within(self, want, t0, budget):
         """Up to ``want`` solver steps, until ``budget`` wall seconds from ``t0`` are spent, in batches:
         one solver call runs as many steps as the measured cost per step says fit in the time left
-        (each call has a fixed overhead, ~30 % of a paper-set step). The activations cannot change
+        (each call has a fixed overhead, ~20 % of a paper-set step). The activations cannot change
         within a tick (callbacks run between ticks), and k steps in one call equal k calls of one
         step bit for bit, so batching changes the timing only. Returns the steps done."""
         n = 0
