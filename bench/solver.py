@@ -159,6 +159,21 @@ def pypbd_rate(sim, seconds):
     return rate(lambda: ts.step(model), seconds), len(model.getConstraints())
 
 
+def _cpu():
+    """The processor (its rates differ: see docs/solver.md), the CPU numba compiles for, the kernel's lanes."""
+    import llvmlite.binding as llvm
+    from numba.core import config
+    model = 'unknown'
+    try:
+        with open('/proc/cpuinfo') as fh:
+            model = next((ln.split(':', 1)[1].strip() for ln in fh if ln.startswith('model name')), model)
+    except OSError:
+        pass
+    name = config.CPU_NAME or 'host'
+    return {'cpu_model': model, 'llvm_cpu': llvm.get_host_cpu_name() if name == 'host' else name,
+            'lanes_per_block': K.BLK}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--model', help='a model .npz (default: the bundled anatomy)')
@@ -168,7 +183,9 @@ def main():
     print(f'model: {source}: {tm.n_vertices} vertices, {tm.n_cells} cells '
           f'({int(np.sum(tm.cell_tissue == 1))} muscle, {int(np.sum(tm.cell_tissue == 2))} fat), '
           f'{len(tm.cell_vertices)} cell-vertex entries, {tm.n_joints} joints')
-    out = {'model': source, 'vertices': tm.n_vertices, 'cells': tm.n_cells}
+    cpu = _cpu()
+    print(f'CPU: {cpu["cpu_model"]} (numba compiles for {cpu["llvm_cpu"]}; {cpu["lanes_per_block"]} cells per SIMD block)')
+    out = {'model': source, 'vertices': tm.n_vertices, 'cells': tm.n_cells, **cpu}
     ham = [m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]
 
     def solver_rate(params, chunk):

@@ -535,3 +535,32 @@ def test_the_fused_gather_is_compiled_noalias():
     define = next(line for line in text.splitlines() if line.startswith('define') and '_ring_moments' in line)
     assert define.count('noalias') >= 8                     # retptr, excinfo + the data pointers of the arrays
     assert rs[K.R_O * K.BLK] == 9.0 and gv[0] == 9.0         # gathered x[3 * 3] through the slot offset
+
+
+def test_lanes_per_block_follow_the_cpu():
+    """32 lanes where LLVM emits 512-bit vectors by default (AMD Zen 4 and later), else 16; the module's
+    BLK is the choice for the CPU numba compiles for, and a whole number of 8-double vectors."""
+    assert K.lanes_for_cpu('znver4') == K.lanes_for_cpu('znver5') == 32
+    for name in ('znver3', 'znver2', 'skylake-avx512', 'haswell', 'generic', 'neoverse-n1'):
+        assert K.lanes_for_cpu(name) == 16, name
+    assert K.BLK == K.lanes_for_cpu() and K.BLK % 8 == 0
+
+
+@pytest.mark.slow
+def test_the_other_lane_width_matches_the_reference_too():
+    """On a CPU that runs 32 lanes, the 16-lane layout (what every other CPU runs) passes this file's
+    tests too: a fresh process compiling for NUMBA_CPU_NAME=generic (a CPU name of its own in numba's
+    cache index, so the two layouts never share cached code)."""
+    if K.BLK == 16:
+        pytest.skip('this CPU runs the 16-lane layout already (the tests above cover it)')
+    import os
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, NUMBA_CPU_NAME='generic')
+    probe = subprocess.run([sys.executable, '-c', 'import sys; sys.path.insert(0, sys.argv[1]); '
+                            'from tissue_sim.core.solver import kernels as K; print(K.BLK)', str(root / 'src' / 'tissue_sim')],
+                           capture_output=True, text=True, env=env, check=True)
+    assert probe.stdout.strip() == '16'
+    run = subprocess.run([sys.executable, '-m', 'pytest', '-q', '-m', 'not slow', '-p', 'no:cacheprovider',
+                          str(Path(__file__).resolve())], capture_output=True, text=True, env=env, cwd=root)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    assert ' passed' in run.stdout and 'failed' not in run.stdout

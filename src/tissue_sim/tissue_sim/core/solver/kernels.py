@@ -126,7 +126,7 @@ def muscle_velocity(cell_length, mcells, mcell_muscle, mcell_weight, mlen, mvel,
 # Lanes. A block is one position along BLK lanes (one cell per lane, structure of arrays: every
 # per-cell quantity is a row of BLK doubles, so each loop over a block's lanes is contiguous and
 # branch-free: the branches of the per-cell algebra are selects, and LLVM vectorises it, AVX2 taking
-# 4 cells per instruction). Lane l runs along chains of cells of one size n: position j holds a cell
+# 4 cells per instruction, AVX-512 8; BLK depends on the CPU: see lanes_for_cpu). Lane l runs along chains of cells of one size n: position j holds a cell
 # between ring j (its bottom) and ring j + 1 (its top), so the ring sums a cell needs sit in the same
 # lane of the two ring blocks around it (no gather between rings and cells). Where a lane passes from
 # one chain to the next, a dummy position (no stiffness: its results are dropped) lies between the two
@@ -136,8 +136,29 @@ def muscle_velocity(cell_length, mcells, mcell_muscle, mcell_weight, mlen, mvel,
 # loop, which LLVM vectorises with scalar loads once the arrays are marked noalias (NOALIAS); the
 # scatter-add of the forces is scalar (AVX2 has no scatter; lanes may share a vertex), in a fixed
 # order: deterministic.
-BLK = 16                    # lanes (cells) per block: a multiple of 4 (doubles per AVX2 register); 8 lanes
-                            # vectorise poorly, 32 and 64 measured 2-10 % slower (the rows outgrow L1)
+WIDE_CPUS = ('znver4', 'znver5')     # LLVM's names of the CPUs for which it emits 512-bit vectors by default (not
+                                     # Intel's AVX-512 CPUs: LLVM prefers 256 bits there) and
+                                     # where 32 lanes were measured faster (AMD Zen 4 and later)
+
+
+def lanes_for_cpu(name: str | None = None) -> int:
+    """Lanes per block for the CPU numba compiles for (``NUMBA_CPU_NAME``, else the host): 32 where LLVM
+    emits 512-bit vectors (8 doubles) by default (``WIDE_CPUS``), else 16. Measured with bench/solver.py
+    on the 2-core machines here: on AMD Zen 3 (AVX2, 4 doubles per register) 16 lanes are fastest (8
+    vectorise poorly, 32 and 64 were 2-10 % slower: the rows outgrow L1); on AMD Zen 4 (AVX-512) 32 lanes
+    are 5-10 % faster than 16 (four vectors per row instead of two: more independent chains per loop).
+    Read once at import, so it is a compile-time constant of every kernel; numba's on-disk cache is keyed
+    by the CPU name too, so a cache never mixes layouts. Only the order of the sums depends on it."""
+    if name is None:
+        from numba.core import config
+        import llvmlite.binding as llvm
+        name = config.CPU_NAME or 'host'
+        if name == 'host':
+            name = llvm.get_host_cpu_name()
+    return 32 if name in WIDE_CPUS else 16
+
+
+BLK = lanes_for_cpu()       # lanes (cells) per block: a multiple of 8 (doubles per AVX-512 register)
 
 # rows of the per-lane constants (pack_cells: par[block, row * BLK + lane])
 P_K = 0                     # spring constant per cell-vertex [N/m]
