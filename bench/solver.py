@@ -161,17 +161,13 @@ def pypbd_rate(sim, seconds):
 
 def _cpu():
     """The processor (its rates differ: see docs/solver.md), the CPU numba compiles for, the kernel's lanes."""
-    import llvmlite.binding as llvm
-    from numba.core import config
     model = 'unknown'
     try:
         with open('/proc/cpuinfo') as fh:
             model = next((ln.split(':', 1)[1].strip() for ln in fh if ln.startswith('model name')), model)
     except OSError:
         pass
-    name = config.CPU_NAME or 'host'
-    return {'cpu_model': model, 'llvm_cpu': llvm.get_host_cpu_name() if name == 'host' else name,
-            'lanes_per_block': K.BLK}
+    return {'cpu_model': model, 'llvm_cpu': K.compile_cpu(), 'lanes_per_block': K.BLK}
 
 
 def main():

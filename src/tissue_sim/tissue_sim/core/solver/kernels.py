@@ -126,8 +126,9 @@ def muscle_velocity(cell_length, mcells, mcell_muscle, mcell_weight, mlen, mvel,
 # Lanes. A block is one position along BLK lanes (one cell per lane, structure of arrays: every
 # per-cell quantity is a row of BLK doubles, so each loop over a block's lanes is contiguous and
 # branch-free: the branches of the per-cell algebra are selects, and LLVM vectorises it, AVX2 taking
-# 4 cells per instruction, AVX-512 8; BLK depends on the CPU: see lanes_for_cpu). Lane l runs along chains of cells of one size n: position j holds a cell
-# between ring j (its bottom) and ring j + 1 (its top), so the ring sums a cell needs sit in the same
+# 4 cells per instruction, AVX-512 8; BLK depends on the CPU: see lanes_for_cpu). Lane l runs along
+# chains of cells of one size n: position j holds a cell between ring j (its bottom) and ring j + 1
+# (its top), so the ring sums a cell needs sit in the same
 # lane of the two ring blocks around it (no gather between rings and cells). Where a lane passes from
 # one chain to the next, a dummy position (no stiffness: its results are dropped) lies between the two
 # chains' end rings. Loops over lanes run over the whole block (a constant trip count); every row a
@@ -149,13 +150,15 @@ def lanes_for_cpu(name: str | None = None) -> int:
     are 5-10 % faster than 16 (four vectors per row instead of two: more independent chains per loop).
     Read once at import, so it is a compile-time constant of every kernel; numba's on-disk cache is keyed
     by the CPU name too, so a cache never mixes layouts. Only the order of the sums depends on it."""
-    if name is None:
-        from numba.core import config
-        import llvmlite.binding as llvm
-        name = config.CPU_NAME or 'host'
-        if name == 'host':
-            name = llvm.get_host_cpu_name()
-    return 32 if name in WIDE_CPUS else 16
+    return 32 if (compile_cpu() if name is None else name) in WIDE_CPUS else 16
+
+
+def compile_cpu() -> str:
+    """LLVM's name of the CPU numba compiles for: ``NUMBA_CPU_NAME`` if set, else the host's."""
+    from numba.core import config
+    import llvmlite.binding as llvm
+    name = config.CPU_NAME or 'host'
+    return llvm.get_host_cpu_name() if name == 'host' else name
 
 
 BLK = lanes_for_cpu()       # lanes (cells) per block: a multiple of 8 (doubles per AVX-512 register)
