@@ -570,6 +570,17 @@ def _load_muscles(lam, act, mus, w):
         w[W_LAM * BLK + c] = la; w[W_ACT * BLK + c] = a; w[W_MUS * BLK + c] = mu
 
 
+@njit(cache=True, inline='always')
+def _slot(gv, X0, x, v, i, g, h, c, ox, oy, oz, real):
+    """One vertex slot of lane c in _ring_moments' four-slot pass: its position and velocity (times real:
+    0 for a padding slot) into gv rows g .. g + 5 BLK, and (d = x - o, v, Xr) for the sums."""
+    px, py, pz = x[i], x[i + 1], x[i + 2]
+    ux, uy, uz = v[i] * real, v[i + 1] * real, v[i + 2] * real
+    gv[g + c] = px; gv[g + BLK + c] = py; gv[g + 2 * BLK + c] = pz
+    gv[g + 3 * BLK + c] = ux; gv[g + 4 * BLK + c] = uy; gv[g + 5 * BLK + c] = uz
+    return px - ox, py - oy, pz - oz, ux, uy, uz, X0[h + c], X0[h + BLK + c], X0[h + 2 * BLK + c]
+
+
 @njit(cache=True, fastmath={'contract'}, error_model='numpy', **NOALIAS)
 def _ring_moments(rs, gv, X0, m, m_real, x, v, idx):
     """Gathers the ring block's vertex positions and velocities (x, v flat (3V,), idx the slot rows) into
@@ -590,34 +601,13 @@ def _ring_moments(rs, gv, X0, m, m_real, x, v, idx):
         r3 = 1.0 if s + 3 < m_real else 0.0          # 0: the padding slot of an odd-sized ring
         for c in range(BLK):
             ox, oy, oz = rs[R_O * BLK + c], rs[(R_O + 1) * BLK + c], rs[(R_O + 2) * BLK + c]
-            i0 = idx[s, c]
-            px0, py0, pz0 = x[i0], x[i0 + 1], x[i0 + 2]
-            ux0, uy0, uz0 = v[i0], v[i0 + 1], v[i0 + 2]
-            gv[g + c] = px0; gv[g + BLK + c] = py0; gv[g + 2 * BLK + c] = pz0
-            gv[g + 3 * BLK + c] = ux0; gv[g + 4 * BLK + c] = uy0; gv[g + 5 * BLK + c] = uz0
-            rX0, rY0, rZ0 = X0[h + c], X0[h + BLK + c], X0[h + 2 * BLK + c]
-            dx0, dy0, dz0 = px0 - ox, py0 - oy, pz0 - oz
-            i1 = idx[s + 1, c]
-            px1, py1, pz1 = x[i1], x[i1 + 1], x[i1 + 2]
-            ux1, uy1, uz1 = v[i1], v[i1 + 1], v[i1 + 2]
-            gv[g + 6 * BLK + c] = px1; gv[g + 7 * BLK + c] = py1; gv[g + 8 * BLK + c] = pz1
-            gv[g + 9 * BLK + c] = ux1; gv[g + 10 * BLK + c] = uy1; gv[g + 11 * BLK + c] = uz1
-            rX1, rY1, rZ1 = X0[h + 3 * BLK + c], X0[h + 4 * BLK + c], X0[h + 5 * BLK + c]
-            dx1, dy1, dz1 = px1 - ox, py1 - oy, pz1 - oz
-            i2 = idx[s + 2, c]
-            px2, py2, pz2 = x[i2], x[i2 + 1], x[i2 + 2]
-            ux2, uy2, uz2 = v[i2], v[i2 + 1], v[i2 + 2]
-            gv[g + 12 * BLK + c] = px2; gv[g + 13 * BLK + c] = py2; gv[g + 14 * BLK + c] = pz2
-            gv[g + 15 * BLK + c] = ux2; gv[g + 16 * BLK + c] = uy2; gv[g + 17 * BLK + c] = uz2
-            rX2, rY2, rZ2 = X0[h + 6 * BLK + c], X0[h + 7 * BLK + c], X0[h + 8 * BLK + c]
-            dx2, dy2, dz2 = px2 - ox, py2 - oy, pz2 - oz
-            i3 = idx[s + 3, c]
-            px3, py3, pz3 = x[i3], x[i3 + 1], x[i3 + 2]
-            ux3, uy3, uz3 = v[i3] * r3, v[i3 + 1] * r3, v[i3 + 2] * r3
-            gv[g + 18 * BLK + c] = px3; gv[g + 19 * BLK + c] = py3; gv[g + 20 * BLK + c] = pz3
-            gv[g + 21 * BLK + c] = ux3; gv[g + 22 * BLK + c] = uy3; gv[g + 23 * BLK + c] = uz3
-            rX3, rY3, rZ3 = X0[h + 9 * BLK + c], X0[h + 10 * BLK + c], X0[h + 11 * BLK + c]
-            dx3, dy3, dz3 = px3 - ox, py3 - oy, pz3 - oz
+            dx0, dy0, dz0, ux0, uy0, uz0, rX0, rY0, rZ0 = _slot(gv, X0, x, v, idx[s, c], g, h, c, ox, oy, oz, 1.0)
+            dx1, dy1, dz1, ux1, uy1, uz1, rX1, rY1, rZ1 = _slot(gv, X0, x, v, idx[s + 1, c], g + 6 * BLK, h + 3 * BLK,
+                                                              c, ox, oy, oz, 1.0)
+            dx2, dy2, dz2, ux2, uy2, uz2, rX2, rY2, rZ2 = _slot(gv, X0, x, v, idx[s + 2, c], g + 12 * BLK, h + 6 * BLK,
+                                                              c, ox, oy, oz, 1.0)
+            dx3, dy3, dz3, ux3, uy3, uz3, rX3, rY3, rZ3 = _slot(gv, X0, x, v, idx[s + 3, c], g + 18 * BLK, h + 9 * BLK,
+                                                              c, ox, oy, oz, r3)
             rs[R_S * BLK + c] += (dx0 + dx1) + (dx2 + dx3)
             rs[(R_S + 1) * BLK + c] += (dy0 + dy1) + (dy2 + dy3)
             rs[(R_S + 2) * BLK + c] += (dz0 + dz1) + (dz2 + dz3)
