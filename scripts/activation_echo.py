@@ -44,9 +44,19 @@ def main(argv=None) -> int:
         pub.wait_for_all_acked(Duration(seconds=2.0))   # reliable: let the last echoes arrive
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception as e:
+        # SIGINT can land inside a __del__ (Python prints 'Exception ignored' and drops the
+        # KeyboardInterrupt) while rclpy's handler still shuts the context down: the next spin_once
+        # then raises RCLError ('the given context is not valid'). That is a stop, not a failure.
+        if rclpy.ok() or type(e).__name__ != 'RCLError':
+            raise
     finally:
         print(f'activation_echo: echoed {echoed} messages', flush=True)
-        node.destroy_node()
+        try:
+            node.destroy_node()
+        except Exception as e:
+            if type(e).__name__ != 'RCLError':
+                raise
         if rclpy.ok():
             rclpy.shutdown()
     return 0
