@@ -341,3 +341,36 @@ def test_pause_reset_services_and_divergence_is_reported_not_published(knee_mode
         assert not resp.success and 'reset' in resp.message
         node.destroy_node()
     assert sim.returncode == 0, sim.output
+
+
+def test_a_stop_during_start_up_is_a_stop_not_a_traceback(capsys):
+    """SIGINT/SIGTERM while a node is still setting up: before rclpy.init it is a KeyboardInterrupt; after
+    it, rclpy's handler has shut the context down and the next rclpy call raises (RCLError or
+    NotInitializedException, depending on where the call meets the shut-down context). Both end the
+    node as a stop does later ('stopped', exit code 0); any other error still propagates."""
+    import rclpy
+    from tissue_sim.ros.common import main_wrapper
+
+    @main_wrapper
+    def interrupted_before_init(argv=None):
+        raise KeyboardInterrupt
+
+    @main_wrapper
+    def shut_down_before_the_node(argv=None):
+        rclpy.init()
+        rclpy.shutdown()                      # what rclpy's signal handler does
+        rclpy.create_node('never_made')       # raises: rclpy is not initialised
+
+    @main_wrapper
+    def a_real_failure(argv=None):
+        raise RuntimeError('boom')
+
+    try:
+        rc = interrupted_before_init()
+    except KeyboardInterrupt:               # (would end the whole pytest session, not fail this test)
+        pytest.fail('KeyboardInterrupt escaped main_wrapper')
+    assert rc == 0
+    assert shut_down_before_the_node() == 0
+    assert capsys.readouterr().err.splitlines() == ['stopped', 'stopped']
+    with pytest.raises(RuntimeError, match='boom'):
+        a_real_failure()

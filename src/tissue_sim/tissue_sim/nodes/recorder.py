@@ -22,7 +22,8 @@ import time
 from pathlib import Path
 
 from ..core import mcapio
-from ..ros.common import (TISSUE_TOPICS, TOPIC_TOPOLOGY, main_wrapper, parse_args, qos_latched, qos_stream)
+from ..ros.common import (TISSUE_TOPICS, TOPIC_TOPOLOGY, main_wrapper, parse_args, qos_latched, qos_stream,
+                          spin)
 
 
 def build_parser():
@@ -126,18 +127,9 @@ class Recorder:
 def main(argv=None):
     args, argv = parse_args(build_parser(), argv)
     import rclpy
-    from rclpy.executors import ExternalShutdownException
     rclpy.init(args=argv)
     rec = Recorder(args)
-    try:
-        rclpy.spin(rec.node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        rec.close()
-        rec.node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+    spin(rec.node, on_shutdown=rec.close)       # SIGINT/SIGTERM, a callback racing them: the file is closed
     return 0
 
 

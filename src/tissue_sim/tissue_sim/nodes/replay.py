@@ -16,7 +16,7 @@ import time
 
 from ..core import mcapio
 from ..core.cdr import CdrReader
-from ..ros.common import TOPIC_CLOCK, TOPIC_TOPOLOGY, main_wrapper, parse_args, qos_latched, qos_stream
+from ..ros.common import TOPIC_CLOCK, TOPIC_TOPOLOGY, _is_rcl_error, main_wrapper, parse_args, qos_latched, qos_stream
 
 
 def build_parser():
@@ -139,9 +139,16 @@ def main(argv=None):
         time.sleep(0.5)            # let reliable publishers deliver the tail
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception as e:                  # a SIGINT racing spin_once: the context is already shut down
+        if rclpy.ok() or not _is_rcl_error(e):
+            raise
     finally:
         if r is not None:
-            r.node.destroy_node()
+            try:
+                r.node.destroy_node()
+            except Exception as e:
+                if not _is_rcl_error(e):
+                    raise
         if rclpy.ok():
             rclpy.shutdown()
     return 0

@@ -107,20 +107,39 @@ def spin(node, on_shutdown=None) -> int:
 
 
 def main_wrapper(fn):
-    """Run a node's main; a UserError/ValueError in set-up is one 'error:' line and exit code 2."""
+    """Run a node's main; a UserError/ValueError in set-up is one 'error:' line and exit code 2. A
+    SIGINT/SIGTERM during set-up is a stop, as it is later: 'stopped' and exit code 0, no traceback
+    (before rclpy.init it raises KeyboardInterrupt; after it, rclpy's handler shuts the context down and
+    the next rclpy call, e.g. creating the node, raises RCLError or NotInitializedException)."""
     def wrapped(argv=None):
         from ..errors import UserError
         from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
         try:
             return fn(argv) or 0
-        except (UserError, ValueError, FileNotFoundError, InvalidParameterValueException,
-                InvalidParameterTypeException) as e:
-            print(f'error: {e}', file=sys.stderr)
-            try:
-                import rclpy
-                if rclpy.ok():
-                    rclpy.shutdown()
-            except Exception:
-                pass
-            return 2
+        except KeyboardInterrupt:
+            print('stopped', file=sys.stderr)
+            return 0
+        except Exception as e:
+            import rclpy
+            from rclpy.exceptions import NotInitializedException
+            if (_is_rcl_error(e) or isinstance(e, NotInitializedException)) and not rclpy.ok():
+                print('stopped', file=sys.stderr)
+                return 0
+            if isinstance(e, (UserError, ValueError, FileNotFoundError, InvalidParameterValueException,
+                              InvalidParameterTypeException)):
+                return _setup_error(e)
+            raise
     return wrapped
+
+
+def _setup_error(e) -> int:
+    print(f'error: {e}', file=sys.stderr)
+    try:
+        import rclpy
+        if rclpy.ok():
+            rclpy.shutdown()
+    except Exception:
+        pass
+    return 2
+
+
