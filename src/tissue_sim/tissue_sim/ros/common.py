@@ -141,5 +141,3 @@ def _setup_error(e) -> int:
     except Exception:
         pass
     return 2
-
-
