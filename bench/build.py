@@ -1,4 +1,4 @@
-"""Benchmark: build time of the default anatomy's model (METHOD.md section 1; target < 5 s).
+"""Benchmark: build time of the default anatomy's model (docs/method.md section 1; target < 5 s).
 
 Builds the bundled lower limb with default ("paper") settings (or, while the bundled anatomy is
 absent, the synthetic 'limb' phantom of tests/phantoms.py), prints the build time (first build in

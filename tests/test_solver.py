@@ -1,4 +1,4 @@
-"""Solver physics tests (METHOD.md sections 2-3): cells, contraction, skeleton, robustness.
+"""Solver physics tests (docs/method.md sections 2-3): cells, contraction, skeleton, robustness.
 
 Models are the solver's analytic phantoms (tissue_sim.core.solver.phantom): one cell, a two-segment
 knee with a hamstring behind and a quadriceps in front of the hinge, and hinge chains.

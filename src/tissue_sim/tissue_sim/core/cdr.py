@@ -1,6 +1,6 @@
 """Minimal little-endian XCDR1 (ROS 2 "cdr") writer and reader on numpy, for big messages.
 
-Building large ROS messages as Python objects costs hundreds of ms (see shared/ROS2_ON_PIP.md);
+Building large ROS messages as Python objects costs hundreds of ms (see docs/ros-on-pip.md);
 writing the bytes with numpy costs about a millisecond. ROS-free: used by the nodes (publishing
 raw bytes), by headless runs (MCAP files) and by the analysis (decoding recorded runs).
 

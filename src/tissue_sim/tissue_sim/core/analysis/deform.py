@@ -1,4 +1,4 @@
-"""Deformation measures of the paper's section 4 (METHOD.md section 4), vectorised over cells.
+"""Deformation measures of the paper's section 4 (docs/method.md section 4), vectorised over cells.
 
 All positions are in the model frame [m]. ``X`` is one frame's soft-tissue vertex array (V, 3).
 

@@ -1,4 +1,4 @@
-"""Model builder: labelled slice stack + tissue table -> TissueModel (paper section 2, METHOD.md section 1).
+"""Model builder: labelled slice stack + tissue table -> TissueModel (paper section 2, docs/method.md section 1).
 
 Public API::
 

@@ -1,4 +1,4 @@
-"""Label volume + tissue table -> TissueModel (paper section 2; METHOD.md section 1).
+"""Label volume + tissue table -> TissueModel (paper section 2; docs/method.md section 1).
 
 Pipeline: check labels against the table -> choose slices -> per slice: muscle ray polygons, fat
 rays, bone pixels -> link muscle components between slices into prism chains -> fat hexahedra ->

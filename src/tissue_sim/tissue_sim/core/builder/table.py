@@ -100,7 +100,7 @@ def load_tissue_table(src) -> dict:
             out['optimal_fibre_length'] = _num(ent['optimal_fibre_length'], f'{w} optimal_fibre_length', positive=True)
         if 'stiffness_scale' in ent and ent['stiffness_scale'] is not None:
             out['stiffness_scale'] = _num(ent['stiffness_scale'], f'{w} stiffness_scale', positive=True)
-        for end in ('origin', 'insertion'):       # muscle attachments (METHOD.md section 3): segment name
+        for end in ('origin', 'insertion'):       # muscle attachments (docs/method.md section 3): segment name
             a = ent.get(end)
             if a is None:
                 out[end] = None

@@ -1,6 +1,6 @@
 """Physical and numerical parameters of the solver (one flat dataclass, YAML round trip).
 
-Two presets (METHOD.md section 6):
+Two presets (docs/method.md section 6):
 
 * ``Params.paper()``: Table 2 of Inaba et al. 2005 as given: every vertex mass 1, muscle k 1e6,
   fat k 5e5, dT 1e-3, contraction rate c = 0.998 per dT. Dimensionless in the paper; we read it

@@ -1,4 +1,4 @@
-"""The time step (METHOD.md section 3 order: muscle tension, then skeleton, then soft tissue)."""
+"""The time step (docs/method.md section 3 order: muscle tension, then skeleton, then soft tissue)."""
 from __future__ import annotations
 
 import math
