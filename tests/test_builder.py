@@ -6,7 +6,8 @@ import pytest
 
 from phantoms import KNEE_Z, R_BODY, R_BONE, R_MUS, X_MUS, Z0, Z1, make_phantom, make_phantom_model
 from tissue_sim.core import model as M
-from tissue_sim.core.builder import build_model, geometry
+from tissue_sim.core import geometry
+from tissue_sim.core.builder import build_model
 from tissue_sim.core.builder.quality import cell_volumes, surface_checks, table1
 from tissue_sim.core.builder.rays import polygon_area
 

@@ -17,7 +17,8 @@ from scipy.spatial import cKDTree
 from tissue_sim.errors import UserError
 from tissue_sim.core import model as M
 
-from . import geometry, slices as S
+from tissue_sim.core import geometry
+from . import slices as S
 from .io import LabelVolume, voxel_to_model
 from .sharing import share_groups
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from tissue_sim.core import model as M
 
-from . import geometry
+from tissue_sim.core import geometry
 
 PAPER_TABLE1 = {'bones': 6, 'muscles': 28, 'muscle_cells': 292, 'muscle_vertices': 2998,
                 'fat_cells': 540, 'fat_vertices': 4320, 'shared_vertices': 873}

@@ -1,4 +1,5 @@
-"""Prism-cell geometry: signed volumes, ring triangulation (ear clipping), surfaces of prism chains."""
+"""Prism-cell geometry, the one definition the builder, the solver and the analysis share: signed prism
+volumes, ring triangulation (ear clipping), closed surfaces of prism chains."""
 from __future__ import annotations
 
 import numpy as np
