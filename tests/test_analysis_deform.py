@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tissue_sim.core.analysis import deform, measure, synthetic
+import synthetic
+from tissue_sim.core.analysis import deform, measure
 from tissue_sim.core import runio, tissue_cdr
 
 
@@ -81,17 +82,16 @@ def test_prism_volumes_and_boundary():
 
 
 def _write(tm, path, frames_X, poses=None):
-    topo = tissue_cdr.from_model(tm)
     states = []
     for i, X in enumerate(frames_X):
-        states.append(tissue_cdr.State(
+        states.append(tissue_cdr.StateFrame(
             stamp_ns=i * 10 ** 8, frame_id='world', step=i, sim_time=0.1 * i, joint_names=['knee_r'],
             joint_positions=np.zeros(1), joint_velocities=np.zeros(1), muscle_names=list(tm.muscle_names),
             activations=np.zeros(2, np.float32), muscle_lengths=np.ones(2, np.float32),
             muscle_volumes=np.ones(2, np.float32),
             segment_poses=np.array([[0, 0, 0, 0, 0, 0, 1]] * 2, float) if poses is None else poses[i],
             vertex_positions=np.asarray(X, np.float32), kinetic_energy=0, elastic_energy=0))
-    return runio.write_run(path, topo, states)
+    return runio.write_run(path, tm, states)
 
 
 def test_measure_run_end_to_end_known_answers(tmp_path):

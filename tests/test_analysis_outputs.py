@@ -9,7 +9,7 @@ import pytest
 
 from tissue_sim.cli import main
 from tissue_sim.commands import analyze, export_run, render
-from tissue_sim.core.analysis import synthetic
+import synthetic
 from tissue_sim.errors import UserError
 
 

@@ -99,23 +99,32 @@ def cell_grid_topology(topo):
     return np.concatenate(conn), np.array(types, np.uint8), np.array(owner, np.int64)
 
 
-def write_vtu_series(topo, run, out: Path, ctx=None) -> list[Path]:
-    """One .vtu (cells) and .vtp (bones) per frame of ``run`` (a runio.Run) and the ``cells.pvd`` index."""
+def write_vtu_series(run, out: Path, frames=None, measures=None) -> list[Path]:
+    """One .vtu (cells) and .vtp (bones) per frame of ``run`` (a runio.Run; ``frames``: positions in
+    it, default all) and the ``cells.pvd`` index. ``measures``: the run's Measurements if computed."""
     os.environ.setdefault('VTK_DEFAULT_OPENGL_WINDOW', 'vtkEGLRenderWindow')
     import pyvista as pv
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ctx = ctx or measure.prepare(topo)
+    topo = run.model
+    sel = np.arange(run.n_frames) if frames is None else np.asarray(frames, np.int64)
+    want = sorted(set(sel.tolist()) | {0})
+    have = {} if measures is None else {int(f): k for k, f in enumerate(measures.frame_index)}
+    if not all(int(run.frame_index[i]) in have for i in want):
+        measures = measure.measure(run, frames=want)
+        have = {int(f): k for k, f in enumerate(measures.frame_index)}
+    m = measures
     conn, types, owner = cell_grid_topology(topo)
     rest = np.asarray(topo.rest_positions, np.float64)
     fat_local = np.full(topo.n_cells, -1, np.int64)
-    fat_local[ctx['fat_ids']] = np.arange(ctx['n_fat'])
+    fat_local[m.fat_cells] = np.arange(m.fat_cells.size)
     fl = fat_local[owner]
-    area0 = measure.fat_frame(ctx, run.frames[0])[0]
+    area0 = m.skin_area[have[int(run.frame_index[0])]]
     files, entries = [], []
-    for i in range(run.n_frames):
+    for i in sel:
+        k = have[int(run.frame_index[i])]
         X = run.frames[i].astype(np.float64)
-        a, dp, dr = measure.fat_frame(ctx, X)
+        a, dp, dr = m.skin_area[k], m.d_paper[k], m.d_rotation_free[k]
         grid = pv.UnstructuredGrid(conn, types, X)
         grid.cell_data['cell'] = owner.astype(np.int32)
         grid.cell_data['tissue'] = np.asarray(topo.cell_tissue)[owner].astype(np.int32)

@@ -46,7 +46,7 @@ def surface_groups(topo) -> dict:
     out = {}
     tri = np.asarray(topo.surface_triangles, np.int64)
     if tri.size:
-        g = np.asarray(topo.surface_groups, np.int64)
+        g = np.asarray(topo.surface_group, np.int64)
         for i, name in enumerate(topo.surface_group_names):
             sel = tri[g == i]
             if sel.size:
@@ -70,7 +70,7 @@ def posed_bones(topo, poses: np.ndarray) -> list[np.ndarray]:
     R = quat_to_matrix(poses[:, 3:7]) if len(poses) else np.zeros((0, 3, 3))
     for b in range(len(topo.bone_names)):
         v, _ = topo.bone_mesh(b)
-        s = int(topo.bone_segments[b])
+        s = int(topo.bone_segment[b])
         if 0 <= s < len(poses):
             v = v.astype(np.float64) @ R[s].T + poses[s, :3]
         out.append(np.asarray(v, np.float64))
@@ -93,7 +93,7 @@ def knee_centre(topo, poses: np.ndarray, X0: np.ndarray) -> np.ndarray:
     """
     X0 = np.asarray(X0, np.float64)
     guess = X0.mean(axis=0) if X0.size else np.zeros(3)
-    parents = np.asarray(topo.segment_parents)
+    parents = np.asarray(topo.segment_parent)
     if poses.ndim != 3 or poses.shape[1] == 0 or len(parents) < 2:
         return guess
     R = quat_to_matrix(poses[..., 3:7])                     # (F, S, 3, 3)
@@ -109,8 +109,8 @@ def knee_centre(topo, poses: np.ndarray, X0: np.ndarray) -> np.ndarray:
     if child < 0:
         return guess
     p = parents[child]
-    bp = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segments[b] == p]
-    bc = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segments[b] == child]
+    bp = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segment[b] == p]
+    bc = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segment[b] == child]
     if bp and bc:
         from scipy.spatial import cKDTree
         A, B = np.concatenate(bp).astype(float), np.concatenate(bc).astype(float)
@@ -177,7 +177,7 @@ class LimbRenderer:
             fat_ids, _ = deform.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, deform.TISSUE_FAT)
             local = np.full(topo.n_cells, -1, np.int64)
             local[fat_ids] = np.arange(fat_ids.size)
-            self.quad_local = local[np.asarray(topo.skin_quad_cells, np.int64)]
+            self.quad_local = local[np.asarray(topo.skin_quad_cell, np.int64)]
             ok = self.quad_local >= 0
             self.quad_local = self.quad_local[ok]
             pd = pv.PolyData(rest.copy(), _faces(quads[ok]))
