@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from tissue_sim.core import model as M
-from tissue_sim.core.analysis.deform import boundary_faces
+from tissue_sim.core.measures import boundary_faces
 
 
 def _ring(cx, cy, r, n, z):
@@ -145,11 +145,7 @@ def bend(X: np.ndarray, angle: float, blend: float = 0.12) -> np.ndarray:
 def bending_run(tm: M.TissueModel, path, n_frames: int = 40, rate_hz: float = 34.0,
                 max_angle: float = np.deg2rad(90), chunk_size: int = 1 << 20):
     """Write a synthetic MCAP run of the tube flexing its knee from 0 to max_angle (smoothstep in time)."""
-    from tissue_sim.core import runio, tissue_cdr
-    from tissue_sim.core.analysis.deform import cell_surface_triangles, signed_volumes
-    mcells = np.flatnonzero(tm.cell_tissue == M.TISSUE_MUSCLE)
-    tris, owner = cell_surface_triangles(tm.cell_offsets, tm.cell_vertices, mcells)
-    owner_m = tm.cell_muscle[owner]
+    from tissue_sim.core import measures, runio, tissue_cdr
     states = []
     for i in range(n_frames):
         t = i / rate_hz
@@ -162,7 +158,7 @@ def bending_run(tm: M.TissueModel, path, n_frames: int = 40, rate_hz: float = 34
             cents = np.array([X[tm.cell(c)[:len(tm.cell(c)) // 2]].mean(0) for c in cs]
                              + [X[tm.cell(cs[-1])[len(tm.cell(cs[-1])) // 2:]].mean(0)])
             lengths.append(np.linalg.norm(np.diff(cents, axis=0), axis=1).sum())
-        vols = signed_volumes(X, tris, owner_m, tm.n_muscles)
+        vols = measures.muscle_volumes(X, tm)
         poses = np.array([[0, 0, 0, 0, 0, 0, 1], [0, 0, 0, *quat_y(ang)]], float)
         states.append(tissue_cdr.StateFrame(
             stamp_ns=int(t * 1e9), frame_id='world', step=i * 29, sim_time=t, joint_names=['knee_r'],

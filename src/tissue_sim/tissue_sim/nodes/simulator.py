@@ -24,7 +24,8 @@ import time
 
 import numpy as np
 
-from ..ros import markers as mk
+from ..core import markers as mk
+from ..core import measures
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
                           TOPIC_STATE, TOPIC_TOPOLOGY, declare, main_wrapper, parse_args, qos_latched,
                           qos_stream, spin)
@@ -303,10 +304,10 @@ class Simulator:
             return None
         scale = float(self.node.get_parameter('colour_scale').value)
         if enc.colouring == 'skin_area':
-            ratio, self._rest_area = mk.skin_area_ratio_per_vertex(self.tm, x, self._rest_area)
+            ratio, self._rest_area = measures.skin_area_ratio_per_vertex(self.tm, x, self._rest_area)
             return mk.diverging_rgba(ratio[enc.skin_corners], span=scale)
         if self._fat_def is None:
-            self._fat_def = mk.FatDeformation(self.tm)
+            self._fat_def = measures.FatDeformation(self.tm)
         d = self._fat_def(x)
         return mk.sequential_rgba(d[enc.skin_corners], scale)
 

@@ -18,7 +18,9 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from tissue_sim.core import measures
 from tissue_sim.core.analysis import measure, render
+from tissue_sim.core.geometry import prism_volumes
 
 VTK_HEXAHEDRON = 12
 VTK_WEDGE = 13
@@ -34,7 +36,7 @@ def frame_scene(topo, X: np.ndarray, poses: np.ndarray):
     X = np.asarray(X, np.float64)
     scene = trimesh.Scene()
     mnames = list(topo.muscle_names)
-    for name, tri in render.surface_groups(topo).items():
+    for name, tri in measures.surface_groups(topo).items():
         used, inv = np.unique(tri, return_inverse=True)
         if name.startswith('muscle/'):
             mn = name.split('/', 1)[1]
@@ -71,13 +73,12 @@ def cell_grid_topology(topo):
     """(VTK cell connectivity stream, cell types, owner topology cell) for all soft-tissue cells.
 
     VTK wants positively oriented cells; fat rings are clockwise by the model contract (inner a,
-    inner b, outer b, outer a), so cells whose rest volume is negative get their rings swapped.
+    inner b, outer b, outer a), so cells whose signed rest volume (:func:`~tissue_sim.core.geometry.prism_volumes`)
+    is negative get their rings swapped.
     """
-    from tissue_sim.core.analysis import deform
     offsets = np.asarray(topo.cell_offsets, np.int64)
     verts = np.asarray(topo.cell_vertices, np.int64)
-    tri, own = deform.cell_surface_triangles(offsets, verts, np.arange(topo.n_cells))
-    negative = deform.signed_volumes(topo.rest_positions, tri, own, topo.n_cells) < 0
+    negative = prism_volumes(np.asarray(topo.rest_positions, np.float64), offsets, verts) < 0
     conn, types, owner = [], [], []
     for c in range(topo.n_cells):
         vs = verts[offsets[c]:offsets[c + 1]]

@@ -3,7 +3,7 @@
 :func:`prepare` precomputes index tables from a model topology; :func:`fat_frame` measures one frame;
 :func:`measure` measures a loaded :class:`~tissue_sim.core.runio.Run` (all its frames or some) and
 returns a :class:`Measurements` (arrays, frame axis first); ``analyze`` and ``render`` share it.
-See :mod:`tissue_sim.core.analysis.deform` for the definitions.
+The definitions are in :mod:`tissue_sim.core.measures`.
 """
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import dataclasses
 
 import numpy as np
 
-from tissue_sim.core import runio
-from tissue_sim.core.analysis import deform
+from tissue_sim.core import measures, runio
+from tissue_sim.core.model import TISSUE_FAT
 
 
 @dataclasses.dataclass(eq=False)
@@ -60,20 +60,18 @@ class Measurements:
 
 def prepare(topo) -> dict:
     """Index tables of a model topology for fast per-frame measurement."""
-    fat_ids, fat_tab = deform.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, deform.TISSUE_FAT)
+    fat_ids, fat_tab = measures.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, TISSUE_FAT)
     rest = np.asarray(topo.rest_positions, np.float64)
     rest_cells = rest[fat_tab]
     local = np.full(topo.n_cells, -1, np.int64)
     local[fat_ids] = np.arange(fat_ids.size)
     qc = local[np.asarray(topo.skin_quad_cell, np.int64)]
     ok = qc >= 0
-    mcells = np.flatnonzero(np.asarray(topo.cell_tissue) == deform.TISSUE_MUSCLE)
-    tris, owner = deform.cell_surface_triangles(topo.cell_offsets, topo.cell_vertices, mcells)
-    ctx = dict(fat_ids=fat_ids, fat_tab=fat_tab, rest_cells=rest_cells, quads=np.asarray(topo.skin_quads, np.int64)[ok],
-               quad_local=qc[ok], n_fat=fat_ids.size, muscle_tris=tris,
-               muscle_owner=np.asarray(topo.cell_muscle, np.int64)[owner], n_muscles=len(topo.muscle_names))
-    ctx['skin_area_rest'] = deform.skin_area_per_cell(rest, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
-    ctx['fat_size'] = deform.cell_size(rest_cells)
+    ctx = dict(model=topo, fat_ids=fat_ids, fat_tab=fat_tab, rest_cells=rest_cells,
+               quads=np.asarray(topo.skin_quads, np.int64)[ok], quad_local=qc[ok], n_fat=fat_ids.size,
+               n_muscles=len(topo.muscle_names))
+    ctx['skin_area_rest'] = measures.skin_area_per_cell(rest, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
+    ctx['fat_size'] = measures.cell_size(rest_cells)
     ctx['fat_centroid'] = rest_cells.mean(axis=1) if fat_ids.size else np.zeros((0, 3))
     return ctx
 
@@ -81,16 +79,16 @@ def prepare(topo) -> dict:
 def fat_frame(ctx: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(skin area (Cf,) [m^2], d paper (Cf,) [m], d rotation-free (Cf,) [m]) of one frame X (V, 3)."""
     X = np.asarray(X, np.float64)
-    area = deform.skin_area_per_cell(X, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
+    area = measures.skin_area_per_cell(X, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
     if ctx['n_fat'] == 0:
         return area, np.zeros(0), np.zeros(0)
     cur = X[ctx['fat_tab']]
-    return area, deform.d_paper(cur, ctx['rest_cells']), deform.d_rotation_free(cur, ctx['rest_cells'])
+    return area, measures.d_paper(cur, ctx['rest_cells']), measures.d_rotation_free(cur, ctx['rest_cells'])
 
 
 def muscle_volumes_mesh(ctx: dict, X: np.ndarray) -> np.ndarray:
-    """Volume of each muscle [m^3] from its cells' closed prism surfaces."""
-    return np.abs(deform.signed_volumes(X, ctx['muscle_tris'], ctx['muscle_owner'], ctx['n_muscles']))
+    """Volume of each muscle [m^3] from its cells (:func:`tissue_sim.core.measures.muscle_volumes`)."""
+    return measures.muscle_volumes(X, ctx['model'])
 
 
 def measure(run: runio.Run, frames=None, progress=None) -> Measurements:

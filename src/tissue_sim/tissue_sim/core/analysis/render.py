@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tissue_sim.core.analysis import deform
+from tissue_sim.core import measures
+from tissue_sim.core.model import TISSUE_FAT
 from tissue_sim.core.tissue_cdr import quat_to_matrix
 
 IVORY = (0.93, 0.90, 0.80)
@@ -41,29 +42,6 @@ def _pv():
 
 
 # ----------------------------------------------------------------------------- geometry
-def surface_groups(topo) -> dict:
-    """{'skin': (T,3), 'muscle/<name>': (T,3), ...} from the topology (boundary of the cells if absent)."""
-    out = {}
-    tri = np.asarray(topo.surface_triangles, np.int64)
-    if tri.size:
-        g = np.asarray(topo.surface_group, np.int64)
-        for i, name in enumerate(topo.surface_group_names):
-            sel = tri[g == i]
-            if sel.size:
-                out[name] = sel
-        return out
-    tissue = np.asarray(topo.cell_tissue)
-    fat = np.flatnonzero(tissue == deform.TISSUE_FAT)
-    if fat.size:
-        out['skin'] = deform.boundary_faces(topo.cell_offsets, topo.cell_vertices, fat)
-    cm = np.asarray(topo.cell_muscle)
-    for m, name in enumerate(topo.muscle_names):
-        cells = np.flatnonzero((tissue == deform.TISSUE_MUSCLE) & (cm == m))
-        if cells.size:
-            out[f'muscle/{name}'] = deform.boundary_faces(topo.cell_offsets, topo.cell_vertices, cells)
-    return out
-
-
 def posed_bones(topo, poses: np.ndarray) -> list[np.ndarray]:
     """Vertices of every bone at the given segment poses (S, 7) [m]."""
     out = []
@@ -147,7 +125,7 @@ class LimbRenderer:
         self.pl.set_background('white')
         self.meshes = []            # (polydata, kind, index)
         rest = np.asarray(topo.rest_positions, np.float64)
-        groups = surface_groups(topo)
+        groups = measures.surface_groups(topo)
         if kind in ('limb', 'knee'):
             for b in range(len(topo.bone_names)):
                 v, t = topo.bone_mesh(b)
@@ -174,7 +152,7 @@ class LimbRenderer:
                 self.meshes.append((pd, 'soft', None))
         else:
             quads = np.asarray(topo.skin_quads, np.int64)
-            fat_ids, _ = deform.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, deform.TISSUE_FAT)
+            fat_ids, _ = measures.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, TISSUE_FAT)
             local = np.full(topo.n_cells, -1, np.int64)
             local[fat_ids] = np.arange(fat_ids.size)
             self.quad_local = local[np.asarray(topo.skin_quad_cell, np.int64)]
