@@ -109,21 +109,16 @@ def write_vtu_series(run, out: Path, frames=None, measures=None) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     topo = run.model
     sel = np.arange(run.n_frames) if frames is None else np.asarray(frames, np.int64)
-    want = sorted(set(sel.tolist()) | {0})
-    have = {} if measures is None else {int(f): k for k, f in enumerate(measures.frame_index)}
-    if not all(int(run.frame_index[i]) in have for i in want):
-        measures = measure.measure(run, frames=want)
-        have = {int(f): k for k, f in enumerate(measures.frame_index)}
-    m = measures
+    m, row = measure.rows_for(run, set(sel.tolist()) | {0}, measures)
     conn, types, owner = cell_grid_topology(topo)
     rest = np.asarray(topo.rest_positions, np.float64)
     fat_local = np.full(topo.n_cells, -1, np.int64)
     fat_local[m.fat_cells] = np.arange(m.fat_cells.size)
     fl = fat_local[owner]
-    area0 = m.skin_area[have[int(run.frame_index[0])]]
+    area0 = m.skin_area[row[0]]
     files, entries = [], []
     for i in sel:
-        k = have[int(run.frame_index[i])]
+        k = row[int(i)]
         X = run.frames[i].astype(np.float64)
         a, dp, dr = m.skin_area[k], m.d_paper[k], m.d_rotation_free[k]
         grid = pv.UnstructuredGrid(conn, types, X)

@@ -40,13 +40,7 @@ def render_run(run: runio.Run, out, measures: measure.Measurements | None = None
     chosen = frames_at_times(t_all, times) if times else pick_frames(t_all, n_frames)
     anim = pick_frames(t_all, min(anim_frames, len(t_all))) if animation else np.zeros(0, np.int64)
     need = sorted(set(chosen.tolist()) | set(anim.tolist()) | {0})
-    want = sorted(set(chosen.tolist()) | {0})
-    have = {} if measures is None else {int(f): k for k, f in enumerate(measures.frame_index)}
-    if not all(int(run.frame_index[f]) in have for f in want):
-        measures = measure.measure(run, frames=want)
-        have = {int(f): k for k, f in enumerate(measures.frame_index)}
-    m = measures
-    row = {f: have[int(run.frame_index[f])] for f in want}
+    m, row = measure.rows_for(run, set(chosen.tolist()) | {0}, measures)
     area0 = m.skin_area[row[0]]
     vals = {}
     for f in chosen:

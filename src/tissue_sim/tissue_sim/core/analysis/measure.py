@@ -125,6 +125,17 @@ def measure(run: runio.Run, frames=None, progress=None) -> Measurements:
         skin_area_rest=ctx['skin_area_rest'], skin_area=area, d_paper=dp, d_rotation_free=dr)
 
 
+def rows_for(run: runio.Run, positions, measures: Measurements | None = None):
+    """(Measurements, {run position: row}) covering the run positions ``positions``: ``measures``
+    when it already has those frames (``analyze`` passing its own), else the frames measured now."""
+    positions = sorted(set(int(p) for p in positions))
+    have = {} if measures is None else {int(f): k for k, f in enumerate(measures.frame_index)}
+    if not all(int(run.frame_index[p]) in have for p in positions):
+        measures = measure(run, frames=positions)
+        have = {int(f): k for k, f in enumerate(measures.frame_index)}
+    return measures, {p: have[int(run.frame_index[p])] for p in positions}
+
+
 def measure_run(path, progress=None, stride: int = 1) -> Measurements:
     """Load a run (every ``stride``-th frame) and measure it. ``progress(i)`` is called per frame read."""
     return measure(runio.load_run(path, stride=stride, progress=progress))
