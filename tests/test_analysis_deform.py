@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import synthetic
-from tissue_sim.core import measures
+from tissue_sim.core import measures, runio, tissue_cdr
 from tissue_sim.core.analysis import measure
 from tissue_sim.core.geometry import prism_volumes
-from tissue_sim.core import runio, tissue_cdr
+
+import synthetic
 
 
 def _cube(size=0.02):

@@ -9,8 +9,9 @@ import pytest
 
 from tissue_sim.cli import main
 from tissue_sim.commands import analyze, export_run, render
-import synthetic
 from tissue_sim.errors import UserError
+
+import synthetic
 
 
 @pytest.fixture(scope='module')

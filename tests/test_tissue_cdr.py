@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from tissue_sim.core import runio, tissue_cdr
-import synthetic
 from tissue_sim.core.cdr import CdrError
 from tissue_sim.core.model import TissueTopology
+
+import synthetic
 
 MSG_DIR = Path(__file__).resolve().parents[1] / 'src' / 'tissue_msgs' / 'msg'
 
@@ -138,3 +139,25 @@ def test_run_file_has_ros2_schemas(tm, tmp_path):
     assert text.startswith((MSG_DIR / 'TissueState.msg').read_text().rstrip()[:40])
     assert 'MSG: std_msgs/Header' in text and schemas['tissue_msgs/msg/TissueState'].encoding == 'ros2msg'
     assert runio.count_states(p) == 1
+
+
+def test_encode_frame_is_the_solver_state_and_observation():
+    """The one frame encoder (simulator node and headless runs): a solver state decodes back to the
+    state's step, time and positions and to solver.observe's values."""
+    from tissue_sim.core import solver
+    from tissue_sim.core.solver import phantom
+    tm = phantom.knee(n_gaps=6)
+    sim = solver.compile_model(tm, solver.Params.paper())
+    st, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[tm.muscle_index(tm.muscle_names[0])] = 1.0
+    solver.step(sim, st, ctrl, sim.params.dt, n_steps=20)
+    o = solver.observe(sim, st)
+    s = tissue_cdr.decode_state(tissue_cdr.encode_frame(tm, st, o, ctrl.activation, frame_id='map'))
+    assert s.step == st.step == 20 and s.sim_time == st.time and s.stamp_ns == round(st.time * 1e9)
+    assert s.frame_id == 'map' and s.joint_names == list(tm.joint_names) and s.muscle_names == list(tm.muscle_names)
+    np.testing.assert_array_equal(s.vertex_positions, st.x.astype(np.float32))
+    np.testing.assert_array_equal(s.joint_positions, o['joint_positions'])
+    np.testing.assert_array_equal(s.segment_poses, np.asarray(o['segment_poses']).reshape(-1, 7))
+    np.testing.assert_array_equal(s.muscle_volumes, np.asarray(o['muscle_volumes'], np.float32))
+    np.testing.assert_array_equal(s.activations, ctrl.activation.astype(np.float32))
+    assert s.kinetic_energy == o['kinetic_energy'] and s.elastic_energy == o['elastic_energy']
