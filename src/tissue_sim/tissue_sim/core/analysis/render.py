@@ -17,7 +17,6 @@ compare. VTK uses an EGL (GPU-less capable) or OSMesa offscreen window; depth pe
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
