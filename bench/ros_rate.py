@@ -54,7 +54,7 @@ def python_object_markers(tm, x, reps=2):
     from rclpy.serialization import serialize_message
     from std_msgs.msg import ColorRGBA
     from visualization_msgs.msg import Marker, MarkerArray
-    from tissue_sim.ros import markers as mk
+    from tissue_sim.core import markers as mk
     enc = mk.MarkerArrayEncoder(tm)
     best = 1e9
     for _ in range(reps):

@@ -9,8 +9,9 @@ import pytest
 
 from tissue_sim.cli import main
 from tissue_sim.commands import analyze, export_run, render
-from tissue_sim.core.analysis import synthetic
 from tissue_sim.errors import UserError
+
+import synthetic
 
 
 @pytest.fixture(scope='module')
@@ -45,6 +46,31 @@ def test_analyze_writes_tables_summary_plots(run_dir, capsys):
     joints = list(csv.DictReader(open(out / 'joints.csv')))
     assert float(joints[-1]['position_deg']) == pytest.approx(80, abs=1e-6)
     assert 'wrote' in capsys.readouterr().out
+
+
+def test_analyze_and_render_share_one_loaded_run(run_dir, tmp_path, monkeypatch):
+    """`analyze --figures` reads the run file once and draws the pictures from the same Run and
+    Measurements; the pictures' colour values are the analysis' own numbers."""
+    from tissue_sim.core import mcapio
+    from tissue_sim.core.analysis import figures
+    opened = []
+    real = mcapio.iter_messages
+    monkeypatch.setattr(mcapio, 'iter_messages', lambda f, *a, **k: (opened.append(f), real(f, *a, **k))[1])
+    seen = {}
+    real_render = figures.render_run
+
+    def spy(run, out, measures=None, **kw):
+        seen['run'], seen['measures'] = run, measures
+        return real_render(run, out, measures=measures, size=(160, 120), views=('area',), animation=None, **kw)
+    monkeypatch.setattr(figures, 'render_run', spy)
+    out = tmp_path / 'a'
+    assert analyze.run(_args(analyze, [str(run_dir), '-q', '--no-plots', '--figures', '-o', str(out)])) == 0
+    assert len(opened) == 1                                   # one pass over the one file of the run
+    assert seen['measures'] is not None and seen['measures'].n_frames == seen['run'].n_frames == 24
+    assert (out / 'figures' / 'area_panel.png').is_file()
+    rows = list(csv.DictReader(open(out / 'fat_cells.csv')))
+    last = [float(r['area_ratio']) for r in rows if r['frame'] == '23']
+    np.testing.assert_allclose(last, seen['measures'].area_ratio()[-1], rtol=1e-6)
 
 
 def test_render_pictures_have_size_and_content(run_dir, tmp_path):

@@ -1,9 +1,10 @@
-"""ros/markers: numpy-encoded MarkerArray bytes are what rclpy deserialises, with the right content."""
+"""core/markers: numpy-encoded MarkerArray bytes are what rclpy deserialises, with the right content."""
 import numpy as np
 import pytest
 
 from tissue_sim.core.model import JOINT_HINGE, TissueModel
-from tissue_sim.ros import markers as mk
+from tissue_sim.core import markers as mk
+from tissue_sim.core import measures
 
 
 def tiny_model():
@@ -44,7 +45,7 @@ def test_marker_bytes_deserialise_to_the_deformed_model(colouring):
     poses = np.array([[0, 0, 0, 0, 0, 0, 1.0], [0.1, 0.2, 0.3, 0, np.sin(0.3), 0, np.cos(0.3)]])
     rgba = None
     if colouring != 'none':
-        ratio, _ = mk.skin_area_ratio_per_vertex(tm, pos)
+        ratio, _ = measures.skin_area_ratio_per_vertex(tm, pos)
         rgba = mk.diverging_rgba(ratio[enc.skin_corners])
     data = enc.encode(12_000_000_345, pos, poses, rgba)
     msg = deserialize_message(data, MarkerArray)
@@ -85,21 +86,21 @@ def test_fat_deformation_is_zero_for_rigid_motion_and_grows_with_strain():
     rest = np.asarray(tm.rest_positions)
     th = 0.7
     R = np.array([[np.cos(th), -np.sin(th), 0], [np.sin(th), np.cos(th), 0], [0, 0, 1]])
-    d = mk.fat_deformation_per_vertex(tm, rest @ R.T + 0.05)
+    d = measures.FatDeformation(tm)(rest @ R.T + 0.05)
     assert np.max(d) < 1e-12
     strained = rest.copy()
     strained[9] += [0.0, 0.0, 0.004]
-    d = mk.fat_deformation_per_vertex(tm, strained)
+    d = measures.FatDeformation(tm)(strained)
     assert d[9] > 1e-4 and d[0] == 0.0       # vertex 0 is not in the fat cell
 
 
 def test_skin_area_ratio():
     tm = tiny_model()
     p = np.asarray(tm.rest_positions).copy()
-    ratio, rest_area = mk.skin_area_ratio_per_vertex(tm, p)
+    ratio, rest_area = measures.skin_area_ratio_per_vertex(tm, p)
     assert np.allclose(ratio, 1.0)
     p[[8, 9], 2] = 0.02                        # skin quad twice as tall
-    ratio, _ = mk.skin_area_ratio_per_vertex(tm, p, rest_area)
+    ratio, _ = measures.skin_area_ratio_per_vertex(tm, p, rest_area)
     assert ratio[6] == pytest.approx(2.0) and ratio[0] == 1.0
     c = mk.diverging_rgba(np.array([1.0, 1.5, 0.5]))
     assert np.allclose(c[0, :3], 1) and c[1, 2] == 1 and c[1, 0] == 0 and c[2, 0] == 1 and c[2, 2] == 0

@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from tissue_sim.cli import main
 
@@ -48,3 +49,38 @@ def test_simulate_reads_the_activation_nodes_timeline_format(tmp_path, capsys):
     tl.write_text('muscles:\n  hamstrings: [[0.0, 2.0]]\n')
     assert main(['simulate', 'phantom:knee', '--duration', '0.1', '--timeline', str(tl)]) == 2
     assert 'activations must be in [0, 1]' in capsys.readouterr().err
+
+
+def test_simulate_to_mcap_is_a_run_that_analyze_and_rosbags_read(tmp_path, capsys):
+    """One run format: `simulate -o x.mcap` writes what the recorder writes (topology once, a
+    TissueState per recorded step), `analyze` reads it, and so does the independent rosbags reader."""
+    run = tmp_path / 'x.mcap'
+    assert main(['simulate', 'phantom:knee', '--duration', '0.3', '--activate', 'hamstrings=1', '--every', '20',
+                 '-o', str(run), '--json']) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert main(['analyze', str(run), '-q', '--no-plots', '-o', str(tmp_path / 'a')]) == 0
+    summary = json.loads((tmp_path / 'a' / 'summary.json').read_text())
+    assert summary['joints']['knee_r']['max_deg'] == pytest.approx(s['joints']['knee_r']['max_deg'], abs=1e-3)
+    assert summary['frames'] >= 10
+
+    from rosbags.highlevel import AnyReader
+    with AnyReader([run]) as r:
+        msgs = [(c.topic, r.deserialize(d, c.msgtype)) for c, t, d in r.messages()]
+    assert [t for t, _ in msgs].count('/tissue/topology') == 1
+    states = [m for t, m in msgs if t == '/tissue/state']
+    topo = next(m for t, m in msgs if t == '/tissue/topology')
+    assert len(states) == summary['frames'] and topo.model_name == s['model']
+    assert len(states[-1].vertex_positions) == len(topo.rest_positions) and states[-1].sim_time > 0.29
+    assert list(states[-1].muscle_names) == list(topo.muscle_names)
+    assert np.rad2deg(states[-1].joint_positions[0]) == pytest.approx(s['joints']['knee_r']['end_deg'], abs=1e-3)
+
+
+def test_npz_output_is_observations_not_a_run(tmp_path, capsys):
+    obs = tmp_path / 'obs.npz'
+    assert main(['simulate', 'phantom:knee', '--duration', '0.05', '-o', str(obs)]) == 0
+    capsys.readouterr()
+    assert main(['analyze', str(obs)]) == 2
+    err = capsys.readouterr().err
+    assert 'observation arrays only' in err and 'Traceback' not in err
+    assert main(['simulate', 'phantom:knee', '--duration', '0.05', '-o', str(tmp_path / 'x.csv')]) == 2
+    assert 'expected RUN.mcap' in capsys.readouterr().err and not (tmp_path / 'x.csv').exists()

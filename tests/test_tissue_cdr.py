@@ -1,13 +1,16 @@
 """numpy CDR of TissueState / TissueTopology: round trips, and the bytes checked by independent
 deserialisers (rosbags' CDR from the .msg definitions; rclpy when tissue_msgs is built)."""
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tissue_sim.core import runio, tissue_cdr
-from tissue_sim.core.analysis import synthetic
 from tissue_sim.core.cdr import CdrError
+from tissue_sim.core.model import TissueTopology
+
+import synthetic
 
 MSG_DIR = Path(__file__).resolve().parents[1] / 'src' / 'tissue_msgs' / 'msg'
 
@@ -43,10 +46,10 @@ def test_state_round_trip(tm):
 
 
 def test_topology_round_trip(tm):
-    topo = tissue_cdr.from_model(tm, parameters_yaml='set: paper\n')
-    back = tissue_cdr.decode_topology(tissue_cdr.encode_topology(topo))
-    assert back.model_name == tm.name and back.model_hash == tm.content_hash()
-    assert back.parameters_yaml == 'set: paper\n'
+    back = tissue_cdr.decode_topology(tissue_cdr.encode_topology(tm, parameters_yaml='set: paper\n'))
+    assert isinstance(back, TissueTopology) and isinstance(tm, TissueTopology)    # one model type
+    assert back.name == tm.name and back.meta['model_hash'] == tm.content_hash()
+    assert back.meta['parameters_yaml'] == 'set: paper\n'
     np.testing.assert_array_equal(back.rest_positions, tm.rest_positions.astype(np.float32))
     np.testing.assert_array_equal(back.cell_vertices, tm.cell_vertices)
     np.testing.assert_array_equal(back.skin_quads, tm.skin_quads)
@@ -60,11 +63,11 @@ def test_truncated_and_inconsistent_data_raise(tm):
     b = tissue_cdr.encode_state(**_state(tm))
     with pytest.raises(CdrError, match='truncated'):
         tissue_cdr.decode_state(b[:len(b) // 2])
-    topo = tissue_cdr.from_model(tm)
-    topo.cell_vertices = topo.cell_vertices.copy()
-    topo.cell_vertices[0] = 10 ** 6
+    cv = tm.cell_vertices.copy()
+    cv[0] = 10 ** 6
+    bad = dataclasses.replace(tm, cell_vertices=cv)
     with pytest.raises(CdrError, match='out of range'):
-        tissue_cdr.decode_topology(tissue_cdr.encode_topology(topo))
+        tissue_cdr.decode_topology(tissue_cdr.encode_topology(bad))
 
 
 def _rosbags_store():
@@ -89,12 +92,14 @@ def test_bytes_match_independent_deserialiser(tm):
     # and the other way: rosbags' serialisation decodes with ours
     s = tissue_cdr.decode_state(ts.serialize_cdr(m, 'tissue_msgs/msg/TissueState'))
     np.testing.assert_array_equal(s.vertex_positions, kw['vertex_positions'])
-    topo = tissue_cdr.from_model(tm, parameters_yaml='x: 1')
-    t = ts.deserialize_cdr(tissue_cdr.encode_topology(topo), 'tissue_msgs/msg/TissueTopology')
+    topo = tissue_cdr.encode_topology(tm, parameters_yaml='x: 1')
+    t = ts.deserialize_cdr(topo, 'tissue_msgs/msg/TissueTopology')
     assert t.model_name == tm.name and list(t.bone_names) == list(tm.bone_names)
     np.testing.assert_array_equal(t.cell_tissue, tm.cell_tissue)
     np.testing.assert_array_equal(t.bone_triangles, tm.bone_triangles.ravel())
-    assert bytes(ts.serialize_cdr(t, 'tissue_msgs/msg/TissueTopology')) == tissue_cdr.encode_topology(topo)
+    assert bytes(ts.serialize_cdr(t, 'tissue_msgs/msg/TissueTopology')) == topo
+    # a decoded topology re-encodes to the same bytes
+    assert tissue_cdr.encode_topology(tissue_cdr.decode_topology(topo)) == topo
 
 
 def test_bytes_match_rclpy_when_built(tm):
@@ -115,8 +120,7 @@ def test_bytes_match_rclpy_when_built(tm):
     np.testing.assert_array_equal(s.segment_poses, kw['segment_poses'])
     assert s.elastic_energy == 7.25 and s.joint_names == ['knee_r'] and s.step == 77
     from tissue_msgs.msg import TissueTopology
-    topo = tissue_cdr.from_model(tm, parameters_yaml='x: 1')
-    t = deserialize_message(tissue_cdr.encode_topology(topo), TissueTopology)
+    t = deserialize_message(tissue_cdr.encode_topology(tm, parameters_yaml='x: 1'), TissueTopology)
     assert t.model_name == tm.name and list(t.bone_names) == list(tm.bone_names)
     np.testing.assert_array_equal(np.asarray(t.cell_vertices), tm.cell_vertices)
     back = tissue_cdr.decode_topology(bytes(serialize_message(t)))
@@ -126,8 +130,7 @@ def test_bytes_match_rclpy_when_built(tm):
 def test_run_file_has_ros2_schemas(tm, tmp_path):
     """The run files carry the .msg text as ros2msg schemas (what rosbag2/Foxglove need)."""
     from mcap.reader import make_reader
-    topo = tissue_cdr.from_model(tm)
-    p = runio.write_run(tmp_path / 'r.mcap', topo, [tissue_cdr.State(**_state(tm))])
+    p = runio.write_run(tmp_path / 'r.mcap', tm, [tissue_cdr.StateFrame(**_state(tm))])
     with open(p, 'rb') as f:
         s = make_reader(f).get_summary()
     schemas = {sc.name: sc for sc in s.schemas.values()}
@@ -136,3 +139,25 @@ def test_run_file_has_ros2_schemas(tm, tmp_path):
     assert text.startswith((MSG_DIR / 'TissueState.msg').read_text().rstrip()[:40])
     assert 'MSG: std_msgs/Header' in text and schemas['tissue_msgs/msg/TissueState'].encoding == 'ros2msg'
     assert runio.count_states(p) == 1
+
+
+def test_encode_frame_is_the_solver_state_and_observation():
+    """The one frame encoder (simulator node and headless runs): a solver state decodes back to the
+    state's step, time and positions and to solver.observe's values."""
+    from tissue_sim.core import solver
+    from tissue_sim.core.solver import phantom
+    tm = phantom.knee(n_gaps=6)
+    sim = solver.compile_model(tm, solver.Params.paper())
+    st, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[tm.muscle_index(tm.muscle_names[0])] = 1.0
+    solver.step(sim, st, ctrl, sim.params.dt, n_steps=20)
+    o = solver.observe(sim, st)
+    s = tissue_cdr.decode_state(tissue_cdr.encode_frame(tm, st, o, ctrl.activation, frame_id='map'))
+    assert s.step == st.step == 20 and s.sim_time == st.time and s.stamp_ns == round(st.time * 1e9)
+    assert s.frame_id == 'map' and s.joint_names == list(tm.joint_names) and s.muscle_names == list(tm.muscle_names)
+    np.testing.assert_array_equal(s.vertex_positions, st.x.astype(np.float32))
+    np.testing.assert_array_equal(s.joint_positions, o['joint_positions'])
+    np.testing.assert_array_equal(s.segment_poses, np.asarray(o['segment_poses']).reshape(-1, 7))
+    np.testing.assert_array_equal(s.muscle_volumes, np.asarray(o['muscle_volumes'], np.float32))
+    np.testing.assert_array_equal(s.activations, ctrl.activation.astype(np.float32))
+    assert s.kinetic_energy == o['kinetic_energy'] and s.elastic_energy == o['elastic_energy']

@@ -17,6 +17,9 @@ def add_arguments(p):
     p.add_argument('-o', '--out', help='output folder (default: <run folder>/analysis)')
     p.add_argument('--stride', type=int, default=1, help='analyse every N-th frame (default 1)')
     p.add_argument('--no-plots', action='store_true', help='tables and summary only')
+    p.add_argument('--figures', action='store_true',
+                   help='also draw the paper-like pictures (as `tissue-sim render`, default views) into <out>/figures, '
+                        'from the same loaded run and measures')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
 
 
@@ -39,8 +42,10 @@ def run(args) -> int:
         from rich.console import Console
         from rich.progress import Progress
         with Progress(console=Console(stderr=True), disable=args.quiet) as prog:
-            task = prog.add_task('analysing frames', total=total)
-            m = measure.measure_run(path, stride=args.stride, progress=lambda i: prog.update(task, completed=i + 1))
+            task = prog.add_task('reading frames', total=total)
+            loaded = runio.load_run(path, stride=args.stride, progress=lambda i: prog.update(task, completed=i + 1))
+            task = prog.add_task("measuring frames", total=loaded.n_frames)
+            m = measure.measure(loaded, progress=lambda: prog.advance(task))
     except (runio.RunError, CdrError) as e:
         raise UserError(str(e)) from None
     try:
@@ -52,6 +57,12 @@ def run(args) -> int:
     if not args.no_plots:
         from tissue_sim.core.analysis import plots
         files += plots.all_plots(m, out)
+    if args.figures:
+        from tissue_sim.core.analysis import figures
+        try:
+            files += figures.render_run(loaded, out / "figures", measures=m)
+        except runio.RunError as e:
+            raise UserError(str(e)) from None
     s = tables.summary(m)
     print(f'analysed {m.n_frames} frames ({s["duration_s"]:.3f} s of simulated time) of model {m.model_name!r} '
           f'in {time.monotonic() - t0:.1f} s')

@@ -20,6 +20,8 @@ def add_arguments(p):
 
 
 def run(args) -> int:
+    import numpy as np
+
     from tissue_sim.commands.analyze import default_out
     from tissue_sim.commands.render import _floats
     from tissue_sim.core import runio
@@ -37,19 +39,16 @@ def run(args) -> int:
     t0 = time.monotonic()
     files = []
     try:
+        loaded = runio.load_run(path)
         out.mkdir(parents=True, exist_ok=True)
-        topo = runio.read_topology(path)
         mesh_fmts = [f for f in fmts if f in ('glb', 'ply')]
         if mesh_fmts:
-            times, _, _, _ = figures.scan(path)
-            chosen = figures.frames_at_times(times, _floats(args.times)) if args.times else pick_frames(times, 4)
-            r = runio.load_run(path, frames=chosen)
-            for i in range(r.n_frames):
-                files += export.write_meshes(topo, r.frames[i], r.segment_poses[i], out,
-                                             f'frame_{int(r.frame_index[i]):05d}', mesh_fmts)
+            chosen = figures.frames_at_times(loaded.times, _floats(args.times)) if args.times else pick_frames(loaded.times, 4)
+            for i in chosen:
+                files += export.write_meshes(loaded.model, loaded.frames[i], loaded.segment_poses[i], out,
+                                             f'frame_{int(loaded.frame_index[i]):05d}', mesh_fmts)
         if 'vtu' in fmts:
-            r = runio.load_run(path, stride=args.stride)
-            files += export.write_vtu_series(topo, r, out / 'vtu')
+            files += export.write_vtu_series(loaded, out / 'vtu', frames=np.arange(0, loaded.n_frames, args.stride))
     except (runio.RunError, CdrError) as e:
         raise UserError(str(e)) from None
     except OSError as e:

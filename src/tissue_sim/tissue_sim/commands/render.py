@@ -54,9 +54,10 @@ def run(args) -> int:
         raise UserError('--frames must be >= 1 and --anim-frames >= 2')
     out = Path(args.out) if args.out else default_out(path, 'figures')
     t0 = time.monotonic()
+    times, size = (_floats(args.times) if args.times else None), _size(args.size)
     try:
-        files = figures.render_run(path, out, times=_floats(args.times) if args.times else None,
-                                   n_frames=args.frames, size=_size(args.size), views=views,
+        loaded = runio.load_run(path)
+        files = figures.render_run(loaded, out, times=times, n_frames=args.frames, size=size, views=views,
                                    animation=None if args.animation == 'none' else args.animation,
                                    anim_frames=args.anim_frames)
     except (runio.RunError, CdrError) as e:

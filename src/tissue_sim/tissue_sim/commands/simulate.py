@@ -11,7 +11,8 @@ import numpy as np
 from tissue_sim.errors import UserError
 
 NAME = 'simulate'
-HELP = 'run the elastic muscle model headless (no ROS) under muscle activations; save the run as .npz'
+HELP = ('run the elastic muscle model headless (no ROS) under muscle activations; save the run as MCAP '
+        '(what analyze, render and export-run read) or its observation arrays as .npz')
 
 
 def add_arguments(p):
@@ -25,8 +26,10 @@ def add_arguments(p):
     p.add_argument('--params', default='paper', help='paper | physical | parameter file .yaml (default %(default)s)')
     p.add_argument('--dt', type=float, help='step [s] (default: the parameter set\'s dt)')
     p.add_argument('--every', type=int, default=10, help='record every N steps (default %(default)s)')
-    p.add_argument('--positions', action='store_true', help='also record all vertex positions (large)')
-    p.add_argument('-o', '--output', metavar='RUN.npz', help='write the recorded run')
+    p.add_argument('--positions', action='store_true', help='.npz output: also record all vertex positions (large)')
+    p.add_argument('-o', '--output', metavar='RUN.mcap|OBS.npz',
+                   help='RUN.mcap: the run in the recorder\'s format (topology + a TissueState per recorded step; '
+                        'analyze/render/export-run read it); OBS.npz: the observation arrays only (not a run)')
     p.add_argument('--json', action='store_true', help='print the summary as one JSON object')
 
 
@@ -102,6 +105,8 @@ def run(args) -> int:
         raise UserError('--every must be >= 1')
     if args.dt is not None and not (0 < args.dt < 1):
         raise UserError('--dt must be in (0, 1) s')
+    if args.output and Path(args.output).suffix not in ('.mcap', '.npz'):
+        raise UserError(f'-o {args.output}: expected RUN.mcap (a run) or OBS.npz (observation arrays)')
     tm = _load_model(args.model)
     params = _params(args.params)
     timeline = {}
@@ -126,20 +131,27 @@ def run(args) -> int:
     positions = []
     failure = None
     st = solver.make_state(sim)
+    out = Path(args.output) if args.output else None
+    writer = _open_run(out, tm, sim) if out is not None and out.suffix == '.mcap' else None
     t_wall = time.perf_counter()
     try:
         for t, o in solver.simulate(sim, args.duration, fn, dt=args.dt, every=args.every, state=st, output='obs'):
+            act = fn(t)
             for k in rec:
-                rec[k].append(fn(t) if k == 'activation' else o[k])
+                rec[k].append(act if k == 'activation' else o[k])
             if args.positions:
                 positions.append(st.x.astype(np.float32))
+            if writer is not None:
+                writer.write_frame(st, o, act)
     except solver.DivergenceError as e:
         failure = str(e)
+    finally:
+        if writer is not None:
+            writer.close()
     wall = time.perf_counter() - t_wall
     arr = {k: np.asarray(v) for k, v in rec.items()}
     summary = _summary(sim, arr, wall, failure)
-    if args.output:
-        out = Path(args.output)
+    if out is not None and writer is None:
         extra = {'positions': np.asarray(positions)} if args.positions else {}
         try:
             np.savez_compressed(out, **arr, **extra, joint_names=np.array(tm.joint_names, dtype=str),
@@ -148,6 +160,7 @@ def run(args) -> int:
                                 summary_json=np.array(json.dumps(summary)))
         except OSError as e:
             raise UserError(f'{out}: cannot write ({e})') from None
+    if out is not None:
         summary['output'] = str(out)
     if args.json:
         print(json.dumps(summary))
@@ -156,6 +169,16 @@ def run(args) -> int:
     if failure:
         raise UserError(failure, exit_code=1)
     return 0
+
+
+def _open_run(out: Path, tm, sim):
+    """The run MCAP writer (the recorder's format: topology, then one TissueState per recorded step)."""
+    from tissue_sim.core import mcapio, runio
+    try:
+        return runio.RunWriter(out, tm, parameters_yaml=sim.params.to_yaml(),
+                               metadata={'source': 'tissue-sim simulate'})
+    except (OSError, mcapio.McapIOError) as e:
+        raise UserError(f'{out}: cannot write ({e})') from None
 
 
 def _summary(sim, arr, wall, failure):

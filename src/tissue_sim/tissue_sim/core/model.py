@@ -70,20 +70,24 @@ class ModelError(ValueError):
     """A model file or array set that is not a valid TissueModel (message names the problem)."""
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class TissueModel:
+@dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
+class TissueTopology:
+    """The topology and rest shape of a model: what the ``TissueTopology`` message carries.
+
+    :class:`TissueModel` extends it with the mechanical data (masses, joints, fibres, ...); a
+    decoded topology message (:func:`tissue_sim.core.tissue_cdr.decode_topology`) is a
+    ``TissueTopology`` whose ``meta`` holds the message's ``model_hash``, ``parameters_yaml``,
+    ``frame_id`` and ``stamp_ns``. Code that only draws or measures a model (the analysis, the
+    markers) takes either.
+    """
     name: str
     # --- soft tissue -------------------------------------------------------------------------
     rest_positions: np.ndarray          # (V, 3) float64 [m]
     vertex_segment: np.ndarray          # (V,) int32, -1 free
-    vertex_flags: np.ndarray            # (V,) uint8, VF_* bits
     cell_offsets: np.ndarray            # (C+1,) int64
     cell_vertices: np.ndarray           # (K,) int32
     cell_tissue: np.ndarray             # (C,) uint8, TISSUE_*
     cell_muscle: np.ndarray             # (C,) int32, -1 for fat
-    cell_fibre: np.ndarray              # (C, 3) float64 unit fibre (long) axis at rest; fat: limb axis
-    cell_slice: np.ndarray              # (C,) int32 index into slice_z of the bottom ring
-    cell_k_scale: np.ndarray            # (C,) float64 stiffness multiplier from the tissue table (1.0)
     skin_quads: np.ndarray              # (Q, 4) int32
     skin_quad_cell: np.ndarray          # (Q,) int32
     surface_triangles: np.ndarray       # (T, 3) int32 into rest_positions, outward
@@ -92,8 +96,6 @@ class TissueModel:
     # --- muscles -----------------------------------------------------------------------------
     muscle_names: tuple                 # (M,) str
     muscle_groups: tuple                # (M,) str, e.g. "hamstrings", "quadriceps", ""
-    muscle_max_force: np.ndarray        # (M,) float64 [N] max isometric force, NaN if unknown
-    muscle_fibre_length: np.ndarray     # (M,) float64 [m] optimal fibre length, NaN if unknown
     # --- bones -------------------------------------------------------------------------------
     bone_names: tuple                   # (B,) str
     bone_segment: np.ndarray            # (B,) int32
@@ -104,19 +106,7 @@ class TissueModel:
     # --- skeleton ----------------------------------------------------------------------------
     segment_names: tuple                # (S,) str
     segment_parent: np.ndarray          # (S,) int32, -1 root
-    segment_mass: np.ndarray            # (S,) float64 [kg]
-    segment_com: np.ndarray             # (S, 3) float64 [m]
-    segment_inertia: np.ndarray         # (S, 3, 3) float64 [kg m^2] about the COM
     joint_names: tuple                  # (J,) str
-    joint_type: np.ndarray              # (J,) uint8
-    joint_parent: np.ndarray            # (J,) int32 segment
-    joint_child: np.ndarray             # (J,) int32 segment
-    joint_axis: np.ndarray              # (J, 3) float64 unit
-    joint_centre: np.ndarray            # (J, 3) float64 [m]
-    joint_range: np.ndarray             # (J, 2) float64 [rad]
-    joint_rest: np.ndarray              # (J,) float64 [rad] coordinate of the rest pose
-    # --- slices and provenance -----------------------------------------------------------------
-    slice_z: np.ndarray                 # (Z,) float64 [m] height of each slice used
     meta: dict = dataclasses.field(default_factory=dict)   # JSON-able: source, builder settings, ...
 
     # ---------------------------------------------------------------------------- conveniences
@@ -161,6 +151,57 @@ class TissueModel:
             v = getattr(self, f.name)
             if isinstance(v, np.ndarray):
                 v.flags.writeable = False
+
+    def validate_topology(self) -> 'TissueTopology':
+        """Check the index ranges of the topology arrays; raise ModelError naming the first problem
+        (what a decoded topology message can be checked for; :meth:`TissueModel.validate` checks more)."""
+        V, C = self.n_vertices, self.n_cells
+
+        def need(cond, msg):
+            if not cond:
+                raise ModelError(f'topology {self.name!r}: {msg}')
+
+        need(self.rest_positions.ndim == 2 and self.rest_positions.shape[1] == 3, 'rest_positions must be (V, 3)')
+        need(self.cell_offsets.shape == (C + 1,) and self.cell_offsets[0] == 0
+             and self.cell_offsets[-1] == self.cell_vertices.size, 'cell_offsets inconsistent with cell_vertices')
+        need(np.all(np.diff(self.cell_offsets) >= 0), 'cell_offsets must not decrease')
+        need(self.cell_vertices.size == 0 or (self.cell_vertices.min() >= 0 and self.cell_vertices.max() < V),
+             'cell_vertices index out of range')
+        need(self.cell_muscle.shape == (C,), 'cell_muscle must have one entry per cell')
+        need(self.vertex_segment.shape == (V,), 'vertex_segment must have one entry per vertex')
+        need(self.skin_quads.size == 0 or self.skin_quads.max() < V, 'skin_quads index out of range')
+        need(self.skin_quad_cell.size == 0 or self.skin_quad_cell.max() < C, 'skin_quad_cell index out of range')
+        need(self.skin_quad_cell.shape[0] == self.skin_quads.shape[0], 'skin_quad_cell must match skin_quads')
+        need(self.surface_triangles.size == 0 or self.surface_triangles.max() < V, 'surface_triangles index out of range')
+        need(self.surface_group.shape[0] == self.surface_triangles.shape[0], 'surface_group must match surface_triangles')
+        need(len(self.muscle_groups) == len(self.muscle_names), 'muscle_groups must match muscle_names')
+        need(self.segment_parent.shape == (len(self.segment_names),), 'segment_parent must match segment_names')
+        B = len(self.bone_names)
+        need(self.bone_segment.shape == (B,) and self.bone_vertex_offsets.shape == (B + 1,)
+             and self.bone_triangle_offsets.shape == (B + 1,), 'bone arrays inconsistent')
+        return self
+
+
+@dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
+class TissueModel(TissueTopology):
+    """The whole model: its :class:`TissueTopology` plus what the solver needs."""
+    vertex_flags: np.ndarray            # (V,) uint8, VF_* bits
+    cell_fibre: np.ndarray              # (C, 3) float64 unit fibre (long) axis at rest; fat: limb axis
+    cell_slice: np.ndarray              # (C,) int32 index into slice_z of the bottom ring
+    cell_k_scale: np.ndarray            # (C,) float64 stiffness multiplier from the tissue table (1.0)
+    muscle_max_force: np.ndarray        # (M,) float64 [N] max isometric force, NaN if unknown
+    muscle_fibre_length: np.ndarray     # (M,) float64 [m] optimal fibre length, NaN if unknown
+    segment_mass: np.ndarray            # (S,) float64 [kg]
+    segment_com: np.ndarray             # (S, 3) float64 [m]
+    segment_inertia: np.ndarray         # (S, 3, 3) float64 [kg m^2] about the COM
+    joint_type: np.ndarray              # (J,) uint8
+    joint_parent: np.ndarray            # (J,) int32 segment
+    joint_child: np.ndarray             # (J,) int32 segment
+    joint_axis: np.ndarray              # (J, 3) float64 unit
+    joint_centre: np.ndarray            # (J, 3) float64 [m]
+    joint_range: np.ndarray             # (J, 2) float64 [rad]
+    joint_rest: np.ndarray              # (J,) float64 [rad] coordinate of the rest pose
+    slice_z: np.ndarray                 # (Z,) float64 [m] height of each slice used
 
     # ---------------------------------------------------------------------------- validation
     def validate(self) -> 'TissueModel':

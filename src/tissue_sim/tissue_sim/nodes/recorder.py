@@ -109,8 +109,8 @@ class Recorder:
         except Exception as e:
             self.node.get_logger().warning(f'could not decode {TOPIC_TOPOLOGY}: {e}')
             return
-        self.writer.add_metadata('tissue_sim_model', {'model': topo.model_name, 'model_hash': topo.model_hash,
-                                                      'parameters_yaml': topo.parameters_yaml,
+        self.writer.add_metadata('tissue_sim_model', {'model': topo.name, 'model_hash': topo.meta['model_hash'],
+                                                      'parameters_yaml': topo.meta['parameters_yaml'],
                                                       'n_vertices': str(topo.n_vertices)})
 
     def close(self):

@@ -24,7 +24,8 @@ import time
 
 import numpy as np
 
-from ..ros import markers as mk
+from ..core import markers as mk
+from ..core import measures
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
                           TOPIC_STATE, TOPIC_TOPOLOGY, declare, main_wrapper, parse_args, qos_latched,
                           qos_stream, spin)
@@ -285,13 +286,8 @@ class Simulator:
         js.velocity = [float(v) for v in obs['joint_velocities']]
         self.pub_joints.publish(js)
         if self.node.get_parameter('publish_state').value:
-            self.pub_state.publish(self.tcdr.encode_state(
-                stamp_ns=stamp, frame_id=self.frame_id, step=st.step, sim_time=st.time,
-                joint_names=self.tm.joint_names, joint_positions=obs['joint_positions'],
-                joint_velocities=obs['joint_velocities'], muscle_names=self.tm.muscle_names,
-                activations=self.ctrl.activation, muscle_lengths=obs['muscle_lengths'],
-                muscle_volumes=obs['muscle_volumes'], segment_poses=obs['segment_poses'], vertex_positions=st.x,
-                kinetic_energy=obs['kinetic_energy'], elastic_energy=obs['elastic_energy']))
+            self.pub_state.publish(self.tcdr.encode_frame(self.tm, st, obs, self.ctrl.activation,
+                                                          stamp_ns=stamp, frame_id=self.frame_id))
         if self.marker_enc is not None and self.node.get_parameter('publish_markers').value:
             t0 = time.perf_counter()
             rgba = self.corner_colours(st.x)
@@ -308,16 +304,16 @@ class Simulator:
             return None
         scale = float(self.node.get_parameter('colour_scale').value)
         if enc.colouring == 'skin_area':
-            ratio, self._rest_area = mk.skin_area_ratio_per_vertex(self.tm, x, self._rest_area)
+            ratio, self._rest_area = measures.skin_area_ratio_per_vertex(self.tm, x, self._rest_area)
             return mk.diverging_rgba(ratio[enc.skin_corners], span=scale)
         if self._fat_def is None:
-            self._fat_def = mk.FatDeformation(self.tm)
+            self._fat_def = measures.FatDeformation(self.tm)
         d = self._fat_def(x)
         return mk.sequential_rgba(d[enc.skin_corners], scale)
 
     def publish_topology(self):
-        topo = self.tcdr.from_model(self.tm, parameters_yaml=self.params.to_yaml(), frame_id=self.frame_id)
-        self.pub_topo.publish(self.tcdr.encode_topology(topo, stamp_ns=0, frame_id=self.frame_id))
+        self.pub_topo.publish(self.tcdr.encode_topology(self.tm, parameters_yaml=self.params.to_yaml(),
+                                                        stamp_ns=0, frame_id=self.frame_id))
 
     # ------------------------------------------------------------------ diagnostics
     def figures(self, now) -> dict:

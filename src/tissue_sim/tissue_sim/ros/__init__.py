@@ -1,1 +1,1 @@
-"""ROS helpers: numpy CDR encoders for big messages, QoS profiles, parameter helpers."""
+"""ROS helpers for the nodes: topic names, QoS profiles, parameter declaration, spin."""

@@ -18,7 +18,9 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from tissue_sim.core import measures
 from tissue_sim.core.analysis import measure, render
+from tissue_sim.core.geometry import prism_volumes
 
 VTK_HEXAHEDRON = 12
 VTK_WEDGE = 13
@@ -34,7 +36,7 @@ def frame_scene(topo, X: np.ndarray, poses: np.ndarray):
     X = np.asarray(X, np.float64)
     scene = trimesh.Scene()
     mnames = list(topo.muscle_names)
-    for name, tri in render.surface_groups(topo).items():
+    for name, tri in measures.surface_groups(topo).items():
         used, inv = np.unique(tri, return_inverse=True)
         if name.startswith('muscle/'):
             mn = name.split('/', 1)[1]
@@ -71,13 +73,12 @@ def cell_grid_topology(topo):
     """(VTK cell connectivity stream, cell types, owner topology cell) for all soft-tissue cells.
 
     VTK wants positively oriented cells; fat rings are clockwise by the model contract (inner a,
-    inner b, outer b, outer a), so cells whose rest volume is negative get their rings swapped.
+    inner b, outer b, outer a), so cells whose signed rest volume (:func:`~tissue_sim.core.geometry.prism_volumes`)
+    is negative get their rings swapped.
     """
-    from tissue_sim.core.analysis import deform
     offsets = np.asarray(topo.cell_offsets, np.int64)
     verts = np.asarray(topo.cell_vertices, np.int64)
-    tri, own = deform.cell_surface_triangles(offsets, verts, np.arange(topo.n_cells))
-    negative = deform.signed_volumes(topo.rest_positions, tri, own, topo.n_cells) < 0
+    negative = prism_volumes(np.asarray(topo.rest_positions, np.float64), offsets, verts) < 0
     conn, types, owner = [], [], []
     for c in range(topo.n_cells):
         vs = verts[offsets[c]:offsets[c + 1]]
@@ -99,23 +100,27 @@ def cell_grid_topology(topo):
     return np.concatenate(conn), np.array(types, np.uint8), np.array(owner, np.int64)
 
 
-def write_vtu_series(topo, run, out: Path, ctx=None) -> list[Path]:
-    """One .vtu (cells) and .vtp (bones) per frame of ``run`` (a runio.Run) and the ``cells.pvd`` index."""
+def write_vtu_series(run, out: Path, frames=None, measures=None) -> list[Path]:
+    """One .vtu (cells) and .vtp (bones) per frame of ``run`` (a runio.Run; ``frames``: positions in
+    it, default all) and the ``cells.pvd`` index. ``measures``: the run's Measurements if computed."""
     os.environ.setdefault('VTK_DEFAULT_OPENGL_WINDOW', 'vtkEGLRenderWindow')
     import pyvista as pv
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ctx = ctx or measure.prepare(topo)
+    topo = run.model
+    sel = np.arange(run.n_frames) if frames is None else np.asarray(frames, np.int64)
+    m, row = measure.rows_for(run, set(sel.tolist()) | {0}, measures)
     conn, types, owner = cell_grid_topology(topo)
     rest = np.asarray(topo.rest_positions, np.float64)
     fat_local = np.full(topo.n_cells, -1, np.int64)
-    fat_local[ctx['fat_ids']] = np.arange(ctx['n_fat'])
+    fat_local[m.fat_cells] = np.arange(m.fat_cells.size)
     fl = fat_local[owner]
-    area0 = measure.fat_frame(ctx, run.frames[0])[0]
+    area0 = m.skin_area[row[0]]
     files, entries = [], []
-    for i in range(run.n_frames):
+    for i in sel:
+        k = row[int(i)]
         X = run.frames[i].astype(np.float64)
-        a, dp, dr = measure.fat_frame(ctx, X)
+        a, dp, dr = m.skin_area[k], m.d_paper[k], m.d_rotation_free[k]
         grid = pv.UnstructuredGrid(conn, types, X)
         grid.cell_data['cell'] = owner.astype(np.int32)
         grid.cell_data['tissue'] = np.asarray(topo.cell_tissue)[owner].astype(np.int32)

@@ -15,19 +15,6 @@ from tissue_sim.core.analysis import measure, render
 from tissue_sim.core.analysis.plots import pick_frames
 
 
-def scan(path):
-    """(times (F,), segment poses (F, S, 7), joint names, joint positions (F, J)) without the vertices."""
-    t, poses, jp, jn = [], [], [], ()
-    for s in runio.iter_states(path, with_vertices=False):
-        t.append(s.sim_time)
-        poses.append(s.segment_poses)
-        jp.append(s.joint_positions)
-        jn = tuple(s.joint_names)
-    if not t:
-        raise runio.RunError(f'{path}: no TissueState frames (was /tissue/state recorded?)')
-    return np.array(t), np.array(poses).reshape(len(t), -1, 7), jn, np.array(jp).reshape(len(t), -1)
-
-
 def frames_at_times(times: np.ndarray, wanted) -> np.ndarray:
     """Indices of the frames nearest to the wanted times [s] (error if outside the run)."""
     out = []
@@ -38,28 +25,31 @@ def frames_at_times(times: np.ndarray, wanted) -> np.ndarray:
     return np.array(sorted(set(out)), np.int64)
 
 
-def render_run(path, out, times=None, n_frames: int = 4, size=(800, 600), views=render.KINDS,
-               animation: str | None = 'gif', anim_frames: int = 48, anim_size=(480, 360), progress=None) -> list[Path]:
-    """Render the figure set of a run into ``out``; returns the files written."""
+def render_run(run: runio.Run, out, measures: measure.Measurements | None = None, times=None, n_frames: int = 4,
+               size=(800, 600), views=render.KINDS, animation: str | None = 'gif', anim_frames: int = 48,
+               anim_size=(480, 360), progress=None) -> list[Path]:
+    """Render the figure set of a loaded run into ``out``; returns the files written.
+
+    ``measures``: the run's :class:`~tissue_sim.core.analysis.measure.Measurements` when already
+    computed (``analyze``); the frames drawn that it lacks (or all, if None) are measured here."""
     import imageio.v3 as iio
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    topo = runio.read_topology(path)
-    t_all, poses_all, jn, jp_all = scan(path)
+    topo = run.model
+    t_all, poses_all, jn, jp_all = run.times, run.segment_poses, run.joint_names, run.joint_positions
     chosen = frames_at_times(t_all, times) if times else pick_frames(t_all, n_frames)
     anim = pick_frames(t_all, min(anim_frames, len(t_all))) if animation else np.zeros(0, np.int64)
     need = sorted(set(chosen.tolist()) | set(anim.tolist()) | {0})
-    run = runio.load_run(path, frames=need)
-    pos = {int(f): i for i, f in enumerate(run.frame_index)}
-    ctx = measure.prepare(topo)
-    area0 = measure.fat_frame(ctx, run.frames[pos[0]])[0]
+    m, row = measure.rows_for(run, set(chosen.tolist()) | {0}, measures)
+    area0 = m.skin_area[row[0]]
     vals = {}
     for f in chosen:
-        a, dp, dr = measure.fat_frame(ctx, run.frames[pos[int(f)]])
+        k = row[int(f)]
         with np.errstate(divide='ignore', invalid='ignore'):
-            vals[int(f)] = {'area': np.where(area0 > 0, a / area0, 1.0), 'd_paper': dp, 'd_rotfree': dr}
+            vals[int(f)] = {'area': np.where(area0 > 0, m.skin_area[k] / area0, 1.0), 'd_paper': m.d_paper[k],
+                            'd_rotfree': m.d_rotation_free[k]}
     bones_all = [np.concatenate(render.posed_bones(topo, poses_all[f])) for f in need if len(topo.bone_names)]
-    pts = np.concatenate([run.frames.reshape(-1, 3).astype(np.float64)] + bones_all)
+    pts = np.concatenate([run.frames[need].reshape(-1, 3).astype(np.float64)] + bones_all)
     knee = render.knee_centre(topo, poses_all, topo.rest_positions)
     height = float(np.ptp(pts[:, 2]))
     jk = next((j for j, n in enumerate(jn) if 'knee' in n), 0 if jn else None)
@@ -77,7 +67,7 @@ def render_run(path, out, times=None, n_frames: int = 4, size=(800, 600), views=
             dmax = max(float(max(v[view].max() for v in vals.values())), 1e-6) if vals else 1e-3
         clim = None
         if view == 'area' and vals:
-            r = np.concatenate([v['area'][ctx['skin_area_rest'] > 0] for v in vals.values()])
+            r = np.concatenate([v['area'][m.skin_area_rest > 0] for v in vals.values()])
             r = r[np.isfinite(r) & (r > 0)]
             lim = float(np.percentile(np.abs(np.log2(r)), 99)) if r.size else 0.0
             clim = 2 ** max(lim, np.log2(1.05))
@@ -95,9 +85,9 @@ def render_run(path, out, times=None, n_frames: int = 4, size=(800, 600), views=
         for f in chosen:
             f = int(f)
             v = vals[f]['area' if view == 'area' else view] if view in ('area', 'd_paper', 'd_rotfree') else None
-            rd.update(run.frames[pos[f]], poses_all[f], v, label(f))
+            rd.update(run.frames[f], poses_all[f], v, label(f))
             img = rd.image()
-            p = out / f'{view}_f{f:05d}.png'
+            p = out / f'{view}_f{int(run.frame_index[f]):05d}.png'
             iio.imwrite(p, img)
             files.append(p)
             imgs.append(img)
@@ -116,7 +106,7 @@ def render_run(path, out, times=None, n_frames: int = 4, size=(800, 600), views=
         imgs = []
         for f in anim:
             f = int(f)
-            rd.update(run.frames[pos[f]], poses_all[f], None, label(f))
+            rd.update(run.frames[f], poses_all[f], None, label(f))
             imgs.append(rd.image())
             if progress:
                 progress()

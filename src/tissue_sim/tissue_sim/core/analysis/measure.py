@@ -1,8 +1,9 @@
-"""Per-frame measurements of a run (streamed): fat skin area and d, muscle length/volume, joints.
+"""Per-frame measurements of a run: fat skin area and d, muscle length/volume, joints.
 
-:func:`prepare` precomputes index tables from a Topology; :func:`fat_frame` measures one frame;
-:func:`measure_run` streams a run and returns a :class:`Measurements` (arrays, frame axis first).
-See :mod:`tissue_sim.core.analysis.deform` for the definitions.
+:func:`prepare` precomputes index tables from a model topology; :func:`fat_frame` measures one frame;
+:func:`measure` measures a loaded :class:`~tissue_sim.core.runio.Run` (all its frames or some) and
+returns a :class:`Measurements` (arrays, frame axis first); ``analyze`` and ``render`` share it.
+The definitions are in :mod:`tissue_sim.core.measures`.
 """
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import dataclasses
 
 import numpy as np
 
-from tissue_sim.core import runio
-from tissue_sim.core.analysis import deform
+from tissue_sim.core import measures, runio
+from tissue_sim.core.model import TISSUE_FAT
 
 
 @dataclasses.dataclass(eq=False)
@@ -58,21 +59,19 @@ class Measurements:
 
 
 def prepare(topo) -> dict:
-    """Index tables of a Topology for fast per-frame measurement."""
-    fat_ids, fat_tab = deform.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, deform.TISSUE_FAT)
+    """Index tables of a model topology for fast per-frame measurement."""
+    fat_ids, fat_tab = measures.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, TISSUE_FAT)
     rest = np.asarray(topo.rest_positions, np.float64)
     rest_cells = rest[fat_tab]
     local = np.full(topo.n_cells, -1, np.int64)
     local[fat_ids] = np.arange(fat_ids.size)
-    qc = local[np.asarray(topo.skin_quad_cells, np.int64)]
+    qc = local[np.asarray(topo.skin_quad_cell, np.int64)]
     ok = qc >= 0
-    mcells = np.flatnonzero(np.asarray(topo.cell_tissue) == deform.TISSUE_MUSCLE)
-    tris, owner = deform.cell_surface_triangles(topo.cell_offsets, topo.cell_vertices, mcells)
-    ctx = dict(fat_ids=fat_ids, fat_tab=fat_tab, rest_cells=rest_cells, quads=np.asarray(topo.skin_quads, np.int64)[ok],
-               quad_local=qc[ok], n_fat=fat_ids.size, muscle_tris=tris,
-               muscle_owner=np.asarray(topo.cell_muscle, np.int64)[owner], n_muscles=len(topo.muscle_names))
-    ctx['skin_area_rest'] = deform.skin_area_per_cell(rest, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
-    ctx['fat_size'] = deform.cell_size(rest_cells)
+    ctx = dict(model=topo, fat_ids=fat_ids, fat_tab=fat_tab, rest_cells=rest_cells,
+               quads=np.asarray(topo.skin_quads, np.int64)[ok], quad_local=qc[ok], n_fat=fat_ids.size,
+               n_muscles=len(topo.muscle_names))
+    ctx['skin_area_rest'] = measures.skin_area_per_cell(rest, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
+    ctx['fat_size'] = measures.cell_size(rest_cells)
     ctx['fat_centroid'] = rest_cells.mean(axis=1) if fat_ids.size else np.zeros((0, 3))
     return ctx
 
@@ -80,61 +79,63 @@ def prepare(topo) -> dict:
 def fat_frame(ctx: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(skin area (Cf,) [m^2], d paper (Cf,) [m], d rotation-free (Cf,) [m]) of one frame X (V, 3)."""
     X = np.asarray(X, np.float64)
-    area = deform.skin_area_per_cell(X, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
+    area = measures.skin_area_per_cell(X, ctx['quads'], ctx['quad_local'], ctx['n_fat'])
     if ctx['n_fat'] == 0:
         return area, np.zeros(0), np.zeros(0)
     cur = X[ctx['fat_tab']]
-    return area, deform.d_paper(cur, ctx['rest_cells']), deform.d_rotation_free(cur, ctx['rest_cells'])
+    return area, measures.d_paper(cur, ctx['rest_cells']), measures.d_rotation_free(cur, ctx['rest_cells'])
 
 
 def muscle_volumes_mesh(ctx: dict, X: np.ndarray) -> np.ndarray:
-    """Volume of each muscle [m^3] from its cells' closed prism surfaces."""
-    return np.abs(deform.signed_volumes(X, ctx['muscle_tris'], ctx['muscle_owner'], ctx['n_muscles']))
+    """Volume of each muscle [m^3] from its cells (:func:`tissue_sim.core.measures.muscle_volumes`)."""
+    return measures.muscle_volumes(X, ctx['model'])
+
+
+def measure(run: runio.Run, frames=None, progress=None) -> Measurements:
+    """The measures of a loaded run (every kept frame, or the run positions ``frames`` of
+    ``run.frame_index``). ``progress()`` is called per frame measured."""
+    topo = run.model
+    ctx = prepare(topo)
+    sel = np.arange(run.n_frames) if frames is None else np.asarray(frames, np.int64)
+    F = sel.size
+    area = np.zeros((F, ctx['n_fat']))
+    dp, dr = np.zeros_like(area), np.zeros_like(area)
+    mvm_t = np.zeros((F, ctx['n_muscles']))
+    for k, i in enumerate(sel):
+        X = run.frames[i].astype(np.float64)
+        area[k], dp[k], dr[k] = fat_frame(ctx, X)
+        mvm_t[k] = muscle_volumes_mesh(ctx, X)
+        if progress is not None:
+            progress()
+    mnames = tuple(topo.muscle_names)
+    mn = run.muscle_names
+    groups = tuple(topo.muscle_groups[mnames.index(n)] if n in mnames else '' for n in mn)
+    # mesh volumes are in topology muscle order; reorder to the state's muscle order
+    order = [mnames.index(n) if n in mnames else -1 for n in mn]
+    mvm = np.stack([mvm_t[:, o] if o >= 0 else np.full(F, np.nan) for o in order], axis=1) if order else np.zeros((F, 0))
+    f64 = lambda a: np.asarray(a, np.float64)[sel].reshape(F, -1)   # noqa: E731
+    return Measurements(
+        model_name=topo.name, frame_index=run.frame_index[sel], times=run.times[sel], steps=run.steps[sel],
+        kinetic_energy=f64(run.kinetic_energy)[:, 0], elastic_energy=f64(run.elastic_energy)[:, 0],
+        joint_names=run.joint_names, joint_positions=f64(run.joint_positions),
+        joint_velocities=f64(run.joint_velocities), muscle_names=mn, muscle_groups=groups,
+        activations=f64(run.activations), muscle_lengths=f64(run.muscle_lengths),
+        muscle_volumes=f64(run.muscle_volumes), muscle_volumes_mesh=mvm,
+        fat_cells=ctx['fat_ids'], fat_rest_centroid=ctx['fat_centroid'], fat_size=ctx['fat_size'],
+        skin_area_rest=ctx['skin_area_rest'], skin_area=area, d_paper=dp, d_rotation_free=dr)
+
+
+def rows_for(run: runio.Run, positions, measures: Measurements | None = None):
+    """(Measurements, {run position: row}) covering the run positions ``positions``: ``measures``
+    when it already has those frames (``analyze`` passing its own), else the frames measured now."""
+    positions = sorted(set(int(p) for p in positions))
+    have = {} if measures is None else {int(f): k for k, f in enumerate(measures.frame_index)}
+    if not all(int(run.frame_index[p]) in have for p in positions):
+        measures = measure(run, frames=positions)
+        have = {int(f): k for k, f in enumerate(measures.frame_index)}
+    return measures, {p: have[int(run.frame_index[p])] for p in positions}
 
 
 def measure_run(path, progress=None, stride: int = 1) -> Measurements:
-    """Stream a run and measure every ``stride``-th frame. ``progress(i)`` is called per frame read."""
-    topo = runio.read_topology(path)
-    ctx = prepare(topo)
-    V = topo.n_vertices
-    rows = {k: [] for k in ('idx', 't', 'step', 'ke', 'ee', 'jp', 'jv', 'act', 'ml', 'mv', 'mvm', 'a', 'dp', 'dr')}
-    jn = mn = None
-    for i, s in enumerate(runio.iter_states(path, with_vertices=True)):
-        if progress is not None:
-            progress(i)
-        if i % stride:
-            continue
-        if s.vertex_positions.shape[0] != V:
-            raise runio.RunError(f'{path}: state #{i} has {s.vertex_positions.shape[0]} vertices, the topology {V}')
-        if jn is None:
-            jn, mn = tuple(s.joint_names), tuple(s.muscle_names)
-        a, dp, dr = fat_frame(ctx, s.vertex_positions)
-        for k, v in (('idx', i), ('t', s.sim_time), ('step', s.step), ('ke', s.kinetic_energy), ('ee', s.elastic_energy),
-                     ('jp', s.joint_positions), ('jv', s.joint_velocities), ('act', s.activations),
-                     ('ml', s.muscle_lengths), ('mv', s.muscle_volumes),
-                     ('mvm', muscle_volumes_mesh(ctx, s.vertex_positions)), ('a', a), ('dp', dp), ('dr', dr)):
-            rows[k].append(v)
-    if not rows['idx']:
-        raise runio.RunError(f'{path}: no TissueState frames (was /tissue/state recorded?)')
-    F = len(rows['idx'])
-
-    def arr(k, dtype=np.float64, width=None):
-        try:
-            a = np.array(rows[k], dtype)
-        except ValueError:
-            raise runio.RunError(f'{path}: frames disagree in the size of {k}') from None
-        return a.reshape(F, -1) if width is None else a
-
-    mnames = tuple(topo.muscle_names)
-    groups = tuple(topo.muscle_groups[mnames.index(n)] if n in mnames else '' for n in mn)
-    # mesh volumes are in topology muscle order; reorder to the state's muscle order
-    mvm = arr('mvm')
-    order = [mnames.index(n) if n in mnames else -1 for n in mn]
-    mvm = np.stack([mvm[:, o] if o >= 0 else np.full(F, np.nan) for o in order], axis=1) if order else np.zeros((F, 0))
-    return Measurements(
-        model_name=topo.model_name, frame_index=np.array(rows['idx'], np.int64), times=arr('t', width=0),
-        steps=np.array(rows['step'], np.uint64), kinetic_energy=arr('ke', width=0), elastic_energy=arr('ee', width=0),
-        joint_names=jn, joint_positions=arr('jp'), joint_velocities=arr('jv'), muscle_names=mn, muscle_groups=groups,
-        activations=arr('act'), muscle_lengths=arr('ml'), muscle_volumes=arr('mv'), muscle_volumes_mesh=mvm,
-        fat_cells=ctx['fat_ids'], fat_rest_centroid=ctx['fat_centroid'], fat_size=ctx['fat_size'],
-        skin_area_rest=ctx['skin_area_rest'], skin_area=arr('a'), d_paper=arr('dp'), d_rotation_free=arr('dr'))
+    """Load a run (every ``stride``-th frame) and measure it. ``progress(i)`` is called per frame read."""
+    return measure(runio.load_run(path, stride=stride, progress=progress))

@@ -17,11 +17,11 @@ compare. VTK uses an EGL (GPU-less capable) or OSMesa offscreen window; depth pe
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
-from tissue_sim.core.analysis import deform
+from tissue_sim.core import measures
+from tissue_sim.core.model import TISSUE_FAT
 from tissue_sim.core.tissue_cdr import quat_to_matrix
 
 IVORY = (0.93, 0.90, 0.80)
@@ -41,36 +41,13 @@ def _pv():
 
 
 # ----------------------------------------------------------------------------- geometry
-def surface_groups(topo) -> dict:
-    """{'skin': (T,3), 'muscle/<name>': (T,3), ...} from the topology (boundary of the cells if absent)."""
-    out = {}
-    tri = np.asarray(topo.surface_triangles, np.int64)
-    if tri.size:
-        g = np.asarray(topo.surface_groups, np.int64)
-        for i, name in enumerate(topo.surface_group_names):
-            sel = tri[g == i]
-            if sel.size:
-                out[name] = sel
-        return out
-    tissue = np.asarray(topo.cell_tissue)
-    fat = np.flatnonzero(tissue == deform.TISSUE_FAT)
-    if fat.size:
-        out['skin'] = deform.boundary_faces(topo.cell_offsets, topo.cell_vertices, fat)
-    cm = np.asarray(topo.cell_muscle)
-    for m, name in enumerate(topo.muscle_names):
-        cells = np.flatnonzero((tissue == deform.TISSUE_MUSCLE) & (cm == m))
-        if cells.size:
-            out[f'muscle/{name}'] = deform.boundary_faces(topo.cell_offsets, topo.cell_vertices, cells)
-    return out
-
-
 def posed_bones(topo, poses: np.ndarray) -> list[np.ndarray]:
     """Vertices of every bone at the given segment poses (S, 7) [m]."""
     out = []
     R = quat_to_matrix(poses[:, 3:7]) if len(poses) else np.zeros((0, 3, 3))
     for b in range(len(topo.bone_names)):
         v, _ = topo.bone_mesh(b)
-        s = int(topo.bone_segments[b])
+        s = int(topo.bone_segment[b])
         if 0 <= s < len(poses):
             v = v.astype(np.float64) @ R[s].T + poses[s, :3]
         out.append(np.asarray(v, np.float64))
@@ -93,7 +70,7 @@ def knee_centre(topo, poses: np.ndarray, X0: np.ndarray) -> np.ndarray:
     """
     X0 = np.asarray(X0, np.float64)
     guess = X0.mean(axis=0) if X0.size else np.zeros(3)
-    parents = np.asarray(topo.segment_parents)
+    parents = np.asarray(topo.segment_parent)
     if poses.ndim != 3 or poses.shape[1] == 0 or len(parents) < 2:
         return guess
     R = quat_to_matrix(poses[..., 3:7])                     # (F, S, 3, 3)
@@ -109,8 +86,8 @@ def knee_centre(topo, poses: np.ndarray, X0: np.ndarray) -> np.ndarray:
     if child < 0:
         return guess
     p = parents[child]
-    bp = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segments[b] == p]
-    bc = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segments[b] == child]
+    bp = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segment[b] == p]
+    bc = [topo.bone_mesh(b)[0] for b in range(len(topo.bone_names)) if topo.bone_segment[b] == child]
     if bp and bc:
         from scipy.spatial import cKDTree
         A, B = np.concatenate(bp).astype(float), np.concatenate(bc).astype(float)
@@ -147,7 +124,7 @@ class LimbRenderer:
         self.pl.set_background('white')
         self.meshes = []            # (polydata, kind, index)
         rest = np.asarray(topo.rest_positions, np.float64)
-        groups = surface_groups(topo)
+        groups = measures.surface_groups(topo)
         if kind in ('limb', 'knee'):
             for b in range(len(topo.bone_names)):
                 v, t = topo.bone_mesh(b)
@@ -174,10 +151,10 @@ class LimbRenderer:
                 self.meshes.append((pd, 'soft', None))
         else:
             quads = np.asarray(topo.skin_quads, np.int64)
-            fat_ids, _ = deform.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, deform.TISSUE_FAT)
+            fat_ids, _ = measures.cells_of(topo.cell_offsets, topo.cell_vertices, topo.cell_tissue, TISSUE_FAT)
             local = np.full(topo.n_cells, -1, np.int64)
             local[fat_ids] = np.arange(fat_ids.size)
-            self.quad_local = local[np.asarray(topo.skin_quad_cells, np.int64)]
+            self.quad_local = local[np.asarray(topo.skin_quad_cell, np.int64)]
             ok = self.quad_local >= 0
             self.quad_local = self.quad_local[ok]
             pd = pv.PolyData(rest.copy(), _faces(quads[ok]))

@@ -1,4 +1,4 @@
-"""Small synthetic limbs and analytically deformed runs, for tests and documentation.
+"""Test fixture: small synthetic limbs and analytically deformed runs.
 
 Nothing here runs the solver: vertex positions are moved by closed-form maps (uniform scale,
 rigid motion, a bending knee), so the analysis has known answers.
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from tissue_sim.core import model as M
-from tissue_sim.core.analysis.deform import boundary_faces
+from tissue_sim.core.measures import boundary_faces
 
 
 def _ring(cx, cy, r, n, z):
@@ -112,7 +112,7 @@ def tube_model(n_around: int = 16, n_slices: int = 9, length: float = 0.6, r_in:
         joint_parent=np.array([0], np.int32), joint_child=np.array([1], np.int32),
         joint_axis=np.array([[0, 1.0, 0]]), joint_centre=np.zeros((1, 3)),
         joint_range=np.array([[0, np.deg2rad(140)]]), joint_rest=np.zeros(1),
-        slice_z=zs, meta={'source': 'tissue_sim.core.analysis.synthetic.tube_model'}).validate()
+        slice_z=zs, meta={'source': 'tests/synthetic.py tube_model'}).validate()
 
 
 def rot_y(a: float) -> np.ndarray:
@@ -145,12 +145,7 @@ def bend(X: np.ndarray, angle: float, blend: float = 0.12) -> np.ndarray:
 def bending_run(tm: M.TissueModel, path, n_frames: int = 40, rate_hz: float = 34.0,
                 max_angle: float = np.deg2rad(90), chunk_size: int = 1 << 20):
     """Write a synthetic MCAP run of the tube flexing its knee from 0 to max_angle (smoothstep in time)."""
-    from tissue_sim.core import runio, tissue_cdr
-    from tissue_sim.core.analysis.deform import cell_surface_triangles, signed_volumes
-    topo = tissue_cdr.from_model(tm)
-    mcells = np.flatnonzero(tm.cell_tissue == M.TISSUE_MUSCLE)
-    tris, owner = cell_surface_triangles(tm.cell_offsets, tm.cell_vertices, mcells)
-    owner_m = tm.cell_muscle[owner]
+    from tissue_sim.core import measures, runio, tissue_cdr
     states = []
     for i in range(n_frames):
         t = i / rate_hz
@@ -163,12 +158,12 @@ def bending_run(tm: M.TissueModel, path, n_frames: int = 40, rate_hz: float = 34
             cents = np.array([X[tm.cell(c)[:len(tm.cell(c)) // 2]].mean(0) for c in cs]
                              + [X[tm.cell(cs[-1])[len(tm.cell(cs[-1])) // 2:]].mean(0)])
             lengths.append(np.linalg.norm(np.diff(cents, axis=0), axis=1).sum())
-        vols = signed_volumes(X, tris, owner_m, tm.n_muscles)
+        vols = measures.muscle_volumes(X, tm)
         poses = np.array([[0, 0, 0, 0, 0, 0, 1], [0, 0, 0, *quat_y(ang)]], float)
-        states.append(tissue_cdr.State(
+        states.append(tissue_cdr.StateFrame(
             stamp_ns=int(t * 1e9), frame_id='world', step=i * 29, sim_time=t, joint_names=['knee_r'],
             joint_positions=np.array([ang]), joint_velocities=np.zeros(1), muscle_names=list(tm.muscle_names),
             activations=np.array([min(1.0, 2 * u), 0.0], np.float32), muscle_lengths=np.array(lengths, np.float32),
             muscle_volumes=vols.astype(np.float32), segment_poses=poses, vertex_positions=X.astype(np.float32),
             kinetic_energy=0.0, elastic_energy=0.0))
-    return runio.write_run(path, topo, states, chunk_size=chunk_size)
+    return runio.write_run(path, tm, states, chunk_size=chunk_size)

@@ -1,6 +1,10 @@
-"""Deformation measures of the paper's section 4 (docs/method.md section 4), vectorised over cells.
+"""The deformation measures (paper section 4, docs/method.md section 4), vectorised over cells: the one
+definition that the analysis (:mod:`tissue_sim.core.analysis.measure`) and the marker colours
+(:mod:`tissue_sim.core.markers`) call.
 
-All positions are in the model frame [m]. ``X`` is one frame's soft-tissue vertex array (V, 3).
+All positions are in the model frame [m]. ``X`` is one frame's soft-tissue vertex array (V, 3);
+``model`` is a :class:`~tissue_sim.core.model.TissueModel` or a decoded
+:class:`~tissue_sim.core.model.TissueTopology`.
 
 * Skin-area change (paper Fig. 8): the area of each fat cell's skin-side face, relative to a
   reference frame (the paper: frame 0). A quad's area is half the norm of the cross product of its
@@ -16,13 +20,17 @@ All positions are in the model frame [m]. ``X`` is one frame's soft-tissue verte
   ``d_rf = (1/N) sum_i |R Ro_i - r_i|``; any rigid motion gives 0, so d_rf measures only shape change.
 * Both are reported in metres and relative to the cell size ``L = sqrt((1/N) sum_i |Ro_i|^2)`` (the
   RMS vertex distance from the rest centroid), so cells of different size can be compared.
+* Cell and muscle volumes: :func:`tissue_sim.core.geometry.prism_volumes` (the one prism-volume
+  definition, shared with the builder and the solver), made positive for fat cells.
+* Per-vertex values for colouring a surface (:func:`skin_area_ratio_per_vertex`,
+  :class:`FatDeformation`): the per-cell measures above, averaged onto each cell's vertices.
 """
 from __future__ import annotations
 
 import numpy as np
 
-TISSUE_MUSCLE = 1
-TISSUE_FAT = 2
+from tissue_sim.core.geometry import prism_volumes
+from tissue_sim.core.model import TISSUE_FAT, TISSUE_MUSCLE
 
 
 # ----------------------------------------------------------------------------- cell tables
@@ -101,45 +109,29 @@ def d_rotation_free(cur_cells: np.ndarray, rest_cells: np.ndarray) -> np.ndarray
     return np.mean(np.linalg.norm(matched - r, axis=2), axis=1)
 
 
-# ----------------------------------------------------------------------------- prism surfaces, volumes
-def prism_faces(n: int) -> tuple[list, list]:
-    """Local (triangles, quads) of the closed surface of a prism with rings of n vertices.
-
-    Bottom ring 0..n-1 counter-clockwise seen from +z, top ring n..2n-1; faces oriented outward.
-    Caps are fan-triangulated from their first vertex.
-    """
-    tris = [(0, i + 1, i) for i in range(1, n - 1)]                  # bottom: normal -z
-    tris += [(n, n + i, n + i + 1) for i in range(1, n - 1)]         # top: normal +z
-    quads = [(i, (i + 1) % n, n + (i + 1) % n, n + i) for i in range(n)]
-    return tris, quads
+# ----------------------------------------------------------------------------- volumes, surfaces
+def cell_volumes(X: np.ndarray, model) -> np.ndarray:
+    """Volume of every cell (C,) [m^3], positive: :func:`~tissue_sim.core.geometry.prism_volumes`
+    with the fat cells' clockwise rings flipped (model contract)."""
+    return prism_volumes(np.asarray(X, np.float64), np.asarray(model.cell_offsets, np.int64),
+                         np.asarray(model.cell_vertices, np.int64), np.asarray(model.cell_tissue) == TISSUE_FAT)
 
 
-def cell_surface_triangles(offsets: np.ndarray, vertices: np.ndarray, cells: np.ndarray):
-    """Closed outward triangulated surface of each cell: (triangles (T, 3) global ids, owner cell (T,))."""
-    offsets = np.asarray(offsets, np.int64)
-    vertices = np.asarray(vertices, np.int64)
-    cells = np.asarray(cells, np.int64)
-    out_t, out_c = [], []
-    sizes = offsets[cells + 1] - offsets[cells]
-    for size in np.unique(sizes):
-        sel = cells[sizes == size]
-        n = int(size) // 2
-        tris, quads = prism_faces(n)
-        local = np.array(tris + [(a, b, c) for a, b, c, d in quads] + [(a, c, d) for a, b, c, d in quads], np.int64)
-        table = vertices[offsets[sel][:, None] + np.arange(size)[None, :]]
-        out_t.append(table[:, local].reshape(-1, 3))
-        out_c.append(np.repeat(sel, local.shape[0]))
-    if not out_t:
-        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    return np.concatenate(out_t), np.concatenate(out_c)
+def muscle_volumes(X: np.ndarray, model) -> np.ndarray:
+    """Volume of each muscle (M,) [m^3]: the sum of its cells' :func:`cell_volumes`."""
+    mus = np.asarray(model.cell_tissue) == TISSUE_MUSCLE
+    return np.bincount(np.asarray(model.cell_muscle, np.int64)[mus], weights=cell_volumes(X, model)[mus],
+                       minlength=len(model.muscle_names))
 
 
-def signed_volumes(X: np.ndarray, triangles: np.ndarray, owner: np.ndarray, n_groups: int) -> np.ndarray:
-    """Volume enclosed by each group's closed triangulated surface [m^3] (divergence theorem)."""
+def enclosed_volumes(X: np.ndarray, triangles: np.ndarray, owner: np.ndarray, n_groups: int) -> np.ndarray:
+    """Signed volume enclosed by each group's closed triangulated surface [m^3] (divergence theorem;
+    positive for outward triangles)."""
     X = np.asarray(X, np.float64)
+    triangles = np.asarray(triangles, np.int64)
     a, b, c = X[triangles[:, 0]], X[triangles[:, 1]], X[triangles[:, 2]]
     v = np.einsum('ij,ij->i', a, np.cross(b, c)) / 6.0
-    return np.bincount(owner, weights=v, minlength=n_groups)
+    return np.bincount(np.asarray(owner, np.int64), weights=v, minlength=n_groups)
 
 
 def boundary_faces(offsets: np.ndarray, vertices: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -170,3 +162,73 @@ def boundary_faces(offsets: np.ndarray, vertices: np.ndarray, cells: np.ndarray)
         if count[tuple(sorted(f))] == 1:
             tris.extend((f[0], f[i], f[i + 1]) for i in range(1, len(f) - 1))
     return np.array(tris, np.int64).reshape(-1, 3)
+
+
+def surface_groups(model) -> dict:
+    """{'skin': (T,3), 'muscle/<name>': (T,3), ...} from the model (boundary of the cells if absent)."""
+    out = {}
+    tri = np.asarray(model.surface_triangles, np.int64)
+    if tri.size:
+        g = np.asarray(model.surface_group, np.int64)
+        for i, name in enumerate(model.surface_group_names):
+            sel = tri[g == i]
+            if sel.size:
+                out[name] = sel
+        return out
+    tissue = np.asarray(model.cell_tissue)
+    fat = np.flatnonzero(tissue == TISSUE_FAT)
+    if fat.size:
+        out['skin'] = boundary_faces(model.cell_offsets, model.cell_vertices, fat)
+    cm = np.asarray(model.cell_muscle)
+    for m, name in enumerate(model.muscle_names):
+        cells = np.flatnonzero((tissue == TISSUE_MUSCLE) & (cm == m))
+        if cells.size:
+            out[f'muscle/{name}'] = boundary_faces(model.cell_offsets, model.cell_vertices, cells)
+    return out
+
+
+# ----------------------------------------------------------------------------- per-vertex values (colours)
+def skin_area_ratio_per_vertex(model, X: np.ndarray, rest_area: np.ndarray | None = None):
+    """Paper Fig. 8 quantity per vertex: the area of each skin quad relative to rest (:func:`quad_areas`),
+    averaged onto its vertices (1 for vertices on no skin quad). Returns (ratio (V,), rest quad
+    areas): pass the latter back next frame."""
+    q = np.asarray(model.skin_quads, np.int64).reshape(-1, 4)
+    if rest_area is None:
+        rest_area = quad_areas(model.rest_positions, q)
+    ratio = quad_areas(X, q) / np.maximum(rest_area, 1e-18)
+    V = model.n_vertices
+    acc = np.bincount(q.ravel(), weights=np.repeat(ratio, 4), minlength=V)
+    cnt = np.bincount(q.ravel(), minlength=V).astype(np.float64)
+    out = np.ones(V)
+    has = cnt > 0
+    out[has] = acc[has] / cnt[has]
+    return out, rest_area
+
+
+class FatDeformation:
+    """Paper Fig. 9 quantity per vertex, precomputed for one model: ``fd(X)`` -> (V,) [m]: the
+    rotation-free d (:func:`d_rotation_free`) of each fat cell, averaged onto the cell's vertices
+    (0 for vertices of no fat cell)."""
+
+    def __init__(self, model):
+        fat = np.flatnonzero(np.asarray(model.cell_tissue) == TISSUE_FAT)
+        offs, cv = np.asarray(model.cell_offsets, np.int64), np.asarray(model.cell_vertices, np.int64)
+        rest = np.asarray(model.rest_positions, np.float64)
+        self.V = model.n_vertices
+        self.groups = []                               # (vertex table (c, n), rest cells (c, n, 3))
+        cnt = np.zeros(self.V)
+        sizes = offs[fat + 1] - offs[fat]
+        for n in np.unique(sizes):
+            cells = fat[sizes == n]
+            idx = cv[offs[cells][:, None] + np.arange(n)[None, :]]
+            self.groups.append((idx, rest[idx]))
+            cnt += np.bincount(idx.ravel(), minlength=self.V)
+        self.inv_cnt = np.where(cnt > 0, 1.0 / np.maximum(cnt, 1), 0.0)
+
+    def __call__(self, X):
+        X = np.asarray(X, np.float64)
+        acc = np.zeros(self.V)
+        for idx, rest_cells in self.groups:
+            d = d_rotation_free(X[idx], rest_cells)
+            acc += np.bincount(idx.ravel(), weights=np.repeat(d, idx.shape[1]), minlength=self.V)
+        return acc * self.inv_cnt

@@ -11,7 +11,9 @@ Markers (namespace ``tissue``), all TRIANGLE_LIST in ``frame_id``:
 * one per soft-tissue surface group (``surface_group_names``): each muscle in its own colour, skin/fat
   translucent. With a colouring other than ``none`` the skin marker carries per-corner colours
   (paper Fig. 8: skin-area change, white = unchanged, blue = grown, red = shrunk; Fig. 9: fat
-  deformation degree d, white = 0 to red = ``scale``).
+  deformation degree d, white = 0 to red = ``scale``). The values come from
+  :mod:`tissue_sim.core.measures` (``skin_area_ratio_per_vertex``, ``FatDeformation``); this module
+  only maps them to colours and bytes.
 Positions in metres, REP-103 axes.
 """
 from __future__ import annotations
@@ -21,7 +23,8 @@ import struct
 
 import numpy as np
 
-from ..core.cdr import CdrWriter
+from tissue_sim.core.cdr import CdrWriter
+from tissue_sim.core.model import TISSUE_MUSCLE
 
 TRIANGLE_LIST = 11
 ADD = 0
@@ -189,7 +192,8 @@ class MarkerArrayEncoder:
 
         positions: (V, 3) float64 soft-tissue vertex positions [m]; segment_poses: (S, 7)
         x y z qx qy qz qw per segment (None: rest); corner_rgba: (N, 4) colours of the skin marker's
-        corners (see :func:`vertex_scalars_to_corner_rgba`), used when colouring is on.
+        corners (per-vertex values at :attr:`skin_corners` through :func:`diverging_rgba` or
+        :func:`sequential_rgba`), used when colouring is on.
         """
         sec, nsec = int(stamp_ns // 1_000_000_000), int(stamp_ns % 1_000_000_000)
         stamp = struct.pack('<iI', sec, nsec)
@@ -246,73 +250,8 @@ def boundary_surface(tm):
         if val is None:
             continue
         f, c = val
-        g = 0 if tm.cell_tissue[c] != 1 else 1 + int(tm.cell_muscle[c])
+        g = 0 if tm.cell_tissue[c] != TISSUE_MUSCLE else 1 + int(tm.cell_muscle[c])
         for i in range(1, len(f) - 1):
             tris.append((f[0], f[i], f[i + 1]))
             groups.append(g)
     return np.asarray(tris, np.int64).reshape(-1, 3), np.asarray(groups, np.int32), names
-
-
-def skin_area_ratio_per_vertex(tm, positions: np.ndarray, rest_area: np.ndarray | None = None):
-    """Paper Fig. 8 quantity: area of each fat cell's skin face relative to rest, averaged onto its
-    vertices. Returns (per-vertex ratio (V,), rest quad areas) — pass the latter back next frame."""
-    q = np.asarray(tm.skin_quads, np.int64)
-    if rest_area is None:
-        rest_area = _quad_area(np.asarray(tm.rest_positions), q)
-    ratio = _quad_area(positions, q) / np.maximum(rest_area, 1e-18)
-    acc = np.zeros(tm.n_vertices)
-    cnt = np.zeros(tm.n_vertices)
-    np.add.at(acc, q.ravel(), np.repeat(ratio, 4))
-    np.add.at(cnt, q.ravel(), 1.0)
-    out = np.ones(tm.n_vertices)
-    has = cnt > 0
-    out[has] = acc[has] / cnt[has]
-    return out, rest_area
-
-
-def _quad_area(p, q):
-    a, b, c, d = (p[q[:, i]] for i in range(4))
-    return 0.5 * (np.linalg.norm(np.cross(c - a, d - b), axis=1))
-
-
-class FatDeformation:
-    """Paper Fig. 9 quantity per vertex, precomputed for one model: ``fd(positions)`` -> (V,) [m].
-
-    d = (1/N) sum |Ro_i - r_i| per fat cell (Ro_i the rest positions about the centroid after the
-    best-fit rotation, r_i the current ones about the centroid), averaged onto the cell's vertices."""
-
-    def __init__(self, tm):
-        fat = np.flatnonzero(np.asarray(tm.cell_tissue) == 2)
-        offs, cv = np.asarray(tm.cell_offsets), np.asarray(tm.cell_vertices)
-        rest = np.asarray(tm.rest_positions, np.float64)
-        self.V = tm.n_vertices
-        self.groups = []
-        cnt = np.zeros(self.V)
-        sizes = offs[fat + 1] - offs[fat]
-        for n in np.unique(sizes):
-            cells = fat[sizes == n]
-            idx = cv[offs[cells][:, None] + np.arange(n)[None, :]]
-            R0 = rest[idx] - rest[idx].mean(axis=1, keepdims=True)
-            self.groups.append((idx, R0, int(n)))
-            cnt += np.bincount(idx.ravel(), minlength=self.V)
-        self.inv_cnt = np.where(cnt > 0, 1.0 / np.maximum(cnt, 1), 0.0)
-
-    def __call__(self, positions):
-        acc = np.zeros(self.V)
-        for idx, R0, n in self.groups:
-            X = positions[idx]
-            X = X - X.mean(axis=1, keepdims=True)
-            H = np.einsum('cni,cnj->cij', R0, X)
-            U, _, Vt = np.linalg.svd(H)
-            dsign = np.sign(np.linalg.det(U @ Vt))
-            Vt[:, -1, :] *= dsign[:, None]
-            Rot = np.transpose(U @ Vt, (0, 2, 1))           # R = V U^T maps rest onto current
-            goal = np.einsum('cij,cnj->cni', Rot, R0)
-            d = np.linalg.norm(goal - X, axis=2).mean(axis=1)
-            acc += np.bincount(idx.ravel(), weights=np.repeat(d, n), minlength=self.V)
-        return acc * self.inv_cnt
-
-
-def fat_deformation_per_vertex(tm, positions: np.ndarray):
-    """One-off :class:`FatDeformation` (the node keeps an instance)."""
-    return FatDeformation(tm)(positions)
