@@ -112,7 +112,7 @@ build_inputs() {
     sha256sum src/tissue_sim/package.xml src/tissue_sim/setup.py src/tissue_sim/setup.cfg
     find src/tissue_sim/resource -type f -print0 | sort -z | xargs -0 -r sha256sum
     # new/removed python modules do not need a rebuild (develop install), new data files may
-    find src/tissue_sim/tissue_sim/data src/tissue_sim/tissue_sim/config -type f 2>/dev/null | sort
+    find src/tissue_sim/tissue_sim/data src/tissue_sim/tissue_sim/config src/tissue_sim/launch -type f 2>/dev/null | sort
     ls -l ros_ws/src
   } | sha256sum | cut -d' ' -f1
 }

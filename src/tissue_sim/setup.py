@@ -20,6 +20,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/launch', [str(p.relative_to(here)) for p in sorted((here / 'launch').glob('*.launch.py'))]),
     ],
     install_requires=['setuptools'],
     zip_safe=False,
