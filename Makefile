@@ -7,7 +7,7 @@ SHELL := /bin/bash
 ENV := . ./env.sh
 PYTEST_ARGS ?=
 
-.PHONY: help setup demo test test-fast test-ros bench anatomy anatomy-deps clean
+.PHONY: help setup demo test test-fast test-ros bench anatomy anatomy-deps ros2-tools clean
 
 help:
 	@echo 'tissue_sim make targets:'
@@ -18,6 +18,7 @@ help:
 	@echo '  make setup      .venv with pinned ROS 2 Jazzy wheels + deps, colcon build of ros_ws, env.sh'
 	@echo '  make bench      run every benchmark in bench/ (figures; last line JSON)'
 	@echo '  make anatomy    regenerate the bundled lower-limb anatomy'
+	@echo '  make ros2-tools the ros2 command and ros2 launch for the pip set-up (from the Jazzy sources)'
 	@echo '  make clean      remove ros_ws build/install/log and env.sh (keeps .venv)'
 	@echo 'Then:  . ./env.sh   gives rclpy, tissue_msgs, the tissue_sim executables and tissue-sim on PATH.'
 
@@ -43,13 +44,18 @@ anatomy-deps: setup
 	    && echo "$$h" > $(ANATOMY_STAMP); \
 	fi
 
-test: anatomy-deps
+# The ros2 command-line and launch tools are not on PyPI: installed from their Jazzy sources
+# (ROS2_SRC=folder of archives, default ../shared/ros2-src when present, else the upstream repositories).
+ros2-tools: setup
+	@bash tools/ros2/install_tools.sh
+
+test: anatomy-deps ros2-tools
 	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest $(PYTEST_ARGS)
 
 test-fast: setup
 	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest -m 'not slow' $(PYTEST_ARGS)
 
-test-ros: setup
+test-ros: ros2-tools
 	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest -m ros $(PYTEST_ARGS)
 
 bench: setup

@@ -107,12 +107,12 @@ build_inputs() {
   {
     echo "$req_hash"
     sha256sum scripts/setup.sh
-    find src/tissue_msgs cmake -type f \( -name '*.msg' -o -name '*.srv' -o -name '*.txt' -o -name '*.xml' -o -name '*.cmake' \) -print0 \
+    find src/tissue_msgs src/pip_only cmake -type f \( -name '*.msg' -o -name '*.srv' -o -name '*.txt' -o -name '*.xml' -o -name '*.cmake' \) -print0 \
       | sort -z | xargs -0 sha256sum
     sha256sum src/tissue_sim/package.xml src/tissue_sim/setup.py src/tissue_sim/setup.cfg
     find src/tissue_sim/resource -type f -print0 | sort -z | xargs -0 -r sha256sum
     # new/removed python modules do not need a rebuild (develop install), new data files may
-    find src/tissue_sim/tissue_sim/data src/tissue_sim/tissue_sim/config -type f 2>/dev/null | sort
+    find src/tissue_sim/tissue_sim/data src/tissue_sim/tissue_sim/config src/tissue_sim/launch src/tissue_sim/description -type f 2>/dev/null | sort
     ls -l ros_ws/src
   } | sha256sum | cut -d' ' -f1
 }
@@ -120,7 +120,8 @@ build_hash="$(build_inputs)"
 installed_ok() {
   [[ -f "$WS/install/tissue_msgs/share/tissue_msgs/package.xml" ]] &&
   [[ -f "$WS/install/tissue_sim/share/tissue_sim/package.xml" ]] &&
-  [[ -d "$WS/install/tissue_sim/lib/tissue_sim" ]]
+  [[ -d "$WS/install/tissue_sim/lib/tissue_sim" ]] &&
+  [[ -f "$WS/install/tf2_msgs/share/tf2_msgs/package.xml" ]]
 }
 if [[ $CHECK == 1 ]]; then
   if [[ "$(cat "$BUILD_STAMP" 2>/dev/null || true)" != "$build_hash" ]] || ! installed_ok || [[ ! -f "$ROOT/env.sh" ]]; then
@@ -144,7 +145,7 @@ if [[ "${TISSUE_SIM_FORCE_BUILD:-0}" == 1 || "$(cat "$BUILD_STAMP" 2>/dev/null |
     export CMAKE_PREFIX_PATH="$VENV"
     unset PYTHONPATH COLCON_PREFIX_PATH
     "$VENV/bin/colcon" --log-base "$WS/log" build \
-      --base-paths "$WS/src" --build-base "$WS/build" --install-base "$WS/install" \
+      --base-paths "$WS/src" "$ROOT/src/pip_only" --build-base "$WS/build" --install-base "$WS/install" \
       --symlink-install --event-handlers console_cohesion- summary+ status- \
       --cmake-args \
         "-DPython3_EXECUTABLE=$VPY" \
