@@ -7,7 +7,7 @@ SHELL := /bin/bash
 ENV := . ./env.sh
 PYTEST_ARGS ?=
 
-.PHONY: help setup demo test test-fast test-ros bench anatomy anatomy-deps clean
+.PHONY: help setup demo test test-fast test-ros bench anatomy anatomy-deps validation-deps clean
 
 help:
 	@echo 'tissue_sim make targets:'
@@ -43,7 +43,18 @@ anatomy-deps: setup
 	    && echo "$$h" > $(ANATOMY_STAMP); \
 	fi
 
-test: anatomy-deps
+# The OpenSim package (requirements/validation.txt, --no-deps, ~290 MB) is installed for `make test` so that
+# the test of `tissue-sim validate` compares with the real source model in CI too.
+VALIDATION_STAMP := .venv/.tissue_sim-validation.sha256
+validation-deps: setup
+	@h=$$(sha256sum requirements/validation.txt | cut -d' ' -f1); \
+	if [ "$$(cat $(VALIDATION_STAMP) 2>/dev/null)" != "$$h" ]; then \
+	  echo 'test: installing requirements/validation.txt (--no-deps) for the validation test'; \
+	  .venv/bin/python -m pip install -q --disable-pip-version-check --no-input --no-deps -r requirements/validation.txt \
+	    && echo "$$h" > $(VALIDATION_STAMP); \
+	fi
+
+test: anatomy-deps validation-deps
 	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest $(PYTEST_ARGS)
 
 test-fast: setup
