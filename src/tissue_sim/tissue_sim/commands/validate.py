@@ -18,7 +18,7 @@ def add_arguments(p):
     p.add_argument('--params', default='physical', help='parameter set: physical | paper (default %(default)s)')
     p.add_argument('--angles', default='0:120:10', metavar='LIST',
                    help='knee flexion angles [deg]: comma-separated, or START:STOP:STEP (default %(default)s)')
-    p.add_argument('--settle', type=float, default=0.4, metavar='S',
+    p.add_argument('--settle', type=float, default=1.0, metavar='S',
                    help='time the knee is held at each angle before measuring [s] (default %(default)s)')
     p.add_argument('--ramp-speed', type=float, default=200.0, metavar='DEG_S',
                    help='speed at which the held knee moves from one angle to the next [deg/s] (default %(default)s)')

@@ -314,7 +314,7 @@ def excursion_moment_arm(lengths, angles_deg) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------- the whole comparison
-def run_validation(params: str = 'physical', angles_deg=None, settle: float = 0.4, ramp_speed: float = 200.0,
+def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
                    osim_path=None, model=None, progress=None) -> dict:
     """Everything docs/validation.md reports, as one JSON-able dict (see ``evaluate`` for the targets)."""
     import yaml
