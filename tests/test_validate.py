@@ -103,6 +103,52 @@ def test_targets_follow_the_data(reference):
     assert len(rows) == 3 * 2 * 4 and all(r['rel_error'] == pytest.approx(0.3) for r in rows)
 
 
+def test_per_muscle_forces_add_up_to_the_tissue_force(default_tm):
+    """The per-muscle forces (the solver's kernel on a layout with every other cell at zero stiffness) are
+    exact parts of the whole: muscles + fat = all cells, on a held, contracting, deformed state."""
+    from tissue_sim.core import solver
+    sim = solver.compile_model(default_tm, solver.Params.paper())
+    state, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+    q = state.q.copy()
+    for i in range(100):                    # the knee moved to 10 deg at 100 deg/s, held at each step
+        q[list(default_tm.joint_names).index(V.KNEE_JOINT)] = math.radians(0.1 * (i + 1))
+        solver.step(sim, state, ctrl)
+        solver.set_joint_positions(sim, state, q)
+    forces = V._Forces(sim)
+    full = forces(state, ctrl.activation)
+    parts = [forces(state, ctrl.activation, m) for m in range(-1, sim.n_muscles)]     # -1: the fat cells
+    assert np.abs(full).max() > 1.0 and np.abs(parts[1 + 23]).max() > 0
+    assert np.allclose(np.sum(parts, axis=0), full, rtol=0, atol=1e-9 * np.abs(full).max())
+
+
+def test_held_knee_does_not_move_its_bones(default_tm):
+    """The hold: on held_model the bones below the knee stay still within a step (bone-attached vertices at
+    rest, so the deformation damping puts no force on them) and the torque the solver's own step sums
+    equals the static torque the validation reports; putting the joint back after each step alone is not
+    a hold (the attached vertices carry the within-step motion: 13 % of the torque here)."""
+    from tissue_sim.core import solver
+    plain = solver.compile_model(default_tm, solver.Params.paper())
+    j = list(default_tm.joint_names).index(V.KNEE_JOINT)
+    out = {}
+    for name, sim in (('plain', plain), ('held', V.held_model(plain, j))):
+        state, ctrl = solver.make_state(sim), solver.make_control(sim)
+        ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+        q = state.q.copy()
+        for i in range(300):                # to 10 deg at 100 deg/s, then held
+            q[j] = math.radians(min(10.0, 0.1 * (i + 1)))
+            solver.step(sim, state, ctrl)
+            solver.set_joint_positions(sim, state, q)
+        att = sim.att_idx[V._below_knee(sim, j)]
+        axis, centre = V._knee_frame(sim, state, j)
+        out[name] = (V._torque(state.x[att], state.f[att], axis, centre),
+                     V._torque(state.x[att], V._Forces(sim)(state, ctrl.activation)[att], axis, centre),
+                     float(np.abs(state.v[att]).max()))
+    solver_tau, static_tau, speed = out['held']
+    assert speed < 1e-6 and solver_tau == pytest.approx(static_tau, rel=0.01)
+    assert out['plain'][2] > 1e-2 and abs(out['plain'][0] / out['plain'][1] - 1) > 0.05
+
+
 @pytest.mark.parametrize('argv, msg', [
     (['--angles', '0,150'], 'within 0-120'),
     (['--angles', 'abc'], 'expected comma-separated'),

@@ -200,9 +200,9 @@ def _torque(x, f, axis, centre) -> float:
 
 
 class _Forces:
-    """Static forces (zero velocity, no damping) of all cells, or of one muscle's cells only, on a
-    state: the solver's own kernel (kernels.cell_forces) on a copy of the cell layout in which every
-    other cell has zero stiffness. Read-only use of the solver's internals."""
+    """Static forces (zero velocity, no damping) of all cells, or of one muscle's cells only (muscle -1:
+    the fat), on a state: the solver's own kernel (kernels.cell_forces) on a copy of the cell layout in
+    which every other cell has zero stiffness. Read-only use of the solver's internals."""
 
     def __init__(self, sim):
         from tissue_sim.core.solver import kernels as K
@@ -222,13 +222,11 @@ class _Forces:
         s, K = self.sim, self.K
         cells = self.cells(muscle)
         f = np.zeros_like(state.x)
-        pres = state.pressure.copy()
-        if muscle is not None:
-            pres[s.cell_muscle != muscle] = 0.0
         C = s.n_cells
+        # (a masked cell has no volume stiffness, so its pressure does not act; vol_gain 0: none accumulates)
         K.cell_forces(state.x, np.zeros_like(state.x), f, state.quat.copy(), cells, state.lam.copy(),
-                      np.asarray(act, float), s.params.volume_mode == 'actual', 30, np.zeros(C), pres, 0.0,
-                      K.cell_work(cells), np.zeros(C))
+                      np.asarray(act, float), s.params.volume_mode == 'actual', 30, np.zeros(C),
+                      state.pressure.copy(), 0.0, K.cell_work(cells), np.zeros(C))
         return f
 
 
@@ -253,14 +251,31 @@ def _active_tension(sim, state, act) -> np.ndarray:
     return out
 
 
+HOLD_INERTIA_SCALE = 1e9
+
+
+def held_model(sim, j: int):
+    """The compiled model with the segments that joint j moves made HOLD_INERTIA_SCALE times harder to
+    turn (their inertia about their centres of mass; masses unchanged, so gravity torques do not grow):
+    the tissue's torque then moves the knee by ~1e-10 rad per step. Putting the joint back after a step
+    alone is not a hold: the bones would move within the step and the bone-attached vertices carry that
+    velocity (integrate() gives them (new - old)/h), which the deformation damping turns into a steady
+    force on the tissue (measured: 8 N m of the 79 N m at 30 deg, physical set)."""
+    scale = np.where(sim.anc[j], HOLD_INERTIA_SCALE, 1.0)
+    inertia = sim.seg_inertia * scale[:, None, None]
+    inertia.flags.writeable = False
+    return dataclasses.replace(sim, seg_inertia=inertia, cache={})
+
+
 def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float, ramp_speed: float,
                progress=None) -> dict:
     """Hold the knee at each angle in turn (ascending; the angle ramps at ramp_speed [deg/s] from the
     previous one, then is held for settle [s]), with the muscles named in ``active`` at activation 1
     (the others 0), and measure the settled state.
 
-    The knee is held by the solver's public API: after every step the joint is put back at its target
-    with zero velocity (``set_joint_positions``), so the tissue moves and the bones do not. Returns per
+    The knee is held on the solver's public API: the model's shank and foot are made immovable by the
+    tissue (``held_model``) and after every step the joint is put at its target with zero velocity
+    (``set_joint_positions``), so the tissue moves and the bones do not. Returns per
     angle: muscle lengths (all knee muscles) [m], the tissue's torque about the knee axis on the bones
     below it [N m] (the torque the hold must resist, positive = flexing: the forces of every cell on the
     bone-attached vertices below the knee, as kernels.skeleton_step sums them), per muscle the force
@@ -268,6 +283,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
     active tension [N] (physical set), the kinetic energy of the free tissue at the end [J]."""
     from tissue_sim.core import solver
     j = list(sim.tissue.joint_names).index(KNEE_JOINT)
+    sim = held_model(sim, j)
     state = solver.make_state(sim)
     ctrl = solver.make_control(sim)
     for km in muscles:
