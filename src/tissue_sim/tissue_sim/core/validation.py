@@ -260,7 +260,8 @@ def held_model(sim, j: int):
     the tissue's torque then moves the knee by ~1e-10 rad per step. Putting the joint back after a step
     alone is not a hold: the bones would move within the step and the bone-attached vertices carry that
     velocity (integrate() gives them (new - old)/h), which the deformation damping turns into a steady
-    force on the tissue (measured: 8 N m of the 79 N m at 30 deg, physical set)."""
+    force on the tissue (physical set, hamstrings active, 30 deg: the settled torque was 79.1 N m
+    instead of 73.4)."""
     scale = np.where(sim.anc[j], HOLD_INERTIA_SCALE, 1.0)
     inertia = sim.seg_inertia * scale[:, None, None]
     inertia.flags.writeable = False
