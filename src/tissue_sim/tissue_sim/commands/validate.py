@@ -1,0 +1,110 @@
+"""`tissue-sim validate`: the bundled knee's mechanics against its source OpenSim model (docs/validation.md)."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from tissue_sim.errors import UserError
+
+NAME = 'validate'
+HELP = ('compare the bundled knee with its source OpenSim model (Rajagopal 2016): muscle lengths and moment '
+        'arms, passive and active, isometric flexion torque; writes a table, a JSON and a plot')
+
+
+def add_arguments(p):
+    p.add_argument('-o', '--output', metavar='DIR', default='validation',
+                   help='output folder for validation_<params>.json and .png (default %(default)s)')
+    p.add_argument('--params', default='physical', help='parameter set: physical | paper (default %(default)s)')
+    p.add_argument('--angles', default='0:120:10', metavar='LIST',
+                   help='knee flexion angles [deg]: comma-separated, or START:STOP:STEP (default %(default)s)')
+    p.add_argument('--settle', type=float, default=1.0, metavar='S',
+                   help='time the knee is held at each angle before measuring [s] (default %(default)s)')
+    p.add_argument('--ramp-speed', type=float, default=200.0, metavar='DEG_S',
+                   help='speed at which the held knee moves from one angle to the next [deg/s] (default %(default)s)')
+    p.add_argument('--osim', metavar='FILE.osim', help='source OpenSim model (default: pose2sim 0.10.49\'s '
+                   'Model_Pose2Sim_muscles_flex.osim)')
+    p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
+    p.add_argument('--quiet', action='store_true', help='print only the targets')
+
+
+def run(args) -> int:
+    from tissue_sim.core import validation as V
+    try:
+        angles = V.parse_angles(args.angles)
+        if args.osim and not Path(args.osim).is_file():
+            raise V.ValidationError(f'--osim {args.osim}: no such file')
+    except V.ValidationError as e:
+        raise UserError(str(e)) from None
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise UserError(f'-o {out}: exists and is not a folder')
+    from rich.console import Console
+    con = Console()
+    t0 = time.perf_counter()
+    last = [None]
+
+    def progress(kind, deg):
+        if not args.quiet and last[0] != kind:
+            con.print(f'  holding the knee: {kind} ...')
+            last[0] = kind
+
+    try:
+        res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, progress=progress)
+    except V.ValidationError as e:
+        raise UserError(str(e)) from None
+    res['wall_s'] = round(time.perf_counter() - t0, 1)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        jpath, ppath = out / f'validation_{args.params}.json', out / f'validation_{args.params}.png'
+        jpath.write_text(json.dumps(V.jsonable(res), indent=1))
+        V.plot(res, ppath)
+    except OSError as e:
+        raise UserError(f'{out}: cannot write ({e})') from None
+    _print(con, res, args.quiet)
+    con.print(f'wrote {jpath} and {ppath} ({res["wall_s"]} s)')
+    failed = [k for k, v in res['targets'].items() if v['pass'] is False]
+    return 1 if (args.strict and failed) else 0
+
+
+def _print(con, res, quiet):
+    from rich.table import Table
+
+    from tissue_sim.core import validation as V
+    if not quiet:
+        t = Table(title=f'knee muscles vs OpenSim ({res["opensim"]["version"]}), params {res["params"]}: '
+                        'length ratio, moment arm r = -dL/dθ (r F = torque / force of its cells), force / Fmax '
+                        '(active set fully active)')
+        for c in V.TABLE_HEADER:
+            t.add_column(c, justify='left' if c == 'muscle' else 'right')
+        for r in V.table_rows(res):
+            t.add_row(*r)
+        con.print(t)
+        t = Table(title='isometric knee-flexion torque, all hamstrings fully active (+ flexes)')
+        for c in V.TORQUE_HEADER:
+            t.add_column(c, justify='right')
+        for r in V.torque_rows(res):
+            t.add_row(*r)
+        con.print(t)
+    tg = res['targets']
+    mark = {True: '[green]PASS[/]', False: '[red]FAIL[/]', None: '[yellow]n/a[/]'}
+    ms = tg['moment_arm_signs']
+    con.print(f'{mark[ms["pass"]]} every knee muscle\'s moment arm has the source model\'s sign '
+              f'({len(ms["wrong"])} wrong (muscle, mode, angle))')
+    hm = tg['hamstring_moment_arms']
+    nbad = sum(not r['pass'] for r in hm['rows'])
+    con.print(f'{mark[hm["pass"]]} hamstring moment arms within ±{hm["tolerance"]:.0%} of the source model at 0/30/60/90° '
+              f'passive and active ({nbad} of {len(hm["rows"])} outside'
+              + (f'; not sampled: {hm["angles_not_sampled"]}' if hm['angles_not_sampled'] else '') + ')')
+    hf = tg['hamstring_force']
+    con.print(f'{mark[hf["pass"]]} each hamstring ≥ {hf["min_fraction"]:.0%} of Fmax near its optimal length: '
+              + ', '.join(f'{r["muscle"]} {r["force_fraction"]:.0%} at {r["angle_deg"]:g}° (active tension '
+                                   f'{r["tension_fraction"]:.0%}, OpenSim {r["opensim_active_fraction"]:.0%})' for r in hf['rows'])
+              + (f' ({hf["note"]})' if hf['note'] else ''))
+    pt = tg['peak_torque']
+    con.print(f'{mark[pt["pass"]]} peak isometric flexion torque {pt["peak_Nm"]:.1f} N m at {pt["at_deg"]:g}° '
+              f'(adult range {pt["range_Nm"][0]:g}-{pt["range_Nm"][1]:g} N m)' + (f' ({pt["note"]})' if pt['note'] else ''))
+    ts = tg['torque_shape']
+    con.print(f'{mark[ts["pass"]]} torque-angle shape: peak at {ts["peak_at_deg"]:g}° (published: small to moderate '
+              f'flexion, ≤ {V.SHAPE_PEAK_MAX_DEG:g}°; OpenSim {ts["opensim_peak_at_deg"]:g}°), '
+              f'{"falling" if ts["falls_after_peak"] else "not falling"} after it')
