@@ -30,6 +30,12 @@ def add_arguments(p):
                    help="do not fix muscle end rings to their origin/insertion segments (only bone-touching vertices, as the paper's section 2.4)")
     g.add_argument('--min-area-mm2', type=float, default=D['min_area_mm2'], help='drop smaller components [mm^2] (default %(default)s)')
     g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
+    g.add_argument('--sections', choices=('contour', 'rays'), default=D['sections'],
+                   help="cross-sections: the traced label outline (default) or the paper's rays from the centroid")
+    g.add_argument('--allow-broken-muscles', dest='allow_broken', action='store_true',
+                   help='a muscle whose chain breaks between slices: build it in pieces with a warning instead of failing')
+    g.add_argument('--shear-limit', type=float, default=D['shear_limit'],
+                   help='quality report: warn about cells sheared more than this x their height (default %(default)s)')
     g.add_argument('--ray-hit', choices=('first', 'last'), default=D['ray_hit'], help='boundary crossing used along a ray (default %(default)s)')
     g.add_argument('--ray-origin', choices=('best', 'centroid'), default=D['ray_origin'],
                    help='origin of a region\'s rays (default %(default)s)')
@@ -37,6 +43,8 @@ def add_arguments(p):
     g.add_argument('--allow-missing', action='store_true', help='table labels absent from the volume: warn, do not fail')
     p.add_argument('--json', action='store_true', help='print the Table-1 summary as one JSON object (keys = Table 1 rows)')
     p.add_argument('--report', metavar='FILE.json', help='write the full quality report (JSON)')
+    p.add_argument('--strict', action='store_true', help='fail (exit 2, nothing written) when the quality report warns '
+                   '(volume off its label by > 10 %%, a broken muscle, cells over the shear limit, a bone without attached vertices)')
     p.add_argument('--glb', metavar='FILE.glb', help='also export the surfaces (muscles, skin, bones) as GLB')
     p.add_argument('--vtu', metavar='FILE.vtu', help='also export the cells as VTU (ParaView)')
 
@@ -45,7 +53,8 @@ def _settings(args) -> dict:
     return {'slices': args.slices, 'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
             'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm, 'anchor_muscles': args.anchor_muscles,
             'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit, 'ray_origin': args.ray_origin,
-            'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing}
+            'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing, 'sections': args.sections,
+            'allow_broken': args.allow_broken, 'shear_limit': args.shear_limit}
 
 
 def run(args) -> int:
@@ -76,6 +85,11 @@ def run(args) -> int:
             a, w = weights.get(step, (0.0, 0.0))
             bar.update(task, completed=a + w * frac, description=step)
         tm, report = builder.build_model(labels, tissues, progress=progress, **_settings(args))
+    qwarn = report['quality']['warnings']
+    for w in qwarn:
+        print(f'warning: {w}', file=sys.stderr)
+    if args.strict and qwarn:
+        raise UserError(f'--strict: the quality report has {len(qwarn)} warning(s), first: {qwarn[0]}; nothing written')
     if out is None:
         out = Path(f'{tm.name}.model.npz')
     try:
@@ -113,7 +127,8 @@ def run(args) -> int:
               f'min volume {c["min_volume_mm3"]} mm^3; surfaces closed: {report["closed_surfaces"]}; '
               f'median polygon/label area {report["areas"]["median_ratio"]}')
     for w in report['warnings']:
-        con.print(f'[yellow]warning:[/] {w}')
+        if w not in qwarn:
+            con.print(f'[yellow]warning:[/] {w}')
     if report['dropped_components']:
         con.print(f'{len(report["dropped_components"])} small or single-slice components dropped (see --report)')
     return 0

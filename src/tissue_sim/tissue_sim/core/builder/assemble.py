@@ -170,31 +170,40 @@ def segment_span(parent, a: int | None, b: int | None) -> np.ndarray | None:
     return np.array(pa[:pa.index(common) + 1] + pb[:pb.index(common)], dtype=np.int64)
 
 
-def vertex_owner(V: int, verts, offsets, ctiss, cmus) -> np.ndarray:
-    """(V,) the muscle index when every cell using the vertex belongs to that one muscle, else -1
-    (a vertex of the fat, or shared between tissues)."""
+def vertex_users(V: int, verts, offsets, ctiss, cmus) -> tuple[list, np.ndarray]:
+    """Per vertex: the set of muscles whose cells use it, and whether a fat cell uses it."""
     sizes = np.diff(offsets)
     who = np.repeat(np.where(ctiss == M.TISSUE_MUSCLE, cmus, -1), sizes)
-    lo = np.full(V, np.iinfo(np.int64).max); hi = np.full(V, -2)
-    np.minimum.at(lo, verts, who); np.maximum.at(hi, verts, who)
-    return np.where((lo == hi) & (hi >= 0), hi, -1)
+    users = [set() for _ in range(V)]
+    fat = np.zeros(V, bool)
+    for v, w in zip(verts.tolist(), who.tolist()):
+        if w < 0:
+            fat[v] = True
+        else:
+            users[v].add(w)
+    return users, fat
 
 
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
-                       vseg, warnings, owner) -> dict:
+                       vseg, warnings) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
     attachments from anatomy atlases, section 4.2), in place on ``vseg``.
 
     The end rings are the muscle's ring vertices on its highest (proximal, +z) and lowest slice.
-    Only the muscle's own vertices are fixed (``owner``): a ring vertex shared with another muscle
-    or the fat keeps its own binding, so an end ring never drags a neighbour across a joint.
+    Only end-ring vertices of the muscle itself are fixed: a vertex it shares with the fat, or with a
+    muscle for which the vertex is not an end-ring vertex fixed to the same segment, keeps its own
+    binding (so a belly's end ring never drags a neighbour across a joint, while tendons that end
+    together, e.g. the pes anserinus, are fixed together).
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
     joint, so it is left free and a warning says so. Returns {muscle: {end: [segment, n_vertices]}}."""
     out = {}
     up = slice_z[-1] >= slice_z[0]
+    users, fat = vertex_users(len(vseg), verts, offsets, ctiss, cmus)
+    proposals = {}                                   # vertex -> {muscle: segment}
+    rings = []
     for m, lab in enumerate(mlabels):
         cells = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus == m))
         if cells.size == 0:
@@ -206,17 +215,22 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
             if seg is None:
                 continue
             ring = vs[zs == zi]
-            own = ring[owner[ring] == m]
             _, blab = bonepix[zi]
             if any(tab[int(l)]['segment'] == seg for l in np.unique(blab)):
-                vseg[own] = seg_names.index(seg)
-                out.setdefault(tab[lab]['name'], {})[end] = [seg, int(len(own))]
-                if len(own) == 0:
-                    warnings.append(f'muscle {tab[lab]["name"]}: every vertex of its {end} ring is shared with another '
-                                    f'tissue: none fixed to {seg}')
+                si = seg_names.index(seg)
+                for v in ring.tolist():
+                    proposals.setdefault(v, {})[m] = si
+                rings.append((m, lab, end, seg, si, ring))
             else:
                 warnings.append(f'muscle {tab[lab]["name"]}: no {seg} bone on the slice of its {end} ring '
                                 f'(slice {int(zi)}, z {slice_z[zi]:.3f} m): left unanchored')
+    for m, lab, end, seg, si, ring in rings:
+        own = [v for v in ring.tolist() if not fat[v] and all(proposals[v].get(u) == si for u in users[v])]
+        vseg[own] = si
+        out.setdefault(tab[lab]['name'], {})[end] = [seg, len(own)]
+        if not own:
+            warnings.append(f'muscle {tab[lab]["name"]}: every vertex of its {end} ring is shared with another tissue: '
+                            f'none fixed to {seg}')
     return out
 
 
@@ -512,9 +526,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
                 bone_touch[tab[int(l)]['name']] = bone_touch.get(tab[int(l)]['name'], 0) + 1
 
     # ---------------------------------------------------------------- muscle origins and insertions
-    owner = vertex_owner(V, verts_k, offsets_k, ctiss, cmus_k)
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
-                                 tab, seg_names, bonepix, vseg, warnings, owner) if s['anchor_muscles'] else {}
+                                 tab, seg_names, bonepix, vseg, warnings) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
