@@ -51,7 +51,7 @@ def test_cells_valid_surfaces_closed_and_untwisted(hard):
     assert rep['cells']['inverted'] == 0 and not rep['cells']['dropped_degenerate']
     assert np.all(cell_volumes(tm) > 0)
     assert all(v['watertight'] and v['outward'] for v in surface_checks(tm).values())
-    sh = cell_shear(tm)
+    sh, _ = cell_shear(tm)
     assert sh[tm.cell_tissue == M.TISSUE_MUSCLE].max() < 1.0          # straight muscles: no twist between rings
     assert rep['quality']['shear']['muscle']['over_limit'] == 0
     for c in np.nonzero(tm.cell_tissue == M.TISSUE_MUSCLE)[0]:
@@ -171,3 +171,29 @@ def test_cli_strict_fails_and_writes_nothing(tmp_path, capsys):
     assert 'flexor: built volume' in err and '--strict' in err
     assert main(['build-model', str(labels), '--tissues', str(tissues), '--slice-mm', '25', '-o', str(out), '--strict']) == 0
     assert out.exists()
+
+
+def test_end_ring_beside_two_segments_binds_only_the_side_of_its_bone():
+    """A quadriceps-like muscle whose insertion ring lies around the 'upper' bone and beside a
+    patella on 'lower': only its vertices nearer the patella are fixed to 'lower' (the others would
+    swing through the upper bone in flexion)."""
+    from phantoms import _grid
+    lab, aff, tab = make_phantom('column')
+    _, _, x, y, z = _grid()
+    lab[(lab == 12) & (z < 25)] = 40
+    lab[(np.hypot(x - 64, y) <= 5) & (z >= 20) & (z <= 30)] = 3
+    tab['labels'][3] = {'name': 'patella', 'tissue': 'bone', 'segment': 'lower'}
+    tab['labels'][12] = dict(tab['labels'][12], origin='upper', insertion='lower')
+    tm, rep = build_model((lab, aff), tab, **P)
+    m = tm.muscle_index('extensor')
+    vs = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == m)[0]]))
+    zz = tm.rest_positions[vs, 2]
+    ring = vs[np.isclose(zz, zz.min())]
+    assert zz.min() == pytest.approx(0.025)
+    lower = tm.segment_names.index('lower')
+    bound = ring[tm.vertex_segment[ring] == lower]
+    assert 0 < len(bound) == tm.meta['anchors']['extensor']['insertion'][1]
+    xb = tm.rest_positions[bound, 0] * 1000
+    assert np.all(np.abs(xb - 64) < np.abs(xb))           # nearer the patella than the upper bone
+    near_upper = ring[np.linalg.norm(tm.rest_positions[ring, :2], axis=1) < 0.02]
+    assert len(near_upper) and not np.any(tm.vertex_segment[near_upper] == lower)

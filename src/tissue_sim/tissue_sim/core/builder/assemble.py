@@ -185,7 +185,7 @@ def vertex_users(V: int, verts, offsets, ctiss, cmus) -> tuple[list, np.ndarray]
 
 
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
-                       vseg, warnings) -> dict:
+                       vseg, warnings, pos) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
     attachments from anatomy atlases, section 4.2), in place on ``vseg``.
@@ -194,7 +194,10 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
     Only end-ring vertices of the muscle itself are fixed: a vertex it shares with the fat, or with a
     muscle for which the vertex is not an end-ring vertex fixed to the same segment, keeps its own
     binding (so a belly's end ring never drags a neighbour across a joint, while tendons that end
-    together, e.g. the pes anserinus, are fixed together).
+    together, e.g. the pes anserinus, are fixed together). Where bones of other segments share the
+    ring's slice (a quadriceps ring around the femur, beside the patella), only the ring vertices
+    nearer to the segment's bone than to any other bone are fixed: the rest would swing through the
+    other bone when the joint turns.
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
@@ -215,9 +218,14 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
             if seg is None:
                 continue
             ring = vs[zs == zi]
-            _, blab = bonepix[zi]
+            bxy, blab = bonepix[zi]
             if any(tab[int(l)]['segment'] == seg for l in np.unique(blab)):
                 si = seg_names.index(seg)
+                mine = np.array([tab[int(l)]['segment'] == seg for l in blab])
+                if not mine.all():
+                    d_in, _ = cKDTree(bxy[mine]).query(pos[ring, :2])
+                    d_out, _ = cKDTree(bxy[~mine]).query(pos[ring, :2])
+                    ring = ring[d_in <= d_out]
                 for v in ring.tolist():
                     proposals.setdefault(v, {})[m] = si
                 rings.append((m, lab, end, seg, si, ring))
@@ -256,6 +264,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ---------------------------------------------------------------- per slice
     geoms, regions, smalls, fats, bonepix, dropped, slice_counts = [], [], [], [], [], [], []
     maxlab = max(tab) + 1
+    vox_counts = CT.label_slice_counts(vol.labels, muscle_labels) if s['sections'] == 'contour' and muscle_labels else {}
+    substituted = {}                     # (label, slice index) -> the neighbouring voxel slice used instead
     for zi, k in enumerate(ks):
         sl = vol.labels[:, :, k]
         slice_counts.append(np.bincount(sl.ravel(), minlength=maxlab))
@@ -263,6 +273,20 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         geoms.append(g)
         regs, drop, sm = S.muscle_regions(sl, g, muscle_labels, s['muscle_rays'], s['min_area_mm2'], s['ray_hit'], 0.0,
                                             s['ray_origin'], s['sections'])
+        for lab in muscle_labels if vox_counts else ():
+            k2 = CT.glitch_substitute(vox_counts[lab], int(k))
+            if k2 is None:
+                continue
+            r2, d2, s2 = S.muscle_regions(vol.labels[:, :, k2], g, [lab], s['muscle_rays'], s['min_area_mm2'], s['ray_hit'],
+                                          0.0, s['ray_origin'], s['sections'])
+            regs.pop(lab, None); sm.pop(lab, None)
+            drop = [d for d in drop if d[0] != lab] + d2
+            regs.update(r2); sm.update(s2)
+            substituted[(lab, zi)] = k2
+            slice_counts[-1][lab] = vox_counts[lab][k2]
+            warnings.append(f'muscle {tab[lab]["name"]}: its area on slice {zi} (k={int(k)}, {int(vox_counts[lab][k])} voxels) '
+                            f'jumps against both neighbouring voxel slices: the section of k={k2} '
+                            f'({int(vox_counts[lab][k2])} voxels) is used (a labelling glitch)')
         regions.append(regs)
         smalls.append(sm)
         dropped += [{'slice': zi, 'label': l, 'name': tab[l]['name'], 'area_mm2': round(a, 2), 'reason': r} for l, a, r in drop]
@@ -301,7 +325,6 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     single = []
     breaks = []
     bridged = CT.bridge_gaps(regions, smalls, muscle_labels, dropped)
-    vox_counts = CT.label_slice_counts(vol.labels, muscle_labels) if s['sections'] == 'contour' else None
     for lab in muscle_labels:
         mi = len(muscle_names)
         links = {}            # (zi, idx) -> idx on zi+1
@@ -370,7 +393,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
                            'reason': f'label absent on slice(s) {absent}' if absent else 'no cell links the slices'})
             z = z1
         if s['sections'] == 'contour':
-            CT.chain_rings(chains, regions, lab, n, vox_counts[lab], ks)
+            CT.chain_rings(chains, regions, lab, n, vox_counts[lab], ks, {z: k2 for (l, z), k2 in substituted.items() if l == lab})
         muscle_names.append(tab[lab]['name']); muscle_groups.append(tab[lab]['group']); muscle_labels_used.append(lab)
         mforce.append(tab[lab]['max_isometric_force']); mfibre.append(tab[lab]['optimal_fibre_length'])
         mscale.append(tab[lab]['stiffness_scale'])
@@ -527,7 +550,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
 
     # ---------------------------------------------------------------- muscle origins and insertions
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
-                                 tab, seg_names, bonepix, vseg, warnings) if s['anchor_muscles'] else {}
+                                 tab, seg_names, bonepix, vseg, warnings, pos) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]

@@ -213,7 +213,25 @@ def label_slice_counts(labels: np.ndarray, wanted) -> dict:
     return {int(l): c[:, int(l)].astype(np.float64) for l in wanted}
 
 
-def slab_factor(counts: np.ndarray, ks, zi: int, has_prev: bool, has_next: bool, lo: float = 2 / 3, hi: float = 1.5) -> float:
+def glitch_substitute(counts: np.ndarray, k: int, jump: float = 2.5) -> int | None:
+    """A used voxel slice k whose label area jumps by more than ``jump`` times against both
+    neighbouring voxel slices (a labelling glitch: the bundled limb labels all of gastrocnemius
+    medialis as lateralis on one voxel slice) is represented by the neighbouring slice whose area is
+    closer to their mean; returns that slice, or None. Ends of a label (a neighbour without it) are
+    never glitches."""
+    if k <= 0 or k >= len(counts) - 1:
+        return None
+    a, own, b = counts[k - 1], counts[k], counts[k + 1]
+    if a <= 0 or b <= 0:
+        return None
+    if own * jump < min(a, b) or own > jump * max(a, b):
+        m = 0.5 * (a + b)
+        return k - 1 if abs(a - m) <= abs(b - m) else k + 1
+    return None
+
+
+def slab_factor(counts: np.ndarray, ks, zi: int, has_prev: bool, has_next: bool, lo: float = 2 / 3, hi: float = 1.5,
+                own: float | None = None) -> float:
     """Area factor of a ring on used slice ``zi`` so that the prism chain's volume (trapezoid rule
     over the used slices) equals the label's volume: the label voxels of the ring's slab (half way to
     each neighbouring ring of the chain; at a chain end, all the way to the next used slice or the
@@ -233,23 +251,25 @@ def slab_factor(counts: np.ndarray, ks, zi: int, has_prev: bool, has_next: bool,
         else:
             b = -0.5 if (zi == 0) == (ks[-1] > ks[0]) else K - 0.5
         vol += abs(np.interp(b, edges, F) - np.interp(k, edges, F))
-    own = counts[int(k)]
+    own = counts[int(k)] if own is None else own
     if w <= 0 or own <= 0:
         return 1.0
     return float(np.clip(vol / (w * own), lo, hi))
 
 
-def chain_rings(chains: list, regions: list, lab: int, n: int, counts: np.ndarray, ks) -> None:
+def chain_rings(chains: list, regions: list, lab: int, n: int, counts: np.ndarray, ks, subst: dict | None = None) -> None:
     """Choose every contour ring of one muscle's chains (in place on the regions): start index by
     least twist and shear against the ring below, area = the region's label area times the slab
-    factor (the chain keeps the label's volume)."""
+    factor (the chain keeps the label's volume); ``subst`` {slice: voxel slice} names slices whose
+    section was taken from a neighbouring voxel slice (glitch_substitute)."""
     pres = {z for ch in chains for (z, _) in ch}
     for ch in chains:
         ref = None
         for z, i in ch:
             reg = regions[z][lab][i]
             if reg.fine is not None:
-                f = slab_factor(counts, ks, z, (z - 1) in pres, (z + 1) in pres)
+                k2 = (subst or {}).get(z)
+                f = slab_factor(counts, ks, z, (z - 1) in pres, (z + 1) in pres, own=None if k2 is None else counts[k2])
                 r, _ = best_ring(reg.fine, n, ref, reg.area_mm2 * 1e-6 * f)
                 if r is not None:
                     reg.ring = np.concatenate([r, np.full((n, 1), reg.ring[0, 2])], axis=1)

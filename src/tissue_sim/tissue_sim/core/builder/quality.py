@@ -72,12 +72,14 @@ def surface_checks(tm: M.TissueModel) -> dict:
     return out
 
 
-def cell_shear(tm: M.TissueModel, positions=None) -> np.ndarray:
-    """Shear of every cell: the largest in-plane offset between a bottom-ring vertex and its
-    top-ring partner, over the cell's height (0 for a straight prism; 2 = a vertex moves twice the
-    height sideways between the rings)."""
+def cell_shear(tm: M.TissueModel, positions=None) -> tuple[np.ndarray, np.ndarray]:
+    """(shear, slant) of every cell. Shear: the largest in-plane offset of a top-ring vertex from its
+    bottom-ring partner once the ring centroids are aligned, over the cell's height (0 for a right or
+    oblique prism; it measures twist and zig-zag between the rings: 2 = a vertex slides twice the
+    height sideways relative to its ring). Slant: the centroid offset over the height (the
+    muscle's course across the slices; reported, not a defect)."""
     pos = tm.rest_positions if positions is None else positions
-    out = np.zeros(tm.n_cells)
+    shear, slant = np.zeros(tm.n_cells), np.zeros(tm.n_cells)
     sizes = np.diff(tm.cell_offsets)
     for size in np.unique(sizes):
         cs = np.nonzero(sizes == size)[0]
@@ -85,8 +87,10 @@ def cell_shear(tm: M.TissueModel, positions=None) -> np.ndarray:
         P = pos[tm.cell_vertices[tm.cell_offsets[cs][:, None] + np.arange(size)[None, :]]]
         d = P[:, n:] - P[:, :n]
         h = np.maximum(np.abs(d[:, :, 2]).mean(axis=1), 1e-12)
-        out[cs] = np.linalg.norm(d[:, :, :2], axis=2).max(axis=1) / h
-    return out
+        cd = d[:, :, :2].mean(axis=1, keepdims=True)
+        shear[cs] = np.linalg.norm(d[:, :, :2] - cd, axis=2).max(axis=1) / h
+        slant[cs] = np.linalg.norm(cd[:, 0], axis=1) / h
+    return shear, slant
 
 
 def quality_checks(tm, vols, checks: dict) -> tuple[dict, list]:
@@ -107,14 +111,16 @@ def quality_checks(tm, vols, checks: dict) -> tuple[dict, list]:
             warn.append(f'{name}: built volume is {100 * (r - 1):+.1f} % of its label volume (limit +-10 %)')
     for b in checks['breaks']:
         warn.append(f'muscle {b["muscle"]} breaks between slices {b["from_slice"]} and {b["to_slice"]} ({b["reason"]})')
-    sh = cell_shear(tm)
+    sh, sl = cell_shear(tm)
     lim = checks['shear_limit']
     shear = {}
     for tname, sel in (('muscle', mus), ('fat', ~mus)):
-        v = sh[sel]
+        v, w = sh[sel], sl[sel]
         if len(v):
             shear[tname] = {'median': round(float(np.median(v)), 3), 'p95': round(float(np.percentile(v, 95)), 3),
-                            'max': round(float(v.max()), 3), 'over_limit': int(np.count_nonzero(v > lim)), 'cells': int(len(v))}
+                            'max': round(float(v.max()), 3), 'over_limit': int(np.count_nonzero(v > lim)), 'cells': int(len(v)),
+                            'slant_median': round(float(np.median(w)), 3), 'slant_p95': round(float(np.percentile(w, 95)), 3),
+                            'slant_max': round(float(w.max()), 3)}
     over = np.nonzero(sh > lim)[0]
     if len(over):
         worst = over[np.argsort(-sh[over])][:3]
