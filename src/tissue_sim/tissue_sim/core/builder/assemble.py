@@ -425,9 +425,11 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ---------------------------------------------------------------- fat tube
     nf = s['fat_rays']
     if s['sections'] == 'contour':
-        fats, bad = CT.fat_rings(fats, nf, s['min_fat_mm'] / 1000.0)
-        for zi in bad:                  # contour rings that cross: the paper's rays on that slice
-            fats[zi] = S.fat_rays(vol.labels[:, :, ks[zi]], geoms[zi], bone_labels, fat_labels, nf, s['min_fat_mm'] / 1000.0, 0.0)
+        def fallback(zi, ref):          # contour rings that cross: the paper's rays on that slice, least twist
+            return CT.turn_rays(lambda off: S.fat_rays(vol.labels[:, :, ks[zi]], geoms[zi], bone_labels, fat_labels, nf,
+                                                       s['min_fat_mm'] / 1000.0, off), nf, ref)
+        fats, bad = CT.fat_rings(fats, nf, s['min_fat_mm'] / 1000.0, fallback)
+        for zi in bad:
             warnings.append(f'slice {zi}: the fat layer\'s outlines give crossing cells: rays used on this slice')
     fat_ring = []
     for zi in range(Z):

@@ -277,14 +277,17 @@ def chain_rings(chains: list, regions: list, lab: int, n: int, counts: np.ndarra
             ref = reg.ring[:, :2]
 
 
-def fat_rings(fats: list, n: int, min_thickness_m: float) -> list:
+def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tuple[list, list]:
     """Fat tube rings from the slices' fine outlines (slices.fat_contours): the skin ring's start by
     least twist against the slice below, the inner ring's start by least distance to the skin ring
     of its slice (so that inner a and outer a face each other across the layer), both area-matched;
     the inner point is kept ``min_thickness_m`` inside the outer one. Returns dicts like
-    slices.fat_rays (inner, outer (n, 3), origin, has_bone, fat_area_mm2)."""
+    slices.fat_rays (inner, outer (n, 3), origin, has_bone, fat_area_mm2), and the slices whose
+    outlines still gave a crossing cell: there ``fallback(slice, outer ring below)`` (the paper's
+    rays, turned to the least twist against the ring below) is used when given."""
     out, ref, f_bad = [], None, []
     for f in fats:
+        ref_prev = ref
         if 'fine' not in f and 'outer_area' not in f:
             out.append(f)                           # ray fallback of an untraceable slice
             ref = f['outer'][:, :2]
@@ -318,6 +321,12 @@ def fat_rings(fats: list, n: int, min_thickness_m: float) -> list:
         ref = o
         if not fat_quads_valid(inn, o):
             f_bad.append(len(out))
+            if fallback is not None:
+                fb = fallback(len(out), ref_prev)
+                out.append(fb)
+                ref = ref_prev = fb['outer'][:, :2]
+                continue
+        ref_prev = ref
 
         def pts(xy):
             return np.concatenate([xy, np.full((n, 1), z)], axis=1)
@@ -333,3 +342,20 @@ def fat_quads_valid(inner: np.ndarray, outer: np.ndarray) -> bool:
     x, y = q[..., 0], q[..., 1]
     a = 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
     return bool(np.all(a < 0))
+
+
+def turn_rays(make, n: int, ref: np.ndarray | None, steps: int = 4) -> dict:
+    """The ray fat ring ``make(angle_offset)`` (slices.fat_rays) turned to the least twist against
+    ``ref``: angle offsets in ``steps`` sub-steps of the ray spacing, ray indices rolled."""
+    if ref is None:
+        return make(0.0)
+    best, bc = None, np.inf
+    for off in 2 * np.pi / n * np.arange(steps) / steps:
+        f = make(off)
+        o = f['outer'][:, :2]
+        for r in range(n):
+            c = float(np.sum(((np.roll(o, -r, axis=0) - o.mean(0)) - (ref - ref.mean(0))) ** 2))
+            if c < bc:
+                bc, best = c, (f, r)
+    f, r = best
+    return dict(f, inner=np.roll(f['inner'], -r, axis=0), outer=np.roll(f['outer'], -r, axis=0))

@@ -74,10 +74,11 @@ def surface_checks(tm: M.TissueModel) -> dict:
 
 def cell_shear(tm: M.TissueModel, positions=None) -> tuple[np.ndarray, np.ndarray]:
     """(shear, slant) of every cell. Shear: the largest in-plane offset of a top-ring vertex from its
-    bottom-ring partner once the ring centroids are aligned, over the cell's height (0 for a right or
-    oblique prism; it measures twist and zig-zag between the rings: 2 = a vertex slides twice the
-    height sideways relative to its ring). Slant: the centroid offset over the height (the
-    muscle's course across the slices; reported, not a defect)."""
+    bottom-ring partner once the ring centroids are aligned and the bottom ring is scaled about its
+    centroid by the best uniform factor, over the cell's height (0 for a right, oblique or tapered
+    prism; it measures twist and zig-zag between the rings: 2 = a vertex slides twice the height
+    sideways relative to its ring). Slant: the centroid offset over the height (the muscle's course
+    across the slices; reported, not a defect)."""
     pos = tm.rest_positions if positions is None else positions
     shear, slant = np.zeros(tm.n_cells), np.zeros(tm.n_cells)
     sizes = np.diff(tm.cell_offsets)
@@ -88,7 +89,10 @@ def cell_shear(tm: M.TissueModel, positions=None) -> tuple[np.ndarray, np.ndarra
         d = P[:, n:] - P[:, :n]
         h = np.maximum(np.abs(d[:, :, 2]).mean(axis=1), 1e-12)
         cd = d[:, :, :2].mean(axis=1, keepdims=True)
-        shear[cs] = np.linalg.norm(d[:, :, :2] - cd, axis=2).max(axis=1) / h
+        B = P[:, :n, :2] - P[:, :n, :2].mean(axis=1, keepdims=True)
+        T = P[:, n:, :2] - P[:, n:, :2].mean(axis=1, keepdims=True)
+        s = np.sum(B * T, axis=(1, 2)) / np.maximum(np.sum(B * B, axis=(1, 2)), 1e-300)
+        shear[cs] = np.linalg.norm(T - s[:, None, None] * B, axis=2).max(axis=1) / h
         slant[cs] = np.linalg.norm(cd[:, 0], axis=1) / h
     return shear, slant
 
