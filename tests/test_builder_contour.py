@@ -197,3 +197,20 @@ def test_end_ring_beside_two_segments_binds_only_the_side_of_its_bone():
     assert np.all(np.abs(xb - 64) < np.abs(xb))           # nearer the patella than the upper bone
     near_upper = ring[np.linalg.norm(tm.rest_positions[ring, :2], axis=1) < 0.02]
     assert len(near_upper) and not np.any(tm.vertex_segment[near_upper] == lower)
+
+
+def test_a_region_enclosing_a_hole_is_reported_and_keeps_its_area():
+    """A muscle all round the bone: its ring follows the outer boundary with the label's area, and
+    the report names every slice where the hole is not represented."""
+    from phantoms import _grid
+    lab, aff, tab = make_phantom('column')
+    _, _, x, y, z = _grid()
+    r = np.hypot(x, y)
+    lab[(lab == 11) | (lab == 12)] = 40
+    lab[np.hypot(x - 50, y) <= 12] = 12
+    lab[(r > 14) & (r <= 30) & (lab == 40)] = 11
+    tm, rep = build_model((lab, aff), tab, **P)
+    q = rep['quality']
+    assert 0.9 <= q['volume_ratio']['flexor'] <= 1.1
+    holes = [d for d in q['sections_not_followed'] if d['muscle'] == 'flexor']
+    assert len(holes) == len(tm.slice_z) and all('hole' in d['how'] for d in holes)

@@ -322,6 +322,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         return ids
 
     area_rows = []
+    not_represented = []                 # contour regions with a hole or without a simple ring (reported)
     single = []
     breaks = []
     bridged = CT.bridge_gaps(regions, smalls, muscle_labels, dropped)
@@ -411,7 +412,12 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             if rs:
                 area_rows.append({'muscle': tab[lab]['name'], 'slice': zi,
                                   'label_mm2': round(float(slice_counts[zi][lab]) * px_area_mm2, 2),
-                                  'polygon_mm2': round(sum(r.poly_area_mm2 for r in rs), 2)})
+                                  'polygon_mm2': round(sum(r.poly_area_mm2 for r in rs), 2),
+                                  'sections': sorted({r.origin_kind for r in rs})})
+                for r in rs:
+                    if s['sections'] == 'contour' and r.origin_kind != 'contour':
+                        not_represented.append({'muscle': tab[lab]['name'], 'slice': zi, 'area_mm2': round(r.area_mm2, 1),
+                                                'how': r.origin_kind})
     if breaks and not s['allow_broken']:
         b = breaks[0]
         more = f' (and {len(breaks) - 1} more break(s))' if len(breaks) > 1 else ''
@@ -653,7 +659,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     label_vol['fat'] = float(sum(counts[l] for l in fat_labels)) * vox_m3
     checks = {'label_volume_m3': label_vol, 'breaks': breaks, 'bridged': [[tab[l]['name'], z] for l, z in bridged],
               'bone_touch': {tab[l]['name']: bone_touch.get(tab[l]['name'], 0) for l in bone_labels},
-              'refused_across_joint': refused, 'shear_limit': s['shear_limit']}
+              'refused_across_joint': refused, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
     report = quality_report(tm, checks=checks, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
                             dropped_cells=dropped_cells, warnings=warnings, n_unshared=n_unshared,
                             n_before_sharing=len(pos0), bone_info=bone_info, build_s=build_s)

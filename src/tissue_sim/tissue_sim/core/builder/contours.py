@@ -160,9 +160,10 @@ def fat_outlines(sl: np.ndarray, lin, off, px_mm: float, bone_labels, fat_labels
     bodyc = ndimage.binary_fill_holes(bodyc)
     inner = bodyc & ~np.isin(crop, fat_labels)
     if inner.any():
-        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-        disk = yy * yy + xx * xx <= r * r
-        inner = ndimage.binary_closing(np.pad(inner, r + 1), structure=disk)[r + 1:-r - 1, r + 1:-r - 1]
+        # closing with a disk of radius r, by distance transforms (dilate, then erode)
+        p = np.pad(inner, r + 1)
+        dil = ndimage.distance_transform_edt(~p) <= r
+        inner = (ndimage.distance_transform_edt(dil) > r)[r + 1:-r - 1, r + 1:-r - 1]
         inner = ndimage.binary_fill_holes(inner) & bodyc
         lab, nl = ndimage.label(inner)
         if nl > 1:

@@ -111,7 +111,10 @@ def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: i
                 if reg.fine is not None:
                     r2, _ = contours.best_ring(reg.fine, n_rays, None, None)    # provisional: chosen along the chain
                 if r2 is not None:
-                    reg.origin_kind = 'contour'
+                    # the outline is the outer boundary: a region enclosing a hole (another tissue)
+                    # keeps its area on the ring, not its hole (reported)
+                    hole = rays.polygon_area(reg.fine) * 1e6 > 1.1 * area
+                    reg.origin_kind = 'contour (encloses a hole)' if hole else 'contour'
                     reg.ring = np.concatenate([r2, np.full((n_rays, 1), geom.z)], axis=1)
                     reg.poly_area_mm2 = rays.polygon_area(r2) * 1e6
                     (small.__setitem__(lab, reg) if is_small else regs.append(reg))
