@@ -171,6 +171,12 @@ def test_cli_strict_fails_and_writes_nothing(tmp_path, capsys):
     assert 'flexor: built volume' in err and '--strict' in err
     assert main(['build-model', str(labels), '--tissues', str(tissues), '--slice-mm', '25', '-o', str(out), '--strict']) == 0
     assert out.exists()
+    capsys.readouterr()
+    assert main(['build-model', str(labels), '--tissues', str(tissues), '--slice-mm', '25', '--sections', 'rays',
+                 '--muscle-rays', '6', '-o', str(tmp_path / 'r.npz'), '--json']) == 0
+    import json
+    d = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert any(w.startswith('flexor: built volume') for w in d['quality_warnings'])
 
 
 def test_end_ring_beside_two_segments_binds_only_the_side_of_its_bone():

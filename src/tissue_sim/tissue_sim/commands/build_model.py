@@ -110,7 +110,8 @@ def run(args) -> int:
     t1 = report['table1']
     if args.json:
         print(json.dumps(dict(t1, model=str(out), build_s=report['build_s'], closed_surfaces=report['closed_surfaces'],
-                              inverted_cells=report['cells']['inverted'], warnings=len(report['warnings']))))
+                              inverted_cells=report['cells']['inverted'], warnings=len(report['warnings']),
+                              quality_warnings=qwarn)))
         return 0
     from rich.console import Console
     from rich.table import Table
