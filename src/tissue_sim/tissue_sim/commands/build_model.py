@@ -17,7 +17,7 @@ def add_arguments(p):
                    'slice_NNNN.png with spacing.yaml (default: the bundled lower limb)')
     p.add_argument('--tissues', metavar='TABLE.yaml', help='tissue table (required with LABELS; default: the bundled one)')
     p.add_argument('-o', '--output', metavar='MODEL', help='model file to write (.npz; default: <table name>.model.npz)')
-    g = p.add_argument_group('settings (defaults = the paper\'s Table-1 settings)')
+    g = p.add_argument_group('settings (defaults: a model of the paper\'s Table-1 size; --sections rays: the paper\'s cross-sections)')
     sl = g.add_mutually_exclusive_group()
     sl.add_argument('--slices', type=int, help=f'number of slices evenly over the labelled extent (default {D["slices"]}, the paper\'s)')
     sl.add_argument('--slice-mm', type=float, help='slice spacing [mm] instead (the paper: 25 mm)')

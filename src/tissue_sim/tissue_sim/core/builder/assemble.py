@@ -23,8 +23,9 @@ from . import slices as S
 from .io import LabelVolume, voxel_to_model
 from .sharing import share_groups
 
-# The "paper" settings (Table 1 of Inaba et al. 2005: Visible Human slices 1700-2878, every 25th,
-# 540 fat cells = 45 slice gaps x 12 rays). See docs/builder.md.
+# Default settings: a model of the paper's size (Table 1 of Inaba et al. 2005: Visible Human slices
+# 1700-2878, every 25th, 540 fat cells = 45 slice gaps x 12 rays); sections='rays' is the paper's
+# cross-section method. See docs/builder.md.
 SLICE_KEYS = ('slices', 'slice_mm', 'slice_step')
 DEFAULTS = {
     'slices': 46,              # this many slices evenly over the labelled extent (the paper's 46 slices)
