@@ -52,11 +52,24 @@ def main():
         print(f'{k:<18}{t1[k]:>8}{p:>8}{ratios[k]:>8.2f}')
     print(f'fat vertices (distinct) {t1["fat_vertices_unique"]}; inverted cells {rep["cells"]["inverted"]}; '
           f'closed surfaces {rep["closed_surfaces"]}; median polygon/label area {rep["areas"]["median_ratio"]}')
+    q = rep['quality']
+    vr = q['volume_ratio']
+    worst = max(vr, key=lambda k: abs(vr[k] - 1))
+    print(f'built / label volume: fat {vr.get("fat")}, muscles {min(v for k, v in vr.items() if k != "fat"):.3f}..'
+          f'{max(v for k, v in vr.items() if k != "fat"):.3f} (worst {worst} {vr[worst]}); chain breaks {len(q["breaks"])}')
+    for tname, sh in q['shear'].items():
+        print(f'{tname} cells: shear (ring distortion / height) median {sh["median"]}, p95 {sh["p95"]}, max {sh["max"]}, '
+              f'{sh["over_limit"]} of {sh["cells"]} over {q["shear_limit"]:g}; slant median {sh["slant_median"]}, '
+              f'p95 {sh["slant_p95"]}, max {sh["slant_max"]}')
+    for w in q['warnings']:
+        print(f'quality warning: {w}')
     within = all(abs(r - 1) <= 0.25 for k, r in ratios.items() if k not in ('bones', 'muscles'))
     print(json.dumps({'bench': 'build', 'input': src, 'build_s_first': round(first, 3), 'build_s_median': round(med, 3),
                       'target_s': 5.0, 'under_target': first < 5.0 and med < 5.0, 'table1': t1,
                       'paper_table1': builder.PAPER_TABLE1, 'ratio_to_paper': ratios, 'within_25pct': within,
-                      'inverted_cells': rep['cells']['inverted'], 'closed_surfaces': rep['closed_surfaces']}))
+                      'inverted_cells': rep['cells']['inverted'], 'closed_surfaces': rep['closed_surfaces'],
+                      'volume_ratio': vr, 'shear': q['shear'], 'chain_breaks': len(q['breaks']),
+                      'quality_warnings': q['warnings']}))
 
 
 if __name__ == '__main__':

@@ -17,6 +17,9 @@ Kinds:
              (r 6 at (-5, 25)) on segment 'lower'; one muscle disc r 20 at (-40, 0); fat r 70.
   split      column whose flexor is one disc below z = 0 and two discs (r 12 at y = +-14) above.
   cshape     column whose flexor is a C-shaped (non-convex) annulus sector around the bone.
+  tendon     column whose flexor becomes a thin tendon (r 4 mm) beside its belly above z = 0, with no
+             overlap between them on neighbouring slices (semitendinosus in the bundled limb)
+  gap        column whose flexor is absent between z = -10 and z = 10 (a real break of the label)
   limb       a synthetic lower limb of the paper's size (hip at z = 0 down to z = -1125 mm; 6 bones,
              28 muscles on thigh and shank, fat), 1.5 mm pixels, 2.5 mm slices: benchmark input
              used by bench/build.py while the bundled anatomy is absent (make_limb_phantom()).
@@ -101,8 +104,12 @@ def make_phantom(kind: str = 'column'):
         flex = (r > R_BONE) & (r <= 40.0) & (np.abs(ang) > 100.0)          # C open towards +x, around the bone
         lab[np.hypot(x - X_MUS, y) <= R_MUS] = 40
         lab[(np.hypot(x - X_MUS - 8, y) <= 17)] = 12
+    elif kind == 'tendon':
+        flex = np.where(z < 0, flex, np.hypot(x + X_MUS, y - 32) <= 4)
+    elif kind == 'gap':
+        flex = flex & (np.abs(z) > 10)
     elif kind != 'column':
-        raise ValueError(f'unknown phantom kind {kind!r} (column, tapered, two_bones, split, cshape)')
+        raise ValueError(f'unknown phantom kind {kind!r} (column, tapered, two_bones, split, cshape, tendon, gap)')
     lab[flex & ~bone] = 11
     return lab, affine, _table(kind)
 
@@ -145,6 +152,65 @@ def write_phantom(kind: str, folder, fmt: str = 'nii'):
     else:
         raise ValueError(fmt)
     return p, folder / 'tissues.yaml'
+
+
+def make_hard_phantom(rotated: bool = True):
+    """(labels, affine, table) of a phantom with every shape the ray sections get wrong, on an awkward
+    grid: anisotropic voxels (0.9 x 1.3 x 5 mm), an in-plane rotation of 25 degrees, a flipped voxel
+    axis and slices stored superior-first (``rotated=False``: the same anatomy on a plain axis-aligned
+    grid of the same voxel size). Model frame mm, z in [-100, 100], knee at z = 12.5:
+
+      skin      bumpy: r = 75 + 5 sin(6 theta) + 3 sin(z / 15)
+      bones     'upper' r 10 at the axis above the knee; below it two bones, 'tibia' r 7 at (3, -3) and
+                'fibula' r 4 at (-3, 5) (one bone becoming two), both on segment 'lower'
+      wrap      (11, hamstrings, origin upper, insertion lower) an annulus r 13..32 about the axis
+                except the anterior 120 degrees: wrapped around three sides of the bone(s)
+      crescent  (12) inside the circle r 20 about (48, 0), outside the circle r 16 about (58, 0)
+      split     (13) a disc r 12 about (0, -50) below z = 0, two discs r 7 about (+-10, -50) above
+      short     (14) a disc r 10 about (0, 52) for z <= 37 (ends between two 25-mm slices)
+      fat       (40) the rest of the body
+    """
+    sx, sy, sz = 0.9, 1.3, 5.0
+    I, J, K = 230, 160, 41
+    th = np.radians(25.0) if rotated else 0.0
+    rot = np.array([[np.cos(th), -np.sin(th), 0], [np.sin(th), np.cos(th), 0], [0, 0, 1.0]])
+    flip = np.diag([-1.0, 1.0, -1.0]) if rotated else np.eye(3)       # i axis and slice order reversed
+    A = rot @ np.diag([sx, sy, sz]) @ flip
+    centre = np.array([(I - 1) / 2, (J - 1) / 2, 0.0 if rotated else K - 1.0])
+    t = np.array([0.0, 0.0, 100.0]) - A @ centre                       # voxel centre -> RAS (0, 0, 100 or -100 + ...)
+    if not rotated:
+        t[2] = 100.0 - A[2, 2] * (K - 1)
+    affine = np.eye(4)
+    affine[:3, :3], affine[:3, 3] = A, t
+    i, j, k = np.meshgrid(np.arange(I), np.arange(J), np.arange(K), indexing='ij')
+    ras = np.stack([i, j, k], -1) @ A.T + t
+    x, y, z = ras[..., 1], -ras[..., 0], ras[..., 2]
+    r, ang = np.hypot(x, y), np.arctan2(y, x)
+    lab = np.zeros((I, J, K), np.int16)
+    lab[r <= 75 + 5 * np.sin(6 * ang) + 3 * np.sin(z / 15)] = 40
+    up = z >= KNEE_Z
+    bone = np.zeros_like(lab)
+    bone[up & (r <= 10)] = 1
+    bone[~up & (np.hypot(x - 3, y + 3) <= 7)] = 2
+    bone[~up & (np.hypot(x + 3, y - 5) <= 4)] = 3
+    lab[(r > 13) & (r <= 32) & (np.abs(np.degrees(ang)) > 60)] = 11
+    cres = (np.hypot(x - 48, y) <= 20) & (np.hypot(x - 58, y) > 16)
+    lab[cres & (lab == 40)] = 12
+    split = np.where(z < 0, np.hypot(x, y + 50) <= 12, (np.hypot(x - 10, y + 50) <= 7) | (np.hypot(x + 10, y + 50) <= 7))
+    lab[split] = 13
+    lab[(np.hypot(x, y - 52) <= 10) & (z <= 37)] = 14
+    lab[bone > 0] = bone[bone > 0]
+    joints = _joints()
+    joints['segments'][0]['com'] = [0.0, 0.0, 0.06]
+    labels = {1: {'name': 'upper_bone', 'tissue': 'bone', 'segment': 'upper'},
+              2: {'name': 'tibia', 'tissue': 'bone', 'segment': 'lower'},
+              3: {'name': 'fibula', 'tissue': 'bone', 'segment': 'lower'},
+              11: {'name': 'wrap', 'tissue': 'muscle', 'group': 'hamstrings', 'origin': 'upper', 'insertion': 'lower'},
+              12: {'name': 'crescent', 'tissue': 'muscle', 'group': 'quadriceps'},
+              13: {'name': 'split', 'tissue': 'muscle'},
+              14: {'name': 'short', 'tissue': 'muscle'},
+              40: {'name': 'fat', 'tissue': 'fat'}}
+    return lab, affine, {'name': 'phantom_hard', 'joints': joints, 'labels': labels}
 
 
 def make_limb_phantom():

@@ -17,6 +17,13 @@ pytestmark = pytest.mark.skipif(not HAVE_ANATOMY, reason='bundled anatomy (data/
 
 
 @pytest.fixture(scope='module')
+def built():
+    """(model, report) of the bundled limb at default settings (no cache)."""
+    lab, tis = builder.default_inputs()
+    return builder.build_model(lab, tis)
+
+
+@pytest.fixture(scope='module')
 def default(tmp_path_factory):
     import os
     d = tmp_path_factory.mktemp('cache')
@@ -66,3 +73,50 @@ def test_cli_without_labels(tmp_path, capsys):
     assert main(['build-model', '-o', str(tmp_path / 'm.npz'), '--json']) == 0
     d = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert d['fat_cells'] == 540 and d['bones'] == 6
+
+
+def test_every_tissue_within_10_percent_of_its_label_volume(built):
+    """Issue 20: contour sections keep every muscle and the fat within +-10 % of its label volume."""
+    tm, rep = built
+    r = rep['quality']['volume_ratio']
+    assert len(r) == len(tm.muscle_names) + 1
+    bad = {k: v for k, v in r.items() if abs(v - 1) > 0.10}
+    assert not bad, bad
+    assert not any('built volume' in w for w in rep['quality']['warnings'])
+
+
+def test_no_inverted_cell_and_every_bone_holds_soft_tissue(built):
+    tm, rep = built
+    assert rep['cells']['inverted'] == 0 and not rep['cells']['dropped_degenerate']
+    assert all(n > 0 for n in rep['quality']['bone_attached_vertices'].values()), rep['quality']['bone_attached_vertices']
+    assert rep['quality']['shear']['muscle']['median'] < 0.5
+
+
+def test_every_muscle_is_one_chain(built):
+    """Issue 19.1: no muscle breaks between slices (semitendinosus 31-33, the short head 36-38,
+    vastus medialis, gracilis, peroneus brevis and flexor hallucis longus broke before)."""
+    tm, rep = built
+    assert rep['quality']['breaks'] == []
+    for m, name in enumerate(tm.muscle_names):
+        cs = np.unique(tm.cell_slice[tm.cell_muscle == m])
+        assert np.array_equal(cs, np.arange(cs[0], cs[-1] + 1)), name
+
+
+def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
+    """Muscles whose origin and insertion lie on the thigh hold no vertex bound to the shank; the
+    vasti's insertion rings bind only their vertices beside the patella, not the ones behind the femur."""
+    from tissue_sim.core.builder.table import load_tissue_table
+    tm, _ = built
+    tab = load_tissue_table(builder.default_inputs()[1])['labels']
+    seg = {v['name']: (v.get('origin'), v.get('insertion')) for v in tab.values() if v['tissue'] == 'muscle'}
+    shank = tm.segment_names.index('shank')
+    for m, name in enumerate(tm.muscle_names):
+        if seg[name] != ('thigh', 'thigh'):
+            continue
+        vs = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == m)[0]]))
+        assert not np.any(tm.vertex_segment[vs] == shank), name
+    knee = tm.joint_centre[[i for i, n in enumerate(tm.joint_names) if 'knee' in n][0]]
+    m = tm.muscle_index('vastus_medialis')
+    vs = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == m)[0]]))
+    on_shank = vs[tm.vertex_segment[vs] == shank]
+    assert np.all(tm.rest_positions[on_shank, 0] > knee[0] + 0.02)        # anterior: beside the patella

@@ -55,7 +55,9 @@ def physical_hamstring_run(physical_sim):
 
 def test_default_model_anchors_the_hamstrings(default_tm):
     """Every hamstring's proximal ring is fixed to the thigh (pelvis stand-in) and its distal ring to
-    the shank (tibia/fibula), from the tissue table's origin/insertion."""
+    the shank (tibia/fibula), from the tissue table's origin/insertion: the ring's own vertices (a
+    vertex shared with the fat or a neighbour keeps its own binding, docs/builder.md), at least a
+    third of each ring, and no end-ring vertex on another segment."""
     seg = {n: i for i, n in enumerate(default_tm.segment_names)}
     anchors = default_tm.meta['anchors']
     for name in ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus', 'semitendinosus'):
@@ -65,21 +67,25 @@ def test_default_model_anchors_the_hamstrings(default_tm):
         vs = np.unique(np.concatenate([default_tm.cell_vertices[default_tm.cell_offsets[c]:default_tm.cell_offsets[c + 1]]
                                        for c in cells]))
         z = default_tm.rest_positions[vs, 2]
-        assert np.all(default_tm.vertex_segment[vs[z == z.max()]] == seg['thigh'])
-        assert np.all(default_tm.vertex_segment[vs[z == z.min()]] == seg['shank'])
+        for ring, s, end in ((vs[z == z.max()], seg['thigh'], 'origin'), (vs[z == z.min()], seg['shank'], 'insertion')):
+            vseg = default_tm.vertex_segment[ring]
+            assert np.all((vseg == s) | (vseg == -1)), (name, end, vseg)
+            assert np.count_nonzero(vseg == s) >= max(anchors[name][end][1], len(ring) / 3), (name, end, vseg)
 
 
 @pytest.mark.slow
 def test_physical_hamstring_contraction_flexes_knee_to_limit(physical_sim, physical_hamstring_run):
     """The issue's criterion, physical parameter set: >= 60 deg, reaches the 120-deg limit, the end
-    stop holds, no divergence. Volumes: within 8 % here (measured 6.0 % at worst, semimembranosus bent
-    round the flexed knee; the 2 % of the issue holds for the paper set, test below)."""
+    stop holds, no divergence. Volumes: within 11 % here (measured 10.2 % at worst: semitendinosus at
+    the onset, t = 0.28 s, now that its thin tendon cells link the belly to the tibia and carry its
+    force (docs/builder.md, connected muscles); 6.1 % at the end; the 2 % of the issue holds for the
+    paper set, test below)."""
     j, q, vol = physical_hamstring_run
     lo, hi = physical_sim.j_range[j]
     assert q.max() - q[0] >= math.radians(60)
     assert q[-1] >= hi - math.radians(2)                 # reached the range limit ...
     assert q.max() <= hi + math.radians(1)               # ... and the end stop holds
-    assert np.abs(vol - 1).max() < 0.08
+    assert np.abs(vol - 1).max() < 0.11
 
 
 @pytest.mark.slow
@@ -131,7 +137,7 @@ def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim)
             q.append(o['joint_positions'][j]); L.append(o['muscle_lengths'][ham]); v.append(st.muscle_velocity[ham])
         res[name] = np.array(q), np.array(L), np.array(v)
     (q_on, L_on, v_on), (q_off, _, v_off) = res['on'], res['off']
-    k = 14                                       # t = 0.3 s, the knee swinging (measured 72 vs 87 deg)
+    k = 20                                       # t = 0.42 s, the knee swinging (measured 67 vs 75 deg)
     assert q_on[k] < q_off[k] - math.radians(5)
     hi = physical_sim.j_range[j][1]
     assert abs(q_on[-1] - hi) < math.radians(1.5) and abs(q_off[-1] - hi) < math.radians(1.5)

@@ -17,7 +17,7 @@ def add_arguments(p):
                    'slice_NNNN.png with spacing.yaml (default: the bundled lower limb)')
     p.add_argument('--tissues', metavar='TABLE.yaml', help='tissue table (required with LABELS; default: the bundled one)')
     p.add_argument('-o', '--output', metavar='MODEL', help='model file to write (.npz; default: <table name>.model.npz)')
-    g = p.add_argument_group('settings (defaults = the paper\'s Table-1 settings)')
+    g = p.add_argument_group('settings (defaults: a model of the paper\'s Table-1 size; --sections rays: the paper\'s cross-sections)')
     sl = g.add_mutually_exclusive_group()
     sl.add_argument('--slices', type=int, help=f'number of slices evenly over the labelled extent (default {D["slices"]}, the paper\'s)')
     sl.add_argument('--slice-mm', type=float, help='slice spacing [mm] instead (the paper: 25 mm)')
@@ -30,6 +30,12 @@ def add_arguments(p):
                    help="do not fix muscle end rings to their origin/insertion segments (only bone-touching vertices, as the paper's section 2.4)")
     g.add_argument('--min-area-mm2', type=float, default=D['min_area_mm2'], help='drop smaller components [mm^2] (default %(default)s)')
     g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
+    g.add_argument('--sections', choices=('contour', 'rays'), default=D['sections'],
+                   help="cross-sections: the traced label outline (default) or the paper's rays from the centroid")
+    g.add_argument('--allow-broken-muscles', dest='allow_broken', action='store_true',
+                   help='a muscle whose chain breaks between slices: build it in pieces with a warning instead of failing')
+    g.add_argument('--shear-limit', type=float, default=D['shear_limit'],
+                   help='quality report: warn about cells sheared more than this x their height (default %(default)s)')
     g.add_argument('--ray-hit', choices=('first', 'last'), default=D['ray_hit'], help='boundary crossing used along a ray (default %(default)s)')
     g.add_argument('--ray-origin', choices=('best', 'centroid'), default=D['ray_origin'],
                    help='origin of a region\'s rays (default %(default)s)')
@@ -37,6 +43,8 @@ def add_arguments(p):
     g.add_argument('--allow-missing', action='store_true', help='table labels absent from the volume: warn, do not fail')
     p.add_argument('--json', action='store_true', help='print the Table-1 summary as one JSON object (keys = Table 1 rows)')
     p.add_argument('--report', metavar='FILE.json', help='write the full quality report (JSON)')
+    p.add_argument('--strict', action='store_true', help='fail (exit 2, nothing written) when the quality report warns '
+                   '(volume off its label by > 10 %%, a broken muscle, cells over the shear limit, a bone without attached vertices)')
     p.add_argument('--glb', metavar='FILE.glb', help='also export the surfaces (muscles, skin, bones) as GLB')
     p.add_argument('--vtu', metavar='FILE.vtu', help='also export the cells as VTU (ParaView)')
 
@@ -45,7 +53,8 @@ def _settings(args) -> dict:
     return {'slices': args.slices, 'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
             'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm, 'anchor_muscles': args.anchor_muscles,
             'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit, 'ray_origin': args.ray_origin,
-            'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing}
+            'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing, 'sections': args.sections,
+            'allow_broken': args.allow_broken, 'shear_limit': args.shear_limit}
 
 
 def run(args) -> int:
@@ -76,6 +85,11 @@ def run(args) -> int:
             a, w = weights.get(step, (0.0, 0.0))
             bar.update(task, completed=a + w * frac, description=step)
         tm, report = builder.build_model(labels, tissues, progress=progress, **_settings(args))
+    qwarn = report['quality']['warnings']
+    for w in qwarn:
+        print(f'warning: {w}', file=sys.stderr)
+    if args.strict and qwarn:
+        raise UserError(f'--strict: the quality report has {len(qwarn)} warning(s), first: {qwarn[0]}; nothing written')
     if out is None:
         out = Path(f'{tm.name}.model.npz')
     try:
@@ -96,7 +110,8 @@ def run(args) -> int:
     t1 = report['table1']
     if args.json:
         print(json.dumps(dict(t1, model=str(out), build_s=report['build_s'], closed_surfaces=report['closed_surfaces'],
-                              inverted_cells=report['cells']['inverted'], warnings=len(report['warnings']))))
+                              inverted_cells=report['cells']['inverted'], warnings=len(report['warnings']),
+                              quality_warnings=qwarn)))
         return 0
     from rich.console import Console
     from rich.table import Table
@@ -113,7 +128,8 @@ def run(args) -> int:
               f'min volume {c["min_volume_mm3"]} mm^3; surfaces closed: {report["closed_surfaces"]}; '
               f'median polygon/label area {report["areas"]["median_ratio"]}')
     for w in report['warnings']:
-        con.print(f'[yellow]warning:[/] {w}')
+        if w not in qwarn:
+            con.print(f'[yellow]warning:[/] {w}')
     if report['dropped_components']:
         con.print(f'{len(report["dropped_components"])} small or single-slice components dropped (see --report)')
     return 0

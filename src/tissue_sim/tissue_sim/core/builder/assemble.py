@@ -18,26 +18,31 @@ from tissue_sim.errors import UserError
 from tissue_sim.core import model as M
 
 from tissue_sim.core import geometry
+from . import contours as CT
 from . import slices as S
 from .io import LabelVolume, voxel_to_model
 from .sharing import share_groups
 
-# The "paper" settings (Table 1 of Inaba et al. 2005: Visible Human slices 1700-2878, every 25th,
-# 540 fat cells = 45 slice gaps x 12 rays). See docs/builder.md.
+# Default settings: a model of the paper's size (Table 1 of Inaba et al. 2005: Visible Human slices
+# 1700-2878, every 25th, 540 fat cells = 45 slice gaps x 12 rays); sections='rays' is the paper's
+# cross-section method. See docs/builder.md.
 SLICE_KEYS = ('slices', 'slice_mm', 'slice_step')
 DEFAULTS = {
     'slices': 46,              # this many slices evenly over the labelled extent (the paper's 46 slices)
     'slice_mm': None,          # or a slice spacing [mm] (the paper's was 25 mm over a 1178-mm stack)
     'slice_step': None,        # or every Nth slice of the volume
-    'muscle_rays': 12,         # polygon vertex count of every muscle cross-section
+    'muscle_rays': 11,         # polygon vertex count of every muscle cross-section
     'fat_rays': 12,            # rays of the fat tube per slice (paper: 540 cells = 45 gaps x 12)
-    'share_mm': 3.5,           # vertex sharing threshold [mm] (paper section 2.4 gives none; see docs/builder.md)
+    'share_mm': 3.0,           # vertex sharing threshold [mm] (paper section 2.4 gives none; see docs/builder.md)
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
     'anchor_muscles': True,    # fix muscle end rings to their origin/insertion segments (table); False = only
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
+    'sections': 'contour',     # cross-sections: 'contour' (traced label outline, area kept) or 'rays' (the paper's)
+    'allow_broken': False,     # a muscle whose chain breaks between slices: warning instead of error
+    'shear_limit': 2.0,        # quality report: a cell sheared more than this x its height is reported (warning)
     'ray_hit': 'first',        # 'first' (polygon inside the region) or 'last' boundary crossing
     'ray_origin': 'best',      # 'best' (largest polygon among centroid and interior maxima) or 'centroid'
     'bone_mesh_step': 2,       # marching-cubes step [voxels] for bone surfaces without a mesh file
@@ -78,6 +83,12 @@ def settings_with_defaults(settings: dict) -> dict:
         raise UserError(f'attach_mm must be >= 0, got {s["attach_mm"]!r}')
     if s['ray_origin'] not in ('best', 'centroid'):
         raise UserError(f"ray_origin must be 'best' or 'centroid', got {s['ray_origin']!r}")
+    if s['sections'] not in ('contour', 'rays'):
+        raise UserError(f"sections must be 'contour' or 'rays', got {s['sections']!r}")
+    if not isinstance(s['allow_broken'], bool):
+        raise UserError(f'allow_broken must be true or false, got {s["allow_broken"]!r}')
+    if not (isinstance(s['shear_limit'], (int, float)) and math.isfinite(s['shear_limit']) and s['shear_limit'] > 0):
+        raise UserError(f'shear_limit must be a positive number, got {s["shear_limit"]!r}')
     if s['ray_hit'] not in ('first', 'last'):
         raise UserError(f"ray_hit must be 'first' or 'last', got {s['ray_hit']!r}")
     return s
@@ -145,19 +156,58 @@ def _select_slices(vol: LabelVolume, s: dict) -> np.ndarray:
     return ks
 
 
+def segment_span(parent, a: int | None, b: int | None) -> np.ndarray | None:
+    """Segment indices on the tree path from segment a to segment b (inclusive); None if either is None."""
+    if a is None or b is None:
+        return None
+
+    def up(x):
+        out = [x]
+        while parent[out[-1]] >= 0:
+            out.append(int(parent[out[-1]]))
+        return out
+    pa, pb = up(a), up(b)
+    common = next(x for x in pa if x in pb)
+    return np.array(pa[:pa.index(common) + 1] + pb[:pb.index(common)], dtype=np.int64)
+
+
+def vertex_users(V: int, verts, offsets, ctiss, cmus) -> tuple[list, np.ndarray]:
+    """Per vertex: the set of muscles whose cells use it, and whether a fat cell uses it."""
+    sizes = np.diff(offsets)
+    who = np.repeat(np.where(ctiss == M.TISSUE_MUSCLE, cmus, -1), sizes)
+    users = [set() for _ in range(V)]
+    fat = np.zeros(V, bool)
+    for v, w in zip(verts.tolist(), who.tolist()):
+        if w < 0:
+            fat[v] = True
+        else:
+            users[v].add(w)
+    return users, fat
+
+
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
-                       vseg, warnings) -> dict:
+                       vseg, warnings, pos) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
     attachments from anatomy atlases, section 4.2), in place on ``vseg``.
 
     The end rings are the muscle's ring vertices on its highest (proximal, +z) and lowest slice.
+    Only end-ring vertices of the muscle itself are fixed: a vertex it shares with the fat, or with a
+    muscle for which the vertex is not an end-ring vertex fixed to the same segment, keeps its own
+    binding (so a belly's end ring never drags a neighbour across a joint, while tendons that end
+    together, e.g. the pes anserinus, are fixed together). Where bones of other segments share the
+    ring's slice (a quadriceps ring around the femur, beside the patella), only the ring vertices
+    nearer to the segment's bone than to any other bone are fixed: the rest would swing through the
+    other bone when the joint turns.
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
     joint, so it is left free and a warning says so. Returns {muscle: {end: [segment, n_vertices]}}."""
     out = {}
     up = slice_z[-1] >= slice_z[0]
+    users, fat = vertex_users(len(vseg), verts, offsets, ctiss, cmus)
+    proposals = {}                                   # vertex -> {muscle: segment}
+    rings = []
     for m, lab in enumerate(mlabels):
         cells = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus == m))
         if cells.size == 0:
@@ -169,13 +219,27 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
             if seg is None:
                 continue
             ring = vs[zs == zi]
-            _, blab = bonepix[zi]
+            bxy, blab = bonepix[zi]
             if any(tab[int(l)]['segment'] == seg for l in np.unique(blab)):
-                vseg[ring] = seg_names.index(seg)
-                out.setdefault(tab[lab]['name'], {})[end] = [seg, int(len(ring))]
+                si = seg_names.index(seg)
+                mine = np.array([tab[int(l)]['segment'] == seg for l in blab])
+                if not mine.all():
+                    d_in, _ = cKDTree(bxy[mine]).query(pos[ring, :2])
+                    d_out, _ = cKDTree(bxy[~mine]).query(pos[ring, :2])
+                    ring = ring[d_in <= d_out]
+                for v in ring.tolist():
+                    proposals.setdefault(v, {})[m] = si
+                rings.append((m, lab, end, seg, si, ring))
             else:
                 warnings.append(f'muscle {tab[lab]["name"]}: no {seg} bone on the slice of its {end} ring '
                                 f'(slice {int(zi)}, z {slice_z[zi]:.3f} m): left unanchored')
+    for m, lab, end, seg, si, ring in rings:
+        own = [v for v in ring.tolist() if not fat[v] and all(proposals[v].get(u) == si for u in users[v])]
+        vseg[own] = si
+        out.setdefault(tab[lab]['name'], {})[end] = [seg, len(own)]
+        if not own:
+            warnings.append(f'muscle {tab[lab]["name"]}: every vertex of its {end} ring is shared with another tissue: '
+                            f'none fixed to {seg}')
     return out
 
 
@@ -199,19 +263,40 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     prog('slices', 0.0)
 
     # ---------------------------------------------------------------- per slice
-    geoms, regions, fats, bonepix, dropped, slice_counts = [], [], [], [], [], []
+    geoms, regions, smalls, fats, bonepix, dropped, slice_counts = [], [], [], [], [], [], []
     maxlab = max(tab) + 1
+    vox_counts = CT.label_slice_counts(vol.labels, muscle_labels) if s['sections'] == 'contour' and muscle_labels else {}
+    substituted = {}                     # (label, slice index) -> the neighbouring voxel slice used instead
     for zi, k in enumerate(ks):
         sl = vol.labels[:, :, k]
         slice_counts.append(np.bincount(sl.ravel(), minlength=maxlab))
         g = S.slice_geom(vol.affine, int(k))
         geoms.append(g)
-        regs, drop = S.muscle_regions(sl, g, muscle_labels, s['muscle_rays'], s['min_area_mm2'], s['ray_hit'], 0.0,
-                                        s['ray_origin'])
+        regs, drop, sm = S.muscle_regions(sl, g, muscle_labels, s['muscle_rays'], s['min_area_mm2'], s['ray_hit'], 0.0,
+                                            s['ray_origin'], s['sections'])
+        for lab in muscle_labels if vox_counts else ():
+            k2 = CT.glitch_substitute(vox_counts[lab], int(k))
+            if k2 is None:
+                continue
+            r2, d2, s2 = S.muscle_regions(vol.labels[:, :, k2], g, [lab], s['muscle_rays'], s['min_area_mm2'], s['ray_hit'],
+                                          0.0, s['ray_origin'], s['sections'])
+            regs.pop(lab, None); sm.pop(lab, None)
+            drop = [d for d in drop if d[0] != lab] + d2
+            regs.update(r2); sm.update(s2)
+            substituted[(lab, zi)] = k2
+            slice_counts[-1][lab] = vox_counts[lab][k2]
+            warnings.append(f'muscle {tab[lab]["name"]}: its area on slice {zi} (k={int(k)}, {int(vox_counts[lab][k])} voxels) '
+                            f'jumps against both neighbouring voxel slices: the section of k={k2} '
+                            f'({int(vox_counts[lab][k2])} voxels) is used (a labelling glitch)')
         regions.append(regs)
+        smalls.append(sm)
         dropped += [{'slice': zi, 'label': l, 'name': tab[l]['name'], 'area_mm2': round(a, 2), 'reason': r} for l, a, r in drop]
-        f = S.fat_rays(sl, g, bone_labels, fat_labels, s['fat_rays'], s['min_fat_mm'] / 1000.0, 0.0)
-        if not f['has_bone']:
+        f = None
+        if s['sections'] == 'contour':
+            f = S.fat_contours(sl, g, bone_labels, fat_labels, s['fat_rays'])
+        if f is None:
+            f = S.fat_rays(sl, g, bone_labels, fat_labels, s['fat_rays'], s['min_fat_mm'] / 1000.0, 0.0)
+        if not f['has_bone'] and s['sections'] == 'rays':
             warnings.append(f'slice {zi} (k={int(k)}) has no bone: fat rays start at the body centroid')
         fats.append(f)
         bonepix.append(S.bone_pixels(sl, g, bone_labels))
@@ -238,7 +323,10 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         return ids
 
     area_rows = []
+    not_represented = []                 # contour regions with a hole or without a simple ring (reported)
     single = []
+    breaks = []
+    bridged = CT.bridge_gaps(regions, smalls, muscle_labels, dropped)
     for lab in muscle_labels:
         mi = len(muscle_names)
         links = {}            # (zi, idx) -> idx on zi+1
@@ -267,7 +355,13 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
                     if dpx < req and dpx < bd:
                         best, bd = j, dpx
                 if best is not None:
-                    links[(zi, i)] = best; used_b.add(best)
+                    links[(zi, i)] = best; used_b.add(best); used_a.add(i)
+            if not used_a:
+                # the muscle is on both slices but no component overlaps or lies near (a thin tendon
+                # beside its belly): link the nearest pair, so the muscle stays one chain
+                d = np.array([[np.linalg.norm(ra.centroid_px() - rb.centroid_px()) for rb in b] for ra in a])
+                i, j = np.unravel_index(np.argmin(d), d.shape)
+                links[(zi, int(i))] = int(j)
         linked_to = {(zi + 1, j) for (zi, _), j in links.items()}
         ring_ids = {}
         chains = []
@@ -289,6 +383,19 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         if not chains:
             warnings.append(f'muscle {tab[lab]["name"]} (label {lab}) gives no cell at this slice spacing: left out of the model')
             continue
+        covered = sorted({z for ch in chains for (z, _) in ch[:-1]})
+        z = covered[0]
+        while z < covered[-1]:
+            if z in covered:
+                z += 1
+                continue
+            z1 = next(c for c in covered if c > z)
+            absent = [q for q in range(z + 1, z1) if not regions[q].get(lab)]
+            breaks.append({'muscle': tab[lab]['name'], 'label': lab, 'from_slice': z, 'to_slice': z1,
+                           'reason': f'label absent on slice(s) {absent}' if absent else 'no cell links the slices'})
+            z = z1
+        if s['sections'] == 'contour':
+            CT.chain_rings(chains, regions, lab, n, vox_counts[lab], ks, {z: k2 for (l, z), k2 in substituted.items() if l == lab})
         muscle_names.append(tab[lab]['name']); muscle_groups.append(tab[lab]['group']); muscle_labels_used.append(lab)
         mforce.append(tab[lab]['max_isometric_force']); mfibre.append(tab[lab]['optimal_fibre_length'])
         mscale.append(tab[lab]['stiffness_scale'])
@@ -306,11 +413,31 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             if rs:
                 area_rows.append({'muscle': tab[lab]['name'], 'slice': zi,
                                   'label_mm2': round(float(slice_counts[zi][lab]) * px_area_mm2, 2),
-                                  'polygon_mm2': round(sum(r.poly_area_mm2 for r in rs), 2)})
+                                  'polygon_mm2': round(sum(r.poly_area_mm2 for r in rs), 2),
+                                  'sections': sorted({r.origin_kind for r in rs})})
+                for r in rs:
+                    if s['sections'] == 'contour' and r.origin_kind != 'contour':
+                        not_represented.append({'muscle': tab[lab]['name'], 'slice': zi, 'area_mm2': round(r.area_mm2, 1),
+                                                'how': r.origin_kind})
+    if breaks and not s['allow_broken']:
+        b = breaks[0]
+        more = f' (and {len(breaks) - 1} more break(s))' if len(breaks) > 1 else ''
+        raise UserError(f'{vol.source}: muscle {b["muscle"]} (label {b["label"]}) breaks between slices {b["from_slice"]} and '
+                        f'{b["to_slice"]}: {b["reason"]}{more} (use --allow-broken-muscles to build it in pieces)')
+    for b in breaks:
+        warnings.append(f'muscle {b["muscle"]} breaks between slices {b["from_slice"]} and {b["to_slice"]} ({b["reason"]}): '
+                        'built in pieces (allow_broken)')
     prog('chains', 1.0)
 
     # ---------------------------------------------------------------- fat tube
     nf = s['fat_rays']
+    if s['sections'] == 'contour':
+        def fallback(zi, ref):          # contour rings that cross: the paper's rays on that slice, least twist
+            return CT.turn_rays(lambda off: S.fat_rays(vol.labels[:, :, ks[zi]], geoms[zi], bone_labels, fat_labels, nf,
+                                                       s['min_fat_mm'] / 1000.0, off), nf, ref)
+        fats, bad = CT.fat_rings(fats, nf, s['min_fat_mm'] / 1000.0, fallback)
+        for zi in bad:
+            warnings.append(f'slice {zi}: the fat layer\'s outlines give crossing cells: rays used on this slice')
     fat_ring = []
     for zi in range(Z):
         fat_ring.append(new_ring(np.concatenate([fats[zi]['inner'], fats[zi]['outer']]), -1, zi))
@@ -389,23 +516,50 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     flags[shared_group] |= M.VF_SHARED
 
     # ---------------------------------------------------------------- bone attachment
+    # A vertex is fixed to the nearest bone within attach_m whose segment lies on the path between
+    # the origin and insertion segments of every muscle using the vertex: nothing of a muscle is
+    # bound across a joint it does not cross (the fat, and muscles without origin/insertion, any).
     seg_names = skel['segment_names']
+    nseg = len(seg_names)
+    cmus_k = cell_muscle_all[kc]
+    allowed = np.ones((V, nseg), bool)
+    for m, lab in enumerate(muscle_labels_used):
+        o, i_ = tab[lab].get('origin'), tab[lab].get('insertion')
+        span = segment_span(skel['segment_parent'], seg_names.index(o) if o else None, seg_names.index(i_) if i_ else None)
+        if span is None:
+            continue
+        row = np.zeros(nseg, bool); row[span] = True
+        cm = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus_k == m))
+        vm = np.unique(np.concatenate([verts_k[offsets_k[c]:offsets_k[c + 1]] for c in cm]))
+        allowed[vm] &= row
     vseg = np.full(V, -1, np.int32)
-    vdist = np.full(V, np.inf)
+    refused = 0
+    bone_touch = {}
     for zi in range(Z):
         bxy, blab = bonepix[zi]
         on = np.nonzero(vslice == zi)[0]
         if len(bxy) == 0 or len(on) == 0:
             continue
-        d, j = cKDTree(bxy).query(pos[on, :2])
-        d = np.maximum(d - 0.5 * px_mm / 1000.0, 0.0)
-        vdist[on] = d
-        hit = d <= attach_m + 1e-12
-        vseg[on[hit]] = [seg_names.index(tab[int(l)]['segment']) for l in blab[j[hit]]]
+        bseg_px = np.array([seg_names.index(tab[int(l)]['segment']) for l in blab])
+        D = np.full((len(on), nseg), np.inf)
+        for sg in np.unique(bseg_px):
+            d, _ = cKDTree(bxy[bseg_px == sg]).query(pos[on, :2])
+            D[:, sg] = np.maximum(d - 0.5 * px_mm / 1000.0, 0.0)
+        near = D.min(axis=1) <= attach_m + 1e-12
+        D[~allowed[on]] = np.inf
+        best = np.argmin(D, axis=1)
+        hit = D[np.arange(len(on)), best] <= attach_m + 1e-12
+        refused += int(np.count_nonzero(near & ~hit))
+        vseg[on[hit]] = best[hit]
+        if hit.any():                                    # which bone each attached vertex touches
+            ok = np.isin(bseg_px, best[hit])
+            _, j = cKDTree(bxy[ok]).query(pos[on[hit], :2])
+            for l in blab[ok][j]:
+                bone_touch[tab[int(l)]['name']] = bone_touch.get(tab[int(l)]['name'], 0) + 1
 
     # ---------------------------------------------------------------- muscle origins and insertions
-    anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cell_muscle_all[kc], muscle_labels_used,
-                                 tab, seg_names, bonepix, vseg, warnings) if s['anchor_muscles'] else {}
+    anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
+                                 tab, seg_names, bonepix, vseg, warnings, pos) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
@@ -501,7 +655,13 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     ).validate()
     build_s = time.perf_counter() - t0
     from .quality import quality_report
-    report = quality_report(tm, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
+    vox_m3 = float(np.prod(vol.pixel_mm)) * 1e-9
+    label_vol = {tab[l]['name']: float(counts[l]) * vox_m3 for l in muscle_labels}
+    label_vol['fat'] = float(sum(counts[l] for l in fat_labels)) * vox_m3
+    checks = {'label_volume_m3': label_vol, 'breaks': breaks, 'bridged': [[tab[l]['name'], z] for l, z in bridged],
+              'bone_touch': {tab[l]['name']: bone_touch.get(tab[l]['name'], 0) for l in bone_labels},
+              'refused_across_joint': refused, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
+    report = quality_report(tm, checks=checks, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
                             dropped_cells=dropped_cells, warnings=warnings, n_unshared=n_unshared,
                             n_before_sharing=len(pos0), bone_info=bone_info, build_s=build_s)
     return tm, report

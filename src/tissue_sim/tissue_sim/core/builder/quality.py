@@ -72,9 +72,80 @@ def surface_checks(tm: M.TissueModel) -> dict:
     return out
 
 
-def quality_report(tm, *, cell_vol, area_rows, fats, dropped, dropped_cells, warnings, n_unshared,
+def cell_shear(tm: M.TissueModel, positions=None) -> tuple[np.ndarray, np.ndarray]:
+    """(shear, slant) of every cell. Shear: the largest in-plane offset of a top-ring vertex from its
+    bottom-ring partner once the ring centroids are aligned and the bottom ring is scaled about its
+    centroid by the best uniform factor, over the cell's height (0 for a right, oblique or tapered
+    prism; it measures twist and zig-zag between the rings: 2 = a vertex slides twice the height
+    sideways relative to its ring). Slant: the centroid offset over the height (the muscle's course
+    across the slices; reported, not a defect)."""
+    pos = tm.rest_positions if positions is None else positions
+    shear, slant = np.zeros(tm.n_cells), np.zeros(tm.n_cells)
+    sizes = np.diff(tm.cell_offsets)
+    for size in np.unique(sizes):
+        cs = np.nonzero(sizes == size)[0]
+        n = size // 2
+        P = pos[tm.cell_vertices[tm.cell_offsets[cs][:, None] + np.arange(size)[None, :]]]
+        d = P[:, n:] - P[:, :n]
+        h = np.maximum(np.abs(d[:, :, 2]).mean(axis=1), 1e-12)
+        cd = d[:, :, :2].mean(axis=1, keepdims=True)
+        B = P[:, :n, :2] - P[:, :n, :2].mean(axis=1, keepdims=True)
+        T = P[:, n:, :2] - P[:, n:, :2].mean(axis=1, keepdims=True)
+        s = np.sum(B * T, axis=(1, 2)) / np.maximum(np.sum(B * B, axis=(1, 2)), 1e-300)
+        shear[cs] = np.linalg.norm(T - s[:, None, None] * B, axis=2).max(axis=1) / h
+        slant[cs] = np.linalg.norm(cd[:, 0], axis=1) / h
+    return shear, slant
+
+
+def quality_checks(tm, vols, checks: dict) -> tuple[dict, list]:
+    """Volume against label volume per tissue, chain breaks, shear, bones without attached
+    vertices. Returns (section of the report, warnings)."""
+    warn = []
+    mus = tm.cell_tissue == M.TISSUE_MUSCLE
+    vol_rows = {}
+    for mi, name in enumerate(tm.muscle_names):
+        lv = checks['label_volume_m3'].get(name)
+        if lv:
+            vol_rows[name] = round(float(vols[tm.cell_muscle == mi].sum()) / lv, 4)
+    lv = checks['label_volume_m3'].get('fat')
+    if lv:
+        vol_rows['fat'] = round(float(vols[~mus].sum()) / lv, 4)
+    for name, r in vol_rows.items():
+        if abs(r - 1) > 0.10:
+            warn.append(f'{name}: built volume is {100 * (r - 1):+.1f} % of its label volume (limit +-10 %)')
+    for b in checks['breaks']:
+        warn.append(f'muscle {b["muscle"]} breaks between slices {b["from_slice"]} and {b["to_slice"]} ({b["reason"]})')
+    sh, sl = cell_shear(tm)
+    lim = checks['shear_limit']
+    shear = {}
+    for tname, sel in (('muscle', mus), ('fat', ~mus)):
+        v, w = sh[sel], sl[sel]
+        if len(v):
+            shear[tname] = {'median': round(float(np.median(v)), 3), 'p95': round(float(np.percentile(v, 95)), 3),
+                            'max': round(float(v.max()), 3), 'over_limit': int(np.count_nonzero(v > lim)), 'cells': int(len(v)),
+                            'slant_median': round(float(np.median(w)), 3), 'slant_p95': round(float(np.percentile(w, 95)), 3),
+                            'slant_max': round(float(w.max()), 3)}
+    over = np.nonzero(sh > lim)[0]
+    if len(over):
+        worst = over[np.argsort(-sh[over])][:3]
+        desc = ', '.join(f'cell {c} ({tm.muscle_names[tm.cell_muscle[c]] if mus[c] else "fat"}, slice {tm.cell_slice[c]}: '
+                         f'{sh[c]:.1f})' for c in worst)
+        warn.append(f'{len(over)} cell(s) sheared more than {lim:g} x their height (worst: {desc})')
+    for b, n in checks['bone_touch'].items():
+        if n == 0:
+            warn.append(f'bone {b}: no soft-tissue vertex is attached to it')
+    sec = {'volume_ratio': vol_rows, 'label_volume_cm3': {k: round(v * 1e6, 2) for k, v in checks['label_volume_m3'].items()},
+           'breaks': checks['breaks'], 'bridged_small_components': checks['bridged'], 'shear_limit': lim, 'shear': shear,
+           'bone_attached_vertices': checks['bone_touch'], 'attachment_refused_across_joint': checks['refused_across_joint'],
+           'sections_not_followed': checks['not_represented'],
+           'warnings': warn}
+    return sec, warn
+
+
+def quality_report(tm, *, checks, cell_vol, area_rows, fats, dropped, dropped_cells, warnings, n_unshared,
                    n_before_sharing, bone_info, build_s) -> dict:
     vols = cell_volumes(tm)
+    qsec, qwarn = quality_checks(tm, vols, checks)
     surf = surface_checks(tm)
     ratios = {}
     for r in area_rows:
@@ -108,5 +179,6 @@ def quality_report(tm, *, cell_vol, area_rows, fats, dropped, dropped_cells, war
         'dropped_components': dropped,
         'sharing': {'vertices_before': n_before_sharing, 'vertices_after': tm.n_vertices,
                     'unshared_to_avoid_inversion': n_unshared},
-        'warnings': warnings,
+        'quality': qsec,
+        'warnings': warnings + [w for w in qwarn if w not in warnings],
     }

@@ -78,7 +78,7 @@ def ray_origin(mask: np.ndarray) -> tuple[np.ndarray, str]:
 def polygon_area(xy: np.ndarray) -> float:
     """Signed area of a closed polygon (n, 2); positive when counter-clockwise."""
     x, y = xy[:, 0], xy[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return 0.5 * float(x[:-1] @ y[1:] - x[1:] @ y[:-1] + x[-1] * y[0] - x[0] * y[-1])
 
 
 def best_origin(mask: np.ndarray, dirs_px: np.ndarray, mode: str = 'first', n_candidates: int = 4,

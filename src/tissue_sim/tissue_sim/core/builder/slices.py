@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
-from . import rays
+from . import contours, rays
 from .io import voxel_to_model
 
 
@@ -23,6 +23,8 @@ class Region:
     origin_kind: str = ''
     ring: np.ndarray | None = None     # (n, 3) model-frame polygon vertices, CCW from +z
     poly_area_mm2: float = 0.0
+    fine: np.ndarray | None = None     # contour sections: (FINE n, 2) outline, model xy [m], CCW
+    small: bool = False                # below min_area_mm2 (kept only to bridge a muscle's gap)
 
     def overlap(self, other: 'Region') -> int:
         si = (max(self.bbox[0].start, other.bbox[0].start), min(self.bbox[0].stop, other.bbox[0].stop))
@@ -66,17 +68,22 @@ def _pad_bbox(bb, shape, pad=2):
 
 
 def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: int, min_area_mm2: float,
-                   ray_hit: str, angle_offset: float, origin_mode: str = 'best') -> tuple[dict, list]:
-    """Ray polygons of every component of every muscle label on one slice.
+                   ray_hit: str, angle_offset: float, origin_mode: str = 'best', sections: str = 'contour'):
+    """Cross-section polygons of every component of every muscle label on one slice.
 
-    Returns ({label: [Region, ...] (largest first)}, dropped) where dropped lists
-    (label, area_mm2, reason) for components below ``min_area_mm2`` or without a valid polygon.
+    ``sections``: 'contour' (the traced outline resampled by arc length; the ring's start index is
+    chosen later along each chain, docs/builder.md) or 'rays' (the paper's half-lines). A contour
+    region whose outline gives no simple polygon falls back to rays (``origin_kind`` says so).
+    Returns ({label: [Region, ...] (largest first)}, dropped, small) where dropped lists
+    (label, area_mm2, reason) for components below ``min_area_mm2`` or without a valid polygon,
+    and small = {label: Region} the largest dropped small component of a label that has no kept
+    component on this slice (used to bridge a thin tendon between two slices of its muscle).
     """
     px_area = abs(np.linalg.det(geom.lin)) * 1e6                 # mm^2 per pixel
     objs = ndimage.find_objects(sl)
     dirs = rays.pixel_directions(rays.ray_angles(n_rays, angle_offset), geom.lin)
     u = np.stack([np.cos(rays.ray_angles(n_rays, angle_offset)), np.sin(rays.ray_angles(n_rays, angle_offset))], 1)
-    out, dropped = {}, []
+    out, dropped, small = {}, [], {}
     for lab in labels:
         if lab > len(objs) or objs[lab - 1] is None:
             continue
@@ -86,16 +93,33 @@ def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: i
         sizes = np.bincount(comp.ravel())[1:]
         cobjs = ndimage.find_objects(comp)
         regs = []
-        for ci in np.argsort(-sizes):
+        for rank, ci in enumerate(np.argsort(-sizes)):
             area = float(sizes[ci]) * px_area
-            if area < min_area_mm2:
+            is_small = area < min_area_mm2
+            if is_small:
                 dropped.append((lab, area, f'component below {min_area_mm2:g} mm^2'))
-                continue
+                if rank > 0 or sizes[ci] < 2:
+                    continue
             sub = _pad_bbox(cobjs[ci], comp.shape)
             mm = comp[sub] == ci + 1
             full_bb = (slice(bb[0].start + sub[0].start, bb[0].start + sub[0].stop),
                        slice(bb[1].start + sub[1].start, bb[1].start + sub[1].stop))
-            reg = Region(lab, full_bb, mm, area)
+            reg = Region(lab, full_bb, mm, area, small=is_small)
+            if sections == 'contour':
+                reg.fine = contours.region_fine(mm, (full_bb[0].start, full_bb[1].start), geom.lin, geom.off, n_rays)
+                r2 = None
+                if reg.fine is not None:
+                    r2, _ = contours.best_ring(reg.fine, n_rays, None, None)    # provisional: chosen along the chain
+                if r2 is not None:
+                    # the outline is the outer boundary: a region enclosing a hole (another tissue)
+                    # keeps its area on the ring, not its hole (reported)
+                    hole = rays.polygon_area(reg.fine) * 1e6 > 1.1 * area
+                    reg.origin_kind = 'contour (encloses a hole)' if hole else 'contour'
+                    reg.ring = np.concatenate([r2, np.full((n_rays, 1), geom.z)], axis=1)
+                    reg.poly_area_mm2 = rays.polygon_area(r2) * 1e6
+                    (small.__setitem__(lab, reg) if is_small else regs.append(reg))
+                    continue
+                reg.fine = None                       # not representable as a simple contour ring: rays
             if origin_mode == 'best':
                 origin, reg.origin_kind, d = rays.best_origin(mm, dirs, ray_hit, px_area_m2=px_area * 1e-6)
             else:
@@ -110,10 +134,13 @@ def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: i
             ring[:, 2] = geom.z
             reg.ring = ring
             reg.poly_area_mm2 = rays.polygon_area(ring[:, :2]) * 1e6
-            regs.append(reg)
+            if sections == 'contour':
+                reg.origin_kind = 'rays (no simple contour ring)'
+            (small.__setitem__(lab, reg) if is_small else regs.append(reg))
         if regs:
             out[lab] = regs
-    return out, dropped
+            small.pop(lab, None)
+    return out, dropped, small
 
 
 def fat_rays(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int], fat_labels: list[int], n_rays: int,
@@ -144,6 +171,20 @@ def fat_rays(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int], fat_labels
         return p
     return {'origin': o_model, 'inner': pts(inner), 'outer': pts(outer), 'has_bone': bool(bone.any()),
             'fat_area_mm2': float(np.count_nonzero(fat)) * abs(np.linalg.det(geom.lin)) * 1e6}
+
+
+def fat_contours(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int], fat_labels: list[int], n: int) -> dict | None:
+    """Fat tube outlines of one slice (``sections: contour``): the fine skin outline and the fine
+    outline of the fat layer's inner face (contours.fat_outlines); the rings are chosen along the
+    stack by the assembler. None when the body has no traceable outline."""
+    px_mm = float(np.sqrt(abs(np.linalg.det(geom.lin)))) * 1000.0
+    f = contours.fat_outlines(sl, geom.lin, geom.off, px_mm, bone_labels, fat_labels, n)
+    if f is None:
+        return None
+    fat = np.isin(sl, fat_labels)
+    f.update(has_bone=bool(np.isin(sl, bone_labels).any()),
+             fat_area_mm2=float(np.count_nonzero(fat)) * abs(np.linalg.det(geom.lin)) * 1e6, z=geom.z)
+    return f
 
 
 def bone_pixels(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int]) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,362 @@
+"""Cross-sections that follow the label outline (``sections: contour``; docs/builder.md "Contour sections").
+
+A region's outline is the 0.5 iso-line of its mask (``skimage.measure.find_contours``, the curve the
+ray sections also use), mapped to model-frame metres through the slice's affine and oriented
+counter-clockwise seen from +z. It is resampled by arc length to ``FINE`` points per ring vertex; a
+ring is every ``FINE``-th of them from a start index chosen per chain so that corresponding
+vertices of neighbouring slices lie as close as possible after the two centroids are aligned
+(least twist and shear). Each ring is then offset along its vertex normals until its area is the
+region's target area (the chord polygon of a convex outline loses area, of a concave one gains).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from skimage import measure
+
+from .rays import polygon_area
+
+FINE = 8                 # fine outline samples per ring vertex (start-index resolution 1/FINE of a vertex step)
+
+
+def outline_px(mask: np.ndarray) -> np.ndarray | None:
+    """Outer boundary (0.5 iso-line) of a 2-D mask in pixel (i, j) coordinates of ``mask``, closed
+    polygon without the repeated point; the longest closed contour (holes are left out)."""
+    cs = measure.find_contours(np.pad(mask.astype(np.float64), 1), 0.5)
+    cs = [c for c in cs if len(c) >= 4 and np.allclose(c[0], c[-1])]
+    if not cs:
+        return None
+    c = max(cs, key=lambda c: abs(polygon_area(c)))
+    return c[:-1] - 1.0
+
+
+def to_model_ccw(px: np.ndarray, lin: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """Pixel (i, j) outline -> model xy [m], counter-clockwise seen from +z."""
+    xy = px @ lin.T + off
+    return xy if polygon_area(xy) > 0 else xy[::-1].copy()
+
+
+def resample(xy: np.ndarray, m: int) -> np.ndarray:
+    """m points evenly spaced by arc length along the closed polygon xy, starting at xy[0]."""
+    p = np.vstack([xy, xy[:1]])
+    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.arange(m) * s[-1] / m
+    return np.stack([np.interp(t, s, p[:, 0]), np.interp(t, s, p[:, 1])], axis=1)
+
+
+def ring_at(fine: np.ndarray, start: int, n: int) -> np.ndarray:
+    m = len(fine)
+    return fine[(start + (m // n) * np.arange(n)) % m]
+
+
+def _candidates(fine: np.ndarray, n: int) -> np.ndarray:
+    """(m, n, 2): the ring for every start index of the fine outline."""
+    m = len(fine)
+    return fine[(np.arange(m)[:, None] + (m // n) * np.arange(n)[None, :]) % m]
+
+
+def start_costs(fine: np.ndarray, n: int, ref: np.ndarray, centred: bool = True) -> np.ndarray:
+    """Sum of squared distances between each candidate ring and ``ref`` (n, 2), per start index;
+    with ``centred`` both are taken about their own centroids (twist and shear only, not the
+    translation of the region)."""
+    R = _candidates(fine, n)
+    if centred:
+        R = R - R.mean(axis=1, keepdims=True)
+        ref = ref - ref.mean(axis=0)
+    return np.sum((R - ref[None]) ** 2, axis=(1, 2))
+
+
+def anterior_start(fine: np.ndarray, n: int) -> int:
+    """Start index whose point lies most nearly along +x (anterior) from the outline's centroid:
+    vertex 0 of the first ring of a chain points the way ray 0 does."""
+    c = fine.mean(axis=0)
+    d = fine - c
+    ang = np.abs(np.arctan2(d[:, 1], d[:, 0]))
+    return int(np.argmin(ang + 1e-9 * np.arange(len(fine))))
+
+
+def is_simple(xy: np.ndarray) -> bool:
+    """True when the closed polygon has no two non-adjacent edges that intersect."""
+    n = len(xy)
+    a, b = xy, xy[np.r_[1:n, 0]]
+    i, j = np.triu_indices(n, 2)
+    keep = ~((i == 0) & (j == n - 1))
+    i, j = i[keep], j[keep]
+
+    def orient(p, q, r):
+        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+    d1 = orient(a[i], b[i], a[j]); d2 = orient(a[i], b[i], b[j])
+    d3 = orient(a[j], b[j], a[i]); d4 = orient(a[j], b[j], b[i])
+    return not np.any((d1 * d2 < 0) & (d3 * d4 < 0))
+
+
+def match_area(ring: np.ndarray, target: float, iters: int = 4) -> np.ndarray:
+    """Offset a counter-clockwise ring along its vertex (mitre) normals until its area is ``target``
+    [m^2]; returns the ring unchanged when the offset would make it self-intersect."""
+    r = ring.copy()
+    nxt, prv = np.r_[1:len(r), 0], np.r_[len(r) - 1, 0:len(r) - 1]
+    for _ in range(iters):
+        a = polygon_area(r)
+        e = r[nxt] - r                                         # edge i: r[i] -> r[i+1]
+        L = np.linalg.norm(e, axis=1)
+        if a <= 0 or np.any(L <= 0):
+            return ring
+        nrm = np.stack([e[:, 1], -e[:, 0]], 1) / L[:, None]     # outward normal of edge i (CCW)
+        n1, n2 = nrm[prv], nrm                                   # edges before / after vertex i
+        mitre = (n1 + n2) / np.maximum(1.0 + np.sum(n1 * n2, axis=1), 0.5)[:, None]
+        delta = (target - a) / L.sum()
+        if abs(target - a) <= 1e-4 * target:
+            break
+        r = r + delta * mitre
+    return r if is_simple(r) and polygon_area(r) > 0 else ring
+
+
+def best_ring(fine: np.ndarray, n: int, ref: np.ndarray | None, target: float | None, centred: bool = True):
+    """The ring of ``n`` vertices on the fine outline: start index by least (centred) squared
+    distance to ``ref`` (the ring below in the chain; None: anterior start), the first simple
+    candidate in order of cost; area matched to ``target``. Returns (ring (n, 2), start) or
+    (None, -1) when no start gives a simple polygon."""
+    if ref is None:
+        s0 = anterior_start(fine, n)
+        order = np.argsort(np.abs(((np.arange(len(fine)) - s0 + len(fine) // 2) % len(fine)) - len(fine) // 2), kind='stable')
+    else:
+        order = np.argsort(start_costs(fine, n, ref, centred), kind='stable')
+    for s in order[:len(fine) // n + 1]:
+        r = ring_at(fine, int(s), n)
+        if is_simple(r) and polygon_area(r) > 0:
+            return (match_area(r, target) if target else r), int(s)
+    return None, -1
+
+
+def region_fine(mask: np.ndarray, origin_px, lin, off, n: int) -> np.ndarray | None:
+    """Fine outline (FINE * n points, model xy [m], CCW) of one region mask whose pixel (0, 0) is
+    full-slice pixel ``origin_px``."""
+    o = outline_px(mask)
+    if o is None or len(o) < 3:
+        return None
+    xy = to_model_ccw(o + np.asarray(origin_px, float), lin, off)
+    return resample(xy, FINE * n)
+
+
+def fat_outlines(sl: np.ndarray, lin, off, px_mm: float, bone_labels, fat_labels, n: int, close_mm: float = 4.0):
+    """Fine outer (skin) and inner (subcutaneous fat's inner face) outlines of one slice, model xy
+    [m], CCW, and the areas [m^2] they should enclose.
+
+    Skin: the outer boundary of the body's largest component. Inner face: the outer boundary of the
+    non-fat tissue (muscles, bones), closed over gaps narrower than ``2 close_mm`` and with holes
+    (intermuscular fat) filled, largest component. Returns None when a boundary cannot be traced."""
+    body = sl > 0
+    objs = ndimage.find_objects(body.astype(np.int8))
+    if not objs or objs[0] is None:
+        return None
+    r = max(1, int(round(close_mm / px_mm)))
+    bb = tuple(slice(max(s.start - r - 2, 0), min(s.stop + r + 2, N)) for s, N in zip(objs[0], sl.shape))
+    crop = sl[bb]
+    bodyc = crop > 0
+    lab, nl = ndimage.label(bodyc)
+    if nl > 1:
+        bodyc = lab == (np.argmax(np.bincount(lab.ravel())[1:]) + 1)
+    bodyc = ndimage.binary_fill_holes(bodyc)
+    inner = bodyc & ~np.isin(crop, fat_labels)
+    if inner.any():
+        # closing with a disk of radius r, by distance transforms (dilate, then erode)
+        p = np.pad(inner, r + 1)
+        dil = ndimage.distance_transform_edt(~p) <= r
+        inner = (ndimage.distance_transform_edt(dil) > r)[r + 1:-r - 1, r + 1:-r - 1]
+        inner = ndimage.binary_fill_holes(inner) & bodyc
+        lab, nl = ndimage.label(inner)
+        if nl > 1:
+            inner = lab == (np.argmax(np.bincount(lab.ravel())[1:]) + 1)
+    org = np.array([bb[0].start, bb[1].start], float)
+    px_area = abs(np.linalg.det(lin))
+    outer_f = region_fine(bodyc, org, lin, off, n)
+    inner_f = region_fine(inner, org, lin, off, n) if inner.any() else None
+    if outer_f is None:
+        return None
+    return {'outer': outer_f, 'inner': inner_f, 'outer_area': float(bodyc.sum()) * px_area,
+            'inner_area': float(inner.sum()) * px_area if inner_f is not None else 0.0}
+
+
+# ---------------------------------------------------------------------------- along the stack
+
+def bridge_gaps(regions: list, smalls: list, labels, dropped: list) -> list:
+    """Keep a muscle's small component (below ``min_area_mm2``, e.g. a thin tendon) on a slice
+    between two slices where the muscle has kept components, so that its chain does not break
+    there. In place on ``regions``/``dropped``; returns [(label, slice)] bridged."""
+    out = []
+    for lab in labels:
+        pres = [zi for zi, r in enumerate(regions) if r.get(lab)]
+        if len(pres) < 2:
+            continue
+        for zi in range(pres[0] + 1, pres[-1]):
+            if not regions[zi].get(lab) and lab in smalls[zi]:
+                reg = smalls[zi][lab]
+                reg.small = False
+                regions[zi][lab] = [reg]
+                a = round(reg.area_mm2, 2)
+                for q, d in enumerate(dropped):
+                    if d['slice'] == zi and d['label'] == lab and d['area_mm2'] == a:
+                        dropped.pop(q)
+                        break
+                out.append((lab, zi))
+    return out
+
+
+def label_slice_counts(labels: np.ndarray, wanted) -> dict:
+    """{label: (K,) voxel count of the label on every volume slice k}."""
+    K = labels.shape[2]
+    mx = int(max(wanted)) + 1
+    c = np.zeros((K, mx), np.int64)
+    for k in range(K):
+        b = np.bincount(labels[:, :, k].ravel(), minlength=mx)
+        c[k] = b[:mx]
+    return {int(l): c[:, int(l)].astype(np.float64) for l in wanted}
+
+
+def glitch_substitute(counts: np.ndarray, k: int, jump: float = 2.5) -> int | None:
+    """A used voxel slice k whose label area jumps by more than ``jump`` times against both
+    neighbouring voxel slices (a labelling glitch: the bundled limb labels all of gastrocnemius
+    medialis as lateralis on one voxel slice) is represented by the neighbouring slice whose area is
+    closer to their mean; returns that slice, or None. Ends of a label (a neighbour without it) are
+    never glitches."""
+    if k <= 0 or k >= len(counts) - 1:
+        return None
+    a, own, b = counts[k - 1], counts[k], counts[k + 1]
+    if a <= 0 or b <= 0:
+        return None
+    if own * jump < min(a, b) or own > jump * max(a, b):
+        m = 0.5 * (a + b)
+        return k - 1 if abs(a - m) <= abs(b - m) else k + 1
+    return None
+
+
+def slab_factor(counts: np.ndarray, ks, zi: int, has_prev: bool, has_next: bool, lo: float = 2 / 3, hi: float = 1.5,
+                own: float | None = None) -> float:
+    """Area factor of a ring on used slice ``zi`` so that the prism chain's volume (trapezoid rule
+    over the used slices) equals the label's volume: the label voxels of the ring's slab (half way to
+    each neighbouring ring of the chain; at a chain end, all the way to the next used slice or the
+    volume's end, where the label tapers off between slices) over the ring's trapezoid weight,
+    relative to the label's area on the slice itself; clamped to [lo, hi]."""
+    K = len(counts)
+    edges = np.arange(K + 1) - 0.5
+    F = np.concatenate([[0.0], np.cumsum(counts)])
+    k = float(ks[zi])
+    vol = w = 0.0
+    for nb, has in ((zi - 1, has_prev), (zi + 1, has_next)):
+        if 0 <= nb < len(ks):
+            kn = float(ks[nb])
+            b = 0.5 * (k + kn) if has else kn - 0.5 * np.sign(kn - k)
+            if has:
+                w += 0.5 * abs(kn - k)
+        else:
+            b = -0.5 if (zi == 0) == (ks[-1] > ks[0]) else K - 0.5
+        vol += abs(np.interp(b, edges, F) - np.interp(k, edges, F))
+    own = counts[int(k)] if own is None else own
+    if w <= 0 or own <= 0:
+        return 1.0
+    return float(np.clip(vol / (w * own), lo, hi))
+
+
+def chain_rings(chains: list, regions: list, lab: int, n: int, counts: np.ndarray, ks, subst: dict | None = None) -> None:
+    """Choose every contour ring of one muscle's chains (in place on the regions): start index by
+    least twist and shear against the ring below, area = the region's label area times the slab
+    factor (the chain keeps the label's volume); ``subst`` {slice: voxel slice} names slices whose
+    section was taken from a neighbouring voxel slice (glitch_substitute)."""
+    pres = {z for ch in chains for (z, _) in ch}
+    for ch in chains:
+        ref = None
+        for z, i in ch:
+            reg = regions[z][lab][i]
+            if reg.fine is not None:
+                k2 = (subst or {}).get(z)
+                f = slab_factor(counts, ks, z, (z - 1) in pres, (z + 1) in pres, own=None if k2 is None else counts[k2])
+                r, _ = best_ring(reg.fine, n, ref, reg.area_mm2 * 1e-6 * f)
+                if r is not None:
+                    reg.ring = np.concatenate([r, np.full((n, 1), reg.ring[0, 2])], axis=1)
+                    reg.poly_area_mm2 = polygon_area(r) * 1e6
+            ref = reg.ring[:, :2]
+
+
+def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tuple[list, list]:
+    """Fat tube rings from the slices' fine outlines (slices.fat_contours): the skin ring's start by
+    least twist against the slice below, the inner ring's start by least distance to the skin ring
+    of its slice (so that inner a and outer a face each other across the layer), both area-matched;
+    the inner point is kept ``min_thickness_m`` inside the outer one. Returns dicts like
+    slices.fat_rays (inner, outer (n, 3), origin, has_bone, fat_area_mm2), and the slices whose
+    outlines still gave a crossing cell: there ``fallback(slice, outer ring below)`` (the paper's
+    rays, turned to the least twist against the ring below) is used when given."""
+    out, ref, f_bad = [], None, []
+    for f in fats:
+        ref_prev = ref
+        if 'fine' not in f and 'outer_area' not in f:
+            out.append(f)                           # ray fallback of an untraceable slice
+            ref = f['outer'][:, :2]
+            continue
+        z = f['z']
+        o, _ = best_ring(f['outer'], n, ref, f['outer_area'])
+        if o is None:
+            o = ring_at(f['outer'], anterior_start(f['outer'], n), n)
+        co = o.mean(axis=0)
+        inn = None
+        if f['inner'] is not None:
+            inn, _ = best_ring(f['inner'], n, o, f['inner_area'], centred=False)
+            if inn is not None and not fat_quads_valid(inn, o):
+                # a small inner region off the skin's centre (the foot): pair by angle about it instead
+                fi = f['inner']
+                ci = fi.mean(axis=0)
+                ang_f = np.arctan2(fi[:, 1] - ci[1], fi[:, 0] - ci[0])
+                ang_o = np.arctan2(o[:, 1] - ci[1], o[:, 0] - ci[0])
+                dif = np.abs((ang_f[None, :] - ang_o[:, None] + np.pi) % (2 * np.pi) - np.pi)
+                inn = match_area(fi[np.argmin(dif, axis=1)], f['inner_area'])
+        if inn is None:
+            inn = co + 0.5 * (o - co)
+        ci = inn.mean(axis=0)
+        d = inn - o
+        L = np.linalg.norm(d, axis=1)
+        thin = L < min_thickness_m
+        if thin.any():
+            u = ci - o[thin]
+            u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+            inn[thin] = o[thin] + u * min_thickness_m
+        ref = o
+        if not fat_quads_valid(inn, o):
+            f_bad.append(len(out))
+            if fallback is not None:
+                fb = fallback(len(out), ref_prev)
+                out.append(fb)
+                ref = ref_prev = fb['outer'][:, :2]
+                continue
+        ref_prev = ref
+
+        def pts(xy):
+            return np.concatenate([xy, np.full((n, 1), z)], axis=1)
+        out.append({'origin': np.array([co[0], co[1], z]), 'inner': pts(inn), 'outer': pts(o), 'has_bone': f['has_bone'],
+                    'fat_area_mm2': f['fat_area_mm2']})
+    return out, f_bad
+
+
+def fat_quads_valid(inner: np.ndarray, outer: np.ndarray) -> bool:
+    """Every fat quad (inner a, inner b, outer b, outer a) of one slice is clockwise (positive cell)."""
+    b = np.r_[1:len(inner), 0]
+    q = np.stack([inner, inner[b], outer[b], outer], axis=1)           # (n, 4, 2)
+    x, y = q[..., 0], q[..., 1]
+    a = 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
+    return bool(np.all(a < 0))
+
+
+def turn_rays(make, n: int, ref: np.ndarray | None, steps: int = 4) -> dict:
+    """The ray fat ring ``make(angle_offset)`` (slices.fat_rays) turned to the least twist against
+    ``ref``: angle offsets in ``steps`` sub-steps of the ray spacing, ray indices rolled."""
+    if ref is None:
+        return make(0.0)
+    best, bc = None, np.inf
+    for off in 2 * np.pi / n * np.arange(steps) / steps:
+        f = make(off)
+        o = f['outer'][:, :2]
+        for r in range(n):
+            c = float(np.sum(((np.roll(o, -r, axis=0) - o.mean(0)) - (ref - ref.mean(0))) ** 2))
+            if c < bc:
+                bc, best = c, (f, r)
+    f, r = best
+    return dict(f, inner=np.roll(f['inner'], -r, axis=0), outer=np.roll(f['outer'], -r, axis=0))

@@ -1,0 +1,222 @@
+"""Contour cross-sections, connected muscles, joint-respecting bindings and the quality checks
+(docs/builder.md), on the phantoms of tests/phantoms.py made by code."""
+import numpy as np
+import pytest
+
+from phantoms import KNEE_Z, make_hard_phantom, make_phantom
+from tissue_sim.core import model as M
+from tissue_sim.core.builder import build_model
+from tissue_sim.core.builder import contours as CT
+from tissue_sim.core.builder.quality import cell_shear, cell_volumes, surface_checks
+from tissue_sim.core.builder.rays import polygon_area
+from tissue_sim.errors import UserError
+
+P = {'slice_mm': 25.0}
+
+
+@pytest.fixture(scope='module')
+def hard():
+    lab, aff, tab = make_hard_phantom()
+    return build_model((lab, aff), tab, **P)
+
+
+@pytest.fixture(scope='module')
+def hard_rays():
+    lab, aff, tab = make_hard_phantom()
+    return build_model((lab, aff), tab, sections='rays', **P)
+
+
+def test_every_tissue_keeps_its_label_volume(hard):
+    """Wrapped, crescent, split, mid-stack-ending muscles and the fat (bumpy skin): +-10 %."""
+    tm, rep = hard
+    r = rep['quality']['volume_ratio']
+    assert set(r) == {'wrap', 'crescent', 'split', 'short', 'fat'}
+    for name, v in r.items():
+        assert 0.9 <= v <= 1.1, (name, v)
+    assert rep['quality']['warnings'] == []
+
+
+def test_rays_lose_the_wrapped_and_crescent_muscles_and_the_report_says_so(hard_rays):
+    """The paper's rays (still available): the wrapped muscle loses > 30 %, and the quality report warns."""
+    tm, rep = hard_rays
+    r = rep['quality']['volume_ratio']
+    assert r['wrap'] < 0.7 and r['crescent'] < 0.9
+    assert any(w.startswith('wrap: built volume') for w in rep['quality']['warnings'])
+    assert any(w.startswith('wrap: built volume') for w in rep['warnings'])
+
+
+def test_cells_valid_surfaces_closed_and_untwisted(hard):
+    tm, rep = hard
+    tm.validate()
+    assert rep['cells']['inverted'] == 0 and not rep['cells']['dropped_degenerate']
+    assert np.all(cell_volumes(tm) > 0)
+    assert all(v['watertight'] and v['outward'] for v in surface_checks(tm).values())
+    sh, _ = cell_shear(tm)
+    assert sh[tm.cell_tissue == M.TISSUE_MUSCLE].max() < 1.0          # straight muscles: no twist between rings
+    assert rep['quality']['shear']['muscle']['over_limit'] == 0
+    for c in np.nonzero(tm.cell_tissue == M.TISSUE_MUSCLE)[0]:
+        v = tm.rest_positions[tm.cell(c)]
+        n = len(v) // 2
+        assert polygon_area(v[:n, :2]) > 0 and polygon_area(v[n:, :2]) > 0
+
+
+def test_split_muscle_is_two_chains_and_one_bone_becomes_two(hard):
+    tm, rep = hard
+    m = tm.muscle_index('split')
+    cs = tm.cell_slice[tm.cell_muscle == m]
+    zc = tm.slice_z[cs]
+    assert np.count_nonzero(zc >= 0) == 2 * np.count_nonzero(tm.slice_z[:-1] >= 0)    # two branches above z = 0
+    assert rep['quality']['breaks'] == []
+    att = rep['quality']['bone_attached_vertices']
+    assert att['tibia'] > 0 and att['fibula'] > 0 and att['upper_bone'] > 0
+
+
+def test_muscle_ending_mid_stack(hard):
+    tm, rep = hard
+    m = tm.muscle_index('short')
+    top = tm.slice_z[tm.cell_slice[tm.cell_muscle == m] + 1].max()
+    assert top == pytest.approx(0.025)           # last slice below its end at z = 37 mm
+    assert 0.9 <= rep['quality']['volume_ratio']['short'] <= 1.1      # the end ring stands for its slab
+
+
+def test_rotated_flipped_anisotropic_grid_gives_the_same_volumes(hard):
+    tm, rep = hard
+    lab, aff, tab = make_hard_phantom(rotated=False)
+    tm2, rep2 = build_model((lab, aff), tab, **P)
+    assert np.allclose(tm.slice_z, tm2.slice_z)
+    v1, v2 = cell_volumes(tm), cell_volumes(tm2)
+    for name in ('wrap', 'crescent', 'split', 'short'):
+        a, b = v1[tm.cell_muscle == tm.muscle_index(name)].sum(), v2[tm2.cell_muscle == tm2.muscle_index(name)].sum()
+        assert a == pytest.approx(b, rel=0.03), name
+
+
+def test_ring_start_minimises_twist():
+    """The ring chosen on a rotated copy of an outline matches the reference vertex by vertex."""
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    xy = np.stack([0.03 * np.cos(t) * (1 + 0.3 * np.cos(2 * t)), 0.02 * np.sin(t)], 1)
+    fine = CT.resample(xy, CT.FINE * 12)
+    ref, s0 = CT.best_ring(fine, 12, None, None)
+    assert s0 >= 0
+    shifted = np.roll(fine, 37, axis=0) + [0.01, -0.005]
+    ring, _ = CT.best_ring(shifted, 12, ref, None)
+    assert np.abs(ring - [0.01, -0.005] - ref).max() < 1e-9
+
+
+def test_area_matching_keeps_a_crescent_area():
+    t = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    outer = np.stack([np.cos(t), np.sin(t)], 1)
+    m = np.zeros((200, 200), bool)
+    ii, jj = np.mgrid[:200, :200]
+    m[(np.hypot(ii - 100, jj - 100) <= 60) & (np.hypot(ii - 100, jj - 130) > 45)] = True
+    fine = CT.region_fine(m, (0, 0), np.eye(2) * 1e-3, np.zeros(2), 12)
+    ring, _ = CT.best_ring(fine, 12, None, m.sum() * 1e-6)
+    assert CT.is_simple(ring)
+    assert polygon_area(ring) == pytest.approx(m.sum() * 1e-6, rel=0.01)
+    del outer
+
+
+def test_thin_tendon_beside_its_belly_stays_one_chain():
+    """No overlap between tendon and belly on neighbouring slices: the chain is still linked."""
+    lab, aff, tab = make_phantom('tendon')
+    tm, rep = build_model((lab, aff), tab, **P)
+    m = tm.muscle_index('flexor')
+    cs = np.sort(tm.cell_slice[tm.cell_muscle == m])
+    assert np.array_equal(cs, np.arange(len(tm.slice_z) - 1))
+    assert rep['quality']['breaks'] == []
+
+
+def test_a_real_break_is_an_error_naming_the_muscle_and_slices():
+    lab, aff, tab = make_phantom('gap')
+    with pytest.raises(UserError, match=r'muscle flexor \(label 11\) breaks between slices 3 and 5'):
+        build_model((lab, aff), tab, **P)
+    tm, rep = build_model((lab, aff), tab, allow_broken=True, **P)
+    assert rep['quality']['breaks'][0]['from_slice'] == 3
+    assert any('flexor breaks between slices 3 and 5' in w for w in rep['quality']['warnings'])
+
+
+def test_a_muscle_not_crossing_the_knee_is_not_bound_across_it():
+    """extensor: origin and insertion on 'upper'; it touches the bone below the knee too, but none of
+    its vertices is bound to 'lower' (nothing of a muscle is bound across a joint it does not cross)."""
+    lab, aff, tab = make_phantom('column')
+    tab['labels'][12] = dict(tab['labels'][12], origin='upper', insertion='upper')
+    tm, rep = build_model((lab, aff), tab, **P)
+    m = tm.muscle_index('extensor')
+    vs = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == m)[0]]))
+    lower = tm.segment_names.index('lower')
+    assert not np.any(tm.vertex_segment[vs] == lower)
+    assert np.any(tm.vertex_segment[vs] == tm.segment_names.index('upper'))
+    assert rep['quality']['attachment_refused_across_joint'] > 0
+    # without origin/insertion the same vertices below the knee touch the lower bone and are bound to it
+    lab, aff, tab = make_phantom('column')
+    tm0, _ = build_model((lab, aff), tab, **P)
+    vs0 = np.unique(np.concatenate([tm0.cell(c) for c in np.nonzero(tm0.cell_muscle == tm0.muscle_index('extensor'))[0]]))
+    assert np.any((tm0.vertex_segment[vs0] == lower) & (tm0.rest_positions[vs0, 2] < KNEE_Z / 1000))
+
+
+def test_bad_sections_setting():
+    lab, aff, tab = make_phantom('column')
+    with pytest.raises(UserError, match='sections'):
+        build_model((lab, aff), tab, sections='spline', **P)
+
+
+def test_cli_strict_fails_and_writes_nothing(tmp_path, capsys):
+    from phantoms import write_phantom
+    from tissue_sim.cli import main
+    labels, tissues = write_phantom('cshape', tmp_path / 'in', 'npz')
+    out = tmp_path / 'm.npz'
+    rc = main(['build-model', str(labels), '--tissues', str(tissues), '--slice-mm', '25', '--sections', 'rays',
+               '--muscle-rays', '6', '-o', str(out), '--strict'])
+    err = capsys.readouterr().err
+    assert rc == 2 and not out.exists()
+    assert 'flexor: built volume' in err and '--strict' in err
+    assert main(['build-model', str(labels), '--tissues', str(tissues), '--slice-mm', '25', '-o', str(out), '--strict']) == 0
+    assert out.exists()
+    capsys.readouterr()
+    assert main(['build-model', str(labels), '--tissues', str(tissues), '--slice-mm', '25', '--sections', 'rays',
+                 '--muscle-rays', '6', '-o', str(tmp_path / 'r.npz'), '--json']) == 0
+    import json
+    d = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert any(w.startswith('flexor: built volume') for w in d['quality_warnings'])
+
+
+def test_end_ring_beside_two_segments_binds_only_the_side_of_its_bone():
+    """A quadriceps-like muscle whose insertion ring lies around the 'upper' bone and beside a
+    patella on 'lower': only its vertices nearer the patella are fixed to 'lower' (the others would
+    swing through the upper bone in flexion)."""
+    from phantoms import _grid
+    lab, aff, tab = make_phantom('column')
+    _, _, x, y, z = _grid()
+    lab[(lab == 12) & (z < 25)] = 40
+    lab[(np.hypot(x - 64, y) <= 5) & (z >= 20) & (z <= 30)] = 3
+    tab['labels'][3] = {'name': 'patella', 'tissue': 'bone', 'segment': 'lower'}
+    tab['labels'][12] = dict(tab['labels'][12], origin='upper', insertion='lower')
+    tm, rep = build_model((lab, aff), tab, **P)
+    m = tm.muscle_index('extensor')
+    vs = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == m)[0]]))
+    zz = tm.rest_positions[vs, 2]
+    ring = vs[np.isclose(zz, zz.min())]
+    assert zz.min() == pytest.approx(0.025)
+    lower = tm.segment_names.index('lower')
+    bound = ring[tm.vertex_segment[ring] == lower]
+    assert 0 < len(bound) == tm.meta['anchors']['extensor']['insertion'][1]
+    xb = tm.rest_positions[bound, 0] * 1000
+    assert np.all(np.abs(xb - 64) < np.abs(xb))           # nearer the patella than the upper bone
+    near_upper = ring[np.linalg.norm(tm.rest_positions[ring, :2], axis=1) < 0.02]
+    assert len(near_upper) and not np.any(tm.vertex_segment[near_upper] == lower)
+
+
+def test_a_region_enclosing_a_hole_is_reported_and_keeps_its_area():
+    """A muscle all round the bone: its ring follows the outer boundary with the label's area, and
+    the report names every slice where the hole is not represented."""
+    from phantoms import _grid
+    lab, aff, tab = make_phantom('column')
+    _, _, x, y, z = _grid()
+    r = np.hypot(x, y)
+    lab[(lab == 11) | (lab == 12)] = 40
+    lab[np.hypot(x - 50, y) <= 12] = 12
+    lab[(r > 14) & (r <= 30) & (lab == 40)] = 11
+    tm, rep = build_model((lab, aff), tab, **P)
+    q = rep['quality']
+    assert 0.9 <= q['volume_ratio']['flexor'] <= 1.1
+    holes = [d for d in q['sections_not_followed'] if d['muscle'] == 'flexor']
+    assert len(holes) == len(tm.slice_z) and all('hole' in d['how'] for d in holes)
