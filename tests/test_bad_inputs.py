@@ -284,3 +284,14 @@ def _umask():
     m = os.umask(0)
     os.umask(m)
     return m
+
+
+def test_nifti_in_metres_is_read_in_millimetres(tmp_path):
+    """xyzt_units = metre: the affine is converted (nibabel leaves it in the file's unit)."""
+    import nibabel as nib
+    from tissue_sim.core.builder.io import load_labels
+    lab, aff, table = make_phantom('column')
+    img = nib.Nifti1Image(lab, aff / np.array([[1000.0], [1000.0], [1000.0], [1.0]]))
+    img.header.set_xyzt_units('meter')
+    nib.save(img, str(tmp_path / 'm.nii.gz'))
+    assert np.allclose(load_labels(tmp_path / 'm.nii.gz').affine, aff, atol=1e-3)
