@@ -295,3 +295,15 @@ def test_nifti_in_metres_is_read_in_millimetres(tmp_path):
     img.header.set_xyzt_units('meter')
     nib.save(img, str(tmp_path / 'm.nii.gz'))
     assert np.allclose(load_labels(tmp_path / 'm.nii.gz').affine, aff, atol=1e-3)
+
+
+@pytest.mark.parametrize('spacing, words', [
+    ({'pixel_mm': [1.0, 1.0], 'slice_mm': 5.0, 'first_slice_superior': 'no'}, ['first_slice_superior', 'true or false']),
+    ({'pixel_mm': [1.0, 1.0], 'slice_mm': 5.0, 'origin_mm': [0, 0, float('nan')]}, ['origin_mm', 'finite']),
+])
+def test_png_spacing_wrong_types(tmp_path, spacing, words):
+    """A string "no" was read as true (slices flipped); a NaN origin went into the affine."""
+    lab, tab = write_phantom('column', tmp_path, 'png')
+    (lab / 'spacing.yaml').write_text(yaml.safe_dump(spacing))
+    expect_error(tmp_path, 'build-model', lab, '--tissues', tab, '-o', tmp_path / 'm.npz', *SLICE,
+                 words=['spacing.yaml', *words])

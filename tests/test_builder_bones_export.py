@@ -82,3 +82,17 @@ def test_vtu_cells_of_the_bundled_limb(default_tm, tmp_path):
     poly = g.celltypes == pv.CellType.POLYHEDRON
     vol = np.where(poly, _polyhedron_volumes(g), g.compute_cell_sizes()['Volume'])
     assert np.allclose(vol, ref, rtol=1e-6, atol=0), np.abs(vol / ref - 1).max()
+
+
+def test_vtu_write_failure_is_one_error_and_no_vtk_output(tmp_path, capfd):
+    """VTK's own error printing (~25 lines on stderr) is silenced; the failure is one UserError."""
+    from tissue_sim.core.builder.export import to_vtu
+    from tissue_sim.errors import UserError
+    tm = make_phantom_model('column')
+    (tmp_path / 'afile').write_text('x')
+    capfd.readouterr()
+    with pytest.raises(UserError, match='afile/x.vtu: cannot write'):
+        to_vtu(tm, tmp_path / 'afile' / 'x.vtu')
+    out, err = capfd.readouterr()
+    assert err == '' and out == '', err
+    assert not (tmp_path / 'afile' / 'x.vtu').exists()

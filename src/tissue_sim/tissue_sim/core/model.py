@@ -272,9 +272,10 @@ class TissueModel:
         if not path.is_file():
             raise ModelError(f'{path}: no such model file')
         try:
-            with np.load(path, allow_pickle=False) as z:
-                if not hasattr(z, 'files'):
-                    raise ValueError('a single array, not an .npz archive')
+            z = np.load(path, allow_pickle=False)
+            if not hasattr(z, 'files'):
+                raise ValueError('a single array, not an .npz archive')
+            with z:
                 arrays = {k: z[k] for k in z.files}
         except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as e:
             raise ModelError(f'{path}: not a tissue_sim model file ({e})') from None

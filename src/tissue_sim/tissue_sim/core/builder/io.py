@@ -183,8 +183,12 @@ def _load_png_folder(path: Path) -> LabelVolume:
         origin = [float(v) for v in spec.get('origin_mm', [0.0, 0.0, 0.0])]
     except (KeyError, TypeError, ValueError) as e:
         raise UserError(f'{sp}: wrong spacing: needs pixel_mm: [dx, dy], slice_mm: dz, origin_mm: [x, y, z] ({e})') from None
-    if not all(np.isfinite([dx, dy, dz])) or min(dx, dy, dz) <= 0 or len(origin) != 3:
+    if not all(np.isfinite([dx, dy, dz])) or min(dx, dy, dz) <= 0:
         raise UserError(f'{sp}: wrong spacing: pixel_mm {[dx, dy]}, slice_mm {dz} must be positive numbers')
+    if len(origin) != 3 or not all(np.isfinite(origin)):
+        raise UserError(f'{sp}: origin_mm must be 3 finite numbers [x, y, z], got {spec.get("origin_mm")!r}')
+    if not isinstance(spec.get('first_slice_superior', False), bool):
+        raise UserError(f'{sp}: first_slice_superior must be true or false, got {spec["first_slice_superior"]!r}')
     files = sorted((f for f in path.iterdir() if re.fullmatch(r'slice_\d+\.png', f.name)),
                    key=lambda f: int(f.stem.split('_')[1]))
     if len(files) < 2:
