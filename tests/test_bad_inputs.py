@@ -175,11 +175,11 @@ def _header(model, **change):
     return json.dumps(h).encode()
 
 
-def _inverted(model):
-    """The model with one muscle cell's bottom and top rings swapped (an inverted cell)."""
+def _inverted(model, tissue=1):
+    """The model with one cell's bottom and top rings swapped (an inverted cell)."""
     with np.load(model) as z:
         off, cv, tis = z['cell_offsets'], z['cell_vertices'].copy(), z['cell_tissue']
-    c = int(np.nonzero(tis == 1)[0][0])
+    c = int(np.nonzero(tis == tissue)[0][3])
     cell = cv[off[c]:off[c + 1]]
     n = len(cell) // 2
     cv[off[c]:off[c + 1]] = np.concatenate([cell[n:], cell[:n]])
@@ -191,7 +191,9 @@ BAD_MODELS = {
     'header not JSON': (lambda m: dict(header=b'{"format": '), ['damaged model header']),
     'header without name': (lambda m: dict(header=_header(m, name=None)), ['damaged model header', '"name"']),
     'version as a string': (lambda m: dict(header=_header(m, version='1')), ["version '1' (str)", 'integer']),
-    'inverted cell': (lambda m: dict(arrays=_inverted(m)), ['1 inverted or flat cell', 'muscle']),
+    'inverted cell': (lambda m: dict(arrays=_inverted(m)), ['1 inverted cell', 'muscle', 'against the contract']),
+    'inverted fat cell': (lambda m: dict(arrays=_inverted(m, 2)), ['1 inverted cell', 'fat',
+                                                                   'against the other fat cells']),
     'float indices': (lambda m: dict(arrays={'cell_vertices': np.load(m)['cell_vertices'].astype(float)}),
                       ["'cell_vertices'", 'integer']),
 }

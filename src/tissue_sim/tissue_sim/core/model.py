@@ -192,15 +192,20 @@ class TissueModel:
              'cell_fibre must be (C, 3) unit vectors')
         need(self.cell_k_scale.shape == (C,) and np.all(self.cell_k_scale > 0), 'cell_k_scale must be (C,) positive')
         if C:
-            # every cell encloses a positive volume with its contract orientation (fat rings clockwise)
+            # no inverted cell: muscle rings counter-clockwise seen from +z (positive volume), fat cells
+            # all wound alike (clockwise by contract; the solver takes a cell's orientation from its
+            # signed rest volume, so a model whose fat cells are all counter-clockwise still
+            # simulates, but a cell wound against the others is inverted)
             from tissue_sim.core.geometry import prism_volumes
-            vol = prism_volumes(self.rest_positions, self.cell_offsets, self.cell_vertices,
-                                flip=self.cell_tissue == TISSUE_FAT)
-            bad = np.nonzero(~(vol > 0))[0]
+            fat = self.cell_tissue == TISSUE_FAT
+            vol = prism_volumes(self.rest_positions, self.cell_offsets, self.cell_vertices, flip=fat)
+            fat_sign = 1.0 if np.sum(vol[fat] > 0) >= np.sum(vol[fat] < 0) else -1.0
+            bad = np.nonzero(np.isnan(vol) | (~fat & (vol < 0)) | (fat & (vol * fat_sign < 0)))[0]
             if len(bad):
                 c = int(bad[0])
-                need(False, f'{len(bad)} inverted or flat cell(s) (rest volume <= 0; the first: cell {c}, '
-                     f'{"fat" if self.cell_tissue[c] == TISSUE_FAT else "muscle"}, {vol[c] * 1e9:.3g} mm^3)')
+                need(False, f'{len(bad)} inverted cell(s) (the first: cell {c}, {"fat" if fat[c] else "muscle"}, '
+                     f'rest volume {vol[c] * 1e9:.3g} mm^3, rings wound against '
+                     f'{"the other fat cells" if fat[c] else "the contract (counter-clockwise from +z)"})')
         need(self.skin_quads.ndim == 2 and self.skin_quads.shape[1] == 4 and self.skin_quad_cell.shape == (self.skin_quads.shape[0],),
              'skin_quads must be (Q, 4) with skin_quad_cell (Q,)')
         need(self.surface_triangles.ndim == 2 and self.surface_triangles.shape[1] == 3, 'surface_triangles must be (T, 3)')
