@@ -5,7 +5,6 @@ import json
 import os
 import subprocess
 import sys
-import zipfile
 
 import numpy as np
 import pytest
@@ -52,11 +51,11 @@ def expect_error(tmp_path, *argv, words=()):
     code, out, err = cli(*argv, cwd=tmp_path)
     assert code == 2, (code, out, err)
     assert 'Traceback' not in err, err
+    assert snapshot(tmp_path) == before, 'the failed command wrote or changed files'
     lines = err.strip().splitlines()
     assert len(lines) == 1 and ': error: ' in lines[0], err
     for w in words:
         assert w in lines[0], (w, lines[0])
-    assert snapshot(tmp_path) == before, 'the failed command wrote or changed files'
     return lines[0]
 
 
