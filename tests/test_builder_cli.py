@@ -70,9 +70,13 @@ def test_export_glb_ply_vtu(nii, tmp_path, capsys):
     assert code == 0, e
     tm = M.TissueModel.load(m)
     g = pv.read(tmp_path / 'm.vtu')
-    assert g.n_cells == tm.n_cells and g.n_points == tm.n_vertices
+    # the model's vertices first, then the cap and side-quad centroids of the polyhedral cells' faces
+    assert g.n_cells == tm.n_cells and g.n_points >= tm.n_vertices
+    assert np.array_equal(g.points[:tm.n_vertices], tm.rest_positions)
+    assert np.array_equal(g.point_data['model_vertex'][:tm.n_vertices], np.arange(tm.n_vertices))
+    assert np.all(g.point_data['model_vertex'][tm.n_vertices:] == -1)
     vol = g.compute_cell_sizes()['Volume']
-    assert np.allclose(vol, cell_volumes(tm), rtol=1e-6)          # VTK agrees: no inverted cell
+    assert np.allclose(vol, cell_volumes(tm), rtol=1e-6)          # VTK agrees: no inverted cell (convex cells here)
     sc = trimesh.load(tmp_path / 'm.glb')
     assert {'muscle/flexor', 'muscle/extensor', 'skin', 'bone/upper_bone'} <= set(sc.geometry)
     ply = trimesh.load(tmp_path / 'm.ply')

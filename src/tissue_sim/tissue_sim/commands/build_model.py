@@ -57,8 +57,21 @@ def _settings(args) -> dict:
             'allow_broken': args.allow_broken, 'shear_limit': args.shear_limit}
 
 
+def _check_arguments(args) -> dict:
+    """Every output path and option checked before any input is read or anything written (issue 20)."""
+    from tissue_sim.core.builder import settings_with_defaults
+    from tissue_sim.outputs import check_outputs
+    if args.bone_mesh_step < 1:
+        raise UserError(f'--bone-mesh-step must be an integer >= 1 (voxels), got {args.bone_mesh_step}')
+    settings_with_defaults(_settings(args))
+    return check_outputs({'-o/--output': (args.output or './<model name>.model.npz', 'model'),
+                          '--report': (args.report, 'report'), '--glb': (args.glb, 'GLB export'),
+                          '--vtu': (args.vtu, 'VTU export')}, inputs=[args.labels, args.tissues])
+
+
 def run(args) -> int:
     from tissue_sim.core import builder
+    _check_arguments(args)
     if args.labels is None:
         if args.tissues is not None:
             raise UserError('--tissues given without LABELS')
@@ -92,21 +105,23 @@ def run(args) -> int:
         raise UserError(f'--strict: the quality report has {len(qwarn)} warning(s), first: {qwarn[0]}; nothing written')
     if out is None:
         out = Path(f'{tm.name}.model.npz')
-    try:
-        tm.save(out)
-    except OSError as e:
-        raise UserError(f'{out}: cannot write the model ({e.strerror})') from None
-    if args.report:
+    from tissue_sim.outputs import Staged, check_output
+    check_output(out, 'model')
+    from tissue_sim.core.builder import export
+    with Staged() as staged:                  # all outputs or none: a failure leaves nothing written
         try:
-            Path(args.report).write_text(json.dumps(report, indent=1, default=float))
+            tm.save(staged.path(out))
         except OSError as e:
-            raise UserError(f'{args.report}: cannot write the report ({e.strerror})') from None
-    if args.glb or args.vtu:
-        from tissue_sim.core.builder import export
+            raise UserError(f'{out}: cannot write the model ({e.strerror})') from None
+        if args.report:
+            try:
+                staged.path(args.report).write_text(json.dumps(report, indent=1, default=float))
+            except OSError as e:
+                raise UserError(f'{args.report}: cannot write the report ({e.strerror})') from None
         if args.glb:
-            export.to_glb(tm, args.glb)
+            export.to_glb(tm, staged.path(args.glb), name=args.glb)
         if args.vtu:
-            export.to_vtu(tm, args.vtu)
+            export.to_vtu(tm, staged.path(args.vtu), name=args.vtu)
     t1 = report['table1']
     if args.json:
         print(json.dumps(dict(t1, model=str(out), build_s=report['build_s'], closed_surfaces=report['closed_surfaces'],

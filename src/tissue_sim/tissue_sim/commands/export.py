@@ -17,15 +17,20 @@ def add_arguments(p):
 def run(args) -> int:
     from tissue_sim.core.builder import export
     from tissue_sim.core.model import ModelError, TissueModel
+    from tissue_sim.outputs import Staged, check_outputs
     if not (args.glb or args.ply or args.vtu):
         raise UserError('nothing to do: give --glb, --ply and/or --vtu')
+    outs = check_outputs({'--glb': (args.glb, 'GLB export'), '--ply': (args.ply, 'PLY export'),
+                          '--vtu': (args.vtu, 'VTU export')}, inputs=[args.model])   # before any work
     try:
         tm = TissueModel.load(args.model)
     except ModelError as e:
         raise UserError(str(e)) from None
-    for fmt, fn in (('glb', export.to_glb), ('ply', export.to_ply), ('vtu', export.to_vtu)):
-        path = getattr(args, fmt)
-        if path:
-            fn(tm, path)
-            print(f'wrote {path}')
+    with Staged() as staged:
+        for opt, fn in (('--glb', export.to_glb), ('--ply', export.to_ply), ('--vtu', export.to_vtu)):
+            if outs[opt] is not None:
+                fn(tm, staged.path(outs[opt]), name=outs[opt])
+    for p in outs.values():
+        if p is not None:
+            print(f'wrote {p}')
     return 0

@@ -223,6 +223,8 @@ class TissueModel(TissueTopology):
         need(np.all(sizes >= 6) and np.all(sizes % 2 == 0), 'every cell must be a prism with an even vertex count >= 6')
         need(self.cell_vertices.size == 0 or (self.cell_vertices.min() >= 0 and self.cell_vertices.max() < V),
              'cell_vertices index out of range')
+        need(self.cell_tissue.shape == (C,) and self.cell_muscle.shape == (C,) and self.cell_slice.shape == (C,),
+             'cell arrays must be (C,)')
         need(np.all(np.isin(self.cell_tissue, (TISSUE_MUSCLE, TISSUE_FAT))), 'cell_tissue must be 1 (muscle) or 2 (fat)')
         mus = self.cell_tissue == TISSUE_MUSCLE
         need(np.all((self.cell_muscle[mus] >= 0) & (self.cell_muscle[mus] < M)), 'muscle cell with bad cell_muscle')
@@ -230,6 +232,21 @@ class TissueModel(TissueTopology):
         need(self.cell_fibre.shape == (C, 3) and np.allclose(np.linalg.norm(self.cell_fibre, axis=1), 1.0, atol=1e-6),
              'cell_fibre must be (C, 3) unit vectors')
         need(self.cell_k_scale.shape == (C,) and np.all(self.cell_k_scale > 0), 'cell_k_scale must be (C,) positive')
+        if C:
+            # no inverted cell: muscle rings counter-clockwise seen from +z (positive volume), fat cells
+            # all wound alike (clockwise by contract; the solver takes a cell's orientation from its
+            # signed rest volume, so a model whose fat cells are all counter-clockwise still
+            # simulates, but a cell wound against the others is inverted)
+            from tissue_sim.core.geometry import prism_volumes
+            fat = self.cell_tissue == TISSUE_FAT
+            vol = prism_volumes(self.rest_positions, self.cell_offsets, self.cell_vertices, flip=fat)
+            fat_sign = 1.0 if np.sum(vol[fat] > 0) >= np.sum(vol[fat] < 0) else -1.0
+            bad = np.nonzero(np.isnan(vol) | (~fat & (vol < 0)) | (fat & (vol * fat_sign < 0)))[0]
+            if len(bad):
+                c = int(bad[0])
+                need(False, f'{len(bad)} inverted cell(s) (the first: cell {c}, {"fat" if fat[c] else "muscle"}, '
+                     f'rest volume {vol[c] * 1e9:.3g} mm^3, rings wound against '
+                     f'{"the other fat cells" if fat[c] else "the contract (counter-clockwise from +z)"})')
         need(self.skin_quads.ndim == 2 and self.skin_quads.shape[1] == 4 and self.skin_quad_cell.shape == (self.skin_quads.shape[0],),
              'skin_quads must be (Q, 4) with skin_quad_cell (Q,)')
         need(self.surface_triangles.ndim == 2 and self.surface_triangles.shape[1] == 3, 'surface_triangles must be (T, 3)')
@@ -248,6 +265,24 @@ class TissueModel(TissueTopology):
         need(self.joint_axis.shape == (J, 3) and self.joint_centre.shape == (J, 3) and self.joint_range.shape == (J, 2),
              'joint axis/centre/range shapes')
         need(np.all(self.joint_range[:, 0] <= self.joint_range[:, 1]), 'joint range lower > upper')
+        need(np.all((self.joint_parent >= 0) & (self.joint_parent < S)) and np.all((self.joint_child >= 0) & (self.joint_child < S))
+             and np.all((self.segment_parent >= -1) & (self.segment_parent < S)), 'joint or segment parent index out of range')
+        need(np.all((self.bone_segment >= 0) & (self.bone_segment < S)), 'bone_segment out of range')
+        need(all(np.all(np.isfinite(a)) for a in (self.segment_com, self.segment_inertia, self.joint_axis, self.joint_centre,
+                                                   self.bone_vertices, self.cell_fibre, self.slice_z)),
+             'skeleton, bone or cell arrays have non-finite values')
+        for nm, tri, n in (('skin_quads', self.skin_quads, V), ('surface_triangles', self.surface_triangles, V),
+                           ('skin_quad_cell', self.skin_quad_cell, C), ('surface_group', self.surface_group, len(self.surface_group_names))):
+            need(tri.size == 0 or (tri.min() >= 0 and tri.max() < n), f'{nm} index out of range')
+        need(self.bone_vertices.ndim == 2 and self.bone_vertices.shape[1] == 3 and self.bone_triangles.ndim == 2
+             and self.bone_triangles.shape[1] == 3, 'bone_vertices and bone_triangles must be (N, 3)')
+        need(self.bone_vertex_offsets[0] == 0 and self.bone_vertex_offsets[-1] == len(self.bone_vertices)
+             and np.all(np.diff(self.bone_vertex_offsets) >= 0) and self.bone_triangle_offsets[0] == 0
+             and self.bone_triangle_offsets[-1] == len(self.bone_triangles) and np.all(np.diff(self.bone_triangle_offsets) >= 0),
+             'bone offsets inconsistent with bone_vertices/bone_triangles')
+        for b in range(B):
+            v, t = self.bone_mesh(b)
+            need(t.size == 0 or (t.min() >= 0 and t.max() < len(v)), f'bone {self.bone_names[b]!r}: triangle index out of range')
         for j in range(J):
             need(self.segment_parent[self.joint_child[j]] == self.joint_parent[j],
                  f'joint {self.joint_names[j]!r}: parent/child do not match segment_parent')
@@ -276,21 +311,46 @@ class TissueModel(TissueTopology):
 
     @classmethod
     def load(cls, path) -> 'TissueModel':
+        """Read a model file written by :meth:`save`; raise ModelError naming the problem (never
+        another exception) for a file that is missing, not a model, of another format version,
+        or whose arrays do not make a valid model (see :meth:`validate`)."""
         path = Path(path)
         if not path.is_file():
             raise ModelError(f'{path}: no such model file')
         try:
-            with np.load(path, allow_pickle=False) as z:
+            z = np.load(path, allow_pickle=False)
+            if not hasattr(z, 'files'):
+                raise ValueError('a single array, not an .npz archive')
+            with z:
                 arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as e:
             raise ModelError(f'{path}: not a tissue_sim model file ({e})') from None
         if '__header__' not in arrays:
             raise ModelError(f'{path}: not a tissue_sim model file (no header)')
-        header = json.loads(arrays.pop('__header__').tobytes().decode())
+        hb = arrays.pop('__header__')
+        try:
+            if hb.dtype != np.uint8 or hb.ndim != 1:
+                raise ValueError(f'header array is {hb.dtype} {hb.shape}, expected uint8 bytes')
+            header = json.loads(hb.tobytes().decode('utf-8'))
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ModelError(f'{path}: damaged model header (not UTF-8 JSON: {e})') from None
+        if not isinstance(header, dict):
+            raise ModelError(f'{path}: damaged model header (a JSON {type(header).__name__}, expected an object)')
         if header.get('format') != FORMAT:
             raise ModelError(f'{path}: format {header.get("format")!r}, expected {FORMAT!r}')
-        if header.get('version') != FORMAT_VERSION:
-            raise ModelError(f'{path}: model format version {header.get("version")}, this tissue_sim reads {FORMAT_VERSION}; rebuild the model')
+        ver = header.get('version')
+        if type(ver) is not int or ver != FORMAT_VERSION:
+            raise ModelError(f'{path}: model format version {ver!r} ({type(ver).__name__}), this tissue_sim reads '
+                             f'version {FORMAT_VERSION} (an integer); rebuild the model')
+        name, meta = header.get('name'), header.get('meta', {})
+        if not isinstance(name, str) or not name:
+            raise ModelError(f'{path}: damaged model header (no model "name")')
+        if not isinstance(meta, dict):
+            raise ModelError(f'{path}: damaged model header ("meta" is a {type(meta).__name__}, expected an object)')
+        index_fields = {'vertex_segment', 'vertex_flags', 'cell_offsets', 'cell_vertices', 'cell_tissue', 'cell_muscle',
+                        'cell_slice', 'skin_quads', 'skin_quad_cell', 'surface_triangles', 'surface_group',
+                        'bone_segment', 'bone_vertex_offsets', 'bone_triangle_offsets', 'bone_triangles',
+                        'segment_parent', 'joint_type', 'joint_parent', 'joint_child'}
         kw = {}
         for f in dataclasses.fields(cls):
             if f.name in ('name', 'meta'):
@@ -298,8 +358,22 @@ class TissueModel(TissueTopology):
             if f.name not in arrays:
                 raise ModelError(f'{path}: missing array {f.name!r}')
             a = arrays[f.name]
-            kw[f.name] = tuple(str(s) for s in a) if a.dtype.kind == 'U' else a
-        return cls(name=header['name'], meta=header.get('meta', {}), **kw).validate()
+            if f.type == 'tuple':
+                if a.ndim != 1 or a.dtype.kind not in 'U':
+                    raise ModelError(f'{path}: array {f.name!r} must be a list of names, got {a.dtype} {a.shape}')
+                kw[f.name] = tuple(str(s) for s in a)
+            else:
+                integer = f.name in index_fields
+                if a.dtype.kind not in ('iu' if integer else 'iuf'):
+                    raise ModelError(f'{path}: array {f.name!r} has dtype {a.dtype}, expected '
+                                     f'{"an integer" if integer else "a numeric"} type')
+                kw[f.name] = a
+        try:
+            return cls(name=name, meta=meta, **kw).validate()
+        except ModelError as e:
+            raise ModelError(f'{path}: {e}') from None
+        except (ValueError, IndexError, TypeError) as e:      # an array shape the checks did not anticipate
+            raise ModelError(f'{path}: damaged model ({type(e).__name__}: {e})') from None
 
     def content_hash(self) -> str:
         h = hashlib.sha256()

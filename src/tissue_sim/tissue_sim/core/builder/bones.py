@@ -1,5 +1,6 @@
 """Bone surface meshes: a mesh file named in the tissue table (model frame, metres), else marching
-cubes (scikit-image) of the bone's label at full resolution (``step`` voxels), closed and outward."""
+cubes (scikit-image) of the bone's label, on ``step``-voxel block means (1 = full resolution),
+centred on the label, closed and outward."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,16 +12,27 @@ from .io import voxel_to_model
 
 
 def _mc_mesh(vol, lab, bb, step):
+    """Marching cubes of a bone label's 0.5 level. With ``step`` s > 1 the mask is first averaged
+    over s x s x s blocks (zero-padded by at least one whole block on every side, so the surface
+    is closed) and the surface is traced on the block means, placed at the block centres: a label
+    edge then lands where the voxels' edge is, whatever its parity (plain marching cubes with
+    ``step_size`` samples every s-th voxel and shifts or shrinks the surface by up to s - 1 voxels,
+    half a slice for s = 2)."""
     from skimage import measure
     m = vol.labels[bb] == lab
-    step = max(1, int(step))
+    step = int(step)
+    if step < 1:
+        raise UserError(f'bone_mesh_step must be an integer >= 1 (voxels), got {step}')
     if min(m.shape) < 2 * step + 1:
         step = 1
-    # pad with zeros so that the surface is closed and every axis is sampled to its end ((size-1) % step == 0)
-    pads = [(1, 1 + (-(n + 1)) % step) for n in m.shape]
+    pads = [(step, step + (-n) % step) for n in m.shape]
     crop = np.pad(m, pads).astype(np.float32)
-    verts, faces, _, _ = measure.marching_cubes(crop, level=0.5, step_size=step, allow_degenerate=False)
-    ijk = verts + [b.start - 1 for b in bb]
+    if step > 1:
+        s0, s1, s2 = (n // step for n in crop.shape)
+        crop = crop.reshape(s0, step, s1, step, s2, step).mean(axis=(1, 3, 5))
+    verts, faces, _, _ = measure.marching_cubes(crop, level=0.5, allow_degenerate=False)
+    # block index -> voxel index: a block's centre is (step - 1) / 2 past its first voxel
+    ijk = verts * step + (step - 1) / 2.0 + [b.start - step for b in bb]
     return voxel_to_model(vol.affine, ijk), faces.astype(np.int64)
 
 

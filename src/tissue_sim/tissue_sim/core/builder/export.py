@@ -2,9 +2,9 @@
 
 GLB: one node per surface group ("muscle/<name>", "skin", "fat/inner", "fat/caps") and per bone
 ("bone/<name>"), model frame metres (glTF viewers show +y up; the model is z-up, REP-103).
-PLY: all surfaces in one mesh with per-face colours. VTU: muscle prisms as VTK_POLYHEDRON (faces
-outward), fat cells as VTK_HEXAHEDRON; cell data tissue, muscle, k_scale, volume, fibre; point data
-segment, flags.
+PLY: all surfaces in one mesh with per-face colours. VTU: the solver's cells (see
+``to_unstructured_grid``): prisms as VTK_POLYHEDRON with the faces of ``geometry.prism_volumes``'s
+decomposition, 4-vertex fat cells as VTK_HEXAHEDRON.
 """
 from __future__ import annotations
 
@@ -43,34 +43,70 @@ def surface_meshes(tm: M.TissueModel) -> dict:
     return out
 
 
-def to_glb(tm: M.TissueModel, path) -> Path:
-    import trimesh
+def _write_bytes(path, data: bytes, name=None) -> Path:
     path = Path(path)
+    try:
+        path.write_bytes(data)
+    except OSError as e:
+        raise UserError(f'{name or path}: cannot write ({e.strerror or e})') from None
+    return path
+
+
+def to_glb(tm: M.TissueModel, path, name=None) -> Path:
+    """Surfaces as glTF binary. ``name``: the path named in error messages (when ``path`` is a staging file)."""
+    import trimesh
     scene = trimesh.Scene()
-    for name, m in surface_meshes(tm).items():
-        scene.add_geometry(m, node_name=name, geom_name=name)
-    try:
-        path.write_bytes(scene.export(file_type='glb'))
-    except OSError as e:
-        raise UserError(f'{path}: cannot write ({e.strerror})') from None
-    return path
+    for gname, m in surface_meshes(tm).items():
+        scene.add_geometry(m, node_name=gname, geom_name=gname)
+    return _write_bytes(path, scene.export(file_type='glb'), name)
 
 
-def to_ply(tm: M.TissueModel, path) -> Path:
+def to_ply(tm: M.TissueModel, path, name=None) -> Path:
     import trimesh
-    path = Path(path)
     m = trimesh.util.concatenate(list(surface_meshes(tm).values()))
-    try:
-        path.write_bytes(m.export(file_type='ply'))
-    except OSError as e:
-        raise UserError(f'{path}: cannot write ({e.strerror})') from None
-    return path
+    return _write_bytes(path, m.export(file_type='ply'), name)
+
+
+def cell_faces(bot: np.ndarray, top: np.ndarray, cap_bot: int, cap_top: int, quad_centres) -> list:
+    """The outward triangles of one prism cell exactly as ``geometry.prism_volumes`` decomposes it:
+    each cap a fan from its centroid (point ``cap_bot``/``cap_top``), each side quad four triangles
+    about its centroid (point ``quad_centres[i]`` for the quad bot[i], bot[i+1], top[i+1], top[i]).
+    Rings counter-clockwise seen from +z (fat rings reversed before)."""
+    n = len(bot)
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        q = quad_centres[i]
+        faces += [(cap_bot, bot[j], bot[i]), (cap_top, top[i], top[j]),
+                  (q, bot[i], bot[j]), (q, bot[j], top[j]), (q, top[j], top[i]), (q, top[i], bot[i])]
+    return faces
 
 
 def to_unstructured_grid(tm: M.TissueModel):
-    """pyvista.UnstructuredGrid of all cells (muscle prisms as polyhedra, fat cells as hexahedra)."""
+    """pyvista.UnstructuredGrid of all cells, the same cells the solver integrates.
+
+    A prism cell is a VTK_POLYHEDRON whose faces are the triangles of ``geometry.prism_volumes``'s
+    decomposition (cap fans from the cap centroid, side quads as four triangles about the quad
+    centroid), so its enclosed volume is the model's cell volume also where side quads are not
+    planar. The centroids are extra points after the model's vertices (point data ``model_vertex``:
+    the model vertex index, -1 for such a centroid). A fat cell with 4-vertex rings is a
+    VTK_HEXAHEDRON (its trilinear volume equals the same decomposition's). Cell data: tissue,
+    muscle, k_scale, volume (the model's, m^3), fibre; point data: segment, flags, model_vertex.
+    """
     import pyvista as pv
-    from .quality import cell_volumes
+    from tissue_sim.core.geometry import prism_volumes
+    pos = np.asarray(tm.rest_positions, dtype=np.float64)
+    V = len(pos)
+    extra, index = [], {}
+
+    def centre(ids) -> int:
+        key = tuple(sorted(int(i) for i in ids))
+        k = index.get(key)
+        if k is None:
+            k = index[key] = V + len(extra)
+            extra.append(pos[list(ids)].mean(axis=0))
+        return k
+
     cells, types = [], []
     for c in range(tm.n_cells):
         v = tm.cell(c)
@@ -83,32 +119,47 @@ def to_unstructured_grid(tm: M.TissueModel):
         bot, top = v[:n], v[n:]
         if tm.cell_tissue[c] == M.TISSUE_FAT:
             bot, top = bot[::-1], top[::-1]
-        faces = [list(bot[::-1]), list(top)]
-        for i in range(n):
-            j = (i + 1) % n
-            faces.append([bot[i], bot[j], top[j], top[i]])
+        quads = [centre((bot[i], bot[(i + 1) % n], top[(i + 1) % n], top[i])) for i in range(n)]
+        faces = cell_faces(bot, top, centre(bot), centre(top), quads)
         stream = [len(faces)]
         for f in faces:
-            stream += [len(f), *f]
+            stream += [3, *f]
         cells += [len(stream), *stream]
         types.append(pv.CellType.POLYHEDRON)
-    grid = pv.UnstructuredGrid(np.array(cells, dtype=np.int64), np.array(types, dtype=np.uint8),
-                               np.asarray(tm.rest_positions, dtype=np.float64))
+    points = np.vstack([pos, np.asarray(extra).reshape(-1, 3)])
+    grid = pv.UnstructuredGrid(np.array(cells, dtype=np.int64), np.array(types, dtype=np.uint8), points)
     grid.cell_data['tissue'] = tm.cell_tissue.astype(np.int32)
     grid.cell_data['muscle'] = tm.cell_muscle.astype(np.int32)
     grid.cell_data['k_scale'] = tm.cell_k_scale
-    grid.cell_data['volume'] = cell_volumes(tm)
+    grid.cell_data['volume'] = prism_volumes(pos, tm.cell_offsets, tm.cell_vertices, tm.cell_tissue == M.TISSUE_FAT)
     grid.cell_data['fibre'] = tm.cell_fibre
-    grid.point_data['segment'] = tm.vertex_segment.astype(np.int32)
-    grid.point_data['flags'] = tm.vertex_flags.astype(np.int32)
+    pad = np.full(len(extra), -1, np.int32)
+    grid.point_data['segment'] = np.concatenate([tm.vertex_segment.astype(np.int32), pad])
+    grid.point_data['flags'] = np.concatenate([tm.vertex_flags.astype(np.int32), np.zeros(len(extra), np.int32)])
+    grid.point_data['model_vertex'] = np.concatenate([np.arange(V, dtype=np.int32), pad])
     return grid
 
 
-def to_vtu(tm: M.TissueModel, path) -> Path:
+def to_vtu(tm: M.TissueModel, path, name=None) -> Path:
+    """Cells as a VTK XML unstructured grid (binary). VTK's own error output is silenced: a failure
+    is one UserError naming the file."""
+    from vtkmodules.vtkCommonCore import vtkObject
+    from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridWriter
     path = Path(path)
     grid = to_unstructured_grid(tm)
+    w = vtkXMLUnstructuredGridWriter()
+    w.SetFileName(str(path))
+    w.SetInputData(grid)
+    w.SetDataModeToBinary()
+    shown = vtkObject.GetGlobalWarningDisplay()
+    vtkObject.GlobalWarningDisplayOff()
     try:
-        grid.save(str(path), binary=True)
-    except OSError as e:
-        raise UserError(f'{path}: cannot write ({e})') from None
+        ok = w.Write() == 1 and w.GetErrorCode() == 0
+    finally:
+        vtkObject.SetGlobalWarningDisplay(shown)
+    if not ok:
+        folder = path.parent if str(path.parent) else Path('.')
+        why = ('no such folder' if not folder.exists() else f'{folder} is not a folder' if not folder.is_dir()
+               else 'the VTK writer failed (disk full or no permission?)')
+        raise UserError(f'{name or path}: cannot write ({why})')
     return path

@@ -64,14 +64,95 @@ def _check_volume(labels, affine, source) -> LabelVolume:
     return LabelVolume(np.asfortranarray(labels), affine, str(source))
 
 
+def _size_text(n: int) -> str:
+    for unit, f in (('GiB', 2 ** 30), ('MiB', 2 ** 20), ('KiB', 2 ** 10)):
+        if n >= f:
+            return f'{n / f:.1f} {unit}'
+    return f'{n} bytes'
+
+
+def _gzip_holds_at_least(path: Path, need: int) -> int:
+    """Bytes of decompressed data in a gzip file, counted by streaming (no large allocation) and
+    stopping as soon as ``need`` bytes are seen; a shorter count means the file is truncated."""
+    import gzip
+    got = 0
+    with gzip.open(path, 'rb') as f:
+        while got < need:
+            chunk = f.read(min(1 << 22, need - got))
+            if not chunk:
+                break
+            got += len(chunk)
+    return got
+
+
+def _check_nifti_header(path: Path) -> float:
+    """Check the raw NIfTI header before any voxel data is read: positive finite voxel sizes when
+    no sform/qform gives the geometry (nibabel silently turns a zero pixdim into 1 mm), and a data
+    size the file can hold (a corrupt header would otherwise allocate what it declares).
+    Returns the factor to millimetres of the header's spatial unit."""
+    import gzip
+    import io as _io
+
+    import nibabel as nib
+    gz = path.name.lower().endswith('.gz')
+    try:
+        with (gzip.open(path, 'rb') if gz else open(path, 'rb')) as f:
+            raw = f.read(540)
+    except (OSError, EOFError) as e:
+        raise UserError(f'{path}: unreadable NIfTI file ({type(e).__name__}: {e})') from None
+    if len(raw) < 348:
+        raise UserError(f'{path}: unreadable NIfTI file (only {len(raw)} bytes, a NIfTI header has 348)')
+    sizeof = {int(np.frombuffer(raw[:4], e)[0]): e for e in ('<i4', '>i4')}
+    cls = nib.Nifti1Header if 348 in sizeof else nib.Nifti2Header if 540 in sizeof else None
+    if cls is None:
+        raise UserError(f'{path}: unreadable NIfTI file (header size field is not 348 or 540)')
+    try:
+        hdr = cls.from_fileobj(_io.BytesIO(raw), check=False)
+        shape = tuple(int(n) for n in hdr.get_data_shape())
+        itemsize = int(hdr['bitpix']) // 8
+        offset = int(hdr['vox_offset'])
+    except Exception as e:  # nibabel raises many kinds
+        raise UserError(f'{path}: unreadable NIfTI header ({type(e).__name__}: {e})') from None
+    pix = np.asarray(hdr['pixdim'][1:4], dtype=np.float64)
+    if int(hdr['sform_code']) == 0 and not (np.all(np.isfinite(pix)) and np.all(pix > 0)):
+        raise UserError(f'{path}: wrong spacing: voxel sizes pixdim[1:4] = {pix.tolist()} mm must be positive numbers '
+                        '(the file has no sform that would give the geometry otherwise)')
+    if any(n < 0 for n in shape) or itemsize <= 0:
+        raise UserError(f'{path}: unreadable NIfTI header (shape {shape}, {8 * itemsize} bits per voxel)')
+    need = offset + int(np.prod(shape, dtype=object)) * itemsize
+    if gz:
+        # the gzip trailer holds the data size modulo 2^32 (of the last member): trust it only when it matches
+        try:
+            with open(path, 'rb') as f:
+                f.seek(-4, 2)
+                isize = int.from_bytes(f.read(4), 'little')
+        except OSError:
+            isize = -1
+        try:
+            have = need if (need < 2 ** 32 and isize == need) else _gzip_holds_at_least(path, need)
+        except (OSError, EOFError, gzip.BadGzipFile) as e:
+            raise UserError(f'{path}: unreadable NIfTI file ({type(e).__name__}: {e})') from None
+    else:
+        have = path.stat().st_size
+    if have < need:
+        raise UserError(f'{path}: truncated NIfTI file: the header declares {shape} voxels of {itemsize} bytes '
+                        f'({_size_text(need)} with the header) but the file holds {_size_text(have)}'
+                        + (' uncompressed' if gz else ''))
+    units = int(hdr['xyzt_units']) & 7
+    return {1: 1000.0, 3: 0.001}.get(units, 1.0)     # metre, micron; mm or unknown: mm
+
+
 def _load_nifti(path: Path) -> LabelVolume:
     import nibabel as nib
+    to_mm = _check_nifti_header(path)
     try:
         img = nib.load(str(path))
         data = np.asanyarray(img.dataobj)
     except Exception as e:  # nibabel raises many kinds
         raise UserError(f'{path}: unreadable NIfTI file ({type(e).__name__}: {e})') from None
-    return _check_volume(data, img.affine, path)
+    affine = np.array(img.affine, dtype=np.float64)
+    affine[:3] *= to_mm
+    return _check_volume(data, affine, path)
 
 
 def _load_npz(path: Path) -> LabelVolume:
@@ -102,8 +183,12 @@ def _load_png_folder(path: Path) -> LabelVolume:
         origin = [float(v) for v in spec.get('origin_mm', [0.0, 0.0, 0.0])]
     except (KeyError, TypeError, ValueError) as e:
         raise UserError(f'{sp}: wrong spacing: needs pixel_mm: [dx, dy], slice_mm: dz, origin_mm: [x, y, z] ({e})') from None
-    if not all(np.isfinite([dx, dy, dz])) or min(dx, dy, dz) <= 0 or len(origin) != 3:
+    if not all(np.isfinite([dx, dy, dz])) or min(dx, dy, dz) <= 0:
         raise UserError(f'{sp}: wrong spacing: pixel_mm {[dx, dy]}, slice_mm {dz} must be positive numbers')
+    if len(origin) != 3 or not all(np.isfinite(origin)):
+        raise UserError(f'{sp}: origin_mm must be 3 finite numbers [x, y, z], got {spec.get("origin_mm")!r}')
+    if not isinstance(spec.get('first_slice_superior', False), bool):
+        raise UserError(f'{sp}: first_slice_superior must be true or false, got {spec["first_slice_superior"]!r}')
     files = sorted((f for f in path.iterdir() if re.fullmatch(r'slice_\d+\.png', f.name)),
                    key=lambda f: int(f.stem.split('_')[1]))
     if len(files) < 2:

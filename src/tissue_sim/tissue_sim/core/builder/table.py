@@ -45,6 +45,24 @@ def _num(v, where, positive=False):
     return x
 
 
+def _type_name(v) -> str:
+    return {list: 'a list', dict: 'a mapping', bool: 'a boolean', int: 'a number', float: 'a number',
+            type(None): 'empty'}.get(type(v), type(v).__name__)
+
+
+def _text(ent: dict, key: str, where: str, required: bool = False):
+    """A string-valued key of a table entry: a non-empty string, or None when absent/empty and optional."""
+    v = ent.get(key)
+    if v is None or (v == '' and not required):
+        if required:
+            raise UserError(f'{where}: missing "{key}"')
+        return None
+    if not isinstance(v, str) or not v.strip():
+        hint = ' (one name per entry)' if isinstance(v, list) else ''
+        raise UserError(f'{where}: "{key}" must be a text string{hint}, got {_type_name(v)} {v!r}')
+    return v
+
+
 def _vec(v, n, where):
     if not isinstance(v, (list, tuple)) or len(v) != n:
         raise UserError(f'{where}: expected a list of {n} numbers, got {v!r}')
@@ -65,23 +83,25 @@ def load_tissue_table(src) -> dict:
     names = set()
     for key, ent in labels_in.items():
         try:
+            if isinstance(key, bool) or (isinstance(key, float) and key != int(key)):
+                raise ValueError
             lab = int(key)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise UserError(f'{where}: label {key!r} is not an integer') from None
         w = f'{where}: label {lab}'
         if lab <= 0:
             raise UserError(f'{w}: label values must be positive (0 is background)')
         if not isinstance(ent, dict):
             raise UserError(f'{w}: entry must be a mapping with name and tissue')
-        name, tissue = ent.get('name'), ent.get('tissue')
-        if not isinstance(name, str) or not name:
-            raise UserError(f'{w}: missing "name"')
-        if tissue not in TISSUES:
+        name = _text(ent, 'name', w, required=True)
+        tissue = ent.get('tissue')
+        if not isinstance(tissue, str) or tissue not in TISSUES:
             raise UserError(f'{w} ({name}): tissue must be one of {", ".join(TISSUES)}, got {tissue!r}')
         if tissue != 'fat' and name in names:
             raise UserError(f'{w}: duplicate name {name!r}')
         names.add(name)
-        out = {'name': name, 'tissue': tissue, 'segment': ent.get('segment'), 'group': str(ent.get('group') or ''),
+        out = {'name': name, 'tissue': tissue, 'segment': _text(ent, 'segment', f'{w} ({name})'),
+               'group': _text(ent, 'group', f'{w} ({name})') or '',
                'max_isometric_force': float('nan'), 'optimal_fibre_length': float('nan'),
                'stiffness_scale': 1.0, 'mesh': None}
         if tissue == 'bone':
@@ -90,7 +110,7 @@ def load_tissue_table(src) -> dict:
             if ent.get('mesh') is not None:
                 if base is None:
                     raise UserError(f'{w} ({name}): "mesh" needs a table file (paths are relative to it)')
-                mp = base / str(ent['mesh'])
+                mp = base / _text(ent, 'mesh', f'{w} ({name})')
                 if not mp.is_file():
                     raise UserError(f'{w} ({name}): mesh file {mp} not found')
                 out['mesh'] = mp
@@ -135,7 +155,8 @@ def load_tissue_table(src) -> dict:
             if e.get(end) is not None and e[end] not in segs:
                 raise UserError(f'{where}: label {lab} ({e["name"]}): {end} segment {e[end]!r} is not in the joints file '
                                 f'(has {", ".join(skel["segment_names"])})')
-    return {'name': str(data.get('name') or 'model'), 'base': base, 'source': where, 'labels': labels, 'skeleton': skel}
+    tname = _text(data, 'name', where) or 'model'
+    return {'name': tname, 'base': base, 'source': where, 'labels': labels, 'skeleton': skel}
 
 
 def load_joints(src) -> dict:
