@@ -19,9 +19,9 @@
 #
 # Environment: DEMO_SECONDS (sim seconds, default 10), DEMO_MODEL (model .npz; default the bundled
 # anatomy), DEMO_PARAMS (physical|paper|file, default physical), DEMO_ACTIVATION (arguments of the
-# activation node; default: --profile ramp --muscles hamstrings --rise 8 --others 0, or --profile paper
-# with DEMO_PARAMS=paper), DEMO_MARKERS (1: also record the markers), ROS_DOMAIN_ID (default: derived
-# from the pid), DEMO_TIMEOUT (wall seconds, default 600).
+# activation node; default: --profile ramp --rise 8 --others 0 (the node's default muscles are the
+# model's hamstrings), or --profile paper with DEMO_PARAMS=paper), DEMO_MARKERS (1: also record the
+# markers), ROS_DOMAIN_ID (default: derived from the pid), DEMO_TIMEOUT (wall seconds, default 600).
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -36,7 +36,7 @@ if [ -n "${DEMO_ACTIVATION:-}" ]; then
 elif [ "$PARAMS" = paper ]; then
   ACT_ARGS=(--profile paper)
 else
-  ACT_ARGS=(--profile ramp --muscles hamstrings --rise 8 --others 0)
+  ACT_ARGS=(--profile ramp --rise 8 --others 0)
 fi
 TIMEOUT="${DEMO_TIMEOUT:-600}"
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( 1 + $$ % 101 ))}"
@@ -68,26 +68,17 @@ stop() {  # stop PID: SIGINT, wait up to 15 s, then SIGKILL
   kill -KILL "$1" 2>/dev/null
 }
 
+if [ -z "${DEMO_MODEL:-}" ] && ! python -c 'from tissue_sim.core import builder; builder.default_inputs()' 2>/dev/null; then
+  echo "demo: the bundled anatomy (tissue_sim/data/lower_limb) is missing: run \`make anatomy\` or set DEMO_MODEL=<model.npz>"
+  exit 1
+fi
+
 REC_TOPICS=()
 [ "${DEMO_MARKERS:-0}" = 1 ] && REC_TOPICS=(--topics /tissue/markers)
 "$EXE/recorder" -o "$RUN/run.mcap" "${REC_TOPICS[@]}" --meta "demo_seconds=$SECONDS_SIM" \
   >"$RUN/logs/recorder.log" 2>&1 &
 REC=$!; PIDS+=("$REC")
 
-if [ -z "${DEMO_MODEL:-}" ] && ! python -c 'from tissue_sim.core import builder; builder.default_inputs()' 2>/dev/null; then
-  # the bundled anatomy is not in this checkout: say so and use the builder's synthetic limb phantom
-  echo "demo: the bundled anatomy is missing (tissue_sim/data/lower_limb); using the synthetic limb phantom"
-  python - "$RUN/model.npz" <<'PY' || exit 1
-import sys
-sys.path.insert(0, 'tests')
-from phantoms import make_limb_phantom
-from tissue_sim.core.builder import build_model
-lab, aff, tab = make_limb_phantom()
-tm, _ = build_model((lab, aff), tab)
-tm.save(sys.argv[1])
-PY
-  DEMO_MODEL="$RUN/model.npz"
-fi
 SIM_P=(-p "params:=$PARAMS")
 [ -n "${DEMO_MODEL:-}" ] && SIM_P+=(-p "model:=$DEMO_MODEL")
 "$EXE/simulator" --ros-args --params-file "$ROOT/src/tissue_sim/tissue_sim/config/simulator.yaml" \
