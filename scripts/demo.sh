@@ -100,8 +100,9 @@ echo "demo: activation ${ACT_ARGS[*]}"
 "$EXE/activation" "${ACT_ARGS[@]}" >"$RUN/logs/activation.log" 2>&1 &
 ACT=$!; PIDS+=("$ACT")
 
-# Watch from a separate process: resume the (paused) simulator once the activation and recorder
-# are connected, measure what a subscriber receives, stop at DEMO_SECONDS of sim time.
+# Watch from a separate process: resume the (paused) simulator once the recorder is connected and
+# the activation node publishes (it has the model's muscles: the profile starts at sim time 0),
+# measure what a subscriber receives, stop at DEMO_SECONDS of sim time.
 python - "$RUN" "$SECONDS_SIM" "$TIMEOUT" "$PARAMS" "${ACT_ARGS[*]}" <<'PY'
 import json, sys, time
 from pathlib import Path
@@ -110,12 +111,15 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import SetBool
+from tissue_msgs.msg import MuscleActivation
 run, sim_seconds, timeout = Path(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
 rclpy.init()
 node = rclpy.create_node('demo_monitor')
 arr, js_last, diag = [], [None], [None]
 node.create_subscription(JointState, '/joint_states', lambda m: (arr.append(time.monotonic()), js_last.__setitem__(0, m)), 10)
 node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diag.__setitem__(0, m), 10)
+acts = []
+node.create_subscription(MuscleActivation, '/tissue/activation', acts.append, 10)
 pause = node.create_client(SetBool, '/simulator/pause')
 t0 = time.monotonic()
 def spin_until(cond, limit, what):
@@ -127,6 +131,7 @@ spin_until(lambda: pause.service_is_ready(), timeout, 'the simulator pause servi
 act_pubs = lambda: node.count_publishers('/tissue/activation')
 rec_subs = lambda: node.count_subscribers('/tissue/state')
 spin_until(lambda: act_pubs() >= 1 and rec_subs() >= 1, timeout, 'activation node and recorder to connect')
+spin_until(lambda: len(acts) >= 1, timeout, 'the activation node to publish')
 spin_until(lambda: len(arr) >= 1, timeout, 'frames')
 fut = pause.call_async(SetBool.Request(data=False))
 spin_until(lambda: fut.done(), 30, 'resume')

@@ -469,3 +469,27 @@ def test_simulator_parameters_are_declared_once():
     assert {p.name: p.value for p in overrides(args, PARAMS)} == {
         'realtime': False, 'marker_colouring': 'skin_area', 'rate': 0.5, 'publish_markers': False,
         'bone_marker_resolution': 0.0}
+
+
+def test_activation_set_resolves_groups_from_the_topology_then_exits(knee_model):
+    """`activation --set GROUP=V ...` waits for the model's topology, publishes one message naming
+    the group's muscles, and exits 0 (its own end through the shared main)."""
+    import rclpy
+    from tissue_msgs.msg import MuscleActivation, TissueTopology
+    from tissue_sim.core import tissue_cdr
+    from tissue_sim.core.model import TissueModel
+    from tissue_sim.ros.common import qos_latched
+    tm = TissueModel.load(knee_model)
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
+        topo.publish(tissue_cdr.encode_topology(tissue_cdr.from_model(tm)))
+        got = Collector(node, MuscleActivation, '/tissue/activation')
+        with run_executable('activation', '--set', 'hamstrings=0.7', 'quadriceps=0.2', env=dom.env) as act:
+            spin_until(lambda: got.msgs, node, 30, 'the message')
+            spin_until(lambda: act.returncode is not None, node, 20, 'the node to exit')
+        node.destroy_node()
+    assert act.returncode == 0 and 'Traceback' not in act.output, act.output
+    assert len(got.msgs) == 1
+    assert list(got.msgs[0].muscle_names) == ['hamstring', 'quadriceps']
+    assert list(got.msgs[0].activations) == pytest.approx([0.7, 0.2])

@@ -84,6 +84,7 @@ class Activation(Node):
     """Publishes the profile's activations of the muscles it selects at ``--rate`` Hz."""
 
     def __init__(self, args):
+        from rclpy.clock import Clock, ClockType
         from rclpy.parameter import Parameter
         from tissue_msgs.msg import MuscleActivation, TissueTopology
         super().__init__('activation', parameter_overrides=[
@@ -97,10 +98,11 @@ class Activation(Node):
         self.plan = None            # core.activation.Activations: the muscles published and their a(t)
         self.model = None           # (names, groups) the plan was resolved for
         self.create_subscription(TissueTopology, TOPIC_TOPOLOGY, self.on_topology, qos_latched())
-        if args.profile == 'set' or (args.muscles and args.others is None and args.profile != 'timeline'
-                                     and all(literal(m) for m in args.muscles)):
-            self.resolve(None)
-        self.timer = self.create_timer(1.0 / args.rate, self.tick)
+        chosen = list(self.set_values) if args.profile == 'set' else (args.muscles or [])
+        if chosen and args.others is None and args.profile != 'timeline' and all(literal(m) for m in chosen):
+            self.resolve(None)      # muscle names: published at once, checked when the topology comes
+        # wall-clock ticks (with use_sim_time the node's own clock stands still while the simulator is paused)
+        self.timer = self.create_timer(1.0 / args.rate, self.tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def on_topology(self, msg):
         model = (list(msg.muscle_names), list(msg.muscle_groups))
