@@ -105,7 +105,7 @@ def declare(node, specs) -> dict:
 
 
 def add_flags(parser: argparse.ArgumentParser, specs) -> argparse.ArgumentParser:
-    """One command-line flag per Param (default None: not given), and an epilog listing them."""
+    """One command-line flag per Param (default None: not given) and its aliases; an epilog saying so."""
     for p in specs:
         strings = [a for a in p.aliases if isinstance(a, str)]
         if isinstance(p.default, bool):
@@ -121,7 +121,7 @@ def add_flags(parser: argparse.ArgumentParser, specs) -> argparse.ArgumentParser
                 parser.add_argument(flag, dest=p.name, action='store_const', const=value,
                                     help=f'{p.name}:={str(value).lower()}')
     parser.epilog = (parser.epilog or '') + (
-        'Every option above is a ROS parameter of the same name with underscores (ros2 param describe); '
+        'Each option above sets the ROS parameter of its name (dashes as underscores; ros2 param describe); '
         'an option given here overrides --ros-args -p and --params-file.')
     return parser
 
@@ -143,8 +143,8 @@ def params_table(specs) -> str:
         return f"`'{v}'`" if v == '' else (f'`{str(v).lower()}`' if isinstance(v, bool) else f'`{v}`')
     rows = ['| parameter | default | run time | flags | |', '|---|---|---|---|---|']
     for p in specs:
-        main = f'--[no-]{p.flag[2:]}' if isinstance(p.default, bool) else p.flag
-        flags = ', '.join([f'`{main}`'] + [f'`{a if isinstance(a, str) else a[0]}`' for a in p.aliases])
+        first = f'--[no-]{p.flag[2:]}' if isinstance(p.default, bool) else p.flag
+        flags = ', '.join([f'`{first}`'] + [f'`{a if isinstance(a, str) else a[0]}`' for a in p.aliases])
         rows.append(f'| `{p.name}` | {fmt(p.default)} | {"" if p.read_only else "yes"} | {flags} | {p.description} |')
     return '\n'.join(rows) + '\n'
 
