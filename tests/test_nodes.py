@@ -493,3 +493,28 @@ def test_activation_set_resolves_groups_from_the_topology_then_exits(knee_model)
     assert len(got.msgs) == 1
     assert list(got.msgs[0].muscle_names) == ['hamstring', 'quadriceps']
     assert list(got.msgs[0].activations) == pytest.approx([0.7, 0.2])
+
+
+def test_activation_follows_the_model_a_new_topology_announces(knee_model, bundled_names_knee):
+    """A simulator restarted with another model announces a new topology: the activation node
+    resolves its default muscles (the hamstrings) again, by the new model's names."""
+    import rclpy
+    from tissue_msgs.msg import MuscleActivation, TissueTopology
+    from tissue_sim.core import tissue_cdr
+    from tissue_sim.core.model import TissueModel
+    from tissue_sim.ros.common import qos_latched
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
+        topo.publish(tissue_cdr.encode_topology(tissue_cdr.from_model(TissueModel.load(knee_model))))
+        got = Collector(node, MuscleActivation, '/tissue/activation')
+        with run_executable('activation', '--profile', 'step', '--rate', '20', env=dom.env) as act:
+            spin_until(lambda: got.msgs and list(got.msgs[-1].muscle_names) == ['hamstring'], node, 30,
+                       'messages for the first model')
+            topo.publish(tissue_cdr.encode_topology(tissue_cdr.from_model(TissueModel.load(bundled_names_knee))))
+            spin_until(lambda: list(got.msgs[-1].muscle_names) == ['biceps_femoris_long_head'], node, 30,
+                       'messages for the second model')
+        node.destroy_node()
+    assert act.returncode == 0, act.output
+    assert list(got.msgs[-1].activations) == pytest.approx([1.0])
+    assert act.output.count('profile step on 1 muscles') == 2, act.output
