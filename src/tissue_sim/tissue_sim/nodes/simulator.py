@@ -32,7 +32,8 @@ from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPI
 from ..ros.common import main as node_main
 
 PARAMS = (
-    Param('model', '', "model file (.npz); '' = the bundled lower limb", read_only=True),
+    Param('model', '', "model file (.npz); '' = the bundled lower limb; phantom:knee = the solver's knee phantom",
+          read_only=True),
     Param('params', 'paper', 'solver parameters: paper, physical or a YAML file', read_only=True),
     Param('dt', 0.0, "solver step [s]; 0 = the parameter set's dt", lo=0.0, hi=0.01, read_only=True),
     Param('publish_rate', 34.0, 'floor on frames published per second of wall time [Hz]; frames are scheduled '
