@@ -101,17 +101,12 @@ def main():
         from tissue_sim.core.solver import phantom
         model = str(phantom.knee(n_gaps=20, extra_muscles=8, fat_sectors=12).save(tmp / 'phantom.npz'))
     if not model:
-        from tissue_sim.core import builder
+        from tissue_sim.core.load import load_model
+        from tissue_sim.core.model import ModelError
         try:
-            tm = builder.default_model()
-            model = str(tm.save(tmp / 'bundled.npz'))
-        except FileNotFoundError:
-            sys.path.insert(0, str(ROOT / 'tests'))
-            from phantoms import make_limb_phantom
-            lab, aff, tab = make_limb_phantom()
-            tm, _ = builder.build_model((lab, aff), tab)
-            model = str(tm.save(tmp / 'limb_phantom.npz'))
-            print('bundled anatomy absent: using the synthetic limb phantom of tests/phantoms.py')
+            model = str(load_model('').save(tmp / 'bundled.npz'))
+        except ModelError as e:
+            sys.exit(f'{e} (or run with --phantom)')
     tm = TissueModel.load(model)
     dom = 1 + os.getpid() % 101
     env = dict(os.environ, ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')

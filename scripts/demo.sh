@@ -19,9 +19,9 @@
 #
 # Environment: DEMO_SECONDS (sim seconds, default 10), DEMO_MODEL (model .npz; default the bundled
 # anatomy), DEMO_PARAMS (physical|paper|file, default physical), DEMO_ACTIVATION (arguments of the
-# activation node; default: --profile ramp --muscles hamstrings --rise 8 --others 0, or --profile paper
-# with DEMO_PARAMS=paper), DEMO_MARKERS (1: also record the markers), ROS_DOMAIN_ID (default: derived
-# from the pid), DEMO_TIMEOUT (wall seconds, default 600).
+# activation node; default: --profile ramp --rise 8 --others 0 (the node's default muscles are the
+# model's hamstrings), or --profile paper with DEMO_PARAMS=paper), DEMO_MARKERS (1: also record the
+# markers), ROS_DOMAIN_ID (default: derived from the pid), DEMO_TIMEOUT (wall seconds, default 600).
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -36,7 +36,7 @@ if [ -n "${DEMO_ACTIVATION:-}" ]; then
 elif [ "$PARAMS" = paper ]; then
   ACT_ARGS=(--profile paper)
 else
-  ACT_ARGS=(--profile ramp --muscles hamstrings --rise 8 --others 0)
+  ACT_ARGS=(--profile ramp --rise 8 --others 0)
 fi
 TIMEOUT="${DEMO_TIMEOUT:-600}"
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( 1 + $$ % 101 ))}"
@@ -68,26 +68,17 @@ stop() {  # stop PID: SIGINT, wait up to 15 s, then SIGKILL
   kill -KILL "$1" 2>/dev/null
 }
 
+if [ -z "${DEMO_MODEL:-}" ] && ! python -c 'from tissue_sim.core import builder; builder.default_inputs()' 2>/dev/null; then
+  echo "demo: the bundled anatomy (tissue_sim/data/lower_limb) is missing: run \`make anatomy\` or set DEMO_MODEL=<model.npz>"
+  exit 1
+fi
+
 REC_TOPICS=()
 [ "${DEMO_MARKERS:-0}" = 1 ] && REC_TOPICS=(--topics /tissue/markers)
 "$EXE/recorder" -o "$RUN/run.mcap" "${REC_TOPICS[@]}" --meta "demo_seconds=$SECONDS_SIM" \
   >"$RUN/logs/recorder.log" 2>&1 &
 REC=$!; PIDS+=("$REC")
 
-if [ -z "${DEMO_MODEL:-}" ] && ! python -c 'from tissue_sim.core import builder; builder.default_inputs()' 2>/dev/null; then
-  # the bundled anatomy is not in this checkout: say so and use the builder's synthetic limb phantom
-  echo "demo: the bundled anatomy is missing (tissue_sim/data/lower_limb); using the synthetic limb phantom"
-  python - "$RUN/model.npz" <<'PY' || exit 1
-import sys
-sys.path.insert(0, 'tests')
-from phantoms import make_limb_phantom
-from tissue_sim.core.builder import build_model
-lab, aff, tab = make_limb_phantom()
-tm, _ = build_model((lab, aff), tab)
-tm.save(sys.argv[1])
-PY
-  DEMO_MODEL="$RUN/model.npz"
-fi
 SIM_P=(-p "params:=$PARAMS")
 [ -n "${DEMO_MODEL:-}" ] && SIM_P+=(-p "model:=$DEMO_MODEL")
 "$EXE/simulator" --ros-args --params-file "$ROOT/src/tissue_sim/tissue_sim/config/simulator.yaml" \
@@ -109,8 +100,9 @@ echo "demo: activation ${ACT_ARGS[*]}"
 "$EXE/activation" "${ACT_ARGS[@]}" >"$RUN/logs/activation.log" 2>&1 &
 ACT=$!; PIDS+=("$ACT")
 
-# Watch from a separate process: resume the (paused) simulator once the activation and recorder
-# are connected, measure what a subscriber receives, stop at DEMO_SECONDS of sim time.
+# Watch from a separate process: resume the (paused) simulator once the recorder is connected and
+# the activation node publishes (it has the model's muscles: the profile starts at sim time 0),
+# measure what a subscriber receives, stop at DEMO_SECONDS of sim time.
 python - "$RUN" "$SECONDS_SIM" "$TIMEOUT" "$PARAMS" "${ACT_ARGS[*]}" <<'PY'
 import json, sys, time
 from pathlib import Path
@@ -119,12 +111,15 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import SetBool
+from tissue_msgs.msg import MuscleActivation
 run, sim_seconds, timeout = Path(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
 rclpy.init()
 node = rclpy.create_node('demo_monitor')
 arr, js_last, diag = [], [None], [None]
 node.create_subscription(JointState, '/joint_states', lambda m: (arr.append(time.monotonic()), js_last.__setitem__(0, m)), 10)
 node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diag.__setitem__(0, m), 10)
+acts = []
+node.create_subscription(MuscleActivation, '/tissue/activation', acts.append, 10)
 pause = node.create_client(SetBool, '/simulator/pause')
 t0 = time.monotonic()
 def spin_until(cond, limit, what):
@@ -136,6 +131,7 @@ spin_until(lambda: pause.service_is_ready(), timeout, 'the simulator pause servi
 act_pubs = lambda: node.count_publishers('/tissue/activation')
 rec_subs = lambda: node.count_subscribers('/tissue/state')
 spin_until(lambda: act_pubs() >= 1 and rec_subs() >= 1, timeout, 'activation node and recorder to connect')
+spin_until(lambda: len(acts) >= 1, timeout, 'the activation node to publish')
 spin_until(lambda: len(arr) >= 1, timeout, 'frames')
 fut = pause.call_async(SetBool.Request(data=False))
 spin_until(lambda: fut.done(), 30, 'resume')

@@ -1,5 +1,6 @@
 """Real nodes over DDS (isolated domains): simulator rate, activation effect, bad-message rejection,
-recorder (SIGINT -> rosbags reads it; SIGKILL -> our reader reads it), replay."""
+the activation node's defaults and combination rule, recorder (SIGINT -> rosbags reads it; SIGKILL
+-> our reader reads it), replay; the simulator's parameters declared once."""
 import math
 import signal
 import time
@@ -28,6 +29,20 @@ def builder_model(tmp_path_factory):
     from phantoms import make_phantom_model
     p = tmp_path_factory.mktemp('model') / 'two_bones.npz'
     make_phantom_model('two_bones').save(p)
+    return p
+
+
+@pytest.fixture(scope='module')
+def bundled_names_knee(tmp_path_factory):
+    """The knee phantom with its hamstring named as in the bundled limb (long head of biceps femoris,
+    group hamstrings), which the paper's names (biceps_femoris, ...) do not name exactly."""
+    import dataclasses
+    from tissue_sim.core.solver import phantom
+    tm = phantom.knee()
+    tm = dataclasses.replace(tm, muscle_names=('biceps_femoris_long_head', 'rectus_femoris'))
+    assert tm.muscle_groups == ('hamstrings', 'quadriceps')
+    p = tmp_path_factory.mktemp('model') / 'knee_bundled_names.npz'
+    tm.save(p)
     return p
 
 
@@ -374,3 +389,132 @@ def test_a_stop_during_start_up_is_a_stop_not_a_traceback(capsys):
     assert capsys.readouterr().err.splitlines() == ['stopped', 'stopped']
     with pytest.raises(RuntimeError, match='boom'):
         a_real_failure()
+
+
+def test_activation_defaults_drive_the_hamstrings_of_the_model_the_simulator_runs(bundled_names_knee):
+    """`activation --profile ramp` (no muscles given) and `activation` (no arguments) contract the
+    hamstrings of the running model, whatever their names: the knee flexes, no message is rejected."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+    with isolated_domain() as dom, ros_context(dom.id) as ctx, \
+            run_executable('simulator', *sim_args(bundled_names_knee, '-p', 'publish_markers:=false'),
+                           env=dom.env) as sim:
+        node = rclpy.create_node('probe', context=ctx)
+        js = Collector(node, JointState, '/joint_states')
+        diag = Collector(node, DiagnosticArray, '/diagnostics')
+        reset = node.create_client(Trigger, '/simulator/reset')
+        sim.wait_for_output('simulator ready', timeout=60)
+        spin_until(lambda: len(js.msgs) > 5, node, 30, 'joint states')
+        with run_executable('activation', '--profile', 'ramp', '--rise', '0.5', env=dom.env) as act:
+            spin_until(lambda: js.msgs[-1].position[0] > 0.3, node, 30, 'knee flexion > 0.3 rad (ramp)')
+            assert act.returncode is None, act.output
+        assert 'profile ramp on 1 muscles: biceps_femoris_long_head' in act.output, act.output
+        assert _call(node, reset, Trigger.Request()).success
+        spin_until(lambda: abs(js.msgs[-1].position[0]) < 0.05, node, 10, 'the knee back at rest')
+        with run_executable('activation', env=dom.env) as act:
+            spin_until(lambda: js.msgs[-1].position[0] > 0.3, node, 30, 'knee flexion > 0.3 rad (no arguments)')
+        assert 'profile paper on 2 muscles: biceps_femoris_long_head, rectus_femoris' in act.output, act.output
+        spin_until(lambda: diag.msgs and int(diag_values(diag.msgs[-1])['accepted_activations']) > 0, node, 5,
+                   'diagnostics counting accepted activations')
+        assert diag_values(diag.msgs[-1])['rejected_unknown_muscle'] == '0'
+        node.destroy_node()
+    assert sim.returncode == 0, sim.output
+
+
+def test_a_timeline_means_the_same_headless_and_through_the_activation_node(knee_model, tmp_path):
+    """One activation YAML, two ways: the activation node's messages and the headless solver's
+    timeline (what `tissue-sim simulate --timeline` runs) give the same activations, the most
+    specific entry setting a muscle (hamstring 0.5, not 0.3 + 0.5 and not the later 'all' 0.3)."""
+    import rclpy
+    import yaml
+    from tissue_msgs.msg import MuscleActivation, TissueTopology
+    from tissue_sim.core import solver, tissue_cdr
+    from tissue_sim.core.model import TissueModel
+    from tissue_sim.ros.common import qos_latched
+    f = tmp_path / 'overlap.yaml'
+    f.write_text('muscles:\n  hamstrings: [[0.0, 0.5]]\n  all: [[0.0, 0.3]]\n')
+    tm = TissueModel.load(knee_model)
+    headless = solver.timeline_function(solver.compile_model(tm, solver.Params.paper()),
+                                        yaml.safe_load(f.read_text())['muscles'])
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
+        topo.publish(tissue_cdr.encode_topology(tm))     # as the simulator does
+        got = Collector(node, MuscleActivation, '/tissue/activation')
+        with run_executable('activation', '--profile', 'timeline', '--timeline', f, '--wall-time', '--rate', '20',
+                            env=dom.env) as act:
+            spin_until(lambda: len(got.msgs) >= 3, node, 30, '3 activation messages')
+        node.destroy_node()
+    assert act.returncode == 0, act.output
+    m = got.msgs[-1]
+    assert list(m.muscle_names) == list(tm.muscle_names) == ['hamstring', 'quadriceps']
+    assert list(m.activations) == pytest.approx(list(headless(1.0))) and list(m.activations) == pytest.approx([0.5, 0.3])
+
+
+def test_simulator_parameters_are_declared_once():
+    """The flags, config/simulator.yaml and the docs table all come from (or are checked against)
+    the one declaration of each parameter."""
+    import yaml
+    from tissue_sim.nodes.simulator import PARAMS, build_parser
+    from tissue_sim.ros.common import overrides, params_table, params_yaml
+    cfg = rosutil.ROOT / 'src' / 'tissue_sim' / 'tissue_sim' / 'config' / 'simulator.yaml'
+    assert yaml.safe_load(cfg.read_text()) == params_yaml('simulator', PARAMS)
+    assert params_table(PARAMS) in (rosutil.ROOT / 'docs' / 'ros.md').read_text()
+    usage = build_parser().format_help()
+    assert all(p.flag in usage for p in PARAMS)
+    args = build_parser().parse_args(['--as-fast-as-possible', '--colouring', 'skin_area', '--rate', '0.5',
+                                      '--no-markers', '--bone-marker-resolution', '0'])
+    assert {p.name: p.value for p in overrides(args, PARAMS)} == {
+        'realtime': False, 'marker_colouring': 'skin_area', 'rate': 0.5, 'publish_markers': False,
+        'bone_marker_resolution': 0.0}
+
+
+def test_activation_set_resolves_groups_from_the_topology_then_exits(knee_model):
+    """`activation --set GROUP=V ...` waits for the model's topology, publishes one message naming
+    the group's muscles, and exits 0 (its own end through the shared main)."""
+    import rclpy
+    from tissue_msgs.msg import MuscleActivation, TissueTopology
+    from tissue_sim.core import tissue_cdr
+    from tissue_sim.core.model import TissueModel
+    from tissue_sim.ros.common import qos_latched
+    tm = TissueModel.load(knee_model)
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
+        topo.publish(tissue_cdr.encode_topology(tm))
+        got = Collector(node, MuscleActivation, '/tissue/activation')
+        with run_executable('activation', '--set', 'hamstrings=0.7', 'quadriceps=0.2', env=dom.env) as act:
+            spin_until(lambda: got.msgs, node, 30, 'the message')
+            spin_until(lambda: act.returncode is not None, node, 20, 'the node to exit')
+        node.destroy_node()
+    assert act.returncode == 0 and 'Traceback' not in act.output, act.output
+    assert len(got.msgs) == 1
+    assert list(got.msgs[0].muscle_names) == ['hamstring', 'quadriceps']
+    assert list(got.msgs[0].activations) == pytest.approx([0.7, 0.2])
+
+
+def test_activation_follows_the_model_a_new_topology_announces(knee_model, bundled_names_knee):
+    """A simulator restarted with another model announces a new topology: the activation node
+    resolves its default muscles (the hamstrings) again, by the new model's names."""
+    import rclpy
+    from tissue_msgs.msg import MuscleActivation, TissueTopology
+    from tissue_sim.core import tissue_cdr
+    from tissue_sim.core.model import TissueModel
+    from tissue_sim.ros.common import qos_latched
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
+        topo.publish(tissue_cdr.encode_topology(TissueModel.load(knee_model)))
+        got = Collector(node, MuscleActivation, '/tissue/activation')
+        with run_executable('activation', '--profile', 'step', '--rate', '20', env=dom.env) as act:
+            spin_until(lambda: got.msgs and list(got.msgs[-1].muscle_names) == ['hamstring'], node, 30,
+                       'messages for the first model')
+            topo.publish(tissue_cdr.encode_topology(TissueModel.load(bundled_names_knee)))
+            spin_until(lambda: list(got.msgs[-1].muscle_names) == ['biceps_femoris_long_head'], node, 30,
+                       'messages for the second model')
+        node.destroy_node()
+    assert act.returncode == 0, act.output
+    assert list(got.msgs[-1].activations) == pytest.approx([1.0])
+    assert act.output.count('profile step on 1 muscles') == 2, act.output

@@ -21,7 +21,8 @@ def add_arguments(p):
     p.add_argument('--duration', type=float, default=3.0, help='simulated time [s] (default %(default)s)')
     p.add_argument('--activate', action='append', default=[], metavar='NAME=A[@T0[-T1]]',
                    help='activation A in [0, 1] of a muscle, a group (e.g. hamstrings) or "all", from T0 (default 0) '
-                        'to T1 (default: the end) [s]; repeatable')
+                        'to T1 (default: the end) [s]; repeatable. A muscle selected by several entries takes the most '
+                        'specific one (muscle > name prefix > group > all), as in the activation node')
     p.add_argument('--timeline', metavar='FILE.yaml', help='timeline file, same format as the activation node: muscles: {name or group: [[t, a], ...]} (piecewise linear)')
     p.add_argument('--params', default='paper', help='paper | physical | parameter file .yaml (default %(default)s)')
     p.add_argument('--dt', type=float, help='step [s] (default: the parameter set\'s dt)')
@@ -65,40 +66,27 @@ def _parse_activation(spec: str, duration: float):
     return name.strip(), pts
 
 
-def _load_model(spec):
-    from tissue_sim.core.model import ModelError, TissueModel
-    if spec is None:
-        try:
-            from tissue_sim.core.builder import default_model
-            return default_model()
-        except FileNotFoundError as e:
-            raise UserError(f'the bundled anatomy is not available ({e}); give a MODEL file') from None
-    if spec.startswith('phantom:'):
-        from tissue_sim.core.solver import phantom
-        kind = spec.split(':', 1)[1]
-        if kind != 'knee':
-            raise UserError(f'unknown phantom {kind!r} (knee)')
-        return phantom.knee(n_gaps=12)
+def _load(args):
+    """(model, params, activation function's timeline) of the command line; UserError naming a problem."""
+    from tissue_sim.core.activation import load_timeline
+    from tissue_sim.core.load import load_model, load_params
     try:
-        return TissueModel.load(spec)
-    except ModelError as e:
+        tm = load_model(args.model)
+        params = load_params(args.params, args.dt)
+        # the same timeline file format as `activation --profile timeline` (muscles: {name: [[t, a], ...]})
+        timeline = {name: list(zip(times.tolist(), values.tolist()))
+                    for name, (times, values) in (load_timeline(args.timeline) if args.timeline else {}).items()}
+    except ValueError as e:               # ModelError, ActivationError, a bad parameter file
         raise UserError(str(e)) from None
-
-
-def _params(spec):
-    from tissue_sim.core.solver import Params
-    try:
-        if spec == 'paper':
-            return Params.paper()
-        if spec == 'physical':
-            return Params.physical()
-        return Params.from_yaml(spec)
-    except ValueError as e:
-        raise UserError(str(e)) from None
+    for spec in args.activate:
+        name, pts = _parse_activation(spec, args.duration)
+        timeline[name] = pts if name not in timeline else list(timeline[name]) + pts
+    return tm, params, timeline
 
 
 def run(args) -> int:
     from tissue_sim.core import solver
+    from tissue_sim.core.activation import timeline_function
     if not (args.duration > 0 and math.isfinite(args.duration)):
         raise UserError('--duration must be > 0')
     if args.every < 1:
@@ -107,25 +95,12 @@ def run(args) -> int:
         raise UserError('--dt must be in (0, 1) s')
     if args.output and Path(args.output).suffix not in ('.mcap', '.npz'):
         raise UserError(f'-o {args.output}: expected RUN.mcap (a run) or OBS.npz (observation arrays)')
-    tm = _load_model(args.model)
-    params = _params(args.params)
-    timeline = {}
-    if args.timeline:
-        # the same timeline file format as `activation --profile timeline` (muscles: {name: [[t, a], ...]})
-        from tissue_sim.ros.profiles import ProfileError, load_timeline
-        try:
-            tl = load_timeline(args.timeline)
-        except ProfileError as e:
-            raise UserError(str(e)) from None
-        timeline.update({name: list(zip(times.tolist(), values.tolist())) for name, (times, values) in tl.items()})
-    for spec in args.activate:
-        name, pts = _parse_activation(spec, args.duration)
-        timeline[name] = pts if name not in timeline else list(timeline[name]) + pts
+    tm, params, timeline = _load(args)
     try:
         sim = solver.compile_model(tm, params)
-        fn = solver.timeline_function(sim, timeline)
-    except (ValueError, KeyError) as e:
-        raise UserError(str(e).strip('"')) from None
+        fn = timeline_function(sim, timeline)
+    except ValueError as e:
+        raise UserError(str(e)) from None
     rec = {k: [] for k in ('time', 'joint_positions', 'joint_velocities', 'muscle_lengths', 'muscle_volumes',
                            'muscle_stretch', 'kinetic_energy', 'elastic_energy', 'segment_poses', 'activation')}
     positions = []
@@ -135,7 +110,7 @@ def run(args) -> int:
     writer = _open_run(out, tm, sim) if out is not None and out.suffix == '.mcap' else None
     t_wall = time.perf_counter()
     try:
-        for t, o in solver.simulate(sim, args.duration, fn, dt=args.dt, every=args.every, state=st, output='obs'):
+        for t, o in solver.simulate(sim, args.duration, fn, every=args.every, state=st, output='obs'):
             act = fn(t)
             for k in rec:
                 rec[k].append(act if k == 'activation' else o[k])

@@ -135,10 +135,9 @@ class TissueTopology:
         return self.cell_vertices[self.cell_offsets[c]:self.cell_offsets[c + 1]]
 
     def muscle_index(self, name: str) -> int:
-        try:
-            return self.muscle_names.index(name)
-        except ValueError:
-            raise KeyError(f'unknown muscle {name!r}; the model has: {", ".join(self.muscle_names)}') from None
+        """Index of a muscle name; KeyError naming the model's muscles (tissue_sim.core.activation)."""
+        from tissue_sim.core.activation import Muscles
+        return Muscles.of(self).index(name)
 
     def bone_mesh(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         """(vertices, triangles) of bone b at rest."""

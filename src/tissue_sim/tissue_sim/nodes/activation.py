@@ -2,32 +2,39 @@
 
 Examples::
 
-    activation --profile paper                       # hamstrings contract from t = 0, others passive
+    activation                                       # the paper's experiment: the hamstrings contract
+                                                     # from t = 0, every other muscle passive
+    activation --profile ramp --rise 8               # the model's hamstrings, ramped 0 -> 1 over 8 s
     activation --profile ramp_hold --muscles hamstrings --level 0.8 --rise 0.5 --hold 2 --fall 0.5
     activation --profile sine --muscles quadriceps --frequency 0.5
     activation --profile timeline --timeline config/activation_timeline.yaml
-    activation --set biceps_femoris_long=0.7 semitendinosus=0.3     # one message, then exit
+    activation --set biceps_femoris_long_head=0.7 semitendinosus=0.3   # one message, then exit
 
 Time is simulated time from /clock (use_sim_time is on by default), so a profile is reproducible
-whatever the simulator's real-time rate. Muscle and group names come from /tissue/topology
-(transient-local) when a profile needs them (groups, 'all', the paper experiment).
+whatever the simulator's real-time rate. Muscle names, groups and the default muscles (the
+hamstrings of the model) are resolved from /tissue/topology (transient-local), again whenever a new
+model is announced; muscle names with an underscore are published before that. When several
+selections name one muscle the most specific sets it (tissue_sim.core.activation).
 """
 from __future__ import annotations
 
 import argparse
 import time
 
-from ..ros import profiles
-from ..ros.common import TOPIC_ACTIVATION, TOPIC_TOPOLOGY, _is_rcl_error, main_wrapper, parse_args, qos_latched, qos_stream
+from rclpy.node import Node
+
+from ..core import activation as act
+from ..ros.common import TOPIC_ACTIVATION, TOPIC_TOPOLOGY, qos_latched, qos_stream
+from ..ros.common import main as node_main
 
 
 def build_parser():
     p = argparse.ArgumentParser(prog='activation', description=__doc__.split('\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--profile', choices=profiles.PROFILES, default=None,
+    p.add_argument('--profile', choices=act.PROFILES, default=None,
                    help='activation profile (default: paper, or set when --set is given)')
     p.add_argument('--muscles', nargs='+', default=None,
-                   help="muscle names, group names (e.g. hamstrings) or 'all' (default: hamstrings)")
+                   help="muscle names, group names (e.g. hamstrings) or 'all' (default: the model's hamstrings)")
     p.add_argument('--others', type=float, default=None,
                    help='activation published for every other muscle (paper: 0 = passive; default: not published)')
     p.add_argument('--level', type=float, default=1.0, help='peak activation in [0, 1] (default 1)')
@@ -51,138 +58,99 @@ def check_args(a):
     if a.profile is None:
         a.profile = 'set' if a.set else 'paper'
     if a.profile == 'set' and not a.set:
-        raise profiles.ProfileError('--profile set needs --set NAME=VALUE ...')
+        raise act.ActivationError('--profile set needs --set NAME=VALUE ...')
     if not (0.0 <= a.level <= 1.0):
-        raise profiles.ProfileError(f'--level {a.level}: must be in [0, 1]')
+        raise act.ActivationError(f'--level {a.level}: must be in [0, 1]')
     if a.others is not None and not (0.0 <= a.others <= 1.0):
-        raise profiles.ProfileError(f'--others {a.others}: must be in [0, 1]')
+        raise act.ActivationError(f'--others {a.others}: must be in [0, 1]')
     if a.profile == 'paper' and a.others is None:
         a.others = 0.0
     if a.rate <= 0 or a.rate > 1000:
-        raise profiles.ProfileError(f'--rate {a.rate}: must be in (0, 1000] Hz')
+        raise act.ActivationError(f'--rate {a.rate}: must be in (0, 1000] Hz')
     for k in ('rise', 'hold', 'fall', 'duration', 'frequency'):
         if getattr(a, k) < 0:
-            raise profiles.ProfileError(f'--{k}: must not be negative')
+            raise act.ActivationError(f'--{k}: must not be negative')
     if a.profile == 'timeline' and not a.timeline:
-        raise profiles.ProfileError('--profile timeline needs --timeline FILE.yaml')
+        raise act.ActivationError('--profile timeline needs --timeline FILE.yaml')
     return a
 
 
-class ActivationNode:
-    """Holds the rclpy node, the resolved muscle list and the profile function."""
+def literal(selector: str) -> bool:
+    """A selector that is taken as a muscle name before the model is known."""
+    return selector != 'all' and ('_' in selector or selector in act.PAPER_MUSCLES)
+
+
+class Activation(Node):
+    """Publishes the profile's activations of the muscles it selects at ``--rate`` Hz."""
 
     def __init__(self, args):
-        import rclpy
+        from rclpy.clock import Clock, ClockType
         from rclpy.parameter import Parameter
         from tissue_msgs.msg import MuscleActivation, TissueTopology
+        super().__init__('activation', parameter_overrides=[
+            Parameter('use_sim_time', Parameter.Type.BOOL, not args.wall_time)])
         self.a = args
         self.Msg = MuscleActivation
-        self.node = rclpy.create_node('activation', parameter_overrides=[
-            Parameter('use_sim_time', Parameter.Type.BOOL, not args.wall_time)])
-        self.pub = self.node.create_publisher(MuscleActivation, TOPIC_ACTIVATION, qos_stream())
-        self.timeline = profiles.load_timeline(args.timeline) if args.profile == 'timeline' else None
-        self.set_values = profiles.parse_set(args.set) if args.set else None
-        self.topology = None
+        self.pub = self.create_publisher(MuscleActivation, TOPIC_ACTIVATION, qos_stream())
+        self.timeline = act.load_timeline(args.timeline) if args.profile == 'timeline' else None
+        self.set_values = act.parse_set(args.set) if args.set else None
         self._t0_wall = time.monotonic()
-        self.names = None           # resolved muscles, with their per-muscle function
-        needs_topology = (args.profile in ('paper',) or args.others is not None
-                          or (args.muscles and any(not self._literal(m) for m in args.muscles))
-                          or (args.profile == 'timeline'))
-        if needs_topology:
-            self.node.create_subscription(TissueTopology, TOPIC_TOPOLOGY, self._on_topology, qos_latched())
-        else:
-            self._resolve(None, None)
-        self.timer = self.node.create_timer(1.0 / args.rate, self._tick)
+        self.plan = None            # core.activation.Activations: the muscles published and their a(t)
+        self.model = None           # (names, groups) the plan was resolved for
+        self.create_subscription(TissueTopology, TOPIC_TOPOLOGY, self.on_topology, qos_latched())
+        chosen = list(self.set_values) if args.profile == 'set' else (args.muscles or [])
+        if chosen and args.others is None and args.profile != 'timeline' and all(literal(m) for m in chosen):
+            self.resolve(None)      # muscle names: published at once, checked when the topology comes
+        # wall-clock ticks (with use_sim_time the node's own clock stands still while the simulator is paused)
+        self.timer = self.create_timer(1.0 / args.rate, self.tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-    @staticmethod
-    def _literal(m):
-        return m != 'all' and ('_' in m or m in profiles.PAPER_MUSCLES)
+    def on_topology(self, msg):
+        model = (list(msg.muscle_names), list(msg.muscle_groups))
+        if model != self.model:
+            self.model = model
+            self.resolve(act.Muscles(*model))
 
-    def _on_topology(self, msg):
-        if self.names is None:
-            self._resolve(list(msg.muscle_names), list(msg.muscle_groups))
-
-    def _resolve(self, names, groups):
+    def resolve(self, muscles):
         a = self.a
-        fns = {}
-        if a.profile == 'set':
-            for n in self.set_values:
-                if names is not None and n not in names:
-                    raise profiles.ProfileError(f'--set: unknown muscle {n!r}; muscles: {", ".join(names)}')
-            fns = {n: (lambda t, v=v: v) for n, v in self.set_values.items()}
-        elif a.profile == 'timeline':
-            for sel, knots in self.timeline.items():
-                for n in (profiles.resolve_muscles([sel], names, groups) if names is not None else [sel]):
-                    fns[n] = (lambda t, k=knots: profiles.timeline_value(k, t))
-        else:
-            if a.muscles:
-                chosen = profiles.resolve_muscles(a.muscles, names, groups) if names is not None else list(a.muscles)
-            else:
-                chosen = profiles.paper_muscles(names, groups) if names is not None else list(profiles.PAPER_MUSCLES)
-            kw = dict(level=a.level, start=a.start, duration=a.duration, rise=a.rise, hold=a.hold,
-                      fall=a.fall, frequency=a.frequency)
-            for n in chosen:
-                fns[n] = (lambda t, kind=a.profile: profiles.shape(kind, t, **kw))
-        if a.others is not None and names is not None:
-            for n in names:
-                fns.setdefault(n, (lambda t, v=a.others: v))
-        self.fns = fns
-        self.names = list(fns)
-        self.node.get_logger().info(f'profile {a.profile} on {len(self.names)} muscles: {", ".join(self.names)}')
+        entries = act.profile_entries(a.profile, muscles, selectors=a.muscles, others=a.others,
+                                      timeline=self.timeline, set_values=self.set_values, level=a.level,
+                                      start=a.start, duration=a.duration, rise=a.rise, hold=a.hold, fall=a.fall,
+                                      frequency=a.frequency)
+        self.plan = act.Activations(entries, muscles)
+        self.get_logger().info(f'profile {a.profile} on {len(self.plan.names)} muscles: {", ".join(self.plan.names)}')
 
     def now(self) -> float:
         if self.a.wall_time:
             return time.monotonic() - self._t0_wall
-        return self.node.get_clock().now().nanoseconds * 1e-9
+        return self.get_clock().now().nanoseconds * 1e-9
 
-    def _tick(self):
-        if self.names is None:
+    def tick(self):
+        if self.plan is None:
             if time.monotonic() - self._t0_wall > self.a.topology_timeout:
-                raise profiles.ProfileError(f'no {TOPIC_TOPOLOGY} within {self.a.topology_timeout:.0f} s '
-                                            '(is the simulator running in this ROS domain?)')
+                raise act.ActivationError(f'no {TOPIC_TOPOLOGY} within {self.a.topology_timeout:.0f} s '
+                                          '(is the simulator running in this ROS domain?)')
             return
         if self.a.profile == 'set':
             if self.pub.get_subscription_count() == 0:
                 return
-            self._publish(0.0)
-            self.done = True
+            self.publish(0.0)
             raise SystemExit(0)
-        self._publish(self.now())
+        self.publish(self.now())
 
-    def _publish(self, t):
+    def publish(self, t):
         msg = self.Msg()
-        msg.header.stamp = self.node.get_clock().now().to_msg()
-        msg.muscle_names = self.names
-        msg.activations = [float(min(1.0, max(0.0, f(t)))) for f in (self.fns[n] for n in self.names)]
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.muscle_names = self.plan.names
+        msg.activations = [float(v) for v in self.plan.values(t)]
         self.pub.publish(msg)
 
-
-@main_wrapper
-def main(argv=None):
-    args, argv = parse_args(build_parser(), argv)
-    check_args(args)
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-    rclpy.init(args=argv)
-    n = ActivationNode(args)
-    try:
-        rclpy.spin(n.node)
-    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
-        pass
-    except Exception as e:                  # a timer callback racing SIGINT sees the context already shut down
-        if rclpy.ok() or not _is_rcl_error(e):
-            raise
-    finally:
-        if args.profile == 'set':
+    def on_shutdown(self):
+        if self.a.profile == 'set':
             time.sleep(0.3)          # let the reliable message reach the subscriber before leaving
-        try:
-            n.node.destroy_node()
-        except Exception as e:
-            if not _is_rcl_error(e):
-                raise
-        if rclpy.ok():
-            rclpy.shutdown()
-    return 0
+
+
+def main(argv=None):
+    return node_main(Activation, build_parser(), argv, check=check_args)
 
 
 if __name__ == '__main__':

@@ -22,8 +22,10 @@ import time
 from pathlib import Path
 
 from ..core import mcapio
-from ..ros.common import (TISSUE_TOPICS, TOPIC_TOPOLOGY, main_wrapper, parse_args, qos_latched, qos_stream,
-                          spin)
+from rclpy.node import Node
+
+from ..ros.common import TISSUE_TOPICS, TOPIC_TOPOLOGY, qos_latched, qos_stream
+from ..ros.common import main as node_main
 
 
 def build_parser():
@@ -41,11 +43,13 @@ def build_parser():
     return p
 
 
-class Recorder:
+class Recorder(Node):
+    """Subscribes (raw) to the wanted topics as they appear and writes what arrives; ``on_shutdown``
+    (SIGINT/SIGTERM, a callback racing them) finishes the file."""
+
     def __init__(self, args):
-        import rclpy
+        super().__init__('recorder')
         self.a = args
-        self.node = rclpy.create_node('recorder')
         self.wanted = {}               # topic -> explicit type or None
         for t in ([] if args.only else list(TISSUE_TOPICS)) + list(args.topics):
             name, _, typ = t.partition(':')
@@ -62,13 +66,13 @@ class Recorder:
         self.subs = {}
         self.counts = {}
         self.closed = False
-        self.node.create_timer(0.5, self.discover)
-        self.node.create_timer(max(args.flush, 0.05), self.writer.flush)
+        self.create_timer(0.5, self.discover)
+        self.create_timer(max(args.flush, 0.05), self.writer.flush)
         self.discover()
         print(f'recorder: writing {args.output}', flush=True)
 
     def discover(self):
-        types = dict(self.node.get_topic_names_and_types())
+        types = dict(self.get_topic_names_and_types())
         for topic, typ in self.wanted.items():
             if topic in self.subs:
                 continue
@@ -85,13 +89,13 @@ class Recorder:
             cls = get_message(typ)
             self.writer.add_channel(topic, typ)
         except (ValueError, AttributeError, ModuleNotFoundError, mcapio.McapIOError) as e:
-            self.node.get_logger().error(f'cannot record {topic} ({typ}): {e}')
+            self.get_logger().error(f'cannot record {topic} ({typ}): {e}')
             self.subs[topic] = None
             return
         qos = qos_latched() if topic == TOPIC_TOPOLOGY else qos_stream(100)
-        self.subs[topic] = self.node.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data),
+        self.subs[topic] = self.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data),
                                                          qos, raw=True)
-        self.node.get_logger().info(f'recording {topic} [{typ}]')
+        self.get_logger().info(f'recording {topic} [{typ}]')
 
     def on_message(self, topic, data):
         if self.closed:
@@ -107,13 +111,13 @@ class Recorder:
             from ..core.tissue_cdr import decode_topology
             topo = decode_topology(data)
         except Exception as e:
-            self.node.get_logger().warning(f'could not decode {TOPIC_TOPOLOGY}: {e}')
+            self.get_logger().warning(f'could not decode {TOPIC_TOPOLOGY}: {e}')
             return
         self.writer.add_metadata('tissue_sim_model', {'model': topo.name, 'model_hash': topo.meta['model_hash'],
                                                       'parameters_yaml': topo.meta['parameters_yaml'],
                                                       'n_vertices': str(topo.n_vertices)})
 
-    def close(self):
+    def on_shutdown(self):
         if self.closed:
             return
         self.closed = True
@@ -123,14 +127,8 @@ class Recorder:
               f'({", ".join(f"{k}: {v}" for k, v in sorted(self.counts.items()))})', flush=True)
 
 
-@main_wrapper
 def main(argv=None):
-    args, argv = parse_args(build_parser(), argv)
-    import rclpy
-    rclpy.init(args=argv)
-    rec = Recorder(args)
-    spin(rec.node, on_shutdown=rec.close)       # SIGINT/SIGTERM, a callback racing them: the file is closed
-    return 0
+    return node_main(Recorder, build_parser(), argv)
 
 
 if __name__ == '__main__':

@@ -14,9 +14,12 @@ from __future__ import annotations
 import argparse
 import time
 
+from rclpy.node import Node
+
 from ..core import mcapio
 from ..core.cdr import CdrReader
-from ..ros.common import TOPIC_CLOCK, TOPIC_TOPOLOGY, _is_rcl_error, main_wrapper, parse_args, qos_latched, qos_stream
+from ..ros.common import TOPIC_CLOCK, TOPIC_TOPOLOGY, qos_latched, qos_stream
+from ..ros.common import main as node_main
 
 
 def build_parser():
@@ -43,9 +46,10 @@ def stamp_of(data) -> int | None:
         return None
 
 
-class Replay:
+class Replay(Node):
+    """Publishes a recording's messages on their topics; ``run()`` plays it (instead of spinning)."""
+
     def __init__(self, args):
-        import rclpy
         from rosgraph_msgs.msg import Clock
         from ..ros.common import get_message
         if not (0.0 < args.rate <= 1000.0):
@@ -63,15 +67,15 @@ class Replay:
             raise ValueError(f'{args.input}: no topic {", ".join(sorted(missing))}; it has {", ".join(sorted(summary.topics))}')
         if not summary.counts:
             raise ValueError(f'{args.input}: no messages')
-        self.node = rclpy.create_node('replay')
+        super().__init__('replay')
         self.pubs = {}
         for t, typ in topics.items():
             if t == TOPIC_CLOCK and not args.no_clock:
                 continue
-            self.pubs[t] = self.node.create_publisher(get_message(typ), t,
-                                                      qos_latched() if t == TOPIC_TOPOLOGY else qos_stream(100))
+            self.pubs[t] = self.create_publisher(get_message(typ), t,
+                                                 qos_latched() if t == TOPIC_TOPOLOGY else qos_stream(100))
         self.Clock = Clock
-        self.pub_clock = None if args.no_clock else self.node.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
+        self.pub_clock = None if args.no_clock else self.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
         self.start_ns = summary.start_ns
         self.clock_source = '/tissue/state' if '/tissue/state' in summary.counts else (
             TOPIC_CLOCK if TOPIC_CLOCK in summary.counts else None)
@@ -86,7 +90,7 @@ class Replay:
             pubs = list(self.pubs.values()) + ([self.pub_clock] if self.pub_clock is not None else [])
             if all(p.get_subscription_count() > 0 for p in pubs):
                 return
-            rclpy.spin_once(self.node, timeout_sec=0.05)
+            rclpy.spin_once(self, timeout_sec=0.05)
 
     def play_once(self):
         import rclpy
@@ -103,7 +107,7 @@ class Replay:
                 left = due - time.monotonic()
                 if left <= 0:
                     break
-                rclpy.spin_once(self.node, timeout_sec=min(left, 0.05))
+                rclpy.spin_once(self, timeout_sec=min(left, 0.05))
                 if not rclpy.ok():
                     return False
             if m.topic == self.clock_source and self.pub_clock is not None:
@@ -124,34 +128,11 @@ class Replay:
         while self.play_once() and self.a.loop:
             pass
         print(f'replay: published {self.published} messages', flush=True)
-
-
-@main_wrapper
-def main(argv=None):
-    args, argv = parse_args(build_parser(), argv)
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-    rclpy.init(args=argv)
-    r = None
-    try:
-        r = Replay(args)
-        r.run()
         time.sleep(0.5)            # let reliable publishers deliver the tail
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:                  # a SIGINT racing spin_once: the context is already shut down
-        if rclpy.ok() or not _is_rcl_error(e):
-            raise
-    finally:
-        if r is not None:
-            try:
-                r.node.destroy_node()
-            except Exception as e:
-                if not _is_rcl_error(e):
-                    raise
-        if rclpy.ok():
-            rclpy.shutdown()
-    return 0
+
+
+def main(argv=None):
+    return node_main(Replay, build_parser(), argv)
 
 
 if __name__ == '__main__':

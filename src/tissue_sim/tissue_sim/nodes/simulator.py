@@ -5,119 +5,77 @@ Publishes (at ``publish_rate`` Hz of wall time): /clock (sim time), /joint_state
 and /tissue/topology once (transient-local). Subscribes to /tissue/activation. Services
 ~/reset (std_srvs/Trigger) and ~/pause (std_srvs/SetBool, true = pause).
 
-Timing: in real-time mode (``realtime: true``) each tick advances sim time by the wall time since
-the last tick x ``rate``, in solver steps of params.dt, at most ``max_steps_per_tick`` steps (when
-the solver cannot keep up, sim time falls behind and /diagnostics shows the real-time factor). With
-``realtime: false`` (as fast as possible) each tick steps the solver for most of the tick's wall
-time and publishes at ``publish_rate`` of wall time, so viewers stay fluid while sim time races.
-The steps of a tick run in a few batched solver calls sized from the measured cost per step.
+Timing (tissue_sim.core.realtime): in real-time mode (``realtime: true``) each frame advances sim
+time by the wall time since the last frame x ``rate``, in solver steps of params.dt, at most
+``max_steps_per_tick`` steps (when the solver cannot keep up, sim time falls behind and /diagnostics
+shows the real-time factor). With ``realtime: false`` (as fast as possible) each frame steps the
+solver for most of the frame's wall time, so viewers stay fluid while sim time races.
 
-Parameters are declared with descriptors (``ros2 param describe /simulator <name>``); load them
-from YAML with ``--ros-args --params-file config/simulator.yaml``.
+Parameters (PARAMS below, each declared once) have descriptors (``ros2 param describe /simulator
+<name>``), a command-line flag each, and load from YAML with ``--ros-args --params-file
+config/simulator.yaml``.
 """
 from __future__ import annotations
 
 import argparse
 import collections
-import math
 import time
 
 import numpy as np
+from rclpy.node import Node
 
 from ..core import markers as mk
-from ..core import measures
+from ..core import measures, realtime
+from ..core.activation import REASONS, Muscles
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
-                          TOPIC_STATE, TOPIC_TOPOLOGY, declare, main_wrapper, parse_args, qos_latched,
-                          qos_stream, spin)
-from ..ros.validate import REASONS, check_activation
+                          TOPIC_STATE, TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
+from ..ros.common import main as node_main
 
-BATCH_FILL = 0.8     # a solver call is sized to this share of the tick's stepping time left
-WARM_STEPS = 10      # steps timed at start-up for the first batch's size
-HEADROOM = 1.02      # frames are scheduled at publish_rate x HEADROOM (publish_rate is the floor)
+PARAMS = (
+    Param('model', '', "model file (.npz); '' = the bundled lower limb; phantom:knee = the solver's knee phantom",
+          read_only=True),
+    Param('params', 'paper', 'solver parameters: paper, physical or a YAML file', read_only=True),
+    Param('dt', 0.0, "solver step [s]; 0 = the parameter set's dt", lo=0.0, hi=0.01, read_only=True),
+    Param('publish_rate', 34.0, 'floor on frames published per second of wall time [Hz]; frames are scheduled '
+          f'{100 * (realtime.HEADROOM - 1):.0f} % above it so timer jitter never drops below it',
+          lo=1.0, hi=240.0, read_only=True),
+    Param('rate', 1.0, 'sim seconds per wall second in real-time mode', lo=0.001, hi=100.0),
+    Param('realtime', True, 'true: sim time follows wall time x rate; false: as fast as possible',
+          aliases=(('--as-fast-as-possible', False),)),
+    Param('publish_markers', True, 'publish /tissue/markers (full deformed mesh)', aliases=(('--no-markers', False),)),
+    Param('publish_state', True, 'publish /tissue/state (compact state, for recording)'),
+    Param('marker_colouring', 'none', 'skin colouring: none, skin_area (Fig. 8) or fat_deformation (Fig. 9)',
+          choices=mk.COLOURINGS, read_only=True, aliases=('--colouring',)),
+    Param('colour_scale', 0.2, 'skin_area: area change at full colour (0.2 = +-20 %); fat_deformation: d at full '
+          'red [m]', lo=1e-6, hi=10.0),
+    Param('bone_marker_resolution', 0.003, 'bone meshes in the markers are simplified by vertex clustering on a '
+          'grid of this size [m]; 0 = full meshes', lo=0.0, hi=0.05, read_only=True),
+    Param('frame_id', 'world', 'frame of positions and markers (REP-103)', read_only=True),
+    Param('max_steps_per_tick', 2000, 'cap on solver steps per published frame', lo=1, hi=1000000),
+    Param('start_paused', False, 'start paused (resume with ~/pause false)', read_only=True),
+    Param('diagnostics_period', 1.0, 'seconds between /diagnostics', lo=0.1, hi=60.0),
+)
 
 
 def build_parser():
     p = argparse.ArgumentParser(prog='simulator', description=__doc__.split('\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog='Parameters: model, params, dt, publish_rate, rate, realtime, publish_markers,\n'
-                                       'publish_state, marker_colouring, colour_scale, frame_id, max_steps_per_tick,\n'
-                                       'start_paused, diagnostics_period. Options below override them.')
-    p.add_argument('--model', help="model file (.npz); '' = the bundled lower limb")
-    p.add_argument('--params', help="solver parameters: paper, physical, or a YAML file")
-    p.add_argument('--rate', type=float, help='sim seconds per wall second (real-time mode)')
-    p.add_argument('--publish-rate', type=float, help='frames per second published (default 34)')
-    p.add_argument('--as-fast-as-possible', action='store_true', help='do not follow wall time')
-    p.add_argument('--no-markers', action='store_true', help='do not publish /tissue/markers')
-    p.add_argument('--colouring', choices=mk.COLOURINGS, help='per-vertex skin colouring of the markers')
-    return p
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    return add_flags(p, PARAMS)
 
 
-def load_model(spec: str):
-    from ..core.model import TissueModel
-    if spec:
-        return TissueModel.load(spec)
-    from ..core import builder
-    if not hasattr(builder, 'default_model'):
-        raise ValueError('this installation has no bundled model (tissue_sim.core.builder.default_model); '
-                         'pass -p model:=<file.npz>')
-    return builder.default_model()
-
-
-def load_params(spec: str, dt: float):
-    from ..core import solver
-    if spec in ('', 'paper'):
-        p = solver.Params.paper()
-    elif spec == 'physical':
-        p = solver.Params.physical()
-    else:
-        p = solver.Params.from_yaml(spec)
-    if dt > 0:
-        import dataclasses
-        p = dataclasses.replace(p, dt=dt).validate()
-    return p
-
-
-class Simulator:
-    def __init__(self, overrides):
-        import rclpy
+class Simulator(Node):
+    def __init__(self, **kw):
         from diagnostic_msgs.msg import DiagnosticArray
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import JointState
         from std_srvs.srv import SetBool, Trigger
-        from tissue_msgs.msg import MuscleActivation
+        from tissue_msgs.msg import MuscleActivation, TissueState, TissueTopology
         from visualization_msgs.msg import MarkerArray
-        from tissue_msgs.msg import TissueState, TissueTopology
         from ..core import solver, tissue_cdr
+        from ..core.load import load_model, load_params
+        super().__init__('simulator', **kw)
         self.solver, self.tcdr = solver, tissue_cdr
-        self.node = node = rclpy.create_node('simulator', parameter_overrides=overrides)
-        log = node.get_logger()
-        P = {}
-        P['model'] = declare(node, 'model', '', "model file (.npz); '' = the bundled lower limb", read_only=True)
-        P['params'] = declare(node, 'params', 'paper', 'solver parameters: paper, physical or a YAML file', read_only=True)
-        P['dt'] = declare(node, 'dt', 0.0, 'solver step [s]; 0 = the parameter set\'s dt', lo=0.0, hi=0.01, read_only=True)
-        P['publish_rate'] = declare(node, 'publish_rate', 34.0,
-                                    'floor on frames published per second of wall time [Hz]; frames are scheduled '
-                                    f'{100 * (HEADROOM - 1):.0f} % above it so timer jitter never drops below it',
-                                    lo=1.0, hi=240.0, read_only=True)
-        P['rate'] = declare(node, 'rate', 1.0, 'sim seconds per wall second in real-time mode', lo=0.001, hi=100.0)
-        P['realtime'] = declare(node, 'realtime', True, 'true: sim time follows wall time x rate; false: as fast as possible')
-        P['publish_markers'] = declare(node, 'publish_markers', True, 'publish /tissue/markers (full deformed mesh)')
-        P['publish_state'] = declare(node, 'publish_state', True, 'publish /tissue/state (compact state, for recording)')
-        P['marker_colouring'] = declare(node, 'marker_colouring', 'none',
-                                        'skin colouring: none, skin_area (Fig. 8) or fat_deformation (Fig. 9)',
-                                        choices=mk.COLOURINGS, read_only=True)
-        P['colour_scale'] = declare(node, 'colour_scale', 0.2,
-                                    'skin_area: area change at full colour (0.2 = +-20 %); fat_deformation: d at full red [m]',
-                                    lo=1e-6, hi=10.0)
-        P['bone_marker_resolution'] = declare(node, 'bone_marker_resolution', 0.003,
-                                              'bone meshes in the markers are simplified by vertex clustering on '
-                                              'a grid of this size [m]; 0 = full meshes', lo=0.0, hi=0.05, read_only=True)
-        P['frame_id'] = declare(node, 'frame_id', 'world', 'frame of positions and markers (REP-103)', read_only=True)
-        P['max_steps_per_tick'] = declare(node, 'max_steps_per_tick', 2000, 'cap on solver steps per published frame',
-                                          lo=1, hi=1000000)
-        P['start_paused'] = declare(node, 'start_paused', False, 'start paused (resume with ~/pause false)')
-        P['diagnostics_period'] = declare(node, 'diagnostics_period', 1.0, 'seconds between /diagnostics', lo=0.1, hi=60.0)
-        self.P = P
+        self.P = P = declare(self, PARAMS)
         t0 = time.monotonic()
         self.tm = load_model(P['model'])
         self.params = load_params(P['params'], P['dt'])
@@ -125,34 +83,33 @@ class Simulator:
         self.state = solver.make_state(self.sim)
         self.ctrl = solver.make_control(self.sim)
         self.dt = self.params.dt
-        self.index_of = {n: i for i, n in enumerate(self.tm.muscle_names)}
+        self.muscles = Muscles.of(self.tm)
         self.frame_id = P['frame_id']
         self.marker_enc = mk.MarkerArrayEncoder(self.tm, self.frame_id, P['marker_colouring'],
                                                  bone_resolution=P['bone_marker_resolution']) if P['publish_markers'] else None
         self._rest_area = None
         self._fat_def = None
-        # warm the kernels (numba compile) before the clock starts
+        # warm the kernels (numba compile) on a scratch state before the clock starts, and time a few steps
+        self.pacer = realtime.Pacer(lambda k: solver.step(self.sim, self.state, self.ctrl, self.dt, n_steps=k), self.dt)
         warm = solver.make_state(self.sim)
         solver.step(self.sim, warm, self.ctrl, self.dt)
-        t1 = time.perf_counter()
-        solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=WARM_STEPS)
-        self.step_cost = (time.perf_counter() - t1) / WARM_STEPS     # wall seconds per step (updated per batch)
+        self.pacer.warm_up(lambda k: solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=k))
         if self.marker_enc is not None:
             self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'])
-        log.info(f'model {self.tm.name!r}: {self.tm.n_vertices} vertices, {self.tm.n_cells} cells, '
-                 f'{self.tm.n_muscles} muscles; params {self.params.preset}, dt {self.dt:g} s; '
-                 f'ready in {time.monotonic() - t0:.1f} s')
+        self.get_logger().info(f'model {self.tm.name!r}: {self.tm.n_vertices} vertices, {self.tm.n_cells} cells, '
+                               f'{self.tm.n_muscles} muscles; params {self.params.preset}, dt {self.dt:g} s; '
+                               f'ready in {time.monotonic() - t0:.1f} s')
         # publishers
         self.Clock, self.JointState, self.DiagnosticArray = Clock, JointState, DiagnosticArray
-        self.pub_clock = node.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
-        self.pub_joints = node.create_publisher(JointState, TOPIC_JOINTS, qos_stream())
-        self.pub_state = node.create_publisher(TissueState, TOPIC_STATE, qos_stream())
-        self.pub_markers = node.create_publisher(MarkerArray, TOPIC_MARKERS, qos_stream(2))
-        self.pub_diag = node.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, qos_stream())
-        self.pub_topo = node.create_publisher(TissueTopology, TOPIC_TOPOLOGY, qos_latched())
-        node.create_subscription(MuscleActivation, TOPIC_ACTIVATION, self.on_activation, qos_stream())
-        node.create_service(Trigger, '~/reset', self.on_reset)
-        node.create_service(SetBool, '~/pause', self.on_pause)
+        self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
+        self.pub_joints = self.create_publisher(JointState, TOPIC_JOINTS, qos_stream())
+        self.pub_state = self.create_publisher(TissueState, TOPIC_STATE, qos_stream())
+        self.pub_markers = self.create_publisher(MarkerArray, TOPIC_MARKERS, qos_stream(2))
+        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, qos_stream())
+        self.pub_topo = self.create_publisher(TissueTopology, TOPIC_TOPOLOGY, qos_latched())
+        self.create_subscription(MuscleActivation, TOPIC_ACTIVATION, self.on_activation, qos_stream())
+        self.create_service(Trigger, '~/reset', self.on_reset)
+        self.create_service(SetBool, '~/pause', self.on_pause)
         self.publish_topology()
         # bookkeeping
         self.paused = bool(P['start_paused'])
@@ -164,25 +121,24 @@ class Simulator:
         self.marker_encode_ms = collections.deque(maxlen=256)   # build only (colours + numpy CDR) [ms]
         self.step_wall = 0.0
         self.steps_done = 0
-        self.sim_debt = 0.0
         self.publish_cost = 0.0
-        self.period = 1.0 / (P['publish_rate'] * HEADROOM)
+        self.period = realtime.frame_period(P['publish_rate'])
         self.last_tick = time.monotonic()
         self.t_start = self.last_tick
         self.sim_t_start = self.state.time
         self.last_diag = self.last_tick
         self.diag_window = (self.last_tick, self.state.time, 0)   # wall, sim time, steps
-        self.timer = node.create_timer(self.period, self.tick)
+        self.timer = self.create_timer(self.period, self.tick)
         print(f'simulator ready: publishing at {P["publish_rate"]:g} Hz', flush=True)
 
     # ------------------------------------------------------------------ inputs
     def on_activation(self, msg):
-        idx, values, detail = check_activation(msg.muscle_names, msg.activations, self.index_of)
+        idx, values, detail = self.muscles.check(msg.muscle_names, msg.activations)
         if idx is None:
             reason = values
             self.rejected[reason] += 1
-            self.node.get_logger().warning(f'rejected activation message ({reason}): {detail}',
-                                           throttle_duration_sec=2.0)
+            self.get_logger().warning(f'rejected activation message ({reason}): {detail}',
+                                      throttle_duration_sec=2.0)
             return
         self.ctrl.activation[idx] = values
         self.accepted += 1
@@ -191,9 +147,9 @@ class Simulator:
         self.solver.reset(self.sim, self.state)
         self.ctrl.activation[:] = 0.0
         self.diverged = ''
-        self.sim_debt = 0.0
+        self.pacer.reset()
         resp.success, resp.message = True, 'state and activations reset to rest; sim time 0'
-        self.node.get_logger().info('reset')
+        self.get_logger().info('reset')
         return resp
 
     def on_pause(self, req, resp):
@@ -201,58 +157,34 @@ class Simulator:
             resp.success, resp.message = False, f'diverged ({self.diverged}): call ~/reset first'
             return resp
         self.paused = bool(req.data)
-        self.sim_debt = 0.0
+        self.pacer.reset()
         resp.success, resp.message = True, 'paused' if self.paused else 'running'
         return resp
 
     # ------------------------------------------------------------------ loop
     def advance(self, now):
+        """The solver steps of one frame (core.realtime.Pacer); a failure pauses the node."""
         wall_dt = now - self.last_tick
         self.last_tick = now
         if self.paused or self.diverged:
             return
         t0 = time.perf_counter()
-        cap = int(self.node.get_parameter('max_steps_per_tick').value)
-        # wall-time budget for stepping in this tick: the frame rate comes first; when the solver
-        # cannot keep up, sim time falls behind (real-time factor < rate in /diagnostics)
-        budget = max(0.2 * self.period, 0.85 * self.period - self.publish_cost)
         step0 = self.state.step
         try:
-            if self.node.get_parameter('realtime').value:
-                self.sim_debt += wall_dt * float(self.node.get_parameter('rate').value)
-                want = min(int(self.sim_debt / self.dt + 1e-9), cap)
-                n = self.step_within(want, t0, budget)
-                self.sim_debt = 0.0 if n < want or n == cap else self.sim_debt - n * self.dt
-            else:
-                self.step_within(cap, t0, budget)
+            self.pacer.advance(wall_dt, realtime=self.get_parameter('realtime').value,
+                               rate=float(self.get_parameter('rate').value),
+                               cap=int(self.get_parameter('max_steps_per_tick').value),
+                               budget=realtime.step_budget(self.period, self.publish_cost))
         except self.solver.DivergenceError as e:
             self.diverged = str(e)
             self.paused = True
-            self.node.get_logger().error(f'solver diverged: {e}; paused (call ~/reset)')
+            self.get_logger().error(f'solver diverged: {e}; paused (call ~/reset)')
         except ValueError as e:        # should not happen: activations are validated on arrival
             self.diverged = f'solver refused the step: {e}'
             self.paused = True
-            self.node.get_logger().error(self.diverged)
+            self.get_logger().error(self.diverged)
         self.steps_done += self.state.step - step0
         self.step_wall += time.perf_counter() - t0
-
-    def step_within(self, want, t0, budget):
-        """Up to ``want`` solver steps, until ``budget`` wall seconds from ``t0`` are spent, in batches:
-        one solver call runs as many steps as the measured cost per step says fit in the time left
-        (each call has a fixed overhead, ~20 % of a paper-set step). The activations cannot change
-        within a tick (callbacks run between ticks), and k steps in one call equal k calls of one
-        step bit for bit, so batching changes the timing only. Returns the steps done."""
-        n = 0
-        while n < want:
-            left = budget - (time.perf_counter() - t0)
-            if left <= 0.0:
-                break
-            k = min(want - n, max(1, int(BATCH_FILL * left / self.step_cost)))
-            t1 = time.perf_counter()
-            self.solver.step(self.sim, self.state, self.ctrl, self.dt, n_steps=k)
-            self.step_cost += 0.3 * ((time.perf_counter() - t1) / k - self.step_cost)
-            n += k
-        return n
 
     def tick(self):
         now = time.monotonic()
@@ -262,7 +194,7 @@ class Simulator:
             if not self.diverged:
                 self.diverged = 'non-finite vertex positions'
                 self.paused = True
-                self.node.get_logger().error('non-finite positions; paused (call ~/reset)')
+                self.get_logger().error('non-finite positions; paused (call ~/reset)')
             self.maybe_diagnostics(now)
             return
         t0 = time.perf_counter()
@@ -285,10 +217,10 @@ class Simulator:
         js.position = [float(v) for v in obs['joint_positions']]
         js.velocity = [float(v) for v in obs['joint_velocities']]
         self.pub_joints.publish(js)
-        if self.node.get_parameter('publish_state').value:
+        if self.get_parameter('publish_state').value:
             self.pub_state.publish(self.tcdr.encode_frame(self.tm, st, obs, self.ctrl.activation,
                                                           stamp_ns=stamp, frame_id=self.frame_id))
-        if self.marker_enc is not None and self.node.get_parameter('publish_markers').value:
+        if self.marker_enc is not None and self.get_parameter('publish_markers').value:
             t0 = time.perf_counter()
             rgba = self.corner_colours(st.x)
             data = self.marker_enc.encode(stamp, st.x, obs['segment_poses'], rgba)
@@ -302,7 +234,7 @@ class Simulator:
         enc = self.marker_enc
         if enc.colouring == 'none' or enc.skin_corners is None:
             return None
-        scale = float(self.node.get_parameter('colour_scale').value)
+        scale = float(self.get_parameter('colour_scale').value)
         if enc.colouring == 'skin_area':
             ratio, self._rest_area = measures.skin_area_ratio_per_vertex(self.tm, x, self._rest_area)
             return mk.diverging_rgba(ratio[enc.skin_corners], span=scale)
@@ -329,7 +261,7 @@ class Simulator:
                     marker_bytes=self.marker_enc.nbytes if self.marker_enc is not None else 0)
 
     def maybe_diagnostics(self, now):
-        if now - self.last_diag < float(self.node.get_parameter('diagnostics_period').value):
+        if now - self.last_diag < float(self.get_parameter('diagnostics_period').value):
             return
         from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
         f = self.figures(now)
@@ -342,7 +274,7 @@ class Simulator:
             level, message = DiagnosticStatus.OK, 'paused'
         elif f['publish_rate_hz'] < 0.95 * target:
             level, message = DiagnosticStatus.WARN, f'publishing at {f["publish_rate_hz"]:.1f} Hz < {target:g} Hz'
-        elif self.node.get_parameter('realtime').value and f['real_time_factor'] < 0.95 * self.node.get_parameter('rate').value:
+        elif self.get_parameter('realtime').value and f['real_time_factor'] < 0.95 * self.get_parameter('rate').value:
             level, message = DiagnosticStatus.WARN, f'real-time factor {f["real_time_factor"]:.2f}: solver cannot keep up'
         else:
             level, message = DiagnosticStatus.OK, 'running'
@@ -358,36 +290,8 @@ class Simulator:
         self.pub_diag.publish(arr)
 
 
-@main_wrapper
 def main(argv=None):
-    args, argv = parse_args(build_parser(), argv)
-    import rclpy
-    from rclpy.parameter import Parameter
-    rclpy.init(args=argv)
-    ov = []
-    if args.model is not None:
-        ov.append(Parameter('model', Parameter.Type.STRING, args.model))
-    if args.params is not None:
-        ov.append(Parameter('params', Parameter.Type.STRING, args.params))
-    if args.rate is not None:
-        ov.append(Parameter('rate', Parameter.Type.DOUBLE, args.rate))
-    if args.publish_rate is not None:
-        ov.append(Parameter('publish_rate', Parameter.Type.DOUBLE, args.publish_rate))
-    if args.as_fast_as_possible:
-        ov.append(Parameter('realtime', Parameter.Type.BOOL, False))
-    if args.no_markers:
-        ov.append(Parameter('publish_markers', Parameter.Type.BOOL, False))
-    if args.colouring:
-        ov.append(Parameter('marker_colouring', Parameter.Type.STRING, args.colouring))
-    try:
-        s = Simulator(ov)
-    except Exception as e:
-        from ..core.model import ModelError
-        if isinstance(e, (ModelError, ValueError, FileNotFoundError, KeyError)):
-            raise ValueError(str(e)) from None
-        raise
-    spin(s.node)
-    return 0
+    return node_main(lambda args: Simulator(parameter_overrides=overrides(args, PARAMS)), build_parser(), argv)
 
 
 if __name__ == '__main__':

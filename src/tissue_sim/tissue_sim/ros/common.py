@@ -1,8 +1,11 @@
-"""Shared plumbing of the tissue_sim nodes: argument parsing beside ROS args, QoS profiles,
-parameter descriptors, and a spin loop that shuts down cleanly on SIGINT/SIGTERM."""
+"""Shared plumbing of the tissue_sim nodes: parameters declared once (:class:`Param`: the ROS
+parameter with its descriptor, the command-line flag, the YAML and docs table generated from it),
+argument parsing beside ROS args, QoS profiles, and the one ``main`` of every node (spin until
+SIGINT/SIGTERM or the node's own end, always clean up; set-up errors are one line, exit code 2)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 TOPIC_ACTIVATION = '/tissue/activation'
@@ -54,22 +57,96 @@ def qos_stream(depth: int = 10):
                       durability=DurabilityPolicy.VOLATILE)
 
 
-def declare(node, name, default, description, *, lo=None, hi=None, step=None, choices=None, read_only=False):
-    """Declare a parameter with a descriptor (description, range, read-only); returns its value."""
-    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-    d = ParameterDescriptor(description=description, read_only=read_only)
-    if choices:
-        d.additional_constraints = 'one of: ' + ', '.join(choices)
-    if isinstance(default, bool):
-        pass
-    elif isinstance(default, float) and (lo is not None or hi is not None):
-        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=float(step or 0.0))]
-    elif isinstance(default, int) and (lo is not None or hi is not None):
-        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(step or 0))]
-    value = node.declare_parameter(name, default, d).value
-    if choices and value not in choices:
-        raise ValueError(f'parameter {name}={value!r}: expected one of {", ".join(choices)}')
-    return value
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """One node parameter, declared once: the ROS parameter (with its descriptor: description, range,
+    choices, read-only) and its command-line flag ``--name-with-dashes`` (bools: ``--name`` /
+    ``--no-name``), plus ``aliases``: extra option strings, or (option, value) pairs for a flag that
+    sets a fixed value (``('--as-fast-as-possible', False)``)."""
+    name: str
+    default: object
+    description: str
+    lo: float | None = None
+    hi: float | None = None
+    step: float | None = None
+    choices: tuple = ()
+    read_only: bool = False
+    aliases: tuple = ()
+
+    @property
+    def flag(self) -> str:
+        return '--' + self.name.replace('_', '-')
+
+    def descriptor(self):
+        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+        d = ParameterDescriptor(description=self.description, read_only=self.read_only)
+        if self.choices:
+            d.additional_constraints = 'one of: ' + ', '.join(self.choices)
+        if isinstance(self.default, bool) or (self.lo is None and self.hi is None):
+            pass
+        elif isinstance(self.default, float):
+            d.floating_point_range = [FloatingPointRange(from_value=float(self.lo), to_value=float(self.hi),
+                                                         step=float(self.step or 0.0))]
+        elif isinstance(self.default, int):
+            d.integer_range = [IntegerRange(from_value=int(self.lo), to_value=int(self.hi), step=int(self.step or 0))]
+        return d
+
+
+def declare(node, specs) -> dict:
+    """Declare every Param of ``specs`` on ``node``; returns {name: value} (overrides applied).
+    A value outside ``choices`` is a ValueError naming the parameter."""
+    out = {}
+    for p in specs:
+        value = node.declare_parameter(p.name, p.default, p.descriptor()).value
+        if p.choices and value not in p.choices:
+            raise ValueError(f'parameter {p.name}={value!r}: expected one of {", ".join(p.choices)}')
+        out[p.name] = value
+    return out
+
+
+def add_flags(parser: argparse.ArgumentParser, specs) -> argparse.ArgumentParser:
+    """One command-line flag per Param (default None: not given) and its aliases; an epilog saying so."""
+    for p in specs:
+        strings = [a for a in p.aliases if isinstance(a, str)]
+        if isinstance(p.default, bool):
+            parser.add_argument(p.flag, *strings, dest=p.name, action=argparse.BooleanOptionalAction,
+                                default=None, help=f'{p.description} (default {str(p.default).lower()})')
+        else:
+            parser.add_argument(p.flag, *strings, dest=p.name, type=type(p.default), default=None,
+                                choices=p.choices or None, metavar=None if p.choices else p.name.upper(),
+                                help=f'{p.description} (default {p.default!r})'.replace('%', '%%'))
+        for a in p.aliases:
+            if not isinstance(a, str):
+                flag, value = a
+                parser.add_argument(flag, dest=p.name, action='store_const', const=value,
+                                    help=f'{p.name}:={str(value).lower()}')
+    parser.epilog = (parser.epilog or '') + (
+        'Each option above sets the ROS parameter of its name (dashes as underscores; ros2 param describe); '
+        'an option given here overrides --ros-args -p and --params-file.')
+    return parser
+
+
+def overrides(args, specs) -> list:
+    """rclpy Parameters for the flags given on the command line."""
+    from rclpy.parameter import Parameter
+    return [Parameter(p.name, value=getattr(args, p.name)) for p in specs if getattr(args, p.name, None) is not None]
+
+
+def params_yaml(node_name: str, specs) -> dict:
+    """The {node: {ros__parameters: {name: default}}} of a --params-file with every default."""
+    return {node_name: {'ros__parameters': {p.name: p.default for p in specs}}}
+
+
+def params_table(specs) -> str:
+    """Markdown table of the parameters (docs/ros.md carries it; a test keeps them equal)."""
+    def fmt(v):
+        return f"`'{v}'`" if v == '' else (f'`{str(v).lower()}`' if isinstance(v, bool) else f'`{v}`')
+    rows = ['| parameter | default | run time | flags | |', '|---|---|---|---|---|']
+    for p in specs:
+        first = f'--[no-]{p.flag[2:]}' if isinstance(p.default, bool) else p.flag
+        flags = ', '.join([f'`{first}`'] + [f'`{a if isinstance(a, str) else a[0]}`' for a in p.aliases])
+        rows.append(f'| `{p.name}` | {fmt(p.default)} | {"" if p.read_only else "yes"} | {flags} | {p.description} |')
+    return '\n'.join(rows) + '\n'
 
 
 def _is_rcl_error(e) -> bool:
@@ -80,14 +157,16 @@ def _is_rcl_error(e) -> bool:
     return isinstance(e, RCLError)
 
 
-def spin(node, on_shutdown=None) -> int:
-    """Spin until SIGINT/SIGTERM (rclpy's handlers) or shutdown; always run ``on_shutdown``."""
+def spin(node, on_shutdown=None, run=None) -> int:
+    """Run the node (``run()``, default rclpy.spin(node)) until SIGINT/SIGTERM (rclpy's handlers),
+    shutdown or the node's own end (SystemExit); always run ``on_shutdown``, destroy the node and
+    shut rclpy down."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
     rc = 0
     try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        run() if run is not None else rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
         pass
     except Exception as e:                  # a callback racing SIGINT sees the context already shut down
         if rclpy.ok() or not _is_rcl_error(e):
@@ -111,11 +190,11 @@ def main_wrapper(fn):
     SIGINT/SIGTERM during set-up is a stop, as it is later: 'stopped' and exit code 0, no traceback
     (before rclpy.init it raises KeyboardInterrupt; after it, rclpy's handler shuts the context down and
     the next rclpy call, e.g. creating the node, raises RCLError or NotInitializedException)."""
-    def wrapped(argv=None):
+    def wrapped(*args, **kw):
         from ..errors import UserError
         from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
         try:
-            return fn(argv) or 0
+            return fn(*args, **kw) or 0
         except KeyboardInterrupt:
             print('stopped', file=sys.stderr)
             return 0
@@ -141,3 +220,20 @@ def _setup_error(e) -> int:
     except Exception:
         pass
     return 2
+
+
+@main_wrapper
+def main(make_node, parser: argparse.ArgumentParser, argv=None, check=None) -> int:
+    """The one main of the nodes: parse the options beside the ROS arguments (``check(args)`` may
+    reject them), rclpy.init, ``make_node(args)`` (an rclpy Node; its optional ``run()`` replaces
+    rclpy.spin, its optional ``on_shutdown()`` runs at the end) and spin it (:func:`spin`)."""
+    args, argv = parse_args(parser, argv)
+    if check is not None:
+        check(args)
+    import rclpy
+    rclpy.init(args=argv)
+    try:
+        node = make_node(args)
+    except KeyError as e:               # a bad name in set-up: one line, like a ValueError
+        raise ValueError(str(e).strip('"\'')) from None
+    return spin(node, on_shutdown=getattr(node, 'on_shutdown', None), run=getattr(node, 'run', None))

@@ -12,7 +12,8 @@ from tissue_sim.core.solver.model import (Control, DivergenceError, SimModel, St
                                           make_control, make_state, muscle_indices, reset,
                                           set_joint_positions)
 from tissue_sim.core.solver.params import Params
-from tissue_sim.core.solver.run import observe, simulate, skeleton_energy, timeline_function
+from tissue_sim.core.activation import timeline_function
+from tissue_sim.core.solver.run import observe, simulate, skeleton_energy
 from tissue_sim.core.solver.step import step
 
 __all__ = ['Params', 'SimModel', 'State', 'Control', 'DivergenceError', 'compile_model', 'make_state',

@@ -1,13 +1,14 @@
-"""Observations and headless runs: observe(), activation timelines, simulate()."""
+"""Observations and headless runs: observe(), simulate() (activation timelines: tissue_sim.core.activation)."""
 from __future__ import annotations
 
 import math
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 
 from tissue_sim.core.solver import kernels as K
-from tissue_sim.core.solver.model import SimModel, State, make_state, muscle_indices
+from tissue_sim.core.activation import timeline_function
+from tissue_sim.core.solver.model import SimModel, State, make_state
 from tissue_sim.core.solver.step import _run
 
 
@@ -81,47 +82,6 @@ def skeleton_energy(sim: SimModel, state: State) -> float:
         Iw = state.seg_R[s] @ sim.seg_inertia[s] @ state.seg_R[s].T
         e += 0.5 * sim.seg_mass[s] * v @ v + 0.5 * w @ Iw @ w - sim.seg_mass[s] * sim.gravity @ (com - sim.seg_com[s])
     return float(e)
-
-
-def timeline_function(sim: SimModel, timeline) -> Callable[[float], np.ndarray]:
-    """Activation timeline -> function t [s] -> activation (M,).
-
-    ``timeline`` is None (all zero), a callable t -> (M,) array, a constant (M,) array, or a dict
-    {muscle name | group name | 'all': [(t, value), ...]} of breakpoints, piecewise linear and held
-    constant before the first and after the last; several entries add, clipped to [0, 1]."""
-    M = sim.n_muscles
-    if timeline is None:
-        return lambda t: np.zeros(M)
-    if callable(timeline):
-        def fn(t):
-            a = np.asarray(timeline(t), np.float64)
-            if a.shape != (M,) or not np.all(np.isfinite(a)) or np.any((a < 0) | (a > 1)):
-                raise ValueError(f'timeline({t}) must give {M} finite activations in [0, 1]')
-            return a
-        return fn
-    if isinstance(timeline, dict):
-        parts = []
-        for name, pts in timeline.items():
-            idx = muscle_indices(sim, name)
-            if np.isscalar(pts):
-                pts = [(0.0, float(pts))]
-            arr = np.asarray(pts, np.float64).reshape(-1, 2)
-            if arr.size == 0 or np.any(np.diff(arr[:, 0]) < 0):
-                raise ValueError(f'timeline for {name!r}: breakpoints must be (t, value) with increasing t')
-            if np.any((arr[:, 1] < 0) | (arr[:, 1] > 1)) or not np.all(np.isfinite(arr)):
-                raise ValueError(f'timeline for {name!r}: activations must be finite and in [0, 1]')
-            parts.append((idx, arr))
-
-        def fn(t):
-            a = np.zeros(M)
-            for idx, arr in parts:
-                a[idx] += np.interp(t, arr[:, 0], arr[:, 1])
-            return np.clip(a, 0.0, 1.0)
-        return fn
-    a = np.asarray(timeline, np.float64)
-    if a.shape != (M,) or np.any((a < 0) | (a > 1)):
-        raise ValueError(f'a constant activation must be {M} values in [0, 1]')
-    return lambda t: a
 
 
 def simulate(sim: SimModel, duration: float, timeline=None, dt: float | None = None, every: int = 1,

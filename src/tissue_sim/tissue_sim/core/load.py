@@ -1,0 +1,43 @@
+"""What a run starts from (ROS-free): the model and the solver parameter set, named as a user names
+them on the command line (``tissue-sim simulate``) or as node parameters (``simulator``)."""
+from __future__ import annotations
+
+import dataclasses
+
+PARAM_SETS = ('paper', 'physical')
+
+
+def load_model(spec: str | None = None):
+    """The TissueModel named by ``spec``: a model file (.npz from ``tissue-sim build-model``);
+    ``None`` or ``''`` = the bundled lower limb; ``phantom:knee`` = the solver's analytic knee
+    phantom. ModelError (a ValueError) naming the problem otherwise."""
+    from tissue_sim.core.model import ModelError, TissueModel
+    if not spec:
+        from tissue_sim.core import builder
+        try:
+            return builder.default_model()
+        except FileNotFoundError as e:
+            raise ModelError(f'the bundled anatomy is not available ({e}); give a model file') from None
+    if spec.startswith('phantom:'):
+        from tissue_sim.core.solver import phantom
+        kind = spec.split(':', 1)[1]
+        if kind != 'knee':
+            raise ModelError(f'unknown phantom {kind!r} (knee)')
+        return phantom.knee(n_gaps=12)
+    return TissueModel.load(spec)
+
+
+def load_params(spec: str | None = 'paper', dt: float | None = None):
+    """The solver Params named by ``spec``: ``paper`` (Inaba et al. Table 2; also ``None``/``''``),
+    ``physical`` (SI), or a YAML parameter file; ``dt`` > 0 replaces the set's step [s].
+    ValueError naming the problem otherwise."""
+    from tissue_sim.core.solver import Params
+    if not spec or spec == 'paper':
+        p = Params.paper()
+    elif spec == 'physical':
+        p = Params.physical()
+    else:
+        p = Params.from_yaml(spec)
+    if dt:
+        p = dataclasses.replace(p, dt=float(dt)).validate()
+    return p

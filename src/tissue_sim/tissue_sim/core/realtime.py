@@ -1,0 +1,83 @@
+"""Real-time stepping policy (ROS-free): how many solver steps a frame tick runs, and in which calls.
+
+A frame loop (the ``simulator`` node's timer) calls :meth:`Pacer.advance` once per frame with the
+wall time since the previous frame. In real-time mode that adds wall time x ``rate`` of simulated
+time to a debt, paid in solver steps of ``dt`` (at most ``cap`` per frame); as fast as possible it
+runs up to ``cap`` steps. Either way stepping stops when the frame's wall-time budget is spent (the
+frame rate comes first): then sim time falls behind and the debt is dropped, so a slow solver runs
+at a real-time factor below ``rate`` instead of spiralling.
+
+The steps of a frame run in a few batched solver calls, each sized from the measured wall time per
+step to ``BATCH_FILL`` of the budget left: a call has a fixed cost (~20 % of a paper-set step), and
+k steps in one call give bit for bit the state of k calls of one step (activations change only
+between frames), so batching changes the timing only.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+BATCH_FILL = 0.8     # a solver call is sized to this share of the frame's stepping time left
+WARM_STEPS = 10      # steps timed at start-up for the first batch's size
+HEADROOM = 1.02      # frames are scheduled at publish_rate x HEADROOM (publish_rate is the floor)
+BUDGET_SHARE = 0.85  # of the frame period, less the measured publish cost, goes to stepping ...
+BUDGET_FLOOR = 0.2   # ... but never less than this share of it
+
+
+def frame_period(publish_rate: float) -> float:
+    """Seconds between frames for a floor of ``publish_rate`` frames per second."""
+    return 1.0 / (publish_rate * HEADROOM)
+
+
+def step_budget(period: float, publish_cost: float) -> float:
+    """Wall seconds of stepping in one frame of ``period`` s that publishes in ``publish_cost`` s."""
+    return max(BUDGET_FLOOR * period, BUDGET_SHARE * period - publish_cost)
+
+
+class Pacer:
+    """Runs the solver steps of each frame. ``run_steps(k)`` advances the solver by k steps of ``dt``
+    (it may raise: the exception propagates and the debt is kept until :meth:`reset`);
+    ``clock`` is the wall clock [s] (time.perf_counter; a test passes a fake one)."""
+
+    def __init__(self, run_steps: Callable[[int], None], dt: float, clock: Callable[[], float] = time.perf_counter):
+        self.run_steps, self.dt, self.clock = run_steps, float(dt), clock
+        self.step_cost = 0.0        # wall seconds per step, a running estimate (set by warm_up)
+        self.sim_debt = 0.0         # simulated seconds owed to wall time (real-time mode)
+
+    def warm_up(self, run_steps: Callable[[int], None] | None = None, n: int = WARM_STEPS) -> float:
+        """Time ``n`` steps of ``run_steps`` (default: the pacer's own; a scratch state's keeps the
+        run at rest) for the first batch's size; returns the cost per step."""
+        t0 = self.clock()
+        (run_steps or self.run_steps)(n)
+        self.step_cost = max((self.clock() - t0) / n, 1e-9)
+        return self.step_cost
+
+    def reset(self) -> None:
+        """Forget the debt (after a pause, a reset or a divergence)."""
+        self.sim_debt = 0.0
+
+    def advance(self, wall_dt: float, *, realtime: bool, rate: float, cap: int, budget: float) -> int:
+        """The steps of one frame, ``wall_dt`` wall seconds after the previous one; returns how many."""
+        t0 = self.clock()
+        if not realtime:
+            return self.run_within(cap, t0, budget)
+        self.sim_debt += wall_dt * rate
+        want = min(int(self.sim_debt / self.dt + 1e-9), cap)
+        n = self.run_within(want, t0, budget)
+        self.sim_debt = 0.0 if n < want or n == cap else self.sim_debt - n * self.dt
+        return n
+
+    def run_within(self, want: int, t0: float, budget: float) -> int:
+        """Up to ``want`` steps until ``budget`` wall seconds from ``t0`` are spent, in batches sized
+        from the measured cost per step. Returns the steps done."""
+        n = 0
+        while n < want:
+            left = budget - (self.clock() - t0)
+            if left <= 0.0:
+                break
+            k = min(want - n, max(1, int(BATCH_FILL * left / max(self.step_cost, 1e-9))))
+            t1 = self.clock()
+            self.run_steps(k)
+            self.step_cost += 0.3 * ((self.clock() - t1) / k - self.step_cost)
+            n += k
+        return n
