@@ -176,7 +176,7 @@ def test_per_cell_state_round_trips_through_the_kernel_lanes():
     step leaves it as it was, and one that does matches a step taken alone."""
     import importlib
     step_mod = importlib.import_module('tissue_sim.core.solver.step')
-    sim = solver.compile_model(phantom.knee(n_gaps=6, fat_sectors=4))
+    sim = solver.compile_model(phantom.knee(n_gaps=6, fat_sectors=4), solver.Params.paper(volume_relax_time=0.005))
     st, ctrl = solver.make_state(sim), solver.make_control(sim)
     ctrl.activation[:] = 1.0
     solver.step(sim, st, ctrl, n_steps=20)
