@@ -54,7 +54,16 @@ def advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
     same for every step), in place. Positions and velocities alternate between (x, v) and the back buffers
     (xb, vb); returns how many swaps happened. On failure info = (step, cell, cause) and the state is left
     at the last good sub-step (an activation outside [0, 1] or not finite: nothing is done,
-    info = (-1, muscle, CAUSE_ACTIVATION))."""
+    info = (-1, muscle, CAUSE_ACTIVATION)).
+
+    The arguments come as plain tuples in the order of the named tuples (numba's dispatcher types a plain
+    tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here."""
+    return _advance(n_steps, n_sub, h, acts, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk),
+                    Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]), info)
+
+
+@njit(cache=True)
+def _advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
     work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
@@ -111,12 +120,22 @@ class Workspace:
         self._by_h = {}
 
     def arrays(self, h: float):
-        """(cells, tissue, skeleton, numbers, scratch) for sub-step length h."""
+        """(cells, tissue, skeleton, numbers, scratch) for sub-step length h, as named tuples."""
+        return self._get(h)[0]
+
+    def plain(self, h: float):
+        """The same as plain tuples (what advance() is called with)."""
+        return self._get(h)[1]
+
+    def _get(self, h: float):
         t = self._by_h.get(h)
         if t is None:
             if len(self._by_h) > 8:
                 self._by_h.clear()
-            t = self._by_h[h] = self._make(h)
+            named = self._make(h)
+            cells, tissue, sk, num, scratch = named
+            plain = (tuple(cells), tuple(tissue), tuple(sk), tuple(num), (tuple(scratch.cell_work),) + tuple(scratch)[1:])
+            t = self._by_h[h] = (named, plain)
         return t
 
     def _make(self, h: float):
@@ -154,10 +173,10 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
     ws = state.workspace
     if ws is None or ws.sim is not sim:
         ws = state.workspace = Workspace(sim)
-    st = Arrays(state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
-                state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
-                state.muscle_velocity)
-    swaps = advance(n_steps, n_sub, h, acts, st, *ws.arrays(h), info)
+    st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
+          state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
+          state.muscle_velocity)                                              # (the fields of Arrays)
+    swaps = advance(n_steps, n_sub, h, acts, st, *ws.plain(h), info)
     if info[2] == CAUSE_ACTIVATION:
         m = int(info[1])
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]; muscle {m} '
