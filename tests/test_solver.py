@@ -390,3 +390,27 @@ def test_force_velocity_curve():
     assert (fv(e, 1.4) - 1.0) / e == pytest.approx(5.0, rel=1e-4)
     assert (1.0 - fv(-e, 1.4)) / e == pytest.approx(5.0, rel=1e-4)
     assert fv(0.3, 1.0) == 1.0                                  # no eccentric gain: flat when lengthening
+
+
+def test_the_model_stays_immutable_and_the_state_holds_no_model_constant():
+    """Issue 18: SimModel is immutable (read-only arrays, nothing cached on it by a step); the step's scratch
+    buffers belong to the State's workspace (not copied); the State holds no model constant (the vertex
+    masses are read from the model: solver.kinetic_energy)."""
+    import dataclasses
+    sim = solver.compile_model(_knee(n_gaps=6))
+    before = {f.name: getattr(sim, f.name) for f in dataclasses.fields(sim)}
+
+    def arrays(v):
+        return [v] if isinstance(v, np.ndarray) else [a for x in v for a in arrays(x)] if isinstance(v, tuple) else []
+    for name, v in before.items():
+        for a in arrays(v):
+            assert not a.flags.writeable, name
+    st, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[:] = 1.0
+    solver.step(sim, st, ctrl, n_steps=5)
+    assert all(getattr(sim, n) is v for n, v in before.items()) and set(vars(sim)) == set(before)   # (no cache)
+    assert st.workspace is not None and st.workspace.sim is sim and st.copy().workspace is None
+    for f in dataclasses.fields(st):
+        v = getattr(st, f.name)
+        assert not any(v is a for a in arrays(tuple(before.values()))), f.name
+    assert 'free_mass' not in {f.name for f in dataclasses.fields(st)}
