@@ -22,7 +22,7 @@ def _drop_stale_advance_cache() -> None:
     here = Path(__file__).resolve()
     try:
         newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py'))
-        for f in (here.parent / '__pycache__').glob('step.advance-*.nb[ic]'):
+        for f in (here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'):     # advance and _advance
             if f.stat().st_mtime < newest:
                 f.unlink(missing_ok=True)
     except OSError:
