@@ -5,7 +5,6 @@ convergence), on the bundled anatomy (both parameter sets) and on synthetic cell
 partial blocks, muscle and fat, damped and undamped, with and without volume term or active tension in one
 block); bit-identical results across processes; the divergence check naming the lowest bad cell. The whole
 step against reference_step: tests/test_solver_reference.py."""
-import math
 import subprocess
 import sys
 from pathlib import Path

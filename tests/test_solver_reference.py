@@ -11,7 +11,7 @@ from tissue_sim.core.geometry import prism_volumes
 from tissue_sim.core.solver import phantom
 
 
-def _both(tm, params, n_steps, every_step=True):
+def _both(tm, params, n_steps):
     sim = solver.compile_model(tm, params)
     fast, ref = solver.make_state(sim), solver.make_state(sim)
     ctrl = solver.make_control(sim)
