@@ -41,6 +41,23 @@ def test_fast_step_matches_the_reference_step_on_the_knee_phantom():
     _assert_same(sim, fast, ref, 1e-9)
 
 
+def test_fast_step_matches_the_reference_step_with_sub_steps_and_another_dt():
+    """The explicit integrator (true masses, several sub-steps per step) and a step length other than params.dt
+    (its own sub-step count), gravity and velocity damping on."""
+    tm = phantom.knee(n_gaps=12, knee_range_deg=(0.0, 60.0))
+    params = solver.Params.paper(integrator='explicit', rotation_iterations=50, gravity=(0.0, 0.0, -9.81),
+                                 velocity_damping=0.5)
+    sim = solver.compile_model(tm, params)
+    assert sim.n_substeps > 1
+    fast, ref = solver.make_state(sim), solver.make_state(sim)
+    ctrl = solver.make_control(sim)
+    ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+    for dt in [None] * 40 + [2.5e-3] * 20:
+        solver.step(sim, fast, ctrl, dt)
+        solver.reference_step(sim, ref, ctrl.activation, dt)
+    _assert_same(sim, fast, ref, 1e-9)
+
+
 @pytest.mark.parametrize('preset', ['paper', 'physical'])
 def test_fast_step_matches_the_reference_step_on_the_default_model(default_tm, preset):
     params = getattr(solver.Params, preset)(rotation_iterations=50, volume_relax_time=0.005)

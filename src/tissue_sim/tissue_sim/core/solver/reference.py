@@ -13,7 +13,7 @@ import collections
 import numpy as np
 
 from tissue_sim.core.solver import cells as CK, skeleton as SK
-from tissue_sim.core.solver.model import SimModel, State
+from tissue_sim.core.solver.model import SimModel, State, substeps_for
 
 Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
 
@@ -91,11 +91,12 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     """One step of dt (None: params.dt) in n_substeps sub-steps, in place, as step() (no divergence check)."""
     p, pad = sim.params, padded(sim)
     dt = p.dt if dt is None else float(dt)
-    h = dt / sim.n_substeps
+    n_sub = sim.n_substeps if dt == p.dt else substeps_for(p, sim.omega_max, sim.damp_rate, dt)
+    h = dt / n_sub
     a = np.asarray(activation, np.float64)
     vol_gain = h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0
     inv_den, free = sim.inv_denominator(h), sim.inv_mass > 0
-    for _ in range(sim.n_substeps):
+    for _ in range(n_sub):
         # 1. muscle tension: contraction state towards 1 - a (1 - min_stretch), the tension's activation x
         # the force-velocity factor of the last measured muscle velocity, every cell's force
         target = 1.0 - a * (1.0 - p.min_stretch)
