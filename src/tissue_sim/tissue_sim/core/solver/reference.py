@@ -4,7 +4,7 @@
 1. muscle tension (contraction state, every cell's force), 2. skeleton, 3. soft tissue. Cells are rows of a
 padded array (one cell per row), the rotation of each cell is the exact polar factor by a batched SVD.
 It is the definition the fast kernels (cells.py: SIMD lanes along chains of cells, a warm-started Newton
-rotation) are tested against (tests/test_solver_reference.py); it is ~100x slower (bench/solver.py).
+rotation) are tested against (tests/test_solver_reference.py); it is ~150x slower (bench/solver.py).
 """
 from __future__ import annotations
 
