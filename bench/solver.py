@@ -1,11 +1,12 @@
-"""Solver benchmark: steps per second (per CPU second) of the default model on one thread, side by side with the same
-step written plainly in numpy and with pypbd's shape matching (PositionBasedDynamics) on the same cells.
+"""Solver benchmark: steps per second (per CPU second) of the default model on one thread, side by side with the
+same step in plain numpy (solver.reference_step) and with pypbd's shape matching (PositionBasedDynamics) on the
+same cells.
 
     .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3]
 
 Model: tissue_sim.core.builder.default_model() (the bundled anatomy); if that is not available,
-the builder's synthetic paper-sized limb phantom (tests/phantoms.py). The last line of the output
-is one JSON object with the figures.
+the builder's synthetic paper-sized limb phantom (tests/phantoms.py). Prints the figures as lines, then as a
+markdown table (what docs/solver.md shows), and last one JSON object with them.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ import numpy as np  # noqa: E402
 
 from tissue_sim.core import solver  # noqa: E402
 from tissue_sim.core.model import TissueModel  # noqa: E402
-from tissue_sim.core.solver import kernels as K  # noqa: E402
+from tissue_sim.core.solver import cells as CK  # noqa: E402
 
 
 def load_model(path):
@@ -61,71 +62,6 @@ def rate(fn, seconds):
 
 
 WALL_RATES = []
-
-
-# ------------------------------------------------------------------------------------ plain numpy step
-class NumpyStep:
-    """The solver's step (contraction, shape matching with the contracted rest shape, skeleton,
-    symplectic Euler) vectorised over cells with padding, polar decomposition by batched SVD.
-    Physics as Params(damping='none', volume_stiffness=0, volume_relax_time=0, volume_mode='rest');
-    the skeleton uses the same numba kernel (a few joints; negligible)."""
-
-    def __init__(self, sim):
-        self.sim = sim
-        sizes = np.diff(sim.off)
-        P = int(sizes.max())
-        C = sim.n_cells
-        self.idx = np.zeros((C, P), np.int64)
-        self.skel_work = np.zeros((max(sim.n_joints, 1), 9))      # skeleton_step scratch
-        self.mask = np.zeros((C, P), bool)
-        self.X0 = np.zeros((C, P, 3))
-        for c in range(C):
-            a, b = sim.off[c], sim.off[c + 1]
-            self.idx[c, :b - a] = sim.cv[a:b]
-            self.mask[c, :b - a] = True
-            self.X0[c, :b - a] = sim.X0[a:b]
-        self.n = sizes.astype(float)
-        self.mus = sim.cell_muscle
-        self.ff = sim.fibre[:, :, None] * sim.fibre[:, None, :]
-        p = sim.params
-        self.logc, self.logr = np.log(p.contraction_rate), np.log(p.relax_rate)
-
-    def step(self, st, act, h):
-        sim, p = self.sim, self.sim.params
-        # 1. contraction
-        target = 1 - act * (1 - p.min_stretch)
-        shrink = st.lam * np.exp(self.logc * act * h / p.rate_dt)
-        grow = st.lam * np.exp(-self.logr * h / p.rate_dt)
-        st.lam[:] = np.where(st.lam > target, np.maximum(shrink, target), np.minimum(grow, target))
-        lam = np.where(self.mus >= 0, st.lam[np.maximum(self.mus, 0)], 1.0)
-        s = 1 / np.sqrt(lam)
-        F = (lam - s)[:, None, None] * self.ff + s[:, None, None] * np.eye(3)
-        # shape matching
-        xc = st.x[self.idx] * self.mask[..., None]
-        c = xc.sum(1) / self.n[:, None]
-        r = (xc - c[:, None, :]) * self.mask[..., None]
-        A = np.einsum('cpi,cpj->cij', r, self.X0) @ F
-        U, _, Vt = np.linalg.svd(A)
-        d = np.sign(np.linalg.det(U @ Vt))
-        U[:, :, 2] *= d[:, None]
-        T = U @ Vt @ F
-        g = (np.einsum('cij,cpj->cpi', T, self.X0) - r) * self.mask[..., None]
-        fc = sim.k[:, None, None] * g
-        f = np.zeros_like(st.x)
-        np.add.at(f, self.idx[self.mask], fc[self.mask])
-        # 2. skeleton (same kernel as the solver)
-        K.skeleton_step(h, st.q, st.qd, f, st.x, sim.att_idx, sim.att_seg, sim.seg_order, sim.seg_parent,
-                        sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia, sim.j_parent, sim.j_child,
-                        sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc, sim.gravity,
-                        p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, st.seg_R, st.seg_t, self.skel_work)
-        # 3. soft tissue (the solver's integrator: 1/m, or the scaled masses of 'mass_scaled')
-        free = sim.inv_mass > 0
-        st.v[free] += h * f[free] * sim.inv_denominator(h)[free, None]
-        st.x[free] += h * st.v[free]
-        a, sg = sim.att_idx, sim.att_seg
-        xn = np.einsum('aij,aj->ai', st.seg_R[sg], sim.rest[a]) + st.seg_t[sg]
-        st.v[a] = (xn - st.x[a]) / h
-        st.x[a] = xn
 
 
 # ------------------------------------------------------------------------------------ pypbd
@@ -167,7 +103,7 @@ def _cpu():
             model = next((ln.split(':', 1)[1].strip() for ln in fh if ln.startswith('model name')), model)
     except OSError:
         pass
-    return {'cpu_model': model, 'llvm_cpu': K.compile_cpu(), 'lanes_per_block': K.BLK}
+    return {'cpu_model': model, 'llvm_cpu': CK.compile_cpu(), 'lanes_per_block': CK.BLK}
 
 
 def main():
@@ -210,29 +146,20 @@ def main():
     phys, r_phys = solver_rate(solver.Params.physical(), 100)
     print(f'numba solver, physical params (make demo)    : {r_phys:9.0f} steps/s  ({phys.n_substeps} sub-steps per '
           f'step; real-time factor {r_phys * phys.params.dt:.2f})')
-    plain_params = solver.Params.paper(damping='none', volume_stiffness=0.0, volume_relax_time=0.0, volume_mode='rest')
-    psim, r_plain_numba = solver_rate(plain_params, 1)
-    # plain numpy: same physics as plain_params (same integrator and masses), checked against the numba step
-    ns = NumpyStep(psim)
-    st_np, st_nb = solver.make_state(psim), solver.make_state(psim)
-    ctrl = solver.make_control(psim)
+    # plain numpy: reference_step, the same physics and integrator as the paper-set step (exact rotations by SVD)
+    st_np, st_nb = solver.make_state(sim), solver.make_state(sim)
+    ctrl = solver.make_control(sim)
     ctrl.activation[ham] = 1.0
-    h = psim.params.dt / psim.n_substeps
-
-    def np_step():
-        for _ in range(psim.n_substeps):
-            ns.step(st_np, ctrl.activation, h)
     for _ in range(20):
-        np_step()
-        solver.step(psim, st_nb, ctrl)
+        solver.reference_step(sim, st_np, ctrl.activation)
+        solver.step(sim, st_nb, ctrl)
     agree = float(np.abs(st_np.x - st_nb.x).max())
-    moved = float(np.abs(st_nb.x - psim.rest).max())
-    r_numpy = rate(np_step, args.seconds)
-    print(f'numba solver, same physics as numpy version  : {r_plain_numba:9.0f} steps/s  ({psim.n_substeps} pass(es))')
-    print(f'plain numpy step (padded, batched SVD)       : {r_numpy:9.0f} steps/s  (max |x_numpy - x_numba| after '
+    moved = float(np.abs(st_nb.x - sim.rest).max())
+    r_numpy = rate(lambda: solver.reference_step(sim, st_np, ctrl.activation), args.seconds)
+    print(f'plain numpy reference_step (batched SVD)     : {r_numpy:9.1f} steps/s  (max |x_numpy - x_numba| after '
           f'20 steps: {agree:.1e} m of {moved:.1e} m motion)')
     try:
-        r_pbd, n_con = pypbd_rate(psim, args.seconds)
+        r_pbd, n_con = pypbd_rate(sim, args.seconds)
         print(f'pypbd shape matching ({n_con} constraints, 1 iteration)  : {r_pbd:9.0f} steps/s (one pass over '
               f'all cells per step)')
     except Exception as e:  # report, do not hide
@@ -244,18 +171,40 @@ def main():
                real_time_factor=round(r_chunk * p.dt, 2), steps_per_s_explicit=round(r_explicit),
                explicit_substeps=xsim.n_substeps, physical_steps_per_s=round(r_phys),
                physical_substeps=phys.n_substeps, physical_real_time_factor=round(r_phys * phys.params.dt, 2),
-               steps_per_s_plain_physics=round(r_plain_numba), numpy_steps_per_s=round(r_numpy, 1),
-               speedup_vs_numpy=round(r_plain_numba / r_numpy, 1), numpy_agreement_m=agree,
+               numpy_steps_per_s=round(r_numpy, 1), speedup_vs_numpy=round(r_step / r_numpy, 1), numpy_agreement_m=agree,
                target_steps_per_s=10000, target_met=bool(r_chunk >= 10000), steps_per_s_chunked_wall=round(r_chunk_wall),
                cpu_load_1min=round(os.getloadavg()[0], 2), timing='per CPU second of this process, one thread')
     if r_pbd:
         out.update(pypbd_steps_per_s=round(r_pbd, 1), speedup_vs_pypbd=round(r_chunk / r_pbd, 2),
                    speedup_vs_pypbd_per_pass=round(passes / r_pbd, 2), pypbd_target_met=bool(r_chunk >= 4 * r_pbd))
-    print(f'speed-up vs plain numpy (same physics): {out["speedup_vs_numpy"]}x; vs pypbd per step: '
+    print(f'speed-up vs plain numpy (per step() call): {out["speedup_vs_numpy"]}x; vs pypbd per step: '
           f'{out.get("speedup_vs_pypbd")}x (target 4x: {"met" if out.get("pypbd_target_met") else "NOT met"}); '
           f'target 10000 steps/s: {"met" if r_chunk >= 10000 else "NOT met"} ({r_chunk / 100:.0f} %); '
           f'load average {out["cpu_load_1min"]} on {os.cpu_count()} cores')
+    print()
+    print(markdown_table(out))
+    print()
     print(json.dumps(out))
+
+
+def markdown_table(out: dict) -> str:
+    """The figures as the markdown table of docs/solver.md (steps per CPU second, one thread)."""
+    rt = out['real_time_factor']
+    rows = [('paper set, `simulate()` (100-step chunks)', f'{out["steps_per_s_chunked"]:,}',
+             f'{out["passes_per_step"]} pass(es) per step; real-time factor {rt}'),
+            ('paper set, `step()` per call', f'{out["steps_per_s"]:,}', ''),
+            ('paper set, `integrator: explicit`', f'{out["steps_per_s_explicit"]:,}', f'{out["explicit_substeps"]} sub-steps, true masses'),
+            ('physical set (`make demo`)', f'{out["physical_steps_per_s"]:,}',
+             f'{out["physical_substeps"]} sub-steps; real-time factor {out["physical_real_time_factor"]}'),
+            ('plain numpy `reference_step`, paper set', f'{out["numpy_steps_per_s"]:,}',
+             f'`step()` is {out["speedup_vs_numpy"]}x faster; positions agree to {out["numpy_agreement_m"]:.0e} m after 20 steps')]
+    if out.get('pypbd_steps_per_s'):
+        rows.append(('pypbd shape matching, same cells, 1 iteration', f'{out["pypbd_steps_per_s"]:,}',
+                     f'the chunked paper set is {out["speedup_vs_pypbd"]}x faster'))
+    head = (f'{out["vertices"]:,} vertices, {out["cells"]} cells; {out["cpu_model"]} (`{out["llvm_cpu"]}`, '
+            f'{out["lanes_per_block"]} lanes per block); load average {out["cpu_load_1min"]}')
+    lines = [head, '', '| run | steps/s | |', '|---|---|---|'] + [f'| {a} | {b} | {c} |' for a, b, c in rows]
+    return '\n'.join(lines)
 
 
 if __name__ == '__main__':

@@ -10,13 +10,13 @@ import pytest
 
 from tissue_sim.core import solver
 from tissue_sim.core.model import TISSUE_FAT
-from tissue_sim.core.solver import kernels as K
+from tissue_sim.core.solver import cells as K, skeleton as SK
 from tissue_sim.core.solver import phantom
 
 
 def _rot(axis, ang):
     R = np.empty((3, 3))
-    K.axis_angle_mat(np.asarray(axis, float) / np.linalg.norm(axis), ang, R)
+    SK.axis_angle_mat(np.asarray(axis, float) / np.linalg.norm(axis), ang, R)
     return R
 
 
@@ -176,7 +176,7 @@ def test_per_cell_state_round_trips_through_the_kernel_lanes():
     step leaves it as it was, and one that does matches a step taken alone."""
     import importlib
     step_mod = importlib.import_module('tissue_sim.core.solver.step')
-    sim = solver.compile_model(phantom.knee(n_gaps=6, fat_sectors=4))
+    sim = solver.compile_model(phantom.knee(n_gaps=6, fat_sectors=4), solver.Params.paper(volume_relax_time=0.005))
     st, ctrl = solver.make_state(sim), solver.make_control(sim)
     ctrl.activation[:] = 1.0
     solver.step(sim, st, ctrl, n_steps=20)
@@ -287,7 +287,7 @@ def test_timeline_and_control_validation():
 def test_states_sharing_a_model_do_not_interfere():
     """The kernel's buffers belong to the model and are reused by every call: two states stepped in
     turn with one model end bit for bit where each ends alone (the buffers' contents on entry do not
-    matter), and the kinetic energy, computed when read, agrees with observe()."""
+    matter), and solver.kinetic_energy agrees with observe()."""
     def fresh():
         sim = solver.compile_model(phantom.knee(n_gaps=6, fat_sectors=4))
         return sim, solver.make_state(sim), solver.make_state(sim)
@@ -303,9 +303,9 @@ def test_states_sharing_a_model_do_not_interfere():
     for name in ('x', 'v', 'quat', 'pressure', 'cell_energy', 'cell_length', 'q', 'qd', 'lam'):
         assert getattr(a, name).tobytes() == getattr(a1, name).tobytes(), name
         assert getattr(b, name).tobytes() == getattr(b1, name).tobytes(), name
-    ke = a.kinetic_energy
-    assert ke > 0 and ke == pytest.approx(solver.observe(sim, a)['kinetic_energy'], rel=1e-12)
-    assert a.copy().kinetic_energy == ke and solver.make_state(sim).kinetic_energy == 0.0
+    ke = solver.kinetic_energy(sim, a)
+    assert ke > 0 and ke == solver.observe(sim, a)['kinetic_energy']
+    assert solver.kinetic_energy(sim, a.copy()) == ke and solver.kinetic_energy(sim, solver.make_state(sim)) == 0.0
 
 
 def test_reset_restores_rest():
@@ -390,3 +390,27 @@ def test_force_velocity_curve():
     assert (fv(e, 1.4) - 1.0) / e == pytest.approx(5.0, rel=1e-4)
     assert (1.0 - fv(-e, 1.4)) / e == pytest.approx(5.0, rel=1e-4)
     assert fv(0.3, 1.0) == 1.0                                  # no eccentric gain: flat when lengthening
+
+
+def test_the_model_stays_immutable_and_the_state_holds_no_model_constant():
+    """Issue 18: SimModel is immutable (read-only arrays, nothing cached on it by a step); the step's scratch
+    buffers belong to the State's workspace (not copied); the State holds no model constant (the vertex
+    masses are read from the model: solver.kinetic_energy)."""
+    import dataclasses
+    sim = solver.compile_model(_knee(n_gaps=6))
+    before = {f.name: getattr(sim, f.name) for f in dataclasses.fields(sim)}
+
+    def arrays(v):
+        return [v] if isinstance(v, np.ndarray) else [a for x in v for a in arrays(x)] if isinstance(v, tuple) else []
+    for name, v in before.items():
+        for a in arrays(v):
+            assert not a.flags.writeable, name
+    st, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[:] = 1.0
+    solver.step(sim, st, ctrl, n_steps=5)
+    assert all(getattr(sim, n) is v for n, v in before.items()) and set(vars(sim)) == set(before)   # (no cache)
+    assert st.workspace is not None and st.workspace.sim is sim and st.copy().workspace is None
+    for f in dataclasses.fields(st):
+        v = getattr(st, f.name)
+        assert not any(v is a for a in arrays(tuple(before.values()))), f.name
+    assert 'free_mass' not in {f.name for f in dataclasses.fields(st)}

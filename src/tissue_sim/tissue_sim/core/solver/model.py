@@ -12,7 +12,9 @@ import math
 import numpy as np
 
 from tissue_sim.core.model import JOINT_HINGE, TISSUE_MUSCLE, TissueModel
-from tissue_sim.core.solver import kernels as K
+from tissue_sim.core.geometry import prism_volumes
+from tissue_sim.core.solver import cells as CK, skeleton as SK
+from tissue_sim.core.solver.measures import cell_axial_lengths
 from tissue_sim.core.solver.params import Params
 
 
@@ -84,31 +86,23 @@ class SimModel:
     j_range: np.ndarray
     anc: np.ndarray                 # (J, S) bool: joint j moves segment s
     gravity: np.ndarray             # (3,)
-    muscle_index_of: dict           # name -> index; group name -> list of indices
-    cell_blocks: tuple              # the cells again, as the kernel reads them: rings, chains, SIMD lanes (pack_cells)
-    cache: dict = dataclasses.field(default_factory=dict, repr=False)   # per-h arrays of the step (internal; pass cache={} to dataclasses.replace)
+    skeleton: SK.Skeleton           # the skeleton arrays above (seg_* ... gravity) as the skeleton kernels read them
+    cell_blocks: CK.CellLayout      # the cells again, as the cell kernel reads them: rings, chains, SIMD lanes (pack_cells)
 
     def inv_denominator(self, h: float) -> np.ndarray:
         """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
         1/max(m_i, h^2 kappa_i / stability_limit^2, (h^2 kappa_i + 2 h b_i) / 3.8) (mass_scaled, b_i the vertex's
-        summed damping coefficient); 0 for bone-attached vertices. Cached per h."""
-        a = self.cache.get(('inv_den', h))
-        if a is None:
-            if self.params.integrator == 'explicit':
-                a = self.inv_mass
-            else:
-                # selective mass scaling: a vertex whose cells' summed stiffness would exceed the explicit
-                # limit at this h gets the mass that puts it at stability_limit (Gershgorin bound on omega h)
-                # and, with damping rate c = b/m, (omega h)^2 + 2 c h below 95 % of the exact bound 4 (strongly
-                # damped light vertices, e.g. the physical set's, need this; the paper set's barely change)
-                kh2 = h * h * self.vertex_stiffness
-                den = np.maximum(np.maximum(self.mass, kh2 / self.params.stability_limit ** 2),
-                                 (kh2 + 2.0 * h * self.vertex_damping) / 3.8)
-                a = _frozen(np.where(self.inv_mass > 0, 1.0 / den, 0.0))
-            if len(self.cache) > 32:
-                self.cache.clear()
-            self.cache[('inv_den', h)] = a
-        return a
+        summed damping coefficient); 0 for bone-attached vertices."""
+        if self.params.integrator == 'explicit':
+            return self.inv_mass
+        # selective mass scaling: a vertex whose cells' summed stiffness would exceed the explicit
+        # limit at this h gets the mass that puts it at stability_limit (Gershgorin bound on omega h)
+        # and, with damping rate c = b/m, (omega h)^2 + 2 c h below 95 % of the exact bound 4 (strongly
+        # damped light vertices, e.g. the physical set's, need this; the paper set's barely change)
+        kh2 = h * h * self.vertex_stiffness
+        den = np.maximum(np.maximum(self.mass, kh2 / self.params.stability_limit ** 2),
+                         (kh2 + 2.0 * h * self.vertex_damping) / 3.8)
+        return _frozen(np.where(self.inv_mass > 0, 1.0 / den, 0.0))
 
     @property
     def n_vertices(self):
@@ -152,17 +146,13 @@ class State:
     time: float = 0.0               # [s]
     x_back: np.ndarray = None       # double buffers (internal)
     v_back: np.ndarray = None
-    free_mass: np.ndarray = None    # (V,) [kg] vertex masses, 0 for bone-attached vertices (model constant)
-
-    @property
-    def kinetic_energy(self) -> float:
-        """Kinetic energy [J] of the free vertices (computed when read, not by every step)."""
-        return 0.5 * float(np.dot(self.free_mass, np.einsum('ij,ij->i', self.v, self.v)))
+    workspace: object = dataclasses.field(default=None, repr=False)   # the step's scratch buffers (step.Workspace,
+                                    # internal: made on the first step, not copied)
 
     def copy(self) -> 'State':
-        return State(**{f.name: (getattr(self, f.name).copy()
-                                 if isinstance(getattr(self, f.name), np.ndarray) and f.name != 'free_mass'
-                                 else getattr(self, f.name)) for f in dataclasses.fields(self)})
+        return State(**{f.name: (getattr(self, f.name).copy() if isinstance(getattr(self, f.name), np.ndarray)
+                                 else None if f.name == 'workspace' else getattr(self, f.name))
+                        for f in dataclasses.fields(self)})
 
 
 @dataclasses.dataclass(eq=False)
@@ -194,8 +184,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     if np.any(flat):
         Qinv[flat] = np.linalg.pinv(Q[flat], rcond=1e-9, hermitian=True)
     fib = np.asarray(tm.cell_fibre, np.float64)
-    vol = np.zeros(C)
-    K.cell_volumes(rest, off, cv, vol)
+    vol = prism_volumes(rest, off, cv)
     if np.any(vol == 0) or not np.all(np.isfinite(vol)):
         bad = int(np.flatnonzero(~(np.abs(vol) > 0))[0])
         raise ValueError(f'model {tm.name!r}: cell {bad} has zero or non-finite rest volume')
@@ -219,7 +208,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         k = np.where(muscle, p.youngs_muscle, p.youngs_fat) * size * 4.0 / sizes * tm.cell_k_scale
     k_active = np.zeros(C)
     alen = np.zeros(C)
-    K.cell_axial_lengths(rest, off, cv, alen)
+    cell_axial_lengths(rest, off, cv, alen)
     if p.specific_tension > 0 and p.min_stretch < 1:
         k_active = active_stiffness(tm, p, vol, alen, sizes)
     # damping: fraction of critical for a vertex of mean mass on one cell spring
@@ -287,12 +276,6 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
             I += np.einsum('i,ijk->jk', mv, (r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])
             seg_mass[s], seg_com[s], seg_I[s] = mt, com, I
     inv_mass = np.where(vs >= 0, 0.0, 1.0 / mass)
-    names = {n: [i] for i, n in enumerate(tm.muscle_names)}
-    for i, g in enumerate(tm.muscle_groups):
-        if g and g not in names:
-            names.setdefault(g, [])
-        if g and g in names and g not in tm.muscle_names:
-            names[g].append(i)
     # summed stiffness and damping of each vertex's cells (the mass_scaled integrator's masses)
     kcell = (k + k_active) * (1.0 + np.where(k_volume > 0, p.volume_stiffness, 0.0))
     kappa = np.zeros(V)
@@ -316,13 +299,14 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_type=_frozen(tm.joint_type, np.uint8), j_axis=_frozen(tm.joint_axis, np.float64),
         j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
-        muscle_index_of=names,
-        cell_blocks=K.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv))
+        skeleton=None,
+        cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv))
+    sim_kw['skeleton'] = SK.Skeleton(*(sim_kw[n] for n in SK.Skeleton._fields))
     c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0
     sim = SimModel(damp_rate=c_max, **sim_kw)
     w = estimate_omega_max(sim)
     n_sub = p.substeps or substeps_for(p, w, c_max, p.dt)
-    return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w), cache={})
+    return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w))
 
 
 def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarray, sizes: np.ndarray) -> np.ndarray:
@@ -390,17 +374,17 @@ def estimate_omega_max(sim: SimModel, iters: int = 40) -> float:
     lam, act = np.ones(M), np.ones(M)
     e = np.zeros(sim.n_cells)
     scale = 1e-6 * max(np.ptp(sim.rest, axis=0).max(), 1e-3)
-    par = sim.cell_blocks[K.CELLS_PAR].copy()
-    par[:, K.P_B * K.BLK:(K.P_B + 1) * K.BLK] = 0.0          # no damping
+    par = sim.cell_blocks.par.copy()
+    par[:, CK.P_B * CK.BLK:(CK.P_B + 1) * CK.BLK] = 0.0       # no damping
     par.flags.writeable = False                               # read-only as in the model: one compiled kernel
-    cells = tuple(par if i == K.CELLS_PAR else a for i, a in enumerate(sim.cell_blocks))
-    work = K.cell_work(cells)
+    cells = sim.cell_blocks._replace(par=par)
+    work = CK.cell_work(cells)
     lam_est = 0.0
     for _ in range(iters):
         u /= np.linalg.norm(u)
         xp = sim.rest + scale * u
         quat[:] = (0.0, 0.0, 0.0, 1.0)
-        K.cell_forces(xp, xp, f, quat, cells, lam, act, sim.params.volume_mode == 'actual', 20, e,
+        CK.cell_forces(xp, xp, f, quat, cells, lam, act, sim.params.volume_mode == 'actual', 20, e,
                       np.zeros(sim.n_cells), 0.0, work, np.empty(sim.n_cells))
         y = -(f / scale) * sim.inv_mass[:, None]
         lam_est = float(np.sum(y * u))
@@ -418,7 +402,7 @@ def make_state(sim: SimModel) -> State:
                lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
                cell_length=np.zeros(C), muscle_length=np.full(max(sim.n_muscles, 0), -1.0),
                muscle_velocity=np.zeros(max(sim.n_muscles, 0)),
-               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), free_mass=np.where(sim.inv_mass > 0, sim.mass, 0.0))
+               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)))
     return st
 
 
@@ -442,8 +426,7 @@ def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
         raise ValueError(f'q must be {sim.n_joints} finite joint coordinates')
     state.q[:] = q
     state.qd[:] = 0.0 if qd is None else qd
-    K.forward_kinematics(state.q, sim.seg_order, sim.seg_joint, sim.j_parent, sim.j_axis, sim.j_centre, sim.j_rest,
-                         state.seg_R, state.seg_t)
+    SK.forward_kinematics(state.q, sim.skeleton, state.seg_R, state.seg_t)
     a, s = sim.att_idx, sim.att_seg
     state.x[a] = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[a]) + state.seg_t[s]
     state.muscle_length[:] = -1.0        # a jump, not a motion: the force-velocity estimate starts again
@@ -456,10 +439,7 @@ def make_control(sim: SimModel) -> Control:
 
 
 def muscle_indices(sim: SimModel, name: str) -> list:
-    """Indices of a muscle name, a muscle group name, or 'all'; KeyError naming the choices."""
-    if name == 'all':
-        return list(range(sim.n_muscles))
-    if name in sim.muscle_index_of:
-        return list(sim.muscle_index_of[name])
-    raise KeyError(f'unknown muscle or group {name!r}; the model has muscles {", ".join(sim.tissue.muscle_names)}'
-                   f' and groups {", ".join(sorted(set(g for g in sim.tissue.muscle_groups if g)))}')
+    """Indices of a muscle selector (a muscle, a name prefix, a group or 'all'; see core/activation.py);
+    KeyError (UnknownMuscle) naming the choices."""
+    from tissue_sim.core.activation import Muscles
+    return Muscles.of(sim).indices(name)

@@ -56,8 +56,10 @@ class Params:
     relax_rate: float = 0.998             # factor (<1) by which the stretch recovers towards its target per rate_dt
     rate_dt: float = 1e-3                 # [s] time unit of contraction_rate/relax_rate (paper: per dT)
     min_stretch: float = 0.7              # fibre stretch reached at full activation; > 0, the shortening limit
-    volume_stiffness: float = 0.5         # muscle volume penalty, relative to k (0 = off; keeps each muscle cell's volume)
-    volume_relax_time: float = 0.005      # [s] integral (pressure) term restoring each muscle cell's volume; 0 = off
+    volume_stiffness: float = 1.0         # muscle volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k (0 = off; keeps
+                                          # each muscle cell's volume; the earlier default, with the pressure term, was 0.5)
+    volume_relax_time: float = 0.0        # [s] integral (pressure) term restoring each muscle cell's volume; 0 = off (default:
+                                          # it is not conservative and kept the paper set swinging; 0.005 = the earlier term)
     volume_mode: str = 'actual'           # muscle cross-section: 'actual' = 1/sqrt(current fibre stretch), 'rest' = 1/sqrt(lambda)
     max_contraction_velocity: float = 0.0 # [1/s] Hill force-velocity of the active tension: v_max in rest lengths per second
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)

@@ -6,8 +6,8 @@ from typing import Iterator
 
 import numpy as np
 
-from tissue_sim.core.solver import kernels as K
 from tissue_sim.core.activation import timeline_function
+from tissue_sim.core.solver.measures import cell_axial_lengths, cell_volumes, kinetic_energy, skeleton_energy
 from tissue_sim.core.solver.model import SimModel, State, make_state
 from tissue_sim.core.solver.step import _run
 
@@ -44,44 +44,20 @@ def observe(sim: SimModel, state: State) -> dict:
     skeleton_energy [J] (segments' kinetic + gravitational potential),
     segment_poses (S, 7) x y z qx qy qz qw (the transform from rest to current pose), time [s], step."""
     M = sim.n_muscles
-    vol = np.empty(sim.n_cells)
-    K.cell_volumes(state.x, sim.off, sim.cv, vol)
-    vol *= sim.cell_sign
+    vol = cell_volumes(sim, state.x)
     alen = np.empty(sim.n_cells)
-    K.cell_axial_lengths(state.x, sim.off, sim.cv, alen)
+    cell_axial_lengths(state.x, sim.off, sim.cv, alen)
     mus = sim.cell_muscle
     sel = mus >= 0
     mv = np.bincount(mus[sel], weights=vol[sel], minlength=M)
     ml = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)
-    ke = float(0.5 * np.sum(sim.mass[sim.inv_mass > 0] * np.sum(state.v[sim.inv_mass > 0] ** 2, axis=1)))
+    ke = kinetic_energy(sim, state)
     return dict(time=state.time, skeleton_energy=skeleton_energy(sim, state), step=state.step, joint_positions=state.q.copy(), joint_velocities=state.qd.copy(),
                 muscle_lengths=ml, muscle_volumes=mv, muscle_stretch=state.lam.copy(), kinetic_energy=ke,
                 elastic_energy=float(state.cell_energy.sum()),
                 segment_poses=np.concatenate([state.seg_t, _quat_from_mat(state.seg_R)], axis=1))
 
 
-def skeleton_energy(sim: SimModel, state: State) -> float:
-    """Kinetic + gravitational potential energy [J] of the segments (masses incl. attached vertices
-    when params.attached_mass_to_segment), potential relative to the rest pose."""
-    e = 0.0
-    S, J = sim.n_segments, sim.n_joints
-    a = np.empty((J, 3))
-    p = np.empty((J, 3))
-    for j in range(J):
-        Rp, tp = state.seg_R[sim.j_parent[j]], state.seg_t[sim.j_parent[j]]
-        a[j] = Rp @ sim.j_axis[j]
-        p[j] = Rp @ sim.j_centre[j] + tp
-    for s in range(S):
-        com = state.seg_R[s] @ sim.seg_com[s] + state.seg_t[s]
-        w = np.zeros(3)
-        v = np.zeros(3)
-        for j in range(J):
-            if sim.anc[j, s]:
-                w += a[j] * state.qd[j]
-                v += np.cross(a[j], com - p[j]) * state.qd[j]
-        Iw = state.seg_R[s] @ sim.seg_inertia[s] @ state.seg_R[s].T
-        e += 0.5 * sim.seg_mass[s] * v @ v + 0.5 * w @ Iw @ w - sim.seg_mass[s] * sim.gravity @ (com - sim.seg_com[s])
-    return float(e)
 
 
 def simulate(sim: SimModel, duration: float, timeline=None, dt: float | None = None, every: int = 1,

@@ -1,120 +1,162 @@
-"""The time step (docs/method.md section 3 order: muscle tension, then skeleton, then soft tissue)."""
+"""The time step (docs/method.md section 3 order: muscle tension, then skeleton, then soft tissue).
+
+``advance`` is the compiled step over many steps; ``reference.reference_step`` is the same step in plain
+numpy. Its arguments are named tuples: the state's arrays (``Arrays``), the cell layout (``cells.CellLayout``),
+the vertex constants (``Tissue``), the skeleton (``skeleton.Skeleton``), the scalar parameters (``Numbers``)
+and the scratch buffers (``Scratch``, with ``cells.CellWork``), all made once per model and sub-step length
+by ``Workspace`` (owned by the State being stepped: the SimModel stays immutable).
+"""
 from __future__ import annotations
 
+import collections
 import math
 
 import numpy as np
 from numba import njit
 
-from tissue_sim.core.solver import kernels as K
-
 
 def _drop_stale_advance_cache() -> None:
-    """numba validates advance()'s on-disk cache against this file only, but the cached machine
-    code embeds the kernels of kernels.py: drop that cache whenever kernels.py is newer."""
+    """numba validates advance()'s on-disk cache against this file only, but the cached machine code embeds
+    the kernels of the modules it calls: drop that cache whenever one of them is newer."""
     from pathlib import Path
     here = Path(__file__).resolve()
     try:
-        kernels_mtime = here.with_name('kernels.py').stat().st_mtime
-        for f in (here.parent / '__pycache__').glob('step.advance-*.nb[ic]'):
-            if f.stat().st_mtime < kernels_mtime:
+        newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py'))
+        for f in (here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'):     # advance and _advance
+            if f.stat().st_mtime < newest:
                 f.unlink(missing_ok=True)
     except OSError:
         pass
 
 
 _drop_stale_advance_cache()
-from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for
+from tissue_sim.core.solver import cells as CK, integration as IK, skeleton as SK  # noqa: E402
+from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for  # noqa: E402
+
+CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
+CAUSE_SPEED = 2             # a vertex exceeded max_speed (energy blow-up)
+CAUSE_SKELETON = 3          # non-finite joint acceleration
+CAUSE_ACTIVATION = 4        # an activation outside [0, 1] or not finite (input error: nothing is done)
+CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPEED: 'vertex speed above max_speed (energy blow-up)',
+          CAUSE_SKELETON: 'non-finite joint acceleration'}
+
+Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
+                                'muscle_length muscle_velocity')       # the State's arrays (xb, vb: back buffers)
+Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0')
+Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
+                                 'vol_gain vmax2 fv_on fv_max fv_alpha')
+Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums')
 
 
 @njit(cache=True)
-def advance(n_steps, n_sub, h, acts, st, cells, tissue, skel, num, scratch, info):
+def advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
-    same for every step), in place.
+    same for every step), in place. Positions and velocities alternate between (x, v) and the back buffers
+    (xb, vb); returns how many swaps happened. On failure info = (step, cell, cause) and the state is left
+    at the last good sub-step (an activation outside [0, 1] or not finite: nothing is done,
+    info = (-1, muscle, CAUSE_ACTIVATION)).
 
-    Tuples of flat arrays (built by ``_arrays``): st = mutable state, cells = the cells in SIMD blocks,
-    tissue = vertex constants, skel = skeleton constants, num = scalar parameters, scratch = buffers
-    (their contents on entry do not matter). Positions and velocities alternate between (x, v) and the
-    back buffers (xb, vb); returns how many swaps happened. On failure info = (step, cell, cause) and
-    the state is left at the last good sub-step (an activation outside [0, 1] or not finite: nothing
-    is done, info = (-1, muscle, CAUSE_ACTIVATION))."""
-    x, v, xb, vb, f, quat, q, qd, seg_R, seg_t, lam, cell_e, pres, cell_len, mlen, mvel = st
-    rest, inv_den, att_idx, att_seg, mlanes, mcell_muscle, mcell_weight, inv_vl0 = tissue
-    seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, \
-        j_rest, j_range, anc, grav = skel
-    log_c, log_r, lam_min, h_ref, vol_actual, iters, jdamp, lim_wh, lim_z, vel_damp, vol_gain, vmax2, \
-        fv_on, fv_max, fv_alpha = num
-    cell_work, work, q0, qd0, lam0, mlen0, mvel0, act_t, mscratch = scratch
+    The arguments come as plain tuples in the order of the named tuples (numba's dispatcher types a plain
+    tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here."""
+    return _advance(n_steps, n_sub, h, acts, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk),
+                    Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]), info)
+
+
+@njit(cache=True)
+def _advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
+    x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
+    work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
         for m in range(acts.shape[1]):
             if not (acts[n, m] >= 0.0 and acts[n, m] <= 1.0):      # (NaN fails both)
-                info[1], info[2] = m, K.CAUSE_ACTIVATION
+                info[1], info[2] = m, CAUSE_ACTIVATION
                 return 0
     swaps = 0
-    K.to_lanes(quat, pres, cell_e, cell_len, cells, cell_work)     # the cell kernel's per-cell state, in its lane order
+    CK.to_lanes(st.quat, st.pressure, st.cell_energy, st.cell_length, cells, work)   # per-cell state in lane order
     for n in range(n_steps):
         act = acts[n if acts.shape[0] > 1 else 0]
         for _ in range(n_sub):
-            q0[:] = q; qd0[:] = qd; lam0[:] = lam; mlen0[:] = mlen; mvel0[:] = mvel
+            scratch.q0[:] = q; scratch.qd0[:] = qd; scratch.lam0[:] = lam; scratch.mlen0[:] = mlen; scratch.mvel0[:] = mvel
             # 1. muscle tension: contraction state, the active tension's activation x the force-velocity
             # factor (muscle velocity from the last evaluation), then every cell's elastic + volume + damping force
-            K.update_contraction(lam, act, log_c, log_r, lam_min, h / h_ref)
+            CK.update_contraction(lam, act, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             for m in range(act_t.shape[0]):
-                act_t[m] = act[m] * K.force_velocity(mvel[m] * inv_vl0[m], fv_max) if fv_on else act[m]
-            bad = K.lane_forces(x, v, f, cells, lam, act_t, vol_actual, iters, vol_gain, cell_work)
-            if fv_on:
-                K.muscle_velocity(cell_work[K.WORK_LENGTH], mlanes, mcell_muscle, mcell_weight, mlen, mvel, h, fv_alpha, mscratch)
+                act_t[m] = act[m] * CK.force_velocity(mvel[m] * tissue.inv_vl0[m], num.fv_max) if num.fv_on else act[m]
+            bad = CK.lane_forces(x, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            if num.fv_on:
+                CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
+                                   num.fv_alpha, scratch.muscle_sums)
             if bad >= 0:
-                info[0], info[1], info[2] = n, bad, K.CAUSE_CELL_FORCE
-                lam[:] = lam0; mlen[:] = mlen0; mvel[:] = mvel0
-                K.from_lanes(cell_work, cells, quat, pres, cell_e, cell_len)
+                info[0], info[1], info[2] = n, bad, CAUSE_CELL_FORCE
+                lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0
+                CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
-            ok = K.skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint,
-                                 seg_mass, seg_com, seg_I, j_parent, j_child, j_type, j_axis, j_centre, j_rest,
-                                 j_range, anc, grav, jdamp, lim_wh, lim_z, seg_R, seg_t, work)
+            ok = SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
+                                  st.seg_R, st.seg_t, scratch.skel_work)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
-            fast = K.integrate(h, x, v, f, inv_den, xb, vb, att_idx, att_seg, rest, seg_R, seg_t, grav, vel_damp, vmax2)
+            fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
+                                st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
             if not ok or fast:
-                info[0], info[1], info[2] = n, -1, K.CAUSE_SKELETON if not ok else K.CAUSE_SPEED
-                q[:] = q0; qd[:] = qd0; lam[:] = lam0; mlen[:] = mlen0; mvel[:] = mvel0
-                K.forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t)
-                K.from_lanes(cell_work, cells, quat, pres, cell_e, cell_len)
+                info[0], info[1], info[2] = n, -1, CAUSE_SKELETON if not ok else CAUSE_SPEED
+                q[:] = scratch.q0; qd[:] = scratch.qd0; lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0
+                SK.forward_kinematics(q, sk, st.seg_R, st.seg_t)
+                CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
             x, xb = xb, x
             v, vb = vb, v
             swaps += 1
-    K.from_lanes(cell_work, cells, quat, pres, cell_e, cell_len)
+    CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
     return swaps
 
 
-def _arrays(sim: SimModel, h: float):
-    """The constant tuples ``advance`` reads for sub-step length h (cached on the model per h)."""
-    key = ('arrays', h)
-    t = sim.cache.get(key)
-    if t is None:
-        p = sim.params
+class Workspace:
+    """What ``advance`` reads besides the state, for one model: per sub-step length h the constants
+    (Tissue, Numbers) and the scratch buffers (Scratch; their contents on entry do not matter). Owned by
+    the State it steps (``state.workspace``, made on its first step, rebuilt for another model)."""
+
+    def __init__(self, sim: SimModel):
+        self.sim = sim
+        self._by_h = {}
+
+    def arrays(self, h: float):
+        """(cells, tissue, skeleton, numbers, scratch) for sub-step length h, as named tuples."""
+        return self._get(h)[0]
+
+    def plain(self, h: float):
+        """The same as plain tuples (what advance() is called with)."""
+        return self._get(h)[1]
+
+    def _get(self, h: float):
+        t = self._by_h.get(h)
+        if t is None:
+            if len(self._by_h) > 8:
+                self._by_h.clear()
+            named = self._make(h)
+            cells, tissue, sk, num, scratch = named
+            plain = (tuple(cells), tuple(tissue), tuple(sk), tuple(num), (tuple(scratch.cell_work),) + tuple(scratch)[1:])
+            t = self._by_h[h] = (named, plain)
+        return t
+
+    def _make(self, h: float):
+        sim, p = self.sim, self.sim.params
         cells = sim.cell_blocks
         mcells = np.flatnonzero(sim.cell_muscle >= 0).astype(np.int32)
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length
-        inv_vl0 = np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0)
-        mlanes = cells[7][mcells]                       # their lanes (the kernel keeps axial lengths in lane order)
-        tissue = (sim.rest, sim.inv_denominator(h), sim.att_idx, sim.att_seg, mlanes,
-                  sim.cell_muscle[mcells], sim.length_weight[mcells], inv_vl0)
-        skel = (sim.seg_order, sim.seg_parent, sim.seg_joint, sim.seg_mass, sim.seg_com, sim.seg_inertia,
-                sim.j_parent, sim.j_child, sim.j_type, sim.j_axis, sim.j_centre, sim.j_rest, sim.j_range, sim.anc,
-                sim.gravity)
-        num = (math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
-               p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping), float(p.limit_omega_dt),
-               float(p.limit_damping_ratio), float(p.velocity_damping),
-               h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, float(p.max_speed) ** 2,
-               p.max_contraction_velocity > 0 and p.specific_tension > 0, float(p.fv_max_lengthening),
-               h / (p.fv_filter_time + h))
+        tissue = Tissue(sim.rest, sim.inv_denominator(h), sim.att_idx, sim.att_seg,
+                        cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
+                        sim.cell_muscle[mcells], sim.length_weight[mcells],
+                        np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0))
+        num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
+                      p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
+                      float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
+                      h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, float(p.max_speed) ** 2,
+                      p.max_contraction_velocity > 0 and p.specific_tension > 0, float(p.fv_max_lengthening),
+                      h / (p.fv_filter_time + h))
         M, J = sim.n_muscles, sim.n_joints
-        scratch = (K.cell_work(cells), np.zeros((max(J, 1), 9)), np.empty(J), np.empty(J), np.empty(M),
-                   np.empty(M), np.empty(M), np.empty(M), np.empty(M))
-        t = sim.cache[key] = (cells, tissue, skel, num, scratch)
-    return t
+        scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 9)), np.empty(J), np.empty(J), np.empty(M),
+                          np.empty(M), np.empty(M), np.empty(M), np.empty(M))
+        return cells, tissue, sim.skeleton, num, scratch
 
 
 def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int | None = None) -> None:
@@ -128,11 +170,14 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
     n_sub = sim.n_substeps if dt == p.dt else substeps_for(p, sim.omega_max, sim.damp_rate, dt)
     h = dt / n_sub
     info = np.array([-1, -1, 0], np.int64)
+    ws = state.workspace
+    if ws is None or ws.sim is not sim:
+        ws = state.workspace = Workspace(sim)
     st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
-          state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length,
-          state.muscle_length, state.muscle_velocity)
-    swaps = advance(n_steps, n_sub, h, acts, st, *_arrays(sim, h), info)
-    if info[2] == K.CAUSE_ACTIVATION:
+          state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
+          state.muscle_velocity)                                              # (the fields of Arrays)
+    swaps = advance(n_steps, n_sub, h, acts, st, *ws.plain(h), info)
+    if info[2] == CAUSE_ACTIVATION:
         m = int(info[1])
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]; muscle {m} '
                          f'({sim.tissue.muscle_names[m]!r}) has {acts[np.flatnonzero(~((acts[:, m] >= 0) & (acts[:, m] <= 1)))[0], m]}')
@@ -143,7 +188,7 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
     state.step += done
     state.time += done * dt
     if info[0] >= 0:
-        raise DivergenceError(state.step + 1, int(info[1]), K.CAUSES[int(info[2])])
+        raise DivergenceError(state.step + 1, int(info[1]), CAUSES[int(info[2])])
 
 
 def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None, n_steps: int = 1) -> State:

@@ -1,21 +1,20 @@
-"""Numba kernels of the solver: flat arrays in, flat arrays out, single thread. No fastmath except
-floating-point contraction (fused multiply-add) in the hot kernels: deterministic (the compiled
-code fixes the order), no reassociation (it made results depend on what ran before in the process),
-NaN/Inf semantics kept (divergence checks rely on them).
+"""The cell kernel: every cell's force (shape matching, volume, damping, active tension) with SIMD across
+cells, and the muscle-tension state it needs (contraction, force-velocity, muscle velocities).
 
-Cells are CSR (``off``, ``cv``); ``X0`` (K, 3) holds each cell's rest vertex positions relative to
-the cell's rest centroid (unweighted mean), in the same order as ``cv``. The cell force kernel
-(``lane_forces``) reads them laid out by ``pack_cells``: rings shared by two cells once, SIMD lanes
-running along chains of cells of one size (see the notes before ``BLK``). All positions in
-metres, model frame; forces in N (paper units in the 'paper' preset).
+numba, flat arrays, single thread. No fastmath except floating-point contraction (fused multiply-add) in the
+hot kernels: deterministic (the compiled code fixes the order), no reassociation (it made results depend on
+what ran before in the process), NaN/Inf semantics kept (divergence checks rely on them). The physics is
+``reference.cell_forces`` (plain numpy); this module computes the same forces laid out by ``pack_cells``:
+rings shared by two cells once, SIMD lanes running along chains of cells of one size (see the notes before
+``BLK``). Positions in metres, model frame; forces in N (paper units in the 'paper' preset).
 """
 from __future__ import annotations
 
+import collections
 import math
 
 import numpy as np
 from numba import njit
-
 
 def _noalias_option() -> dict:
     """The jit option that marks a function's array arguments noalias (LLVM), as {'_noalias': True}.
@@ -35,28 +34,8 @@ def _noalias_option() -> dict:
 
 
 NOALIAS = _noalias_option()
-
-CAUSE_OK = 0
-CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
-CAUSE_SPEED = 2             # a vertex exceeded max_speed (energy blow-up)
-CAUSE_SKELETON = 3          # non-finite joint acceleration
-CAUSE_ACTIVATION = 4        # an activation outside [0, 1] or not finite (input error: nothing is done)
-CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPEED: 'vertex speed above max_speed (energy blow-up)',
-          CAUSE_SKELETON: 'non-finite joint acceleration'}
 FORCE_BOUND = 1e150
 NEWTON_DONE = 1e-5          # [rad] a Newton rotation correction below this ends the iteration (next one ~1e-10)
-
-
-# ------------------------------------------------------------------------------------ small math
-@njit(cache=True)
-def axis_angle_mat(ax, ang, R):
-    """Rotation by ang [rad] about unit axis ax (Rodrigues), written into R."""
-    c, s = math.cos(ang), math.sin(ang)
-    t = 1 - c
-    x, y, z = ax[0], ax[1], ax[2]
-    R[0, 0] = t * x * x + c; R[0, 1] = t * x * y - s * z; R[0, 2] = t * x * z + s * y
-    R[1, 0] = t * x * y + s * z; R[1, 1] = t * y * y + c; R[1, 2] = t * y * z - s * x
-    R[2, 0] = t * x * z - s * y; R[2, 1] = t * y * z + s * x; R[2, 2] = t * z * z + c
 
 
 # ------------------------------------------------------------------------------------ contraction
@@ -192,7 +171,7 @@ R_L = 21                    # sum d_i x v_i (3)
 R_O = 24                    # the ring's origin o [m] (3)
 N_R = 27
 
-# rows of the per-lane work buffer (work[0][row * BLK + lane]); the cell's sums relative to its bottom ring's origin
+# rows of the per-lane work buffer (work.w[row * BLK + lane]); the cell's sums relative to its bottom ring's origin
 W_S = 0                     # sum d_i, d_i = x_i - x_first (a local origin, for precision) (3)
 W_A = 3                     # A = sum d_i X0_i^T (9, row-major)
 W_Y = 12                    # sum d_i d_i^T: xx, yy, zz, xy, xz, yz (6)
@@ -239,9 +218,16 @@ N_W = W_H + 17
 # slot: its own first vertex with Xr = 0, adding exact zeros.
 
 
+CellLayout = collections.namedtuple('CellLayout', 'groups ids rings ring_idx ring_X0 par lane_muscle lane_of')
+CellWork = collections.namedtuple('CellWork', 'w rs0 rs1 gv0 gv1 lq lp le ll')
+CellWork.__doc__ = """The scratch buffers of lane_forces (cell_work): w the per-lane rows (W_*), rs0/rs1 the sums of two
+ring blocks (R_*), gv0/gv1 their gathered vertices, and the per-cell state in lane order: lq the rotation
+quaternions (rows x, y, z, w of block b at (4 b + r) BLK), lp pressure, le energy, ll axial length (at b BLK)."""
+
+
 def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv):
-    """The layout lane_forces reads (numpy, at compile time). Returns (groups, ids, rings, ring_idx,
-    ring_X0, par, lane_muscle):
+    """The layout lane_forces reads (numpy, at compile time). Returns a CellLayout (groups, ids, rings,
+    ring_idx, ring_X0, par, lane_muscle, lane_of):
 
     - groups (G, 4) int64: per cell size n (ascending): n, positions L, first cell block, first ring block
       (a group has L cell blocks and L + 1 ring blocks);
@@ -369,14 +355,11 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     lane_of = np.zeros(C, np.int64)
     real = ids >= 0
     lane_of[ids[real]] = np.flatnonzero(real.reshape(-1))
-    out = (np.array(groups, np.int64).reshape(-1, 5), ids, rings, ring_idx, ring_X0.reshape(-1),
-           par.reshape(Bc, N_PAR * BLK), lane_muscle, lane_of)
+    out = CellLayout(np.array(groups, np.int64).reshape(-1, 5), ids, rings, ring_idx, ring_X0.reshape(-1),
+                     par.reshape(Bc, N_PAR * BLK), lane_muscle, lane_of)
     for arr in out:
         arr.flags.writeable = False
     return out
-
-
-CELLS_PAR = 5               # the index of par in pack_cells' tuple
 
 
 def _fill_lanes(chains, nxt, L):
@@ -400,38 +383,32 @@ def _fill_lanes(chains, nxt, L):
 
 
 def _aligned_zeros(size):
+    """Zeros (size,) float64 starting on a 64-byte boundary (vector loads; misaligned rows measured +50 % in the
+    moment loop)."""
     buf = np.zeros(size + 8)
     a = (-buf.ctypes.data % 64) // 8
     return buf[a:a + size]
 
 
-WORK_LENGTH = 8             # the index in cell_work's tuple of the axial lengths in lane order
-
-
-@njit(cache=True)
-def cell_work(cells):
-    """The scratch buffers of lane_forces for the layout cells (allocate once, reuse every call): the
-    per-lane rows, the sums of two ring blocks and their gathered vertices, and the per-cell state in lane
-    order (quaternion rows x, y, z, w of block b at (4 b + r) BLK; pressure, energy, axial length at b BLK;
-    to_lanes and from_lanes convert; a dummy lane holds the identity rotation and zeros for good)."""
-    rings = cells[2]
-    n_lanes = cells[1].shape[0] * BLK
-    m_max = 2
-    for q in range(rings.shape[0]):
-        m_max = max(m_max, rings[q, 1])
-    lq = np.zeros(4 * n_lanes)
-    for b in range(cells[1].shape[0]):
-        lq[(4 * b + 3) * BLK:(4 * b + 4) * BLK] = 1.0
-    return (np.empty(N_W * BLK), np.empty(N_R * BLK), np.empty(N_R * BLK), np.empty(6 * m_max * BLK),
-            np.empty(6 * m_max * BLK), lq, np.zeros(n_lanes), np.zeros(n_lanes), np.zeros(n_lanes))
+def cell_work(cells: CellLayout) -> CellWork:
+    """The scratch buffers of lane_forces for the layout cells (allocate once, reuse every call; 64-byte
+    aligned; their contents on entry do not matter, except that a dummy lane holds the identity rotation and
+    zeros for good; to_lanes and from_lanes convert the per-cell state)."""
+    n_lanes = cells.ids.shape[0] * BLK
+    m_max = max(2, int(cells.rings[:, 1].max(initial=0)))
+    lq = _aligned_zeros(4 * n_lanes)
+    lq.reshape(-1, 4, BLK)[:, 3] = 1.0
+    return CellWork(_aligned_zeros(N_W * BLK), _aligned_zeros(N_R * BLK), _aligned_zeros(N_R * BLK),
+                    _aligned_zeros(6 * m_max * BLK), _aligned_zeros(6 * m_max * BLK), lq, _aligned_zeros(n_lanes),
+                    _aligned_zeros(n_lanes), _aligned_zeros(n_lanes))
 
 
 @njit(cache=True)
 def to_lanes(quat, pressure, cell_energy, cell_length, cells, work):
     """The per-cell state (quat (C, 4), pressure, cell_energy, cell_length (C,)) into the lane-ordered
     copies of work (dummy lanes are left as cell_work made them)."""
-    lane_of = cells[7]
-    lq, lp, le, ll = work[5], work[6], work[7], work[WORK_LENGTH]
+    lane_of = cells.lane_of
+    lq, lp, le, ll = work.lq, work.lp, work.le, work.ll
     for j in range(lane_of.shape[0]):
         a = np.uint64(lane_of[j])
         i = a + np.uint64(3 * BLK) * (a // np.uint64(BLK))          # ((4 b) BLK + c) for a = b BLK + c
@@ -444,8 +421,8 @@ def to_lanes(quat, pressure, cell_energy, cell_length, cells, work):
 @njit(cache=True)
 def from_lanes(work, cells, quat, pressure, cell_energy, cell_length):
     """The lane-ordered per-cell state of work back into the per-cell arrays."""
-    lane_of = cells[7]
-    lq, lp, le, ll = work[5], work[6], work[7], work[WORK_LENGTH]
+    lane_of = cells.lane_of
+    lq, lp, le, ll = work.lq, work.lp, work.le, work.ll
     for j in range(lane_of.shape[0]):
         a = np.uint64(lane_of[j])
         i = a + np.uint64(3 * BLK) * (a // np.uint64(BLK))
@@ -505,8 +482,9 @@ def lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
     from its two rings' sums and the maps of the (up to) two cells of a ring are added into one map of
     the ring's vertices (see the layout notes above): per position of a lane, the next ring's sums, the
     cell's algebra, then the forces of the cell's bottom ring, which is then complete."""
-    groups, ids, rings, ring_idx, ring_X0, par, lane_muscle = cells[:7]
-    w, rs0, rs1, gv0, gv1, lq, lp, le, ll = work
+    groups, ids, rings, ring_idx, ring_X0, par, lane_muscle = (cells.groups, cells.ids, cells.rings, cells.ring_idx,
+                                                              cells.ring_X0, cells.par, cells.lane_muscle)
+    w, rs0, rs1, gv0, gv1, lq, lp, le, ll = work.w, work.rs0, work.rs1, work.gv0, work.gv1, work.lq, work.lp, work.le, work.ll
     f[:] = 0.0
     xf, vf, ff = x.reshape(-1), v.reshape(-1), f.reshape(-1)
     bad = -1
@@ -1108,333 +1086,3 @@ def _ring_forces(w, gv, X0, ro, m):
             gv[g + 6 * BLK + c] = fx - b * gv[g + 9 * BLK + c]
             gv[g + 7 * BLK + c] = fy - b * gv[g + 10 * BLK + c]
             gv[g + 8 * BLK + c] = fz - b * gv[g + 11 * BLK + c]
-
-
-# ------------------------------------------------------------------------------------ skeleton
-@njit(cache=True)
-def forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t):
-    """Pose (R_s, t_s) of every non-root segment from the joint coordinates q; a point p_rest of
-    segment s is at R_s p_rest + t_s. Joint j rotates its child by q_j - rest_j about its rest axis
-    through its rest centre, then the parent's pose applies. seg_order lists parents first."""
-    Rj = np.empty((3, 3))
-    for s in seg_order:
-        j = seg_joint[s]
-        if j < 0:
-            continue
-        p = j_parent[j]
-        axis_angle_mat(j_axis[j], q[j] - j_rest[j], Rj)
-        cx, cy, cz = j_centre[j, 0], j_centre[j, 1], j_centre[j, 2]
-        # local transform: x -> Rj (x - c) + c ; world: R_p (Rj (x - c) + c) + t_p
-        lx = cx - (Rj[0, 0] * cx + Rj[0, 1] * cy + Rj[0, 2] * cz)
-        ly = cy - (Rj[1, 0] * cx + Rj[1, 1] * cy + Rj[1, 2] * cz)
-        lz = cz - (Rj[2, 0] * cx + Rj[2, 1] * cy + Rj[2, 2] * cz)
-        for r in range(3):
-            for c in range(3):
-                seg_R[s, r, c] = seg_R[p, r, 0] * Rj[0, c] + seg_R[p, r, 1] * Rj[1, c] + seg_R[p, r, 2] * Rj[2, c]
-            seg_t[s, r] = seg_R[p, r, 0] * lx + seg_R[p, r, 1] * ly + seg_R[p, r, 2] * lz + seg_t[p, r]
-
-
-@njit(cache=True)
-def _cross(a, b, out):
-    out[0] = a[1] * b[2] - a[2] * b[1]
-    out[1] = a[2] * b[0] - a[0] * b[2]
-    out[2] = a[0] * b[1] - a[1] * b[0]
-
-
-@njit(cache=True)
-def skeleton_step(h, q, qd, f, x, att_idx, att_seg, seg_order, seg_parent, seg_joint, seg_mass, seg_com,
-                  seg_inertia, j_parent, j_child, j_type, j_axis, j_centre, j_rest, j_range, anc,
-                  gravity, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work):
-    """One step of the skeleton (a tree of rigid segments, hinge or fixed joints, fixed root).
-
-    tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
-    tissue's reaction on the bone). Joint-space mass matrix M from segment masses/inertias by
-    Jacobians; bias (Coriolis, centrifugal, gravity) by recursive Newton-Euler with qdd = 0;
-    range limits as an implicit stiff, critically damped end stop (no jolt). Symplectic Euler:
-    qd += h qdd, q += h qd; then forward kinematics. Returns False if qdd is not finite."""
-    S = seg_mass.shape[0]
-    J = q.shape[0]
-    # world axes and centres of the joints, world COM and inertia of the segments (current pose)
-    a = work[0:J, 0:3]
-    pj = work[0:J, 3:6]
-    com = np.empty((S, 3))
-    Iw = np.empty((S, 3, 3))
-    for j in range(J):
-        p = j_parent[j]
-        for r in range(3):
-            a[j, r] = seg_R[p, r, 0] * j_axis[j, 0] + seg_R[p, r, 1] * j_axis[j, 1] + seg_R[p, r, 2] * j_axis[j, 2]
-            pj[j, r] = (seg_R[p, r, 0] * j_centre[j, 0] + seg_R[p, r, 1] * j_centre[j, 1]
-                        + seg_R[p, r, 2] * j_centre[j, 2] + seg_t[p, r])
-    for s in range(S):
-        for r in range(3):
-            com[s, r] = seg_R[s, r, 0] * seg_com[s, 0] + seg_R[s, r, 1] * seg_com[s, 1] + seg_R[s, r, 2] * seg_com[s, 2] + seg_t[s, r]
-        for r in range(3):
-            for c in range(3):
-                acc = 0.0
-                for k in range(3):
-                    for l in range(3):
-                        acc += seg_R[s, r, k] * seg_inertia[s, k, l] * seg_R[s, c, l]
-                Iw[s, r, c] = acc
-    # tissue wrench per segment (force, moment about the world origin), summed up the tree
-    Fs = np.zeros((S, 3))
-    Ns = np.zeros((S, 3))
-    # (summed in registers over each run of one segment: compile_model sorts the list by segment)
-    k = 0
-    while k < att_idx.shape[0]:
-        s = att_seg[k]
-        f0 = f1 = f2 = n0 = n1 = n2 = 0.0
-        while k < att_idx.shape[0] and att_seg[k] == s:
-            i = att_idx[k]
-            f0 += f[i, 0]; f1 += f[i, 1]; f2 += f[i, 2]
-            n0 += x[i, 1] * f[i, 2] - x[i, 2] * f[i, 1]
-            n1 += x[i, 2] * f[i, 0] - x[i, 0] * f[i, 2]
-            n2 += x[i, 0] * f[i, 1] - x[i, 1] * f[i, 0]
-            k += 1
-        Fs[s, 0] += f0; Fs[s, 1] += f1; Fs[s, 2] += f2
-        Ns[s, 0] += n0; Ns[s, 1] += n1; Ns[s, 2] += n2
-    # recursive Newton-Euler, qdd = 0, base acceleration -g (gravity), forward pass
-    w = np.zeros((S, 3))
-    al = np.zeros((S, 3))
-    acom = np.zeros((S, 3))
-    tmp = np.empty(3)
-    tmp2 = np.empty(3)
-    vk = np.empty(3)
-    d = np.empty(3)
-    acc_p = np.empty(3)
-    Iwv = np.empty(3)
-    Ial = np.empty(3)
-    for s in seg_order:
-        j = seg_joint[s]
-        if j < 0:
-            for r in range(3):
-                acom[s, r] = -gravity[r]
-            continue
-        p = j_parent[j]
-        wq = qd[j] if j_type[j] == 1 else 0.0
-        for r in range(3):
-            w[s, r] = w[p, r] + a[j, r] * wq
-        # alpha_s = alpha_p + w_p x (a_j qd_j)
-        _cross(w[p], a[j], tmp)
-        for r in range(3):
-            al[s, r] = al[p, r] + tmp[r] * wq
-        # acceleration of the joint point on the parent, then of the child's COM
-        for r in range(3):
-            d[r] = pj[j, r] - com[p, r]
-        _cross(al[p], d, tmp); _cross(w[p], d, tmp2)
-        for r in range(3):
-            acc_p[r] = acom[p, r] + tmp[r]
-        _cross(w[p], tmp2, tmp)
-        for r in range(3):
-            acc_p[r] += tmp[r]
-            d[r] = com[s, r] - pj[j, r]
-        _cross(al[s], d, tmp); _cross(w[s], d, tmp2)
-        for r in range(3):
-            acom[s, r] = acc_p[r] + tmp[r]
-        _cross(w[s], tmp2, tmp)
-        for r in range(3):
-            acom[s, r] += tmp[r]
-    # backward pass: wrench (force, moment about the world origin) each subtree needs
-    Fb = np.zeros((S, 3))
-    Nb = np.zeros((S, 3))
-    for kk in range(seg_order.shape[0] - 1, -1, -1):
-        s = seg_order[kk]
-        for r in range(3):
-            Fb[s, r] += seg_mass[s] * acom[s, r]
-        for r in range(3):
-            Iwv[r] = Iw[s, r, 0] * w[s, 0] + Iw[s, r, 1] * w[s, 1] + Iw[s, r, 2] * w[s, 2]
-            Ial[r] = Iw[s, r, 0] * al[s, 0] + Iw[s, r, 1] * al[s, 1] + Iw[s, r, 2] * al[s, 2]
-        _cross(w[s], Iwv, tmp)
-        for r in range(3):
-            tmp2[r] = seg_mass[s] * acom[s, r]
-        _cross(com[s], tmp2, Iwv)
-        for r in range(3):
-            Nb[s, r] += Ial[r] + tmp[r] + Iwv[r]
-        ps = seg_parent[s]
-        if ps >= 0:
-            for r in range(3):
-                Fb[ps, r] += Fb[s, r]; Nb[ps, r] += Nb[s, r]
-                Fs[ps, r] += Fs[s, r]; Ns[ps, r] += Ns[s, r]
-    # joint-space equations M qdd = tau - bias
-    M = work[0:J, 6:6 + J]
-    rhs = work[0:J, 6 + J]
-    for j in range(J):
-        c = j_child[j]
-        # moment about p_j: N - p_j x F
-        _cross(pj[j], Fs[c], tmp)
-        _cross(pj[j], Fb[c], tmp2)
-        tau = 0.0
-        bias = 0.0
-        for r in range(3):
-            tau += a[j, r] * (Ns[c, r] - tmp[r])
-            bias += a[j, r] * (Nb[c, r] - tmp2[r])
-        rhs[j] = tau - bias - joint_damping * qd[j]       # viscous joint damping, implicit (M += h c below)
-        for k in range(J):
-            acc = 0.0
-            for s in range(S):
-                if anc[j, s] and anc[k, s]:
-                    for r in range(3):
-                        d0 = com[s, r] - pj[j, r]
-                        tmp[r] = d0
-                    _cross(a[j], tmp, tmp2)      # J_v column of j at COM of s
-                    for r in range(3):
-                        tmp[r] = com[s, r] - pj[k, r]
-                    _cross(a[k], tmp, vk)
-                    acc += seg_mass[s] * (tmp2[0] * vk[0] + tmp2[1] * vk[1] + tmp2[2] * vk[2])
-                    for r in range(3):
-                        acc += a[j, r] * (Iw[s, r, 0] * a[k, 0] + Iw[s, r, 1] * a[k, 1] + Iw[s, r, 2] * a[k, 2])
-            M[j, k] = acc
-    for j in range(J):
-        if j_type[j] != 1:                       # fixed joint: no motion
-            for k in range(J):
-                M[j, k] = 0.0
-                M[k, j] = 0.0
-            M[j, j] = 1.0
-            rhs[j] = 0.0
-            continue
-        # end stop: implicit spring-damper on the predicted coordinate (stiffness from the joint's inertia)
-        mjj = M[j, j]
-        M[j, j] += h * joint_damping
-        wl = limit_wh / h
-        kl = mjj * wl * wl
-        bl = 2.0 * limit_zeta * mjj * wl
-        qp = q[j] + h * qd[j]
-        pen = 0.0
-        if qp > j_range[j, 1]:
-            pen = qp - j_range[j, 1]
-        elif qp < j_range[j, 0]:
-            pen = qp - j_range[j, 0]
-        if pen != 0.0:
-            M[j, j] += h * h * kl + h * bl
-            rhs[j] += -kl * pen - bl * qd[j]
-    # solve (Gaussian elimination with partial pivoting; J is small)
-    qdd = work[0:J, 7 + J]
-    for i in range(J):
-        piv = i
-        for r in range(i + 1, J):
-            if abs(M[r, i]) > abs(M[piv, i]):
-                piv = r
-        if piv != i:
-            for c in range(J):
-                t_ = M[i, c]; M[i, c] = M[piv, c]; M[piv, c] = t_
-            t_ = rhs[i]; rhs[i] = rhs[piv]; rhs[piv] = t_
-        for r in range(i + 1, J):
-            fac = M[r, i] / M[i, i]
-            for c in range(i, J):
-                M[r, c] -= fac * M[i, c]
-            rhs[r] -= fac * rhs[i]
-    for i in range(J - 1, -1, -1):
-        acc = rhs[i]
-        for c in range(i + 1, J):
-            acc -= M[i, c] * qdd[c]
-        qdd[i] = acc / M[i, i]
-    for j in range(J):
-        if not math.isfinite(qdd[j]):
-            return False
-    for j in range(J):
-        if j_type[j] == 1:
-            qd[j] += h * qdd[j]
-            q[j] += h * qd[j]
-    forward_kinematics(q, seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest, seg_R, seg_t)
-    return True
-
-
-# ------------------------------------------------------------------------------------ integration
-@njit(cache=True, fastmath={'contract'})
-def integrate(h, x, v, f, inv_den, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp, vmax2):
-    """Symplectic Euler for the free vertices (v += h (f inv_den + g); v *= 1 - h c_v; x += h v; inv_den
-    = 1/m explicit, 1/(m + h b + h^2 kappa) diagonally implicit) and the segment pose for bone-attached
-    ones (x = R_s X + t_s, v = dx/h). Reads x, v, writes xn, vn (double buffer: a discarded step leaves
-    x, v untouched). Returns how many vertices are faster than sqrt(vmax2) or not finite.
-
-    The first loop runs over every vertex in order on flat views (no index list: LLVM vectorises it);
-    a bone-attached vertex (inv_den 0) is computed there too, not counted, and overwritten by the second."""
-    nfast = 0
-    damp = 1.0 - h * vel_damp
-    g0, g1, g2 = h * gravity[0], h * gravity[1], h * gravity[2]
-    xf, vf, ff, xnf, vnf = x.reshape(-1), v.reshape(-1), f.reshape(-1), xn.reshape(-1), vn.reshape(-1)
-    for i in range(inv_den.shape[0]):
-        hm = h * inv_den[i]
-        a = (vf[3 * i] + hm * ff[3 * i] + g0) * damp
-        b = (vf[3 * i + 1] + hm * ff[3 * i + 1] + g1) * damp
-        c = (vf[3 * i + 2] + hm * ff[3 * i + 2] + g2) * damp
-        vnf[3 * i] = a; vnf[3 * i + 1] = b; vnf[3 * i + 2] = c
-        xnf[3 * i] = xf[3 * i] + h * a; xnf[3 * i + 1] = xf[3 * i + 1] + h * b; xnf[3 * i + 2] = xf[3 * i + 2] + h * c
-        sp = a * a + b * b + c * c
-        nfast += 0 if sp <= vmax2 or hm == 0.0 else 1      # (NaN counts)
-    # bone-attached vertices, by runs of one segment (compile_model sorts them by segment): the pose in
-    # registers, flat views and unsigned indices (no negative-index wrap-around)
-    ih = 1.0 / h
-    rf = rest.reshape(-1)
-    k = 0
-    while k < att_idx.shape[0]:
-        s = att_seg[k]
-        e = k + 1
-        while e < att_idx.shape[0] and att_seg[e] == s:
-            e += 1
-        r00, r01, r02, t0 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2], seg_t[s, 0]
-        r10, r11, r12, t1 = seg_R[s, 1, 0], seg_R[s, 1, 1], seg_R[s, 1, 2], seg_t[s, 1]
-        r20, r21, r22, t2 = seg_R[s, 2, 0], seg_R[s, 2, 1], seg_R[s, 2, 2], seg_t[s, 2]
-        for kk in range(k, e):
-            i = 3 * np.uint32(att_idx[kk])
-            X, Y, Z = rf[i], rf[i + 1], rf[i + 2]
-            a = r00 * X + r01 * Y + r02 * Z + t0
-            b = r10 * X + r11 * Y + r12 * Z + t1
-            c = r20 * X + r21 * Y + r22 * Z + t2
-            da, db, dc = (a - xf[i]) * ih, (b - xf[i + 1]) * ih, (c - xf[i + 2]) * ih
-            vnf[i] = da; vnf[i + 1] = db; vnf[i + 2] = dc
-            xnf[i] = a; xnf[i + 1] = b; xnf[i + 2] = c
-            nfast += 0 if da * da + db * db + dc * dc <= vmax2 else 1
-        k = e
-    return nfast
-
-
-@njit(cache=True)
-def kinetic_energy(v, mass, free_idx):
-    """Kinetic energy [J] of the free vertices."""
-    ke = 0.0
-    for k in range(free_idx.shape[0]):
-        i = free_idx[k]
-        ke += (v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]) * mass[i]
-    return 0.5 * ke
-
-
-# ------------------------------------------------------------------------------------ measures
-@njit(cache=True)
-def cell_volumes(x, off, cv, out):
-    """Signed volume of each prism cell [m^3] by the divergence theorem on its triangulated surface:
-    bottom ring (fan, outward = down), top ring (fan), each side quad split along b_i - t_{i+1}.
-    Positive for the model's convention (rings counter-clockwise seen from +z)."""
-    for c in range(off.shape[0] - 1):
-        a0 = off[c]
-        n = (off[c + 1] - a0) // 2
-        vol = 0.0
-        for t in range(1, n - 1):      # bottom: (b0, b_{t+1}, b_t); top: (t0, t_t, t_{t+1})
-            vol += _tri(x, cv[a0], cv[a0 + t + 1], cv[a0 + t])
-            vol += _tri(x, cv[a0 + n], cv[a0 + n + t], cv[a0 + n + t + 1])
-        for t in range(n):
-            u = (t + 1) % n
-            b0, b1, t0, t1 = cv[a0 + t], cv[a0 + u], cv[a0 + n + t], cv[a0 + n + u]
-            vol += _tri(x, b0, b1, t1)
-            vol += _tri(x, b0, t1, t0)
-        out[c] = vol
-
-
-@njit(cache=True)
-def _tri(x, i, j, k):
-    return (x[i, 0] * (x[j, 1] * x[k, 2] - x[j, 2] * x[k, 1])
-            + x[i, 1] * (x[j, 2] * x[k, 0] - x[j, 0] * x[k, 2])
-            + x[i, 2] * (x[j, 0] * x[k, 1] - x[j, 1] * x[k, 0])) / 6.0
-
-
-@njit(cache=True)
-def cell_axial_lengths(x, off, cv, out):
-    """Distance [m] between the bottom-ring and the top-ring centroid of each cell."""
-    for c in range(off.shape[0] - 1):
-        a0 = off[c]
-        n = (off[c + 1] - a0) // 2
-        bx = by = bz = tx = ty = tz = 0.0
-        for t in range(n):
-            i, j = cv[a0 + t], cv[a0 + n + t]
-            bx += x[i, 0]; by += x[i, 1]; bz += x[i, 2]
-            tx += x[j, 0]; ty += x[j, 1]; tz += x[j, 2]
-        out[c] = math.sqrt((tx - bx) ** 2 + (ty - by) ** 2 + (tz - bz) ** 2) / n

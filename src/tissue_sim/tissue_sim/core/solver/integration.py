@@ -1,0 +1,55 @@
+"""Time integration of the soft tissue: symplectic Euler for the free vertices, the segment pose for the
+bone-attached ones (docs/solver.md "Time integration and stability"). numba."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, fastmath={'contract'})
+def integrate(h, x, v, f, inv_den, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp, vmax2):
+    """Symplectic Euler for the free vertices (v += h (f inv_den + g); v *= 1 - h c_v; x += h v; inv_den
+    = 1/m explicit, 1/(m + h b + h^2 kappa) diagonally implicit) and the segment pose for bone-attached
+    ones (x = R_s X + t_s, v = dx/h). Reads x, v, writes xn, vn (double buffer: a discarded step leaves
+    x, v untouched). Returns how many vertices are faster than sqrt(vmax2) or not finite.
+
+    The first loop runs over every vertex in order on flat views (no index list: LLVM vectorises it);
+    a bone-attached vertex (inv_den 0) is computed there too, not counted, and overwritten by the second."""
+    nfast = 0
+    damp = 1.0 - h * vel_damp
+    g0, g1, g2 = h * gravity[0], h * gravity[1], h * gravity[2]
+    xf, vf, ff, xnf, vnf = x.reshape(-1), v.reshape(-1), f.reshape(-1), xn.reshape(-1), vn.reshape(-1)
+    for i in range(inv_den.shape[0]):
+        hm = h * inv_den[i]
+        a = (vf[3 * i] + hm * ff[3 * i] + g0) * damp
+        b = (vf[3 * i + 1] + hm * ff[3 * i + 1] + g1) * damp
+        c = (vf[3 * i + 2] + hm * ff[3 * i + 2] + g2) * damp
+        vnf[3 * i] = a; vnf[3 * i + 1] = b; vnf[3 * i + 2] = c
+        xnf[3 * i] = xf[3 * i] + h * a; xnf[3 * i + 1] = xf[3 * i + 1] + h * b; xnf[3 * i + 2] = xf[3 * i + 2] + h * c
+        sp = a * a + b * b + c * c
+        nfast += 0 if sp <= vmax2 or hm == 0.0 else 1      # (NaN counts)
+    # bone-attached vertices, by runs of one segment (compile_model sorts them by segment): the pose in
+    # registers, flat views and unsigned indices (no negative-index wrap-around)
+    ih = 1.0 / h
+    rf = rest.reshape(-1)
+    k = 0
+    while k < att_idx.shape[0]:
+        s = att_seg[k]
+        e = k + 1
+        while e < att_idx.shape[0] and att_seg[e] == s:
+            e += 1
+        r00, r01, r02, t0 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2], seg_t[s, 0]
+        r10, r11, r12, t1 = seg_R[s, 1, 0], seg_R[s, 1, 1], seg_R[s, 1, 2], seg_t[s, 1]
+        r20, r21, r22, t2 = seg_R[s, 2, 0], seg_R[s, 2, 1], seg_R[s, 2, 2], seg_t[s, 2]
+        for kk in range(k, e):
+            i = 3 * np.uint32(att_idx[kk])
+            X, Y, Z = rf[i], rf[i + 1], rf[i + 2]
+            a = r00 * X + r01 * Y + r02 * Z + t0
+            b = r10 * X + r11 * Y + r12 * Z + t1
+            c = r20 * X + r21 * Y + r22 * Z + t2
+            da, db, dc = (a - xf[i]) * ih, (b - xf[i + 1]) * ih, (c - xf[i + 2]) * ih
+            vnf[i] = da; vnf[i + 1] = db; vnf[i + 2] = dc
+            xnf[i] = a; xnf[i + 1] = b; xnf[i + 2] = c
+            nfast += 0 if da * da + db * db + dc * dc <= vmax2 else 1
+        k = e
+    return nfast

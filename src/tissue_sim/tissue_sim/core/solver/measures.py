@@ -1,0 +1,61 @@
+"""Measures of a state: axial cell lengths, cell volumes, kinetic and skeleton energies (observe() reports them)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from tissue_sim.core.geometry import prism_volumes
+
+
+
+@njit(cache=True)
+def cell_axial_lengths(x, off, cv, out):
+    """Distance [m] between the bottom-ring and the top-ring centroid of each cell."""
+    for c in range(off.shape[0] - 1):
+        a0 = off[c]
+        n = (off[c + 1] - a0) // 2
+        bx = by = bz = tx = ty = tz = 0.0
+        for t in range(n):
+            i, j = cv[a0 + t], cv[a0 + n + t]
+            bx += x[i, 0]; by += x[i, 1]; bz += x[i, 2]
+            tx += x[j, 0]; ty += x[j, 1]; tz += x[j, 2]
+        out[c] = math.sqrt((tx - bx) ** 2 + (ty - by) ** 2 + (tz - bz) ** 2) / n
+
+
+def cell_volumes(sim, x: np.ndarray) -> np.ndarray:
+    """(C,) volume [m^3] of every cell at positions x: core.geometry.prism_volumes (the one definition: cap
+    fans about each ring's centroid, side quads as four triangles about the quad centroid), signed so that
+    it is positive at rest (sim.cell_sign: the rest orientation of each cell's rings)."""
+    return prism_volumes(x, sim.off, sim.cv) * sim.cell_sign
+
+
+def kinetic_energy(sim, state) -> float:
+    """Kinetic energy [J] of the free vertices (true masses)."""
+    free = sim.inv_mass > 0
+    return 0.5 * float(np.dot(sim.mass[free], np.einsum('ij,ij->i', state.v[free], state.v[free])))
+
+
+def skeleton_energy(sim, state) -> float:
+    """Kinetic + gravitational potential energy [J] of the segments (masses incl. attached vertices
+    when params.attached_mass_to_segment), potential relative to the rest pose."""
+    e = 0.0
+    S, J = sim.n_segments, sim.n_joints
+    a = np.empty((J, 3))
+    p = np.empty((J, 3))
+    for j in range(J):
+        Rp, tp = state.seg_R[sim.j_parent[j]], state.seg_t[sim.j_parent[j]]
+        a[j] = Rp @ sim.j_axis[j]
+        p[j] = Rp @ sim.j_centre[j] + tp
+    for s in range(S):
+        com = state.seg_R[s] @ sim.seg_com[s] + state.seg_t[s]
+        w = np.zeros(3)
+        v = np.zeros(3)
+        for j in range(J):
+            if sim.anc[j, s]:
+                w += a[j] * state.qd[j]
+                v += np.cross(a[j], com - p[j]) * state.qd[j]
+        Iw = state.seg_R[s] @ sim.seg_inertia[s] @ state.seg_R[s].T
+        e += 0.5 * sim.seg_mass[s] * v @ v + 0.5 * w @ Iw @ w - sim.seg_mass[s] * sim.gravity @ (com - sim.seg_com[s])
+    return float(e)

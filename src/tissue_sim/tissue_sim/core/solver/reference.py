@@ -1,0 +1,140 @@
+"""The readable step: the solver's physics in plain numpy (docs/method.md sections 2-3, docs/solver.md).
+
+``reference_step(sim, state, activation)`` advances a State like ``step()`` does, in the paper's order:
+1. muscle tension (contraction state, every cell's force), 2. skeleton, 3. soft tissue. Cells are rows of a
+padded array (one cell per row), the rotation of each cell is the exact polar factor by a batched SVD.
+It is the definition the fast kernels (cells.py: SIMD lanes along chains of cells, a warm-started Newton
+rotation) are tested against (tests/test_solver_reference.py); it is ~150x slower (bench/solver.py).
+"""
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+
+from tissue_sim.core.solver import cells as CK, skeleton as SK
+from tissue_sim.core.solver.model import SimModel, State, substeps_for
+
+Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
+
+
+def padded(cells) -> Padded:
+    """The cells (CSR ``off``, ``cv``, ``X0``) as rows of P = the largest cell size, padding repeating vertex 0."""
+    sizes = np.diff(cells.off)
+    slot = np.arange(sizes.max(initial=1))[None, :]
+    mask = slot < sizes[:, None]
+    at = np.where(mask, cells.off[:-1, None] + slot, 0)
+    return Padded(np.where(mask, cells.cv[at], 0), mask, slot < (sizes // 2)[:, None],
+                  np.where(mask[..., None], cells.X0[at], 0.0))
+
+
+def polar_rotation(B: np.ndarray) -> np.ndarray:
+    """(C, 3, 3) the rotation R maximising tr(R^T B) (the polar factor of B; a proper rotation also for
+    inverted B), by SVD."""
+    U, _, Vt = np.linalg.svd(B)
+    U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
+    return U @ Vt
+
+
+def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_actual):
+    """Force (V, 3) [N] of every cell on its vertices: shape matching to the contracted rest shape, volume,
+    deformation damping, active axial tension (docs/solver.md "Elastic cells", "Contraction"). ``cells``: a
+    SimModel (or anything with its cell arrays); lam, act (M,) the contraction state and the tension's
+    activation; pressure (C,) the integral volume term, updated in place (vol_gain = h / volume_relax_time).
+    Returns f, cell energy (C,) [J], axial length (C,) [m] (ring-centroid distance), rotations (C, 3, 3)."""
+    m = pad.mask[..., None]
+    n = pad.mask.sum(1)
+    xc, vc = x[pad.idx] * m, v[pad.idx] * m
+    c = xc.sum(1) / n[:, None]                                   # centroid
+    r = (xc - c[:, None]) * m                                    # vertices about it
+    A = np.einsum('cpi,cpj->cij', r, pad.X0)                     # A = sum r X0^T
+    D = A @ cells.Qinv                                           # best-fit affine deformation
+    mus = cells.cell_muscle >= 0
+    la = np.where(mus, lam[np.maximum(cells.cell_muscle, 0)] if lam.size else 1.0, 1.0)
+    fib = cells.fibre
+    mu = np.clip(np.linalg.norm(np.einsum('cij,cj->ci', D, fib), axis=1), 0.25, 4.0)   # current fibre stretch
+    s = np.where(mus, 1.0 / np.sqrt(mu if volume_actual else la), 1.0)                # cross-section factor
+    F = (la - s)[:, None, None] * fib[:, :, None] * fib[:, None, :] + s[:, None, None] * np.eye(3)
+    R = polar_rotation(A @ F)
+    T = R @ F                                                    # goal G_i = c + T X0_i
+    gap = np.einsum('cij,cpj->cpi', T, pad.X0) - r               # G_i - x_i
+    f = cells.k[:, None, None] * gap
+    # volume energy 1/2 kv (det D - 1)^2 (+ the integral term): force g cof(D) Qinv X0_i
+    J = np.linalg.det(D)
+    g = -cells.k_volume * (J - 1.0)
+    pressure += vol_gain * g
+    g = np.where(cells.k_volume > 0, g + pressure, 0.0)
+    cof = np.stack([np.cross(D[:, 1], D[:, 2]), np.cross(D[:, 2], D[:, 0]), np.cross(D[:, 0], D[:, 1])], axis=1)
+    f += np.einsum('cij,cpj->cpi', g[:, None, None] * cof @ cells.Qinv, pad.X0)
+    # deformation damping: -b (v_i - vbar - w x r_i), w = I^-1 L the cell's rigid angular velocity
+    vbar = vc.sum(1) / n[:, None]
+    Y = np.einsum('cpi,cpj->cij', r, r)
+    tr = np.trace(Y, axis1=1, axis2=2)
+    inertia = (tr * (1 + 1e-9) + 1e-300)[:, None, None] * np.eye(3) - Y
+    w = np.linalg.solve(inertia, np.cross(r, vc).sum(1)[..., None])[..., 0]
+    f -= cells.damp_b[:, None, None] * (vc - vbar[:, None] - np.cross(w[:, None], r)) * m
+    # active tension T = a ka n/4 max(l - lam L, 0) between the ring centroids, along their axis u
+    half = n // 2
+    u = ((xc * (~pad.bottom & pad.mask)[..., None]).sum(1) - (xc * pad.bottom[..., None]).sum(1)) / half[:, None]
+    ln = np.linalg.norm(u, axis=1)
+    stretch = np.maximum(ln - la * cells.rest_length, 0.0)
+    ka = np.where(mus, act[np.maximum(cells.cell_muscle, 0)] if act.size else 0.0, 0.0) * cells.k_active * 0.25 * n
+    pull = (ka * stretch * 2.0 / (n * np.where(ln > 0, ln, 1.0)))[:, None] * u            # on each bottom vertex
+    f += np.where(pad.bottom[..., None], 1.0, -1.0) * pull[:, None] * m
+    energy = 0.5 * cells.k * (gap * gap * m).sum((1, 2)) + 0.5 * cells.k_volume * (J - 1) ** 2 + 0.5 * ka * stretch ** 2
+    out = np.zeros_like(x)
+    np.add.at(out, pad.idx[pad.mask], f[pad.mask])
+    return out, energy, ln, R
+
+
+def reference_step(sim: SimModel, state: State, activation, dt: float | None = None) -> State:
+    """One step of dt (None: params.dt) in n_substeps sub-steps, in place, as step() (no divergence check)."""
+    p, pad = sim.params, padded(sim)
+    dt = p.dt if dt is None else float(dt)
+    n_sub = sim.n_substeps if dt == p.dt else substeps_for(p, sim.omega_max, sim.damp_rate, dt)
+    h = dt / n_sub
+    a = np.asarray(activation, np.float64)
+    vol_gain = h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0
+    inv_den, free = sim.inv_denominator(h), sim.inv_mass > 0
+    for _ in range(n_sub):
+        # 1. muscle tension: contraction state towards 1 - a (1 - min_stretch), the tension's activation x
+        # the force-velocity factor of the last measured muscle velocity, every cell's force
+        target = 1.0 - a * (1.0 - p.min_stretch)
+        shrink = np.maximum(state.lam * p.contraction_rate ** (a * h / p.rate_dt), target)
+        state.lam[:] = np.where(state.lam > target, shrink, np.minimum(state.lam / p.relax_rate ** (h / p.rate_dt), target))
+        fv_on = p.max_contraction_velocity > 0 and p.specific_tension > 0
+        vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle
+        vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
+        act_t = a * np.array([CK.force_velocity(u, p.fv_max_lengthening) for u in vn]) if fv_on else a
+        f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
+            sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
+        if fv_on:                    # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
+            mc = sim.cell_muscle >= 0
+            length = np.bincount(sim.cell_muscle[mc], (sim.length_weight * state.cell_length)[mc], sim.n_muscles)
+            seen = state.muscle_length >= 0
+            state.muscle_velocity[seen] += h / (p.fv_filter_time + h) * (
+                (length - state.muscle_length)[seen] / h - state.muscle_velocity[seen])
+            state.muscle_length[:] = length
+        # 2. skeleton: joint torques from the forces on the bone-attached vertices, joint dynamics, poses
+        SK.skeleton_step(h, state.q, state.qd, f, state.x, sim.skeleton, sim.att_idx, sim.att_seg,
+                         p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
+                         np.zeros((max(sim.n_joints, 1), 9)))
+        # 3. soft tissue: symplectic Euler for the free vertices, the bone-attached ones follow their segment
+        state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
+        state.x[free] += h * state.v[free]
+        i, s = sim.att_idx, sim.att_seg
+        xa = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[i]) + state.seg_t[s]
+        state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
+        state.f[:] = f
+    state.quat[:] = rotation_quaternions(R)
+    state.step += 1
+    state.time += dt
+    return state
+
+
+def rotation_quaternions(R: np.ndarray) -> np.ndarray:
+    """(C, 3, 3) rotations -> (C, 4) unit quaternions x y z w (w >= 0)."""
+    w = 0.5 * np.sqrt(np.maximum(1.0 + np.trace(R, axis1=1, axis2=2), 0.0))
+    xyz = 0.5 * np.sqrt(np.maximum(1.0 + 2.0 * np.diagonal(R, axis1=1, axis2=2) - np.trace(R, axis1=1, axis2=2)[:, None], 0.0))
+    xyz *= np.where(np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1) < 0, -1.0, 1.0)
+    return np.concatenate([xyz, w[:, None]], axis=1)

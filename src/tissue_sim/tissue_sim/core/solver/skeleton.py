@@ -1,0 +1,251 @@
+"""The skeleton: a tree of rigid segments with hinge or fixed joints (fixed root), joint-space dynamics
+(docs/solver.md "Skeleton"). numba; the model's skeleton arrays come as one ``Skeleton`` named tuple."""
+from __future__ import annotations
+
+import collections
+import math
+
+import numpy as np
+from numba import njit
+
+Skeleton = collections.namedtuple('Skeleton', 'seg_order seg_parent seg_joint seg_mass seg_com seg_inertia j_parent '
+                                  'j_child j_type j_axis j_centre j_rest j_range anc gravity')
+
+
+@njit(cache=True)
+def axis_angle_mat(ax, ang, R):
+    """Rotation by ang [rad] about unit axis ax (Rodrigues), written into R."""
+    c, s = math.cos(ang), math.sin(ang)
+    t = 1 - c
+    x, y, z = ax[0], ax[1], ax[2]
+    R[0, 0] = t * x * x + c; R[0, 1] = t * x * y - s * z; R[0, 2] = t * x * z + s * y
+    R[1, 0] = t * x * y + s * z; R[1, 1] = t * y * y + c; R[1, 2] = t * y * z - s * x
+    R[2, 0] = t * x * z - s * y; R[2, 1] = t * y * z + s * x; R[2, 2] = t * z * z + c
+
+
+@njit(cache=True)
+def forward_kinematics(q, sk, seg_R, seg_t):
+    """Pose (R_s, t_s) of every non-root segment from the joint coordinates q; a point p_rest of
+    segment s is at R_s p_rest + t_s. Joint j rotates its child by q_j - rest_j about its rest axis
+    through its rest centre, then the parent's pose applies. sk.seg_order lists parents first."""
+    seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest = sk.seg_order, sk.seg_joint, sk.j_parent, sk.j_axis, sk.j_centre, sk.j_rest
+    Rj = np.empty((3, 3))
+    for s in seg_order:
+        j = seg_joint[s]
+        if j < 0:
+            continue
+        p = j_parent[j]
+        axis_angle_mat(j_axis[j], q[j] - j_rest[j], Rj)
+        cx, cy, cz = j_centre[j, 0], j_centre[j, 1], j_centre[j, 2]
+        # local transform: x -> Rj (x - c) + c ; world: R_p (Rj (x - c) + c) + t_p
+        lx = cx - (Rj[0, 0] * cx + Rj[0, 1] * cy + Rj[0, 2] * cz)
+        ly = cy - (Rj[1, 0] * cx + Rj[1, 1] * cy + Rj[1, 2] * cz)
+        lz = cz - (Rj[2, 0] * cx + Rj[2, 1] * cy + Rj[2, 2] * cz)
+        for r in range(3):
+            for c in range(3):
+                seg_R[s, r, c] = seg_R[p, r, 0] * Rj[0, c] + seg_R[p, r, 1] * Rj[1, c] + seg_R[p, r, 2] * Rj[2, c]
+            seg_t[s, r] = seg_R[p, r, 0] * lx + seg_R[p, r, 1] * ly + seg_R[p, r, 2] * lz + seg_t[p, r]
+
+
+@njit(cache=True)
+def _cross(a, b, out):
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+
+
+@njit(cache=True)
+def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work):
+    """One step of the skeleton (a tree of rigid segments, hinge or fixed joints, fixed root).
+
+    tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
+    tissue's reaction on the bone). Joint-space mass matrix M from segment masses/inertias by
+    Jacobians; bias (Coriolis, centrifugal, gravity) by recursive Newton-Euler with qdd = 0;
+    range limits as an implicit stiff, critically damped end stop (no jolt). Symplectic Euler:
+    qd += h qdd, q += h qd; then forward kinematics. Returns False if qdd is not finite."""
+    seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_inertia, j_parent, j_child, j_type, j_axis, j_centre, \
+        j_rest, j_range, anc, gravity = sk
+    S = seg_mass.shape[0]
+    J = q.shape[0]
+    # world axes and centres of the joints, world COM and inertia of the segments (current pose)
+    a = work[0:J, 0:3]
+    pj = work[0:J, 3:6]
+    com = np.empty((S, 3))
+    Iw = np.empty((S, 3, 3))
+    for j in range(J):
+        p = j_parent[j]
+        for r in range(3):
+            a[j, r] = seg_R[p, r, 0] * j_axis[j, 0] + seg_R[p, r, 1] * j_axis[j, 1] + seg_R[p, r, 2] * j_axis[j, 2]
+            pj[j, r] = (seg_R[p, r, 0] * j_centre[j, 0] + seg_R[p, r, 1] * j_centre[j, 1]
+                        + seg_R[p, r, 2] * j_centre[j, 2] + seg_t[p, r])
+    for s in range(S):
+        for r in range(3):
+            com[s, r] = seg_R[s, r, 0] * seg_com[s, 0] + seg_R[s, r, 1] * seg_com[s, 1] + seg_R[s, r, 2] * seg_com[s, 2] + seg_t[s, r]
+        for r in range(3):
+            for c in range(3):
+                acc = 0.0
+                for k in range(3):
+                    for l in range(3):
+                        acc += seg_R[s, r, k] * seg_inertia[s, k, l] * seg_R[s, c, l]
+                Iw[s, r, c] = acc
+    # tissue wrench per segment (force, moment about the world origin), summed up the tree
+    Fs = np.zeros((S, 3))
+    Ns = np.zeros((S, 3))
+    # (summed in registers over each run of one segment: compile_model sorts the list by segment)
+    k = 0
+    while k < att_idx.shape[0]:
+        s = att_seg[k]
+        f0 = f1 = f2 = n0 = n1 = n2 = 0.0
+        while k < att_idx.shape[0] and att_seg[k] == s:
+            i = att_idx[k]
+            f0 += f[i, 0]; f1 += f[i, 1]; f2 += f[i, 2]
+            n0 += x[i, 1] * f[i, 2] - x[i, 2] * f[i, 1]
+            n1 += x[i, 2] * f[i, 0] - x[i, 0] * f[i, 2]
+            n2 += x[i, 0] * f[i, 1] - x[i, 1] * f[i, 0]
+            k += 1
+        Fs[s, 0] += f0; Fs[s, 1] += f1; Fs[s, 2] += f2
+        Ns[s, 0] += n0; Ns[s, 1] += n1; Ns[s, 2] += n2
+    # recursive Newton-Euler, qdd = 0, base acceleration -g (gravity), forward pass
+    w = np.zeros((S, 3))
+    al = np.zeros((S, 3))
+    acom = np.zeros((S, 3))
+    tmp = np.empty(3)
+    tmp2 = np.empty(3)
+    vk = np.empty(3)
+    d = np.empty(3)
+    acc_p = np.empty(3)
+    Iwv = np.empty(3)
+    Ial = np.empty(3)
+    for s in seg_order:
+        j = seg_joint[s]
+        if j < 0:
+            for r in range(3):
+                acom[s, r] = -gravity[r]
+            continue
+        p = j_parent[j]
+        wq = qd[j] if j_type[j] == 1 else 0.0
+        for r in range(3):
+            w[s, r] = w[p, r] + a[j, r] * wq
+        # alpha_s = alpha_p + w_p x (a_j qd_j)
+        _cross(w[p], a[j], tmp)
+        for r in range(3):
+            al[s, r] = al[p, r] + tmp[r] * wq
+        # acceleration of the joint point on the parent, then of the child's COM
+        for r in range(3):
+            d[r] = pj[j, r] - com[p, r]
+        _cross(al[p], d, tmp); _cross(w[p], d, tmp2)
+        for r in range(3):
+            acc_p[r] = acom[p, r] + tmp[r]
+        _cross(w[p], tmp2, tmp)
+        for r in range(3):
+            acc_p[r] += tmp[r]
+            d[r] = com[s, r] - pj[j, r]
+        _cross(al[s], d, tmp); _cross(w[s], d, tmp2)
+        for r in range(3):
+            acom[s, r] = acc_p[r] + tmp[r]
+        _cross(w[s], tmp2, tmp)
+        for r in range(3):
+            acom[s, r] += tmp[r]
+    # backward pass: wrench (force, moment about the world origin) each subtree needs
+    Fb = np.zeros((S, 3))
+    Nb = np.zeros((S, 3))
+    for kk in range(seg_order.shape[0] - 1, -1, -1):
+        s = seg_order[kk]
+        for r in range(3):
+            Fb[s, r] += seg_mass[s] * acom[s, r]
+        for r in range(3):
+            Iwv[r] = Iw[s, r, 0] * w[s, 0] + Iw[s, r, 1] * w[s, 1] + Iw[s, r, 2] * w[s, 2]
+            Ial[r] = Iw[s, r, 0] * al[s, 0] + Iw[s, r, 1] * al[s, 1] + Iw[s, r, 2] * al[s, 2]
+        _cross(w[s], Iwv, tmp)
+        for r in range(3):
+            tmp2[r] = seg_mass[s] * acom[s, r]
+        _cross(com[s], tmp2, Iwv)
+        for r in range(3):
+            Nb[s, r] += Ial[r] + tmp[r] + Iwv[r]
+        ps = seg_parent[s]
+        if ps >= 0:
+            for r in range(3):
+                Fb[ps, r] += Fb[s, r]; Nb[ps, r] += Nb[s, r]
+                Fs[ps, r] += Fs[s, r]; Ns[ps, r] += Ns[s, r]
+    # joint-space equations M qdd = tau - bias
+    M = work[0:J, 6:6 + J]
+    rhs = work[0:J, 6 + J]
+    for j in range(J):
+        c = j_child[j]
+        # moment about p_j: N - p_j x F
+        _cross(pj[j], Fs[c], tmp)
+        _cross(pj[j], Fb[c], tmp2)
+        tau = 0.0
+        bias = 0.0
+        for r in range(3):
+            tau += a[j, r] * (Ns[c, r] - tmp[r])
+            bias += a[j, r] * (Nb[c, r] - tmp2[r])
+        rhs[j] = tau - bias - joint_damping * qd[j]       # viscous joint damping, implicit (M += h c below)
+        for k in range(J):
+            acc = 0.0
+            for s in range(S):
+                if anc[j, s] and anc[k, s]:
+                    for r in range(3):
+                        d0 = com[s, r] - pj[j, r]
+                        tmp[r] = d0
+                    _cross(a[j], tmp, tmp2)      # J_v column of j at COM of s
+                    for r in range(3):
+                        tmp[r] = com[s, r] - pj[k, r]
+                    _cross(a[k], tmp, vk)
+                    acc += seg_mass[s] * (tmp2[0] * vk[0] + tmp2[1] * vk[1] + tmp2[2] * vk[2])
+                    for r in range(3):
+                        acc += a[j, r] * (Iw[s, r, 0] * a[k, 0] + Iw[s, r, 1] * a[k, 1] + Iw[s, r, 2] * a[k, 2])
+            M[j, k] = acc
+    for j in range(J):
+        if j_type[j] != 1:                       # fixed joint: no motion
+            for k in range(J):
+                M[j, k] = 0.0
+                M[k, j] = 0.0
+            M[j, j] = 1.0
+            rhs[j] = 0.0
+            continue
+        # end stop: implicit spring-damper on the predicted coordinate (stiffness from the joint's inertia)
+        mjj = M[j, j]
+        M[j, j] += h * joint_damping
+        wl = limit_wh / h
+        kl = mjj * wl * wl
+        bl = 2.0 * limit_zeta * mjj * wl
+        qp = q[j] + h * qd[j]
+        pen = 0.0
+        if qp > j_range[j, 1]:
+            pen = qp - j_range[j, 1]
+        elif qp < j_range[j, 0]:
+            pen = qp - j_range[j, 0]
+        if pen != 0.0:
+            M[j, j] += h * h * kl + h * bl
+            rhs[j] += -kl * pen - bl * qd[j]
+    # solve (Gaussian elimination with partial pivoting; J is small)
+    qdd = work[0:J, 7 + J]
+    for i in range(J):
+        piv = i
+        for r in range(i + 1, J):
+            if abs(M[r, i]) > abs(M[piv, i]):
+                piv = r
+        if piv != i:
+            for c in range(J):
+                t_ = M[i, c]; M[i, c] = M[piv, c]; M[piv, c] = t_
+            t_ = rhs[i]; rhs[i] = rhs[piv]; rhs[piv] = t_
+        for r in range(i + 1, J):
+            fac = M[r, i] / M[i, i]
+            for c in range(i, J):
+                M[r, c] -= fac * M[i, c]
+            rhs[r] -= fac * rhs[i]
+    for i in range(J - 1, -1, -1):
+        acc = rhs[i]
+        for c in range(i + 1, J):
+            acc -= M[i, c] * qdd[c]
+        qdd[i] = acc / M[i, i]
+    for j in range(J):
+        if not math.isfinite(qdd[j]):
+            return False
+    for j in range(J):
+        if j_type[j] == 1:
+            qd[j] += h * qdd[j]
+            q[j] += h * qd[j]
+    forward_kinematics(q, sk, seg_R, seg_t)
+    return True
