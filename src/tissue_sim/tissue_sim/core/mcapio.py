@@ -208,17 +208,21 @@ class Qos:
     @classmethod
     def from_profile(cls, p) -> 'Qos':
         """From an ``rclpy.qos.QoSProfile`` (or a ``TopicEndpointInfo.qos_profile``), duck-typed so
-        that this module needs no rclpy: the recorder passes what the publishers offer."""
-        def name(v):
-            return str(getattr(v, 'name', v)).lower()
+        that this module needs no rclpy: the recorder passes what the publishers offer. A
+        ``system_default`` policy is written as what DDS offers for it (reliable, volatile,
+        keep_last, automatic), as rosbag2 records it from discovery."""
+        def name(v, dds_default):
+            n = str(getattr(v, 'name', v)).lower()
+            return dds_default if n == 'system_default' else n
 
         def ns(d):
             n = int(getattr(d, 'nanoseconds', d) or 0)
             return None if n <= 0 or n >= INFINITE_SEC * 10**9 + INFINITE_NSEC else n
 
-        return cls(reliability=name(p.reliability), durability=name(p.durability), history=name(p.history),
-                   depth=int(p.depth), deadline_ns=ns(p.deadline), lifespan_ns=ns(p.lifespan),
-                   liveliness=name(p.liveliness), liveliness_lease_ns=ns(p.liveliness_lease_duration),
+        return cls(reliability=name(p.reliability, 'reliable'), durability=name(p.durability, 'volatile'),
+                   history=name(p.history, 'keep_last'), depth=int(p.depth), deadline_ns=ns(p.deadline),
+                   lifespan_ns=ns(p.lifespan), liveliness=name(p.liveliness, 'automatic'),
+                   liveliness_lease_ns=ns(p.liveliness_lease_duration),
                    avoid_ros_namespace_conventions=bool(p.avoid_ros_namespace_conventions))
 
     def as_dict(self) -> dict:
@@ -661,8 +665,8 @@ class RepairReport:
     start_ns: int | None
     end_ns: int | None
     size_in: int            # [bytes]
-    used_bytes: int         # bytes of the input up to the end of the last record kept
-    from_cut_chunk: int     # messages recovered from the chunk the cut went through
+    used_bytes: int         # bytes of the input up to the end of the last whole record
+    from_cut_chunk: int     # messages recovered from the chunk the cut went through (after used_bytes)
 
 
 def _parse(raw: bytes) -> list:
@@ -748,8 +752,6 @@ def salvage(path) -> tuple[list, dict]:
                         msgs = [r for r in recs if isinstance(r, Message)]
                         info['from_cut_chunk'] = len(msgs)
                         out += recs
-                        if recs:
-                            info['used_bytes'] = size
                     break
                 if op in (_OP_FOOTER, _OP_DATA_END):
                     info['complete'] = op == _OP_FOOTER or size - end >= 8
@@ -773,17 +775,18 @@ def salvage(path) -> tuple[list, dict]:
     return out, info
 
 
-def repair(src, dst) -> RepairReport:
+def repair(src, dst, salvaged: tuple | None = None) -> RepairReport:
     """Rewrite the MCAP file ``src`` (typically cut short by a killed writer: no summary, no
     footer, the last chunk possibly cut) into a complete MCAP ``dst`` with zstd chunks, message
     indexes, summary, statistics and footer, keeping every complete message (those of the cut
     chunk included) in file order, the schemas, channels (their rosbag2 metadata; a missing
     ``topic_type_hash`` is computed from the schema) and metadata records; the ``rosbag2`` record
-    is written anew from the messages kept. ``dst`` must differ from ``src``."""
+    is written anew from the messages kept. ``dst`` must differ from ``src``. ``salvaged``: the
+    result of :func:`salvage` of ``src`` when the caller has it already."""
     src, dst = Path(src), Path(dst)
     if dst.resolve() == src.resolve():
         raise McapIOError(f'{dst}: the output must not be the input (write elsewhere, then rename)')
-    records, info = salvage(src)
+    records, info = salvaged if salvaged is not None else salvage(src)
     header = records[0]
     counts, times = {}, {}
     schemas, chan_ids, chan_info = {}, {}, {}
