@@ -242,3 +242,38 @@ def test_repair_in_place_and_refusals(tmp_path, tube, capsys):
         err = capsys.readouterr().err
         assert msg in err and err.count('\n') == 1, err
     assert sorted(f.name for f in tmp_path.iterdir()) == ['bad.mcap', 'rec.mcap', 'rec.repaired.mcap', 'run.mcap']
+
+
+def test_offered_qos_from_ros_discovery_is_what_rosbag2_records():
+    """What the recorder passes: the publishers' offered QoS as the ROS graph reports it (here a real
+    rclpy publisher, transient-local like /tissue/topology) becomes rosbag2's YAML entry."""
+    import os
+    import time
+    import rclpy
+    from rclpy.qos import QoSProfile
+    from std_msgs.msg import String
+    from tissue_sim.ros.common import qos_latched
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '0')))
+    try:
+        node = rclpy.create_node('qos_probe', context=ctx)
+        topic = f'/tissue_sim_test/qos_probe_{os.getpid()}'
+        node.create_publisher(String, topic, qos_latched())
+        infos = []
+        for _ in range(100):
+            infos = node.get_publishers_info_by_topic(topic)
+            if infos:
+                break
+            time.sleep(0.05)
+        assert len(infos) == 1
+        q = mcapio.Qos.from_profile(infos[0].qos_profile)
+        assert (q.reliability, q.durability, q.liveliness) == ('reliable', 'transient_local', 'automatic')
+        assert q.deadline_ns is None and q.lifespan_ns is None       # DDS offers infinite
+        # what the simulator node offers is what a headless run records (runio.OFFERED_QOS)
+        from tissue_sim.ros.common import qos_stream
+        assert mcapio.Qos.from_profile(qos_latched()) == mcapio.QOS_LATCHED == runio.OFFERED_QOS[runio.TOPIC_TOPOLOGY]
+        assert mcapio.Qos.from_profile(qos_stream()) == runio.OFFERED_QOS[runio.TOPIC_STATE]
+        assert isinstance(qos_latched(), QoSProfile)
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
