@@ -40,24 +40,26 @@ def run(args) -> int:
     if args.in_place and args.output:
         raise UserError('give either -o OUT or --in-place, not both')
     try:
-        salvaged = mcapio.salvage(src)
+        complete = mcapio.is_complete(src)
+        head = mcapio.iter_salvage(src)
+        next(head)                                       # an MCAP file with its header: else one line, exit 2
+        head.close()
     except mcapio.McapIOError as e:
         raise UserError(str(e)) from None
+    except OSError as e:
+        raise UserError(f'{src}: cannot read ({e.strerror or e})') from None
     dst = src if args.in_place else (Path(args.output) if args.output else _default_output(src))
     if not args.in_place:
         if dst.resolve() == src.resolve():
             raise UserError(f'{dst}: the output is the input; use --in-place to replace it')
         if dst.exists() and not args.force:
             raise UserError(f'{dst} exists; give another -o OUT or --force to overwrite it')
-    records, info = salvaged
-    if info['complete'] and not args.force:
+    if complete and not args.force:
         print(f'{src}: complete (summary and footer present): nothing to repair')
         return 0
-    if len(records) <= 1:
-        raise UserError(f'{src}: nothing after the MCAP header survived: nothing to recover')
     tmp = dst.with_name(f'.{dst.name}.repair-{os.getpid()}.tmp')
     try:
-        rep = mcapio.repair(src, tmp, salvaged=salvaged)
+        rep = mcapio.repair(src, tmp)
         os.replace(tmp, dst)
     except mcapio.McapIOError as e:
         raise UserError(str(e)) from None
@@ -72,7 +74,7 @@ def run(args) -> int:
     for topic, n in sorted(rep.counts.items()):
         print(f'  {topic}: {n}')
     cut = rep.size_in - rep.used_bytes
-    if info['complete']:
+    if rep.complete:
         print('  the input was complete; rewritten on request (--force)')
     else:
         print(f'  the input ended without summary/footer: {rep.used_bytes} of {rep.size_in} bytes were whole records'

@@ -14,7 +14,8 @@ QoS and hashes, ``ros_distro: jazzy``), which ``ros2 bag info``/``play`` read.
 * :class:`McapWriter` writes raw CDR bytes (the recorder and headless runs); it can split files by
   size or duration and flushes whole chunks to disk so a killed writer loses little.
 * :func:`iter_messages` / :func:`scan` read a file or a split run folder, including a file cut short
-  by ``kill -9``: everything up to the last complete chunk is returned.
+  by ``kill -9``: every complete message is returned (:func:`iter_salvage`: the complete chunks,
+  then the cut chunk as far as its compressed stream decodes).
 * :class:`Qos`, :func:`qos_yaml`, :func:`type_hash`: the channel metadata; :func:`repair` rewrites a
   file cut short into a complete MCAP (summary, indexes, footer), keeping every complete message.
 
@@ -558,7 +559,7 @@ class McapSummary:
     metadata: dict          # record name -> {key: value}
     start_ns: int | None
     end_ns: int | None
-    truncated: bool         # a file ended before its footer (writer killed): read up to last chunk
+    truncated: bool         # a file ended before its footer (writer killed): every complete message read
     channel_metadata: dict = dataclasses.field(default_factory=dict)   # topic -> {key: value}
     topic_times: dict = dataclasses.field(default_factory=dict)        # topic -> (first, last) [ns]
 
@@ -608,7 +609,12 @@ def _iter(path, topics, state) -> Iterator[RawMessage]:
     want = None if topics is None else set(topics)
     for f in mcap_files(path):
         schemas, channels = {}, {}
-        for rec in _records(f, state):
+        if is_complete(f):
+            recs = _records(f, state)
+        else:                              # cut short: every complete message, the cut chunk's too
+            state['truncated'] = True
+            recs = iter_salvage(f)
+        for rec in recs:
             if isinstance(rec, Schema):
                 schemas[rec.id] = rec
                 state.setdefault('schemas', {})[rec.name] = rec.data.decode('utf-8', 'replace')
@@ -629,7 +635,7 @@ def _iter(path, topics, state) -> Iterator[RawMessage]:
 
 def iter_messages(path, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
     """Messages of a file (or split folder) in file order (the recorder writes them in arrival
-    order). A file cut short (writer killed) yields everything up to its last complete chunk."""
+    order). A file cut short (writer killed) yields every complete message (:func:`iter_salvage`)."""
     yield from _iter(path, topics, {})
 
 
@@ -723,77 +729,93 @@ def _cut_chunk_records(body) -> list:
         return []
 
 
-def salvage(path) -> tuple[list, dict]:
-    """Every record of an MCAP file that survived a cut: (records, info) with the header, schemas,
-    channels, metadata and every complete message in file order, including the complete messages
-    of a chunk the cut went through. ``info``: complete (footer found), used_bytes, size,
-    from_cut_chunk. Raises McapIOError if the file is not an MCAP file."""
+def is_complete(path) -> bool:
+    """True when an MCAP file ends with its footer record and magic (what readers that seek to
+    the summary need); False for a file cut short."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size < 8 + 37:
+        return False
+    with open(path, 'rb') as f:
+        f.seek(size - 37)
+        tail = f.read(37)
+    return tail[0] == _OP_FOOTER and struct.unpack_from('<Q', tail, 1)[0] == 20 and tail[29:] == MAGIC
+
+
+def iter_salvage(path, info: dict | None = None) -> Iterator:
+    """Every record of an MCAP file that survived a cut, in file order: the header, schemas,
+    channels, metadata and every complete message, including the complete messages of a chunk the
+    cut went through (its zstd/lz4 stream is decoded as far as it goes). Stops at the data end (the
+    summary is not needed). ``info`` (a dict) receives complete (footer found), used_bytes (end of
+    the last whole record), size and from_cut_chunk. Raises McapIOError if the file is not an MCAP
+    file."""
     import mmap
     path = Path(path)
+    info = {} if info is None else info
     if not path.is_file():
         raise McapIOError(f'{path}: no such file')
     size = path.stat().st_size
+    info.update(complete=False, size=size, used_bytes=8, from_cut_chunk=0)
     with open(path, 'rb') as f:
         if f.read(8) != MAGIC:
             raise McapIOError(f'{path}: not an MCAP file')
-        if size <= 8 + 9:
+        if size < 8 + 9 or f.read(1) != bytes([_OP_HEADER]):
             raise McapIOError(f'{path}: no complete MCAP record after the magic')
         buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
         try:
-            out, info = [], {'complete': False, 'size': size, 'used_bytes': 8, 'from_cut_chunk': 0}
             pos = 8
             while pos + 9 <= size:
                 op = buf[pos]
                 length = struct.unpack_from('<Q', buf, pos + 1)[0]
                 end = pos + 9 + length
                 if end > size:
+                    if pos == 8:
+                        raise McapIOError(f'{path}: no complete MCAP record after the magic')
                     if op == _OP_CHUNK:
                         recs = _cut_chunk_records(memoryview(buf)[pos + 9:size])
-                        msgs = [r for r in recs if isinstance(r, Message)]
-                        info['from_cut_chunk'] = len(msgs)
-                        out += recs
+                        info['from_cut_chunk'] = sum(isinstance(r, Message) for r in recs)
+                        yield from recs
                     break
                 if op in (_OP_FOOTER, _OP_DATA_END):
-                    info['complete'] = op == _OP_FOOTER or size - end >= 8
                     info['used_bytes'] = end
                     break
                 try:
                     recs = _parse(buf[pos:end])
                 except Exception as e:
                     if pos == 8:
-                        raise McapIOError(f'{path}: unreadable first record ({type(e).__name__} {e})') from None
+                        raise McapIOError(f'{path}: unreadable header record ({type(e).__name__} {e})') from None
                     break                                  # a damaged record: keep what came before
-                out += recs
                 info['used_bytes'] = end
                 pos = end
-            if info['complete']:
-                info['complete'] = bytes(buf[size - 8:size]) == MAGIC
+                yield from recs
         finally:
             buf.close()
-    if not out or type(out[0]).__name__ != 'Header':
-        raise McapIOError(f'{path}: no MCAP header record')
-    return out, info
+    info['complete'] = is_complete(path)
 
 
-def repair(src, dst, salvaged: tuple | None = None) -> RepairReport:
+def repair(src, dst) -> RepairReport:
     """Rewrite the MCAP file ``src`` (typically cut short by a killed writer: no summary, no
     footer, the last chunk possibly cut) into a complete MCAP ``dst`` with zstd chunks, message
     indexes, summary, statistics and footer, keeping every complete message (those of the cut
-    chunk included) in file order, the schemas, channels (their rosbag2 metadata; a missing
-    ``topic_type_hash`` is computed from the schema) and metadata records; the ``rosbag2`` record
-    is written anew from the messages kept. ``dst`` must differ from ``src``. ``salvaged``: the
-    result of :func:`salvage` of ``src`` when the caller has it already."""
+    chunk included, :func:`iter_salvage`) in file order, the schemas, channels (their rosbag2
+    metadata; a missing ``topic_type_hash`` is computed from the schema) and metadata records; the
+    ``rosbag2`` record is written anew from the messages kept. ``dst`` must differ from ``src``.
+    Raises McapIOError when nothing after the header survived (``dst`` is then left incomplete:
+    write to a temporary name)."""
     src, dst = Path(src), Path(dst)
     if dst.resolve() == src.resolve():
         raise McapIOError(f'{dst}: the output must not be the input (write elsewhere, then rename)')
-    records, info = salvaged if salvaged is not None else salvage(src)
-    header = records[0]
+    info = {}
+    records = iter_salvage(src, info)
+    header = next(records)
     counts, times = {}, {}
     schemas, chan_ids, chan_info = {}, {}, {}
     with open(dst, 'wb') as f:
         w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD)
         w.start(profile=header.profile, library=header.library or 'tissue_sim')
-        for rec in records[1:]:
+        n_records = 0
+        for rec in records:
+            n_records += 1
             if isinstance(rec, Schema):
                 if rec.id not in schemas:
                     schemas[rec.id] = (w.register_schema(rec.name, rec.encoding, rec.data), rec)
@@ -823,6 +845,8 @@ def repair(src, dst, salvaged: tuple | None = None) -> RepairReport:
                 t = times.get(topic)
                 times[topic] = (rec.log_time, rec.log_time) if t is None else (min(t[0], rec.log_time),
                                                                                max(t[1], rec.log_time))
+        if not n_records:
+            raise McapIOError(f'{src}: nothing after the MCAP header survived: nothing to recover')
         topics = [(topic, typ, meta, counts.get(topic, 0), *times.get(topic, (0, 0)))
                   for topic, typ, meta in chan_info.values()]
         w.add_metadata(ROSBAG2_METADATA_NAME, {'serialized_metadata': bag_metadata_yaml(dst.name, topics)})

@@ -83,7 +83,7 @@ def _iter_raw(files, want: set[str]):
     """Yield (schema name, log_time, data) of the messages whose schema is in ``want``, in file order.
 
     Uses the project's reader (:mod:`tissue_sim.core.mcapio`): a file cut short by a killed recorder
-    yields everything up to its last complete chunk.
+    yields every complete message.
     """
     for f in files:
         try:
