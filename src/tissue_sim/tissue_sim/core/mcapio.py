@@ -36,7 +36,6 @@ import time
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -580,41 +579,12 @@ def mcap_files(path) -> list[Path]:
     raise McapIOError(f'{p}: no such file or folder')
 
 
-def _records(path: Path, state: dict) -> Iterator:
-    """Records of one file; stops quietly at a cut-off tail (sets state['truncated'])."""
-    with open(path, 'rb') as f:
-        head = f.read(8)
-        if head != b'\x89MCAP0\r\n':
-            raise McapIOError(f'{path}: not an MCAP file')
-        f.seek(0)
-        it = StreamReader(f, record_size_limit=1 << 32).records
-        while True:
-            try:
-                rec = next(it)
-            except StopIteration:
-                return
-            except (McapError, struct.error, EOFError, ValueError, MemoryError) as e:
-                state['truncated'] = True
-                state.setdefault('errors', []).append(f'{path.name}: {type(e).__name__} {e}'.strip())
-                return
-            except Exception as e:     # zstd errors on a cut chunk have their own classes
-                if type(e).__module__.startswith('zstandard'):
-                    state['truncated'] = True
-                    return
-                raise
-            yield rec
-
-
 def _iter(path, topics, state) -> Iterator[RawMessage]:
     want = None if topics is None else set(topics)
     for f in mcap_files(path):
         schemas, channels = {}, {}
-        if is_complete(f):
-            recs = _records(f, state)
-        else:                              # cut short: every complete message, the cut chunk's too
-            state['truncated'] = True
-            recs = iter_salvage(f)
-        for rec in recs:
+        info = {}
+        for rec in iter_salvage(f, info):   # a file cut short: every complete message, the cut chunk's too
             if isinstance(rec, Schema):
                 schemas[rec.id] = rec
                 state.setdefault('schemas', {})[rec.name] = rec.data.decode('utf-8', 'replace')
@@ -631,6 +601,8 @@ def _iter(path, topics, state) -> Iterator[RawMessage]:
                     continue
                 s = schemas.get(ch.schema_id)
                 yield RawMessage(ch.topic, s.name if s else '', rec.log_time, rec.publish_time, rec.data)
+        if not info.get('complete') or info.get('damaged'):
+            state['truncated'] = True
 
 
 def iter_messages(path, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
@@ -688,17 +660,15 @@ def _parse(raw: bytes) -> list:
     return out
 
 
-def _whole_records(buf, start: int = 0) -> tuple[int, list]:
-    """(end offset, [(start, end)]) of the complete records at the start of ``buf``."""
-    spans, pos, n = [], start, len(buf)
+def _whole_records_end(buf) -> int:
+    """End offset of the complete records at the start of ``buf`` (records without magic)."""
+    pos, n = 0, len(buf)
     while pos + 9 <= n:
-        length = struct.unpack_from('<Q', buf, pos + 1)[0]
-        end = pos + 9 + length
+        end = pos + 9 + struct.unpack_from('<Q', buf, pos + 1)[0]
         if end > n:
             break
-        spans.append((pos, end))
         pos = end
-    return pos, spans
+    return pos
 
 
 def _cut_chunk_records(body) -> list:
@@ -722,7 +692,7 @@ def _cut_chunk_records(body) -> list:
             return []
     except Exception:
         return []
-    end, _ = _whole_records(raw)
+    end = _whole_records_end(raw)
     try:
         return _parse(raw[:end]) if end else []
     except Exception:
@@ -747,8 +717,8 @@ def iter_salvage(path, info: dict | None = None) -> Iterator:
     channels, metadata and every complete message, including the complete messages of a chunk the
     cut went through (its zstd/lz4 stream is decoded as far as it goes). Stops at the data end (the
     summary is not needed). ``info`` (a dict) receives complete (footer found), used_bytes (end of
-    the last whole record), size and from_cut_chunk. Raises McapIOError if the file is not an MCAP
-    file."""
+    the last whole record), size, from_cut_chunk and, when a whole record could not be parsed
+    (reading stops there), damaged. Raises McapIOError if the file is not an MCAP file."""
     import mmap
     path = Path(path)
     info = {} if info is None else info
@@ -784,6 +754,7 @@ def iter_salvage(path, info: dict | None = None) -> Iterator:
                 except Exception as e:
                     if pos == 8:
                         raise McapIOError(f'{path}: unreadable header record ({type(e).__name__} {e})') from None
+                    info['damaged'] = f'{type(e).__name__} {e} at byte {pos}'
                     break                                  # a damaged record: keep what came before
                 info['used_bytes'] = end
                 pos = end
