@@ -48,15 +48,15 @@ def run(args) -> int:
         raise UserError(str(e)) from None
     except OSError as e:
         raise UserError(f'{src}: cannot read ({e.strerror or e})') from None
+    if complete and not args.force:
+        print(f'{src}: complete (summary and footer present): nothing to repair')
+        return 0
     dst = src if args.in_place else (Path(args.output) if args.output else _default_output(src))
     if not args.in_place:
         if dst.resolve() == src.resolve():
             raise UserError(f'{dst}: the output is the input; use --in-place to replace it')
         if dst.exists() and not args.force:
             raise UserError(f'{dst} exists; give another -o OUT or --force to overwrite it')
-    if complete and not args.force:
-        print(f'{src}: complete (summary and footer present): nothing to repair')
-        return 0
     tmp = dst.with_name(f'.{dst.name}.repair-{os.getpid()}.tmp')
     try:
         rep = mcapio.repair(src, tmp)
