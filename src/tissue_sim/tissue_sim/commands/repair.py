@@ -39,6 +39,8 @@ def run(args) -> int:
         raise UserError(f'{src}: no such file')
     if args.in_place and args.output:
         raise UserError('give either -o OUT or --in-place, not both')
+    if args.output and Path(args.output).resolve() == src.resolve():
+        raise UserError(f'{args.output}: the output is the input; use --in-place to replace it')
     try:
         complete = mcapio.is_complete(src)
         head = mcapio.iter_salvage(src)
@@ -53,8 +55,6 @@ def run(args) -> int:
         return 0
     dst = src if args.in_place else (Path(args.output) if args.output else _default_output(src))
     if not args.in_place:
-        if dst.resolve() == src.resolve():
-            raise UserError(f'{dst}: the output is the input; use --in-place to replace it')
         if dst.exists() and not args.force:
             raise UserError(f'{dst} exists; give another -o OUT or --force to overwrite it')
     tmp = dst.with_name(f'.{dst.name}.repair-{os.getpid()}.tmp')
