@@ -343,11 +343,13 @@ def type_hash(type_name: str, schema: str | None = None, share_dirs: Iterable | 
     return compute_type_hash(type_name, schema if schema is not None else schema_text(type_name, share_dirs))
 
 
-def bag_metadata_yaml(file_name: str, topics: list, ros_distro: str = ROS_DISTRO) -> str:
+def bag_metadata_yaml(file_name: str, topics: list, ros_distro: str | None = None) -> str:
     """``serialized_metadata`` of the ``rosbag2`` metadata record of one file: rosbag2 Jazzy's
     BagMetadata (version 9). ``topics``: [(name, type, channel metadata dict, count, first_ns,
-    last_ns)]."""
+    last_ns)]. ``ros_distro`` defaults, as in rosbag2, to $ROS_DISTRO, else 'jazzy' (the pip set-up
+    sets none; its wheels are Jazzy's)."""
     import yaml
+    ros_distro = ros_distro or os.environ.get('ROS_DISTRO') or ROS_DISTRO
     starts = [t[4] for t in topics if t[3]]
     ends = [t[5] for t in topics if t[3]]
     start = min(starts) if starts else 0
