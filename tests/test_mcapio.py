@@ -133,6 +133,13 @@ def test_killed_writer_leaves_a_readable_file(tmp_path):
     assert s.counts['/a'] >= 90
     stamps = [CdrReader(m.data).header()[0] for m in mcapio.iter_messages(p)]
     assert stamps == list(range(len(stamps)))          # complete prefix, no gaps
+    # the repaired file is a complete MCAP that rosbags reads, with at least those messages
+    from rosbags.highlevel import AnyReader
+    rep = mcapio.repair(p, tmp_path / 'repaired.mcap')
+    assert not rep.complete and rep.messages >= len(stamps)
+    with AnyReader([tmp_path / 'repaired.mcap']) as r:
+        got = [CdrReader(d).header()[0] for _, _, d in r.messages()]
+    assert got == list(range(rep.messages))
 
 
 def test_not_an_mcap(tmp_path):

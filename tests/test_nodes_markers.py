@@ -60,7 +60,12 @@ def test_marker_bytes_deserialise_to_the_deformed_model(colouring):
     np.testing.assert_array_equal(pts, pos[np.asarray(tm.surface_triangles)[2:].ravel()])
     pts = np.array([[p.x, p.y, p.z] for p in mus.points])
     np.testing.assert_array_equal(pts, pos[np.asarray(tm.surface_triangles)[:2].ravel()])
-    assert skin.color.a < 0.5 and mus.color.a == 1.0 and by_ns['tissue/bone/shank'].color.a == 1.0
+    assert mus.color.a == 1.0 and by_ns['tissue/bone/shank'].color.a == 1.0
+    # the alpha a viewer shows: RViz multiplies marker and per-corner alpha, Foxglove takes the
+    # per-corner value when there is one; both must show the documented skin alpha
+    rviz = skin.color.a * (skin.colors[0].a if len(skin.colors) else 1.0)
+    foxglove = skin.colors[0].a if len(skin.colors) else skin.color.a
+    assert rviz == pytest.approx(mk.SKIN_RGBA[3]) and foxglove == pytest.approx(mk.SKIN_RGBA[3])
     shank = by_ns['tissue/bone/shank']
     assert shank.pose.position.y == pytest.approx(0.2) and shank.pose.orientation.w == pytest.approx(np.cos(0.3))
     assert len(shank.points) == 3
@@ -141,3 +146,74 @@ def test_builder_model_markers_have_every_group_and_posed_bones():
     n_bone_pts = sum(len(m.points) for m in msg.markers if '/bone/' in m.ns)
     assert n_bone_pts == 3 * len(tm.bone_triangles)
     assert sum(len(m.points) for m in msg.markers if '/bone/' not in m.ns) == 3 * len(tm.surface_triangles)
+
+
+def test_fat_deformation_colours_skin_and_fat_markers_alike():
+    """fat_deformation colours every fat marker as well as the skin; skin_area only the skin; the
+    alpha shown is 0.3 in RViz (product) and in Foxglove (per-corner value) for each of them."""
+    from rclpy.serialization import deserialize_message
+    from visualization_msgs.msg import MarkerArray
+    from phantoms import make_phantom_model
+    tm = make_phantom_model('two_bones')
+    names = list(tm.surface_group_names) or ['fat']
+    for colouring, expect in (('skin_area', {'skin'}), ('fat_deformation', {'skin', 'fat'})):
+        enc = mk.MarkerArrayEncoder(tm, colouring=colouring)
+        x = np.asarray(tm.rest_positions) * 1.01
+        d = measures.FatDeformation(tm)(x)
+        rgba = mk.sequential_rgba(d[enc.skin_corners], 1e-3)
+        msg = deserialize_message(enc.encode(1, x, None, rgba), MarkerArray)
+        coloured = {m.ns.split('/')[1] for m in msg.markers if len(m.colors)}
+        present = {n.split('/')[0] for n in names if n.split('/')[0] in ('skin', 'fat')}
+        assert coloured == expect & present, (colouring, coloured, names)
+        i = 0
+        for m in msg.markers:
+            if len(m.colors):
+                assert len(m.colors) == len(m.points)
+                assert m.color.a == 1.0 and m.colors[0].a == pytest.approx(mk.SKIN_RGBA[3])
+                np.testing.assert_allclose([m.colors[0].g], [rgba[i, 1]], rtol=1e-6)
+                i += len(m.points)
+            elif '/bone/' not in m.ns and not m.ns.startswith('tissue/muscle'):
+                assert m.color.a == pytest.approx(mk.SKIN_RGBA[3])
+        assert i == len(rgba)
+
+
+def test_bone_markers_in_link_frames_match_the_posed_bones():
+    """The once-sent bone MarkerArray (frame = segment, frame_locked) placed by the TF of a state
+    lands where the per-frame world-frame bone markers are; the per-frame array without bones is
+    smaller by exactly those markers."""
+    from rclpy.serialization import deserialize_message
+    from visualization_msgs.msg import MarkerArray
+    from scipy.spatial.transform import Rotation
+    from tissue_sim.core import urdf
+    from tissue_sim.core.tissue_cdr import quat_to_matrix
+    tm = tiny_model()
+    once = deserialize_message(mk.bone_marker_array(tm), MarkerArray)
+    assert [m.header.frame_id for m in once.markers] == ['thigh', 'shank']
+    assert all(m.frame_locked and m.color.a == 1.0 and m.pose.orientation.w == 1.0 for m in once.markers)
+    # a knee-flexed state: segment poses (rest point p -> R p + t)
+    q = Rotation.from_rotvec([0, 0.7, 0]).as_quat()
+    poses = np.array([[0, 0, 0, 0, 0, 0, 1.0], [0.01, 0.02, -0.03, *q]])
+    R, t = quat_to_matrix(poses[:, 3:]), poses[:, :3]
+    # world pose of each link frame from the TF tree, composed from the root
+    tf = {child: (parent, tr, quat_to_matrix(qq)) for parent, child, tr, qq in urdf.tf_transforms(tm, R, t)}
+
+    def world(frame):
+        if frame == urdf.ROOT_LINK:
+            return np.eye(3), np.zeros(3)
+        parent, tr, Rr = tf[frame]
+        Rp, tp = world(parent)
+        return Rp @ Rr, Rp @ tr + tp
+    full = deserialize_message(mk.MarkerArrayEncoder(tm).encode(5, tm.rest_positions, poses), MarkerArray)
+    for m in once.markers:
+        Rw, tw = world(m.header.frame_id)
+        got = np.array([[p.x, p.y, p.z] for p in m.points]) @ Rw.T + tw
+        ref = next(f for f in full.markers if f.ns == m.ns)
+        Rm = quat_to_matrix(np.array([ref.pose.orientation.x, ref.pose.orientation.y, ref.pose.orientation.z,
+                                      ref.pose.orientation.w]))
+        tm_ = np.array([ref.pose.position.x, ref.pose.position.y, ref.pose.position.z])
+        want = np.array([[p.x, p.y, p.z] for p in ref.points]) @ Rm.T + tm_
+        np.testing.assert_allclose(got, want, atol=1e-12)
+    soft = mk.MarkerArrayEncoder(tm, bones=False)
+    msg = deserialize_message(soft.encode(5, tm.rest_positions), MarkerArray)
+    assert [m.ns for m in msg.markers] == [m.ns for m in full.markers if '/bone/' not in m.ns]
+    assert soft.nbytes < mk.MarkerArrayEncoder(tm).nbytes

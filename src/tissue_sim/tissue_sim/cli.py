@@ -13,7 +13,8 @@ import sys
 from tissue_sim import __version__
 from tissue_sim.errors import UserError
 
-COMMAND_MODULES = ('build_model', 'make_anatomy', 'simulate', 'analyze', 'render', 'export', 'export_run', 'validate')
+COMMAND_MODULES = ('build_model', 'make_anatomy', 'simulate', 'analyze', 'render', 'export', 'export_run',
+                   'info', 'repair', 'validate')
 
 
 def _commands():

@@ -5,15 +5,21 @@ layout is fixed once (the triangle counts never change) and each frame only writ
 bone poses and the soft-tissue triangle corners (numpy fancy indexing straight into the message
 buffer). ROS-free: returns ``bytes`` to hand to ``Publisher.publish``.
 
-Markers (namespace ``tissue``), all TRIANGLE_LIST in ``frame_id``:
-* one per skeleton segment with bones: the bones' rest triangles, opaque, ``pose`` = segment pose
-  (so bones cost nothing per frame);
-* one per soft-tissue surface group (``surface_group_names``): each muscle in its own colour, skin/fat
-  translucent. With a colouring other than ``none`` the skin marker carries per-corner colours
-  (paper Fig. 8: skin-area change, white = unchanged, blue = grown, red = shrunk; Fig. 9: fat
-  deformation degree d, white = 0 to red = ``scale``). The values come from
-  :mod:`tissue_sim.core.measures` (``skin_area_ratio_per_vertex``, ``FatDeformation``); this module
-  only maps them to colours and bytes.
+Markers (namespace ``tissue``), all TRIANGLE_LIST:
+* per frame (:class:`MarkerArrayEncoder`, in ``frame_id``): one per soft-tissue surface group
+  (``surface_group_names``): each muscle in its own opaque colour, skin and fat translucent (alpha
+  0.3, ``SKIN_RGBA``); with ``bones=True`` (the default) also one per skeleton segment with bones:
+  the bones' rest triangles, opaque, ``pose`` = segment pose;
+* once (:func:`bone_marker_array`): the bones in their segments' link frames (``frame_id`` = segment
+  name, ``frame_locked``), for a transient-local topic next to TF; the per-frame array then leaves
+  the bones out (``bones=False``).
+Colouring (``none``, ``skin_area``, ``fat_deformation``): the skin marker (and with
+``fat_deformation`` the fat markers too) carries per-corner colours (paper Fig. 8: skin-area change,
+white = unchanged, blue = grown, red = shrunk; Fig. 9: fat deformation degree d, white = 0 to red =
+``scale``). Per-corner alpha is the skin alpha 0.3 and such a marker's own ``color.a`` is 1.0: RViz
+multiplies the two and Foxglove takes the per-corner value, so both show 0.3. The values come from
+:mod:`tissue_sim.core.measures` (``skin_area_ratio_per_vertex``, ``FatDeformation``); this module only
+maps them to colours and bytes.
 Positions in metres, REP-103 axes.
 """
 from __future__ import annotations
@@ -50,7 +56,7 @@ def group_rgba(name: str, muscle_colour: dict) -> tuple:
     return SKIN_RGBA
 
 
-def diverging_rgba(ratio: np.ndarray, span: float = 0.2, alpha: float = 0.6) -> np.ndarray:
+def diverging_rgba(ratio: np.ndarray, span: float = 0.2, alpha: float = SKIN_RGBA[3]) -> np.ndarray:
     """Area ratio -> RGBA (N, 4) float32: white at 1, blue when grown, red when shrunk,
     full colour at ±span."""
     x = np.clip((np.asarray(ratio, np.float64) - 1.0) / span, -1.0, 1.0)
@@ -63,7 +69,7 @@ def diverging_rgba(ratio: np.ndarray, span: float = 0.2, alpha: float = 0.6) -> 
     return out
 
 
-def sequential_rgba(value: np.ndarray, scale: float, alpha: float = 0.6) -> np.ndarray:
+def sequential_rgba(value: np.ndarray, scale: float, alpha: float = SKIN_RGBA[3]) -> np.ndarray:
     """Non-negative value -> RGBA: white at 0 to red at ``scale``."""
     x = np.clip(np.asarray(value, np.float64) / max(scale, 1e-12), 0.0, 1.0)
     out = np.ones((x.size, 4), np.float32)
@@ -73,11 +79,81 @@ def sequential_rgba(value: np.ndarray, scale: float, alpha: float = 0.6) -> np.n
     return out
 
 
+def _marker_template(w: CdrWriter, frame_id: str, ns: str, mid: int, npts: int, rgba, want_colors: bool,
+                     frame_locked: bool = False) -> tuple[int, int, int, int | None]:
+    """Append one TRIANGLE_LIST Marker (points zeroed, identity pose) to ``w``; returns the payload
+    offsets (stamp, pose, points, colours or None) for filling in."""
+    w._align(4)
+    stamp_off = w.offset
+    w.header(0, frame_id)
+    w.string(ns)
+    w.int32(mid)
+    w.int32(TRIANGLE_LIST)
+    w.int32(ADD)
+    w.float64(0.0)                    # pose.position (8-aligned)
+    pose_off = w.offset - 8
+    w.float64(0.0); w.float64(0.0)
+    for q in (0.0, 0.0, 0.0, 1.0):   # pose.orientation
+        w.float64(q)
+    for sc in (1.0, 1.0, 1.0):       # scale
+        w.float64(sc)
+    for c in rgba:
+        w.float32(c)
+    w.int32(0); w.uint32(0)           # lifetime: forever
+    w.bool(bool(frame_locked))        # frame_locked
+    w.uint32(npts)
+    w._align(8)
+    pts_off = w.offset
+    w._raw(bytes(24 * npts))
+    col_off = None
+    if want_colors:
+        w.uint32(npts)
+        col_off = w.offset
+        w._raw(bytes(16 * npts))
+    else:
+        w.uint32(0)
+    w.string('')                      # texture_resource
+    w.header(0, '')                   # texture (sensor_msgs/CompressedImage)
+    w.string('')
+    w.uint32(0)
+    w.uint32(0)                       # uv_coordinates
+    w.string('')                      # text
+    w.string('')                      # mesh_resource
+    w.string('')                      # mesh_file.filename
+    w.uint32(0)                       # mesh_file.data
+    w.bool(False)                     # mesh_use_embedded_materials
+    return stamp_off, pose_off, pts_off, col_off
+
+
+def _aligned_buffer(template: bytes) -> np.ndarray:
+    """A copy of ``template`` whose CDR payload (after the 4-byte encapsulation header) starts
+    8-aligned in memory, so float64 views of it are aligned."""
+    raw = np.zeros(len(template) + 16, np.uint8)
+    shift = (-(raw.ctypes.data + 4)) % 8
+    buf = raw[shift:shift + len(template)]
+    buf[:] = np.frombuffer(template, np.uint8)
+    return buf
+
+
+def coloured_groups(names, colouring: str) -> list:
+    """Indices of the surface groups whose markers carry per-corner colours: the skin for
+    ``skin_area``; the skin and every fat group for ``fat_deformation``; none for ``none``."""
+    if colouring == 'none':
+        return []
+    want = [g for g, n in enumerate(names) if n == 'skin']
+    if colouring == 'fat_deformation' or not want:
+        want += [g for g, n in enumerate(names) if n == 'fat' or n.startswith('fat/')]
+    return sorted(set(want))
+
+
 class MarkerArrayEncoder:
-    """Precomputed MarkerArray layout for one model. ``encode`` per frame."""
+    """Precomputed MarkerArray layout for one model. ``encode`` per frame.
+
+    ``bones=False`` leaves the bone markers out (they go once, in their link frames, through
+    :func:`bone_marker_array` on a transient-local topic; TF moves them)."""
 
     def __init__(self, tm, frame_id: str = 'world', colouring: str = 'none', ns: str = 'tissue',
-                 bone_resolution: float = 0.0):
+                 bone_resolution: float = 0.0, bones: bool = True):
         if colouring not in COLOURINGS:
             raise ValueError(f'marker colouring {colouring!r}: expected one of {", ".join(COLOURINGS)}')
         self.colouring = colouring
@@ -89,81 +165,42 @@ class MarkerArrayEncoder:
             tris, groups, names = boundary_surface(tm)
         # soft-tissue markers
         self._soft = []             # (corner vertex indices, group name)
+        coloured = set(coloured_groups(names, colouring))
+        want = []
         for g, name in enumerate(names):
             sel = tris[groups == g]
             if len(sel):
                 self._soft.append((np.ascontiguousarray(sel.ravel()), name))
-        # the skin marker gets per-corner colours when colouring is on
-        self._skin_k = next((k for k, (_, n) in enumerate(self._soft) if n in ('skin', 'fat')), None)
+                want.append(g in coloured)
         # bone markers: one per segment
         self._bones = []            # (segment index, points (N, 3))
-        for s in range(tm.n_segments):
-            pts = []
-            for b in np.flatnonzero(np.asarray(tm.bone_segment) == s):
-                v, t = tm.bone_mesh(int(b))
-                if bone_resolution > 0:
-                    v, t = cluster_decimate(np.asarray(v, np.float64), np.asarray(t, np.int64), bone_resolution)
-                if len(t):
-                    pts.append(np.asarray(v, np.float64)[np.asarray(t, np.int64).ravel()])
-            if pts:
-                self._bones.append((s, np.concatenate(pts)))
+        if bones:
+            for s in range(tm.n_segments):
+                pts = _segment_bone_points(tm, s, bone_resolution)
+                if pts is not None:
+                    self._bones.append((s, pts))
 
         w = CdrWriter()
-        self._stamp_offsets, self._pose_offsets, self._point_offsets, self._color_offset = [], [], [], None
         markers = []
         for k, (idx, name) in enumerate(self._soft):
-            want_colors = colouring != 'none' and k == self._skin_k
-            markers.append(('soft', k, f'{ns}/{name}', idx.size, group_rgba(name, muscle_colour), want_colors))
+            rgba = group_rgba(name, muscle_colour)
+            if want[k]:
+                # per-corner colours carry the alpha; the marker's own alpha is 1 so that RViz (which
+                # multiplies the two) and Foxglove (which takes the per-corner value) show the same
+                rgba = rgba[:3] + (1.0,)
+            markers.append(('soft', k, f'{ns}/{name}', idx.size, rgba, want[k]))
         for k, (s, pts) in enumerate(self._bones):
             markers.append(('bone', k, f'{ns}/bone/{tm.segment_names[s]}', len(pts), BONE_RGBA, False))
         w.uint32(len(markers))
-        self._layout = []
+        self._stamp_offsets, self._layout, col_offs = [], [], []
         for mid, (kind, k, mns, npts, rgba, want_colors) in enumerate(markers):
-            w._align(4)
-            self._stamp_offsets.append(w.offset)
-            w.header(0, frame_id)
-            w.string(mns)
-            w.int32(mid)
-            w.int32(TRIANGLE_LIST)
-            w.int32(ADD)
-            w.float64(0.0)                    # pose.position (8-aligned)
-            pose_off = w.offset - 8
-            w.float64(0.0); w.float64(0.0)
-            for q in (0.0, 0.0, 0.0, 1.0):   # pose.orientation
-                w.float64(q)
-            for sc in (1.0, 1.0, 1.0):       # scale
-                w.float64(sc)
-            for c in rgba:
-                w.float32(c)
-            w.int32(0); w.uint32(0)           # lifetime: forever
-            w.bool(False)                     # frame_locked
-            w.uint32(npts)
-            w._align(8)
-            pts_off = w.offset
-            w._raw(bytes(24 * npts))
-            if want_colors:
-                w.uint32(npts)
-                self._color_offset = (w.offset, npts)
-                w._raw(bytes(16 * npts))
-            else:
-                w.uint32(0)
-            w.string('')                      # texture_resource
-            w.header(0, '')                   # texture (sensor_msgs/CompressedImage)
-            w.string('')
-            w.uint32(0)
-            w.uint32(0)                       # uv_coordinates
-            w.string('')                      # text
-            w.string('')                      # mesh_resource
-            w.string('')                      # mesh_file.filename
-            w.uint32(0)                       # mesh_file.data
-            w.bool(False)                     # mesh_use_embedded_materials
+            stamp_off, pose_off, pts_off, col_off = _marker_template(w, frame_id, mns, mid, npts, rgba, want_colors)
+            self._stamp_offsets.append(stamp_off)
             self._layout.append((kind, k, pose_off, pts_off, npts))
+            if col_off is not None:
+                col_offs.append((col_off, npts, k))
         template = w.bytes()
-        # buffer whose payload (after the 4-byte encapsulation header) starts 8-aligned in memory
-        raw = np.zeros(len(template) + 16, np.uint8)
-        shift = (-(raw.ctypes.data + 4)) % 8
-        self._buf = raw[shift:shift + len(template)]
-        self._buf[:] = np.frombuffer(template, np.uint8)
+        self._buf = _aligned_buffer(template)
         pay = self._buf[4:]
         self._points, self._poses = [], []
         for kind, k, pose_off, pts_off, npts in self._layout:
@@ -172,28 +209,33 @@ class MarkerArrayEncoder:
             self._poses.append(pay[pose_off:pose_off + 56].view(np.float64))
             if kind == 'bone':
                 pv[:] = self._bones[k][1]
-        self._colors = None
-        if self._color_offset is not None:
-            off, n = self._color_offset
-            self._colors = pay[off:off + 16 * n].view(np.float32).reshape(n, 4)
-            self._colors[:] = SKIN_RGBA
+        self._colors = []           # per coloured marker: (N, 4) float32 view into the buffer
+        for off, n, k in col_offs:
+            c = pay[off:off + 16 * n].view(np.float32).reshape(n, 4)
+            c[:] = group_rgba(self._soft[k][1], muscle_colour)
+            self._colors.append(c)
+        self._coloured_k = [k for _, _, k in col_offs]
         self.n_markers = len(markers)
         self.n_points = sum(m[3] for m in markers)
         self.nbytes = len(template)
 
     @property
     def skin_corners(self) -> np.ndarray | None:
-        """Vertex index of each corner of the coloured (skin) marker, or None."""
-        return None if self._skin_k is None else self._soft[self._skin_k][0]
+        """Vertex index of each corner of the coloured markers (the skin; with ``fat_deformation``
+        also the fat), concatenated in marker order; None when nothing is coloured. ``encode``
+        takes one colour per entry."""
+        if not self._coloured_k:
+            return None
+        return np.concatenate([self._soft[k][0] for k in self._coloured_k])
 
     def encode(self, stamp_ns: int, positions: np.ndarray, segment_poses: np.ndarray | None = None,
                corner_rgba: np.ndarray | None = None) -> bytes:
         """CDR bytes of the MarkerArray.
 
         positions: (V, 3) float64 soft-tissue vertex positions [m]; segment_poses: (S, 7)
-        x y z qx qy qz qw per segment (None: rest); corner_rgba: (N, 4) colours of the skin marker's
-        corners (per-vertex values at :attr:`skin_corners` through :func:`diverging_rgba` or
-        :func:`sequential_rgba`), used when colouring is on.
+        x y z qx qy qz qw per segment (None: rest); corner_rgba: (N, 4) colours of the coloured
+        markers' corners (per-vertex values at :attr:`skin_corners` through :func:`diverging_rgba`
+        or :func:`sequential_rgba`), used when colouring is on.
         """
         sec, nsec = int(stamp_ns // 1_000_000_000), int(stamp_ns % 1_000_000_000)
         stamp = struct.pack('<iI', sec, nsec)
@@ -206,9 +248,56 @@ class MarkerArrayEncoder:
                 np.take(positions, self._soft[k][0], axis=0, out=self._points[m])
             elif segment_poses is not None:
                 self._poses[m][:] = segment_poses[self._bones[k][0]]
-        if corner_rgba is not None and self._colors is not None:
-            self._colors[:] = corner_rgba
+        if corner_rgba is not None and self._colors:
+            i = 0
+            for c in self._colors:
+                c[:] = corner_rgba[i:i + len(c)]
+                i += len(c)
         return b.tobytes()
+
+
+def _segment_bone_points(tm, s: int, resolution: float, offset=None) -> np.ndarray | None:
+    """Triangle corners (N, 3) of the bones of segment ``s`` (rest pose, model frame, minus
+    ``offset``), decimated to ``resolution`` [m] when > 0; None if the segment has no bones."""
+    pts = []
+    for b in np.flatnonzero(np.asarray(tm.bone_segment) == s):
+        v, t = tm.bone_mesh(int(b))
+        v, t = np.asarray(v, np.float64), np.asarray(t, np.int64)
+        if offset is not None:
+            v = v - offset
+        if resolution > 0:
+            v, t = cluster_decimate(v, t, resolution)
+        if len(t):
+            pts.append(v[t.ravel()])
+    return np.concatenate(pts) if pts else None
+
+
+def bone_marker_array(tm, ns: str = 'tissue', bone_resolution: float = 0.0) -> bytes:
+    """CDR bytes of a MarkerArray of the bone meshes in their link frames, sent once on a
+    transient-local topic (e.g. ``/tissue/bone_markers``): one opaque TRIANGLE_LIST per segment
+    with bones, ``header.frame_id`` = the segment's name (its TF frame, :mod:`tissue_sim.core.urdf`),
+    vertices from :func:`tissue_sim.core.urdf.bone_meshes_in_link_frames` (the link frame's origin
+    is the joint centre), identity pose, stamp 0 and ``frame_locked = true``: viewers move them
+    with TF, so the per-frame markers need not carry the bones."""
+    from tissue_sim.core import urdf
+    origins = urdf.link_origins(tm)
+    w = CdrWriter()
+    segs = []
+    for s in range(tm.n_segments):
+        pts = _segment_bone_points(tm, s, bone_resolution, offset=origins[s])
+        if pts is not None:
+            segs.append((s, pts))
+    w.uint32(len(segs))
+    spans = []
+    for mid, (s, pts) in enumerate(segs):
+        seg = tm.segment_names[s]
+        spans.append(_marker_template(w, seg, f'{ns}/bone/{seg}', mid, len(pts), BONE_RGBA, False,
+                                      frame_locked=True)[2])
+    buf = _aligned_buffer(w.bytes())
+    pay = buf[4:]
+    for (s, pts), off in zip(segs, spans):
+        pay[off:off + 24 * len(pts)].view(np.float64).reshape(-1, 3)[:] = pts
+    return buf.tobytes()
 
 
 def cluster_decimate(v: np.ndarray, t: np.ndarray, cell: float):

@@ -30,6 +30,10 @@ from tissue_sim.core.tissue_cdr import STATE_TYPE, TOPOLOGY_TYPE, StateFrame
 TOPIC_TOPOLOGY = '/tissue/topology'
 TOPIC_STATE = '/tissue/state'
 
+# What the simulator node's publishers offer (ros/common.py: qos_latched, qos_stream()); written as
+# the channels' offered_qos_profiles so `ros2 bag play` replays the topology latched.
+OFFERED_QOS = {TOPIC_TOPOLOGY: mcapio.QOS_LATCHED, TOPIC_STATE: mcapio.qos_stream(10)}
+
 
 class RunError(ValueError):
     """A run that cannot be read (message names the file and the problem)."""
@@ -79,7 +83,7 @@ def _iter_raw(files, want: set[str]):
     """Yield (schema name, log_time, data) of the messages whose schema is in ``want``, in file order.
 
     Uses the project's reader (:mod:`tissue_sim.core.mcapio`): a file cut short by a killed recorder
-    yields everything up to its last complete chunk.
+    yields every complete message.
     """
     for f in files:
         try:
@@ -198,17 +202,19 @@ def load_run(path, stride: int = 1, frames=None, max_frames: int | None = None, 
 class RunWriter:
     """Writes a run MCAP: the topology on /tissue/topology, then one TissueState per frame on
     /tissue/state (log time = the frame's stamp), exactly what the recorder keeps from the
-    simulator node. Use as a context manager."""
+    simulator node, with the channel metadata rosbag2 writes (``qos``: {topic: offered QoS},
+    default :data:`OFFERED_QOS`; type hashes; ``ros_distro``). Use as a context manager."""
 
     def __init__(self, path, model, parameters_yaml: str = '', frame_id: str = 'world',
-                 metadata: dict | None = None, **writer_kw):
+                 metadata: dict | None = None, qos: dict | None = None, **writer_kw):
         self.path = Path(path)
         self.model, self.frame_id = model, frame_id
         meta = {'model': model.name, 'model_hash': (model.meta or {}).get('model_hash') or model.content_hash(),
-                'parameters_yaml': parameters_yaml, **(metadata or {})}
+                'parameters_yaml': parameters_yaml, 'versions': mcapio.versions(), **(metadata or {})}
         self._w = mcapio.McapWriter(self.path, metadata=meta, **writer_kw)
-        self._w.add_channel(TOPIC_TOPOLOGY, TOPOLOGY_TYPE)
-        self._w.add_channel(TOPIC_STATE, STATE_TYPE)
+        qos = {**OFFERED_QOS, **(qos or {})}
+        self._w.add_channel(TOPIC_TOPOLOGY, TOPOLOGY_TYPE, qos=qos[TOPIC_TOPOLOGY])
+        self._w.add_channel(TOPIC_STATE, STATE_TYPE, qos=qos[TOPIC_STATE])
         self._w.write(TOPIC_TOPOLOGY, tissue_cdr.encode_topology(model, parameters_yaml=parameters_yaml,
                                                                  model_hash=meta['model_hash'], stamp_ns=0,
                                                                  frame_id=frame_id), 0)
