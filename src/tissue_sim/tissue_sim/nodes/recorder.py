@@ -3,6 +3,7 @@
     recorder -o runs/today/run.mcap                       # the tissue topics
     recorder -o run.mcap --topics /tissue/markers /tf     # plus any topics named
     recorder -o run.mcap --split-size 500 --split-duration 60
+    recorder -o run.mcap --topics /tissue/markers --max-rate /tissue/markers=10   # markers at <= 10 Hz
 
 Default topics: /tissue/state, /tissue/topology, /tissue/activation, /joint_states, /diagnostics
 (/tissue/markers only when named: ~7 MB/s). Types are discovered from the ROS graph (or given as
@@ -40,6 +41,9 @@ def build_parser():
     p.add_argument('--split-duration', type=float, default=0.0, help='start a new file every N s (0 = never)')
     p.add_argument('--compression', choices=('zstd', 'lz4', 'none'), default='zstd')
     p.add_argument('--meta', nargs='*', default=[], metavar='KEY=VALUE', help='extra metadata entries')
+    p.add_argument('--max-rate', nargs='*', default=[], metavar='TOPIC=HZ',
+                   help='keep at most HZ messages per second (receive time) of TOPIC, e.g. /tissue/markers=10 '
+                        '(the full-mesh markers are ~5 MB/s compressed at 34 Hz)')
     return p
 
 
@@ -60,6 +64,17 @@ class Recorder(Node):
             k, _, v = kv.partition('=')
             meta[k] = v
         self.meta = meta
+        self.min_gap_ns = {}           # topic -> least receive-time gap kept [ns] (--max-rate)
+        for kv in args.max_rate:
+            topic, _, hz = kv.partition('=')
+            try:
+                rate = float(hz)
+            except ValueError:
+                rate = float('nan')
+            if not topic.startswith('/') or not rate > 0:
+                raise ValueError(f'--max-rate {kv!r}: expected /topic=HZ with HZ > 0')
+            self.min_gap_ns[topic] = int(1e9 / rate)
+        self.last_kept_ns = {}
         self.writer = mcapio.McapWriter(args.output, chunk_size=args.chunk_size, compression=args.compression,
                                         split_bytes=int(args.split_size * 1e6), split_seconds=args.split_duration,
                                         flush_seconds=args.flush, metadata=meta)
@@ -84,23 +99,42 @@ class Recorder(Node):
             self.subscribe(topic, typ)
 
     def subscribe(self, topic, typ):
+        """Record ``topic``: its channel carries the QoS its publishers offer (as rosbag2 records it, so
+        ``ros2 bag play`` offers it again), and the subscription is transient-local when every
+        publisher offers that (as rosbag2 does), so latched topics (/tissue/topology, /tf_static,
+        /robot_description, /tissue/bone_markers) are caught even when they were sent before."""
+        from rclpy.qos import DurabilityPolicy
+
         from ..ros.common import get_message
+        infos = self.get_publishers_info_by_topic(topic)
+        offered = [mcapio.Qos.from_profile(i.qos_profile) for i in infos]
+        latched = bool(infos) and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+        if not offered:
+            offered = [mcapio.QOS_LATCHED if topic == TOPIC_TOPOLOGY else mcapio.qos_stream()]
+            latched = topic == TOPIC_TOPOLOGY
         try:
             cls = get_message(typ)
-            self.writer.add_channel(topic, typ)
+            self.writer.add_channel(topic, typ, qos=offered)
         except (ValueError, AttributeError, ModuleNotFoundError, mcapio.McapIOError) as e:
             self.get_logger().error(f'cannot record {topic} ({typ}): {e}')
             self.subs[topic] = None
             return
-        qos = qos_latched() if topic == TOPIC_TOPOLOGY else qos_stream(100)
+        qos = qos_latched() if latched else qos_stream(100)
         self.subs[topic] = self.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data),
-                                                         qos, raw=True)
+                                                    qos, raw=True)
         self.get_logger().info(f'recording {topic} [{typ}]')
 
     def on_message(self, topic, data):
         if self.closed:
             return
-        self.writer.write(topic, data, time.time_ns())
+        now = time.time_ns()
+        gap = self.min_gap_ns.get(topic)
+        if gap is not None:
+            # keep a message when a whole period has passed since the last kept one (small slack for jitter)
+            if now - self.last_kept_ns.get(topic, -gap) < gap * 0.9:
+                return
+            self.last_kept_ns[topic] = now
+        self.writer.write(topic, data, now)
         self.counts[topic] = self.counts.get(topic, 0) + 1
         if topic == TOPIC_TOPOLOGY and self.counts[topic] == 1:
             self.note_model(data)

@@ -72,8 +72,7 @@ class Replay(Node):
         for t, typ in topics.items():
             if t == TOPIC_CLOCK and not args.no_clock:
                 continue
-            self.pubs[t] = self.create_publisher(get_message(typ), t,
-                                                 qos_latched() if t == TOPIC_TOPOLOGY else qos_stream(100))
+            self.pubs[t] = self.create_publisher(get_message(typ), t, self._replay_qos(summary, t))
         self.Clock = Clock
         self.pub_clock = None if args.no_clock else self.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
         self.start_ns = summary.start_ns
@@ -82,6 +81,23 @@ class Replay(Node):
         self.published = 0
         print(f'replay: {sum(summary.counts.values())} messages on {len(self.pubs)} topics, '
               f'{(summary.end_ns - summary.start_ns) * 1e-9:.2f} s', flush=True)
+
+    @staticmethod
+    def _replay_qos(summary, topic):
+        """Offer what the recording's publishers offered (its channel's ``offered_qos_profiles``, as
+        ``ros2 bag play`` does): transient local when every recorded publisher was, so late
+        subscribers still get the topology, /tf_static, /robot_description; else a reliable stream.
+        A recording without that metadata: the topology latched, the rest streamed."""
+        meta = summary.channel_metadata.get(topic, {})
+        try:
+            offered = mcapio.parse_qos_yaml(meta.get('offered_qos_profiles', ''))
+        except mcapio.McapIOError:
+            offered = []
+        if offered:
+            latched = all(q.durability == 'transient_local' for q in offered)
+        else:
+            latched = topic == TOPIC_TOPOLOGY
+        return qos_latched() if latched else qos_stream(100)
 
     def wait(self, timeout):
         import rclpy
