@@ -41,7 +41,7 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
-                                'muscle_length muscle_velocity')       # the State's arrays (xb, vb: back buffers)
+                                'muscle_length muscle_velocity joint_lock_torque')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha')
@@ -49,21 +49,22 @@ Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mle
 
 
 @njit(cache=True)
-def advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
+def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
-    same for every step), in place. Positions and velocities alternate between (x, v) and the back buffers
+    same for every step) and the joint lock (lock (J,) bool, target (J,) [rad]: Control.joint_lock/joint_target),
+    in place. Positions and velocities alternate between (x, v) and the back buffers
     (xb, vb); returns how many swaps happened. On failure info = (step, cell, cause) and the state is left
     at the last good sub-step (an activation outside [0, 1] or not finite: nothing is done,
     info = (-1, muscle, CAUSE_ACTIVATION)).
 
     The arguments come as plain tuples in the order of the named tuples (numba's dispatcher types a plain
     tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here."""
-    return _advance(n_steps, n_sub, h, acts, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk),
+    return _advance(n_steps, n_sub, h, acts, lock, target, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk),
                     Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]), info)
 
 
 @njit(cache=True)
-def _advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
+def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
     work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
@@ -93,7 +94,7 @@ def _advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
             ok = SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
-                                  st.seg_R, st.seg_t, scratch.skel_work)
+                                  st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
             fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
                                 st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
@@ -118,6 +119,7 @@ class Workspace:
     def __init__(self, sim: SimModel):
         self.sim = sim
         self._by_h = {}
+        self.no_lock = (np.zeros(sim.n_joints, np.bool_), np.zeros(sim.n_joints))    # (lock, target): no joint locked
 
     def arrays(self, h: float):
         """(cells, tissue, skeleton, numbers, scratch) for sub-step length h, as named tuples."""
@@ -154,14 +156,16 @@ class Workspace:
                       p.max_contraction_velocity > 0 and p.specific_tension > 0, float(p.fv_max_lengthening),
                       h / (p.fv_filter_time + h))
         M, J = sim.n_muscles, sim.n_joints
-        scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 9)), np.empty(J), np.empty(J), np.empty(M),
+        scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M))
         return cells, tissue, sim.skeleton, num, scratch
 
 
-def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int | None = None) -> None:
+def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int | None = None, lock=None,
+         target=None) -> None:
     """Advance state in place by n_steps (None: len(acts)) steps of dt under per-step activations
-    acts (n_steps, M), or (1, M): the same for every step. Raises ValueError for an activation outside
+    acts (n_steps, M), or (1, M): the same for every step, and the joint lock (lock (J,) bool, target (J,)
+    [rad]; None: no joint locked). Raises ValueError for an activation outside
     [0, 1] or not finite (nothing done), DivergenceError (state left at the last good sub-step)."""
     n_steps = acts.shape[0] if n_steps is None else n_steps
     if acts.ndim != 2 or acts.shape[1] != sim.n_muscles or acts.shape[0] not in (1, n_steps):
@@ -173,10 +177,14 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
     ws = state.workspace
     if ws is None or ws.sim is not sim:
         ws = state.workspace = Workspace(sim)
+    if state.joint_lock_torque is None:
+        state.joint_lock_torque = np.zeros(sim.n_joints)
     st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
           state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
-          state.muscle_velocity)                                              # (the fields of Arrays)
-    swaps = advance(n_steps, n_sub, h, acts, st, *ws.plain(h), info)
+          state.muscle_velocity, state.joint_lock_torque)                     # (the fields of Arrays)
+    if lock is None:
+        lock, target = ws.no_lock
+    swaps = advance(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)
     if info[2] == CAUSE_ACTIVATION:
         m = int(info[1])
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]; muscle {m} '
@@ -207,5 +215,25 @@ def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None, n_
     a = np.asarray(ctrl.activation, np.float64)
     if a.shape != (sim.n_muscles,):
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1], got shape {a.shape}')
-    _run(sim, state, a.reshape(1, -1), dt, int(n_steps))
+    lock, target = joint_lock_of(sim, ctrl)
+    _run(sim, state, a.reshape(1, -1), dt, int(n_steps), lock, target)
     return state
+
+
+def joint_lock_of(sim: SimModel, ctrl: Control):
+    """(lock, target) of a Control for advance(): (None, None) when it locks no joint (the step is then the
+    unlocked one); ValueError naming the problem for a bad joint_lock / joint_target."""
+    lk = getattr(ctrl, 'joint_lock', None)
+    if lk is None:
+        return None, None
+    lk = np.asarray(lk)
+    J = sim.n_joints
+    if lk.shape != (J,) or lk.dtype != np.bool_:
+        raise ValueError(f'joint_lock must be {J} booleans (one per joint), got {lk.dtype} of shape {lk.shape}')
+    if not lk.any():
+        return None, None
+    tg = ctrl.joint_target
+    tg = np.asarray(sim.j_rest if tg is None else tg, np.float64)
+    if tg.shape != (J,) or not np.all(np.isfinite(tg[lk])):
+        raise ValueError(f'joint_target must be {J} joint coordinates [rad], finite where joint_lock is set')
+    return np.ascontiguousarray(lk), np.ascontiguousarray(tg)
