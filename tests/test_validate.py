@@ -215,3 +215,14 @@ def test_validate_command_on_the_bundled_model(tmp_path, capsys, params):
     else:           # the paper set is dimensionless: no comparison in N m or of Fmax
         assert pt['pass'] is None and res['targets']['hamstring_force']['pass'] is None
     assert res['targets']['hamstring_moment_arms']['angles_not_sampled'] == [30.0, 90.0]
+
+
+def test_a_sweep_that_diverges_ends_in_nan_and_says_where(default_tm, knee_muscles):
+    """A divergence (here forced by a tiny max_speed) does not end the command: that sweep's angles from there
+    on are NaN, and the result says at which angle and why (no number is made up)."""
+    sim = solver.compile_model(default_tm, solver.Params.paper(max_speed=1e-4))
+    hams = [km.name for km in knee_muscles if km.name in V.HAMSTRINGS]
+    r = V.hold_sweep(sim, knee_muscles, [0.0, 30.0], hams, 0.05, 200.0)
+    assert r['diverged'] is not None and r['diverged']['at_deg'] == 0.0 and 'max_speed' in r['diverged']['error']
+    assert len(r['torque']) == len(r['length']) == 2
+    assert np.all(np.isnan(r['torque'])) and np.all(np.isnan(r['length']))

@@ -276,20 +276,32 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
     cur = math.degrees(state.q[j])
     res = {k: [] for k in ('length', 'torque', 'torque_static', 'muscle_force', 'muscle_torque', 'tension',
                            'kinetic_energy')}
-    for deg in angles_deg:
+    res['diverged'] = None
+    for a_i, deg in enumerate(angles_deg):
         n_ramp = int(math.ceil(abs(deg - cur) / ramp_speed / dt))
         n_hold = max(1, int(round(settle / dt)))
         n_avg = max(1, n_hold // 10)
-        for i in range(n_ramp):
-            ctrl.joint_target[j] = math.radians(cur + (deg - cur) * (i + 1) / n_ramp)
-            solver.step(sim, state, ctrl)
-        ctrl.joint_target[j] = math.radians(deg)
-        if n_hold > n_avg:
-            solver.step(sim, state, ctrl, n_steps=n_hold - n_avg)
-        tau = 0.0
-        for _ in range(n_avg):
-            solver.step(sim, state, ctrl)
-            tau -= state.joint_lock_torque[j] / n_avg
+        try:
+            for i in range(n_ramp):
+                ctrl.joint_target[j] = math.radians(cur + (deg - cur) * (i + 1) / n_ramp)
+                solver.step(sim, state, ctrl)
+            ctrl.joint_target[j] = math.radians(deg)
+            if n_hold > n_avg:
+                solver.step(sim, state, ctrl, n_steps=n_hold - n_avg)
+            tau = 0.0
+            for _ in range(n_avg):
+                solver.step(sim, state, ctrl)
+                tau -= state.joint_lock_torque[j] / n_avg
+        except solver.DivergenceError as e:
+            # the sweep ends here: this and the later angles are NaN (no number is made up), the JSON says why
+            res['diverged'] = {'at_deg': deg, 'time_s': state.time, 'error': str(e)}
+            nan, nm = float('nan'), len(muscles)
+            for _ in angles_deg[a_i:]:
+                for k in ('torque', 'torque_static', 'kinetic_energy'):
+                    res[k].append(nan)
+                for k in ('length', 'muscle_force', 'muscle_torque', 'tension'):
+                    res[k].append([nan] * nm)
+            break
         cur = deg
         obs = solver.observe(sim, state)
         axis, centre = _knee_frame(sim, state, j)
@@ -383,6 +395,7 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
                             for row in runs['hamstrings']['muscle_torque']],
         'opensim_hamstrings_active': ref['active']['hamstrings']['torque'],
         'kinetic_energy': {k: r['kinetic_energy'] for k, r in runs.items()}}
+    out['diverged'] = {k: r['diverged'] for k, r in runs.items()}      # None, or where a sweep diverged (then NaN on)
     out['targets'] = evaluate(out)
     return out
 
@@ -447,8 +460,8 @@ def evaluate(res: dict) -> dict:
     t['hamstring_force'] = {'pass': ok if si else None, 'min_fraction': MIN_FORCE_FRACTION, 'rows': rows, 'note': note}
     # 4. peak isometric flexion torque within the adult range
     tau = np.asarray(res['torque']['hamstrings_active'])
-    k = int(np.argmax(tau))
-    t['peak_torque'] = {'pass': bool(TORQUE_RANGE[0] <= tau[k] <= TORQUE_RANGE[1]) if si else None,
+    k = int(np.nanargmax(tau)) if np.any(np.isfinite(tau)) else 0        # (NaN: a sweep that diverged)
+    t['peak_torque'] = {'pass': bool(TORQUE_RANGE[0] <= tau[k] <= TORQUE_RANGE[1]) if si else None,  # (NaN: False)
                         'range_Nm': list(TORQUE_RANGE), 'peak_Nm': float(tau[k]), 'at_deg': angles[k], 'note': note}
     # 5. shape: peak at <= 60 deg, then falling with flexion to the deepest angle sampled
     after = tau[k:]

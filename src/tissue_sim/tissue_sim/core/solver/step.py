@@ -37,6 +37,7 @@ CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
 CAUSE_SPEED = 2             # a vertex exceeded max_speed (energy blow-up)
 CAUSE_SKELETON = 3          # non-finite joint acceleration
 CAUSE_ACTIVATION = 4        # an activation outside [0, 1] or not finite (input error: nothing is done)
+CAUSE_LOCK_TARGET = 5       # a locked joint's target not finite (input error: nothing is done)
 CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPEED: 'vertex speed above max_speed (energy blow-up)',
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 
@@ -72,6 +73,10 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             if not (acts[n, m] >= 0.0 and acts[n, m] <= 1.0):      # (NaN fails both)
                 info[1], info[2] = m, CAUSE_ACTIVATION
                 return 0
+    for j in range(lock.shape[0]):
+        if lock[j] and not math.isfinite(target[j]):
+            info[1], info[2] = j, CAUSE_LOCK_TARGET
+            return 0
     swaps = 0
     CK.to_lanes(st.quat, st.pressure, st.cell_energy, st.cell_length, cells, work)   # per-cell state in lane order
     for n in range(n_steps):
@@ -189,6 +194,9 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
         m = int(info[1])
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]; muscle {m} '
                          f'({sim.tissue.muscle_names[m]!r}) has {acts[np.flatnonzero(~((acts[:, m] >= 0) & (acts[:, m] <= 1)))[0], m]}')
+    if info[2] == CAUSE_LOCK_TARGET:
+        raise ValueError(f'joint_target must be finite where joint_lock is set; joint {int(info[1])} '
+                         f'({sim.tissue.joint_names[int(info[1])]!r}) has {target[int(info[1])]}')
     if swaps % 2:
         state.x, state.x_back = state.x_back, state.x
         state.v, state.v_back = state.v_back, state.v
@@ -221,19 +229,28 @@ def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None, n_
 
 
 def joint_lock_of(sim: SimModel, ctrl: Control):
-    """(lock, target) of a Control for advance(): (None, None) when it locks no joint (the step is then the
-    unlocked one); ValueError naming the problem for a bad joint_lock / joint_target."""
-    lk = getattr(ctrl, 'joint_lock', None)
+    """(lock, target) of a Control for advance(): (None, None) when it has no joint_lock; ValueError naming the
+    field for a joint_lock that is not J booleans or a joint_target that is not J numbers (a target that is
+    not finite where locked is refused by advance(): nothing done). Kept to attribute checks: it runs on
+    every step() call."""
+    lk, tg = ctrl.joint_lock, ctrl.joint_target
     if lk is None:
         return None, None
-    lk = np.asarray(lk)
     J = sim.n_joints
-    if lk.shape != (J,) or lk.dtype != np.bool_:
-        raise ValueError(f'joint_lock must be {J} booleans (one per joint), got {lk.dtype} of shape {lk.shape}')
-    if not lk.any():
-        return None, None
-    tg = ctrl.joint_target
-    tg = np.asarray(sim.j_rest if tg is None else tg, np.float64)
-    if tg.shape != (J,) or not np.all(np.isfinite(tg[lk])):
-        raise ValueError(f'joint_target must be {J} joint coordinates [rad], finite where joint_lock is set')
-    return np.ascontiguousarray(lk), np.ascontiguousarray(tg)
+    if not (type(lk) is np.ndarray and lk.dtype is _BOOL and lk.shape == (J,) and lk.flags.c_contiguous):
+        lk = np.ascontiguousarray(lk)
+        if lk.shape != (J,) or lk.dtype != _BOOL:
+            raise ValueError(f'joint_lock must be {J} booleans (one per joint), got {lk.dtype} of shape {lk.shape}')
+    if tg is None:
+        tg = sim.j_rest
+    elif not (type(tg) is np.ndarray and tg.dtype is _F64 and tg.shape == (J,) and tg.flags.c_contiguous):
+        try:
+            tg = np.ascontiguousarray(tg, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f'joint_target must be {J} joint coordinates [rad]') from None
+        if tg.shape != (J,):
+            raise ValueError(f'joint_target must be {J} joint coordinates [rad], got shape {tg.shape}')
+    return lk, tg
+
+
+_BOOL, _F64 = np.dtype(np.bool_), np.dtype(np.float64)
