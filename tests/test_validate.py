@@ -198,11 +198,15 @@ def test_validate_command_on_the_bundled_model(tmp_path, capsys, params):
     for n, d in m.items():
         for mode in ('passive', 'active'):
             L = np.asarray(d[f'{mode}_length'])
-            assert np.all(np.isfinite(L)) and np.all(L > 0.02), (n, mode)
-            assert d[f'{mode}_length_ratio'][0] == 1.0
+            # a sweep that diverged (the physical set's 'others' does on this base) is NaN from that angle on
+            gone = res['diverged'][d['active_set'] if mode == 'active' else 'passive']
+            ok = np.array([gone is None or a < gone['at_deg'] for a in res['angles_deg']])
+            assert np.all(np.isfinite(L[ok])) and np.all(L[ok] > 0.02) and np.all(np.isnan(L[~ok])), (n, mode)
+            assert d[f'{mode}_length_ratio'][0] == 1.0 or not ok[0]
             # the excursion moment arm is -dL/dtheta of the lengths reported (second-order differences)
-            assert d[f'{mode}_moment_arm'] == pytest.approx(list(V.excursion_moment_arm(L, [0, 60, 120])))
-            assert all(f >= 0 for f in d[f'{mode}_force'])
+            assert d[f'{mode}_moment_arm'] == pytest.approx(list(V.excursion_moment_arm(L, [0, 60, 120])), nan_ok=True)
+            assert all(f >= 0 for f, o in zip(d[f'{mode}_force'], ok) if o)
+    assert res['diverged']['passive'] is None and res['diverged']['hamstrings'] is None
     # the fully active hamstrings pull: their cells put a flexing torque on the shank at full extension
     assert res['torque']['hamstrings_only'][0] > 0
     assert max(res['torque']['hamstrings_active']) > max(res['torque']['passive'])
