@@ -14,7 +14,7 @@ from tissue_sim.cli import main
 opensim = pytest.importorskip('opensim', reason='requirements/validation.txt not installed (make test installs it)')
 pytest.importorskip('Pose2Sim', reason='requirements/anatomy.txt not installed (make test installs it)')
 
-from tissue_sim.core import validation as V  # noqa: E402
+from tissue_sim.core import solver, validation as V  # noqa: E402
 
 ANGLES = [0.0, 30.0, 60.0, 90.0, 120.0]
 
@@ -103,18 +103,22 @@ def test_targets_follow_the_data(reference):
     assert len(rows) == 3 * 2 * 4 and all(r['rel_error'] == pytest.approx(0.3) for r in rows)
 
 
+def _locked_hold(sim, state, ctrl, j, n):
+    """The knee ramped to 10 deg at 100 deg/s by the solver's joint lock, then held (n steps in all)."""
+    ctrl.joint_lock[j] = True
+    for i in range(n):
+        ctrl.joint_target[j] = math.radians(min(10.0, 0.1 * (i + 1)))
+        solver.step(sim, state, ctrl)
+
+
 def test_per_muscle_forces_add_up_to_the_tissue_force(default_tm):
-    """The per-muscle forces (the solver's kernel on a layout with every other cell at zero stiffness) are
-    exact parts of the whole: muscles + fat = all cells, on a held, contracting, deformed state."""
-    from tissue_sim.core import solver
+    """The per-muscle forces (the solver's reference force definition on the model with every other cell at
+    zero stiffness) are exact parts of the whole: muscles + fat = all cells, on a held, contracting, deformed
+    state."""
     sim = solver.compile_model(default_tm, solver.Params.paper())
     state, ctrl = solver.make_state(sim), solver.make_control(sim)
     ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
-    q = state.q.copy()
-    for i in range(100):                    # the knee moved to 10 deg at 100 deg/s, held at each step
-        q[list(default_tm.joint_names).index(V.KNEE_JOINT)] = math.radians(0.1 * (i + 1))
-        solver.step(sim, state, ctrl)
-        solver.set_joint_positions(sim, state, q)
+    _locked_hold(sim, state, ctrl, list(default_tm.joint_names).index(V.KNEE_JOINT), 100)
     forces = V._Forces(sim)
     full = forces(state, ctrl.activation)
     parts = [forces(state, ctrl.activation, m) for m in range(-1, sim.n_muscles)]     # -1: the fat cells
@@ -123,30 +127,30 @@ def test_per_muscle_forces_add_up_to_the_tissue_force(default_tm):
 
 
 def test_held_knee_does_not_move_its_bones(default_tm):
-    """The hold: on held_model the bones below the knee stay still within a step (bone-attached vertices at
-    rest, so the deformation damping puts no force on them) and the torque the solver's own step sums
-    equals the static torque the validation reports; putting the joint back after each step alone is not
-    a hold (the attached vertices carry the within-step motion: 13 % of the torque here)."""
-    from tissue_sim.core import solver
-    plain = solver.compile_model(default_tm, solver.Params.paper())
+    """The hold: with the solver's joint lock the bones below the knee stay still (bone-attached vertices at
+    rest, so the deformation damping puts no force on them) and the lock's torque is minus the static torque
+    of the cells the validation reports (per-muscle forces); putting the joint back after each step
+    (set_joint_positions) is not a hold: the attached vertices carry the within-step motion."""
+    sim = solver.compile_model(default_tm, solver.Params.physical())       # (settles within 0.6 s)
     j = list(default_tm.joint_names).index(V.KNEE_JOINT)
-    out = {}
-    for name, sim in (('plain', plain), ('held', V.held_model(plain, j))):
-        state, ctrl = solver.make_state(sim), solver.make_control(sim)
-        ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
-        q = state.q.copy()
-        for i in range(300):                # to 10 deg at 100 deg/s, then held
-            q[j] = math.radians(min(10.0, 0.1 * (i + 1)))
-            solver.step(sim, state, ctrl)
-            solver.set_joint_positions(sim, state, q)
-        att = sim.att_idx[V._below_knee(sim, j)]
-        axis, centre = V._knee_frame(sim, state, j)
-        out[name] = (V._torque(state.x[att], state.f[att], axis, centre),
-                     V._torque(state.x[att], V._Forces(sim)(state, ctrl.activation)[att], axis, centre),
-                     float(np.abs(state.v[att]).max()))
-    solver_tau, static_tau, speed = out['held']
-    assert speed < 1e-6 and solver_tau == pytest.approx(static_tau, rel=0.01)
-    assert out['plain'][2] > 1e-2 and abs(out['plain'][0] / out['plain'][1] - 1) > 0.05
+    att = sim.att_idx[V._below_knee(sim, j)]
+    state, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+    _locked_hold(sim, state, ctrl, j, 600)
+    axis, centre = V._knee_frame(sim, state, j)
+    static_tau = V._torque(state.x[att], V._Forces(sim)(state, ctrl.activation)[att], axis, centre)
+    assert state.q[j] == math.radians(10.0) and state.qd[j] == 0.0
+    assert float(np.abs(state.v[att]).max()) < 1e-9
+    assert abs(static_tau) > 5.0 and -state.joint_lock_torque[j] == pytest.approx(static_tau, rel=0.01)
+    # the old way: step freely, then put the joint back
+    plain, ctrl2 = solver.make_state(sim), solver.make_control(sim)
+    ctrl2.activation[:] = ctrl.activation
+    q = plain.q.copy()
+    for i in range(600):
+        q[j] = math.radians(min(10.0, 0.1 * (i + 1)))
+        solver.step(sim, plain, ctrl2)
+        solver.set_joint_positions(sim, plain, q)
+    assert float(np.abs(plain.v[att]).max()) > 1e-2
 
 
 @pytest.mark.parametrize('argv, msg', [
@@ -194,11 +198,15 @@ def test_validate_command_on_the_bundled_model(tmp_path, capsys, params):
     for n, d in m.items():
         for mode in ('passive', 'active'):
             L = np.asarray(d[f'{mode}_length'])
-            assert np.all(np.isfinite(L)) and np.all(L > 0.02), (n, mode)
-            assert d[f'{mode}_length_ratio'][0] == 1.0
+            # a sweep that diverged (the physical set's 'others' does on this base) is NaN from that angle on
+            gone = res['diverged'][d['active_set'] if mode == 'active' else 'passive']
+            ok = np.array([gone is None or a < gone['at_deg'] for a in res['angles_deg']])
+            assert np.all(np.isfinite(L[ok])) and np.all(L[ok] > 0.02) and np.all(np.isnan(L[~ok])), (n, mode)
+            assert d[f'{mode}_length_ratio'][0] == 1.0 or not ok[0]
             # the excursion moment arm is -dL/dtheta of the lengths reported (second-order differences)
-            assert d[f'{mode}_moment_arm'] == pytest.approx(list(V.excursion_moment_arm(L, [0, 60, 120])))
-            assert all(f >= 0 for f in d[f'{mode}_force'])
+            assert d[f'{mode}_moment_arm'] == pytest.approx(list(V.excursion_moment_arm(L, [0, 60, 120])), nan_ok=True)
+            assert all(f >= 0 for f, o in zip(d[f'{mode}_force'], ok) if o)
+    assert res['diverged']['passive'] is None and res['diverged']['hamstrings'] is None
     # the fully active hamstrings pull: their cells put a flexing torque on the shank at full extension
     assert res['torque']['hamstrings_only'][0] > 0
     assert max(res['torque']['hamstrings_active']) > max(res['torque']['passive'])
@@ -211,3 +219,14 @@ def test_validate_command_on_the_bundled_model(tmp_path, capsys, params):
     else:           # the paper set is dimensionless: no comparison in N m or of Fmax
         assert pt['pass'] is None and res['targets']['hamstring_force']['pass'] is None
     assert res['targets']['hamstring_moment_arms']['angles_not_sampled'] == [30.0, 90.0]
+
+
+def test_a_sweep_that_diverges_ends_in_nan_and_says_where(default_tm, knee_muscles):
+    """A divergence (here forced by a tiny max_speed) does not end the command: that sweep's angles from there
+    on are NaN, and the result says at which angle and why (no number is made up)."""
+    sim = solver.compile_model(default_tm, solver.Params.paper(max_speed=1e-4))
+    hams = [km.name for km in knee_muscles if km.name in V.HAMSTRINGS]
+    r = V.hold_sweep(sim, knee_muscles, [0.0, 30.0], hams, 0.05, 200.0)
+    assert r['diverged'] is not None and r['diverged']['at_deg'] == 0.0 and 'max_speed' in r['diverged']['error']
+    assert len(r['torque']) == len(r['length']) == 2
+    assert np.all(np.isnan(r['torque'])) and np.all(np.isnan(r['length']))

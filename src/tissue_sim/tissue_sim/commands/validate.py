@@ -86,6 +86,9 @@ def _print(con, res, quiet):
         for r in V.torque_rows(res):
             t.add_row(*r)
         con.print(t)
+    for kind, d in res.get('diverged', {}).items():
+        if d:
+            con.print(f'[red]the {kind} sweep diverged at {d["at_deg"]:g}° ({d["error"]}): NaN from there on[/]')
     tg = res['targets']
     mark = {True: '[green]PASS[/]', False: '[red]FAIL[/]', None: '[yellow]n/a[/]'}
     ms = tg['moment_arm_signs']

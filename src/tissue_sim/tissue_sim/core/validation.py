@@ -201,32 +201,28 @@ def _torque(x, f, axis, centre) -> float:
 
 class _Forces:
     """Static forces (zero velocity, no damping) of all cells, or of one muscle's cells only (muscle -1:
-    the fat), on a state: the solver's own kernel (kernels.cell_forces) on a copy of the cell layout in
-    which every other cell has zero stiffness. Read-only use of the solver's internals."""
+    the fat), on a state: the solver's readable force definition (``reference.cell_forces``, exact polar
+    rotation) on the model with every other cell at zero stiffness (a masked cell then adds exactly nothing:
+    the parts sum to the whole). Read-only use of the solver."""
 
     def __init__(self, sim):
-        from tissue_sim.core.solver import kernels as K
-        self.K, self.sim = K, sim
-        self._cells = {None: sim.cell_blocks}
+        from tissue_sim.core.solver import reference
+        self.R, self.sim, self.pad = reference, sim, reference.padded(sim)
+        self._cells = {None: sim}
 
     def cells(self, muscle):
         if muscle not in self._cells:
             s = self.sim
             keep = (s.cell_muscle == muscle).astype(float)
-            self._cells[muscle] = self.K.pack_cells(s.off, s.cv, s.X0, s.cell_muscle, s.k * keep, s.k_active * keep,
-                                                    s.damp_b * 0.0, s.k_volume * keep, s.q_tr, s.q_ff,
-                                                    s.rest_length, s.fibre, s.Qinv)
+            self._cells[muscle] = dataclasses.replace(s, k=s.k * keep, k_active=s.k_active * keep,
+                                                      k_volume=s.k_volume * keep, damp_b=s.damp_b * keep)
         return self._cells[muscle]
 
     def __call__(self, state, act, muscle=None) -> np.ndarray:
-        s, K = self.sim, self.K
-        cells = self.cells(muscle)
-        f = np.zeros_like(state.x)
-        C = s.n_cells
+        s = self.sim
         # (a masked cell has no volume stiffness, so its pressure does not act; vol_gain 0: none accumulates)
-        K.cell_forces(state.x, np.zeros_like(state.x), f, state.quat.copy(), cells, state.lam.copy(),
-                      np.asarray(act, float), s.params.volume_mode == 'actual', 30, np.zeros(C),
-                      state.pressure.copy(), 0.0, K.cell_work(cells), np.zeros(C))
+        f, *_ = self.R.cell_forces(self.cells(muscle), self.pad, state.x, np.zeros_like(state.x), state.lam.copy(),
+                                   np.asarray(act, float), state.pressure.copy(), 0.0, s.params.volume_mode == 'actual')
         return f
 
 
@@ -234,10 +230,10 @@ def _active_tension(sim, state, act) -> np.ndarray:
     """(M,) [N] the active tension of each muscle (physical set; 0 without specific_tension): per slice
     gap the sum over its cells of T = a k_a n/4 max(l − lam L, 0) (the kernel's formula, docs/solver.md),
     the median over the muscle's gaps (cells in series carry the same force)."""
-    from tissue_sim.core.solver import kernels as K
+    from tissue_sim.core.solver.measures import cell_axial_lengths
     tm = sim.tissue
     alen = np.empty(sim.n_cells)
-    K.cell_axial_lengths(state.x, sim.off, sim.cv, alen)
+    cell_axial_lengths(state.x, sim.off, sim.cv, alen)
     n = np.diff(sim.off)
     mus = sim.cell_muscle
     out = np.zeros(sim.n_muscles)
@@ -251,64 +247,67 @@ def _active_tension(sim, state, act) -> np.ndarray:
     return out
 
 
-HOLD_INERTIA_SCALE = 1e9
-
-
-def held_model(sim, j: int):
-    """The compiled model with the segments that joint j moves made HOLD_INERTIA_SCALE times harder to
-    turn (their inertia about their centres of mass; masses unchanged, so gravity torques do not grow):
-    the tissue's torque then moves the knee by ~1e-10 rad per step. Putting the joint back after a step
-    alone is not a hold: the bones would move within the step and the bone-attached vertices carry that
-    velocity (integrate() gives them (new - old)/h), which the deformation damping turns into a steady
-    force on the tissue (physical set, hamstrings active, 30 deg: the settled torque was 79.1 N m
-    instead of 73.4)."""
-    scale = np.where(sim.anc[j], HOLD_INERTIA_SCALE, 1.0)
-    inertia = sim.seg_inertia * scale[:, None, None]
-    inertia.flags.writeable = False
-    return dataclasses.replace(sim, seg_inertia=inertia, cache={})
-
-
 def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float, ramp_speed: float,
                progress=None) -> dict:
     """Hold the knee at each angle in turn (ascending; the angle ramps at ramp_speed [deg/s] from the
     previous one, then is held for settle [s]), with the muscles named in ``active`` at activation 1
     (the others 0), and measure the settled state.
 
-    The knee is held on the solver's public API: the model's shank and foot are made immovable by the
-    tissue (``held_model``) and after every step the joint is put at its target with zero velocity
-    (``set_joint_positions``), so the tissue moves and the bones do not. Returns per
-    angle: muscle lengths (all knee muscles) [m], the tissue's torque about the knee axis on the bones
-    below it [N m] (the torque the hold must resist, positive = flexing: the forces of every cell on the
-    bone-attached vertices below the knee, as kernels.skeleton_step sums them), per muscle the force
-    its own cells put on those bones [N] (magnitude of the net force), their torque [N m] and the
-    active tension [N] (physical set), the kinetic energy of the free tissue at the end [J]."""
+    The knee is held by the solver's joint lock (``Control.joint_lock`` / ``joint_target``, docs/solver.md
+    "Joint lock"): inside every sub-step the knee is put on its target (qd = 0 in the hold), the tissue
+    moves and the bones do not. Returns per angle: muscle lengths (all knee muscles) [m]; the isometric
+    knee torque [N m] (positive = flexing): minus the torque the lock applies (``joint_lock_torque``), mean
+    over the last 10 % of the hold; the same torque from the static forces of every cell on the
+    bone-attached vertices below the knee (``torque_static``, zero velocity: no damping); per muscle the
+    force its own cells put on those bones [N] (magnitude of the net force), their torque [N m] and the
+    active tension [N] (physical set); the kinetic energy of the free tissue at the end [J]."""
     from tissue_sim.core import solver
     j = list(sim.tissue.joint_names).index(KNEE_JOINT)
-    sim = held_model(sim, j)
     state = solver.make_state(sim)
     ctrl = solver.make_control(sim)
+    ctrl.joint_lock[j] = True
+    ctrl.joint_target[j] = state.q[j]
     for km in muscles:
         if km.name in active:
             ctrl.activation[km.index] = 1.0
     forces = _Forces(sim)
-    below = _below_knee(sim, j)
-    att = sim.att_idx[below]
+    att = sim.att_idx[_below_knee(sim, j)]
     dt = sim.params.dt
-    q = state.q.copy()
-    cur = 0.0
-    res = {k: [] for k in ('length', 'torque', 'muscle_force', 'muscle_torque', 'tension', 'kinetic_energy')}
-    for deg in angles_deg:
+    cur = math.degrees(state.q[j])
+    res = {k: [] for k in ('length', 'torque', 'torque_static', 'muscle_force', 'muscle_torque', 'tension',
+                           'kinetic_energy')}
+    res['diverged'] = None
+    for a_i, deg in enumerate(angles_deg):
         n_ramp = int(math.ceil(abs(deg - cur) / ramp_speed / dt))
         n_hold = max(1, int(round(settle / dt)))
-        for i in range(n_ramp + n_hold):
-            q[j] = math.radians(cur + (deg - cur) * min(1.0, (i + 1) / n_ramp) if n_ramp else deg)
-            solver.step(sim, state, ctrl)
-            solver.set_joint_positions(sim, state, q)
+        n_avg = max(1, n_hold // 10)
+        try:
+            for i in range(n_ramp):
+                ctrl.joint_target[j] = math.radians(cur + (deg - cur) * (i + 1) / n_ramp)
+                solver.step(sim, state, ctrl)
+            ctrl.joint_target[j] = math.radians(deg)
+            if n_hold > n_avg:
+                solver.step(sim, state, ctrl, n_steps=n_hold - n_avg)
+            tau = 0.0
+            for _ in range(n_avg):
+                solver.step(sim, state, ctrl)
+                tau -= state.joint_lock_torque[j] / n_avg
+        except solver.DivergenceError as e:
+            # the sweep ends here: this and the later angles are NaN (no number is made up), the JSON says why
+            res['diverged'] = {'at_deg': deg, 'time_s': state.time, 'error': str(e)}
+            nan, nm = float('nan'), len(muscles)
+            for _ in angles_deg[a_i:]:
+                for k in ('torque', 'torque_static', 'kinetic_energy'):
+                    res[k].append(nan)
+                for k in ('length', 'muscle_force', 'muscle_torque', 'tension'):
+                    res[k].append([nan] * nm)
+            break
         cur = deg
         obs = solver.observe(sim, state)
         axis, centre = _knee_frame(sim, state, j)
         x = state.x[att]
-        res['torque'].append(_torque(x, forces(state, ctrl.activation)[att], axis, centre))
+        res['torque'].append(float(tau))
+        res['torque_static'].append(_torque(x, forces(state, ctrl.activation)[att], axis, centre))
         mf, mt = [], []
         for km in muscles:
             fm = forces(state, ctrl.activation, km.index)[att]
@@ -319,7 +318,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
         ten = _active_tension(sim, state, ctrl.activation)
         res['tension'].append([float(ten[km.index]) for km in muscles])
         res['length'].append([float(obs['muscle_lengths'][km.index]) for km in muscles])
-        res['kinetic_energy'].append(float(state.kinetic_energy))
+        res['kinetic_energy'].append(float(obs['kinetic_energy']))
         if progress:
             progress(deg)
     return res
@@ -391,10 +390,12 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
     out['torque'] = {
         'passive': runs['passive']['torque'],
         'hamstrings_active': runs['hamstrings']['torque'],
+        'hamstrings_active_static': runs['hamstrings']['torque_static'],
         'hamstrings_only': [float(sum(row[i] for i, km in enumerate(muscles) if km.name in hams))
                             for row in runs['hamstrings']['muscle_torque']],
         'opensim_hamstrings_active': ref['active']['hamstrings']['torque'],
         'kinetic_energy': {k: r['kinetic_energy'] for k, r in runs.items()}}
+    out['diverged'] = {k: r['diverged'] for k, r in runs.items()}      # None, or where a sweep diverged (then NaN on)
     out['targets'] = evaluate(out)
     return out
 
@@ -459,8 +460,8 @@ def evaluate(res: dict) -> dict:
     t['hamstring_force'] = {'pass': ok if si else None, 'min_fraction': MIN_FORCE_FRACTION, 'rows': rows, 'note': note}
     # 4. peak isometric flexion torque within the adult range
     tau = np.asarray(res['torque']['hamstrings_active'])
-    k = int(np.argmax(tau))
-    t['peak_torque'] = {'pass': bool(TORQUE_RANGE[0] <= tau[k] <= TORQUE_RANGE[1]) if si else None,
+    k = int(np.nanargmax(tau)) if np.any(np.isfinite(tau)) else 0        # (NaN: a sweep that diverged)
+    t['peak_torque'] = {'pass': bool(TORQUE_RANGE[0] <= tau[k] <= TORQUE_RANGE[1]) if si else None,  # (NaN: False)
                         'range_Nm': list(TORQUE_RANGE), 'peak_Nm': float(tau[k]), 'at_deg': angles[k], 'note': note}
     # 5. shape: peak at <= 60 deg, then falling with flexion to the deepest angle sampled
     after = tau[k:]
@@ -509,11 +510,13 @@ TABLE_HEADER = ['muscle', 'deg', 'L/L0 pas', 'L/L0 act', 'L/L0 osim', 'r pas mm'
 
 def torque_rows(res: dict) -> list:
     t = res['torque']
-    return [[f'{a:g}', f'{t["hamstrings_active"][i]:.1f}', f'{t["hamstrings_only"][i]:.1f}', f'{t["passive"][i]:.1f}',
-             f'{t["opensim_hamstrings_active"][i]:.1f}'] for i, a in enumerate(res['angles_deg'])]
+    return [[f'{a:g}', f'{t["hamstrings_active"][i]:.1f}', f'{t["hamstrings_active_static"][i]:.1f}',
+             f'{t["hamstrings_only"][i]:.1f}', f'{t["passive"][i]:.1f}', f'{t["opensim_hamstrings_active"][i]:.1f}']
+            for i, a in enumerate(res['angles_deg'])]
 
 
-TORQUE_HEADER = ['deg', 'torque (hamstrings active) N m', 'hamstrings\' own cells N m', 'passive N m', 'OpenSim N m']
+TORQUE_HEADER = ['deg', 'torque (hamstrings active, -lock) N m', 'all cells, static N m', 'hamstrings\' own cells N m',
+                 'passive N m', 'OpenSim N m']
 
 
 def plot(res: dict, path) -> None:
@@ -549,7 +552,7 @@ def plot(res: dict, path) -> None:
     ax = axs[0, 2]
     if res['params'] == 'physical':
         ax.axhspan(*TORQUE_RANGE, color='0.9', label='adult peak isometric flexion (dynamometry)')
-    ax.plot(ang, t['hamstrings_active'], 'o-', ms=3, label='ours: tissue torque on the shank, hamstrings active')
+    ax.plot(ang, t['hamstrings_active'], 'o-', ms=3, label='ours: isometric torque (minus the knee lock\'s), hamstrings active')
     ax.plot(ang, t['hamstrings_only'], 's--', ms=3, label="ours: the hamstrings' own cells")
     ax.plot(ang, t['passive'], 'x:', label='ours: passive')
     ax.plot(ang, t['opensim_hamstrings_active'], 'k-', label='OpenSim (Rajagopal 2016), hamstrings active')

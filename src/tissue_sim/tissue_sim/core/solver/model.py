@@ -142,6 +142,8 @@ class State:
     cell_length: np.ndarray = None  # (C,) [m] axial length of each cell (ring-centroid distance) at the last force evaluation
     muscle_length: np.ndarray = None    # (M,) [m] muscle lengths at the last force evaluation (force-velocity on; -1: not yet)
     muscle_velocity: np.ndarray = None  # (M,) [m/s] lengthening velocity of each muscle, low-pass filtered (force-velocity on)
+    joint_lock_torque: np.ndarray = None    # (J,) [N m] torque each joint lock applied about its axis in the last sub-step
+                                    # (+ about the joint axis, the direction q grows; 0 where not locked)
     step: int = 0
     time: float = 0.0               # [s]
     x_back: np.ndarray = None       # double buffers (internal)
@@ -157,7 +159,11 @@ class State:
 
 @dataclasses.dataclass(eq=False)
 class Control:
+    """What the user commands each step (mjData.ctrl): muscle activations and, optionally, joint locks."""
     activation: np.ndarray          # (M,) float64 in [0, 1]
+    joint_lock: np.ndarray = None   # (J,) bool: hold hinge j at joint_target[j] (q = target, qd = 0 for a steady
+                                    # target; the torque it takes: State.joint_lock_torque). None: no lock
+    joint_target: np.ndarray = None     # (J,) [rad] the locked joints' coordinates (None: their rest coordinates)
 
 
 # ---------------------------------------------------------------------------------------- compile
@@ -401,7 +407,7 @@ def make_state(sim: SimModel) -> State:
                qd=np.zeros(J), seg_R=np.tile(np.eye(3), (S, 1, 1)), seg_t=np.zeros((S, 3)),
                lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
                cell_length=np.zeros(C), muscle_length=np.full(max(sim.n_muscles, 0), -1.0),
-               muscle_velocity=np.zeros(max(sim.n_muscles, 0)),
+               muscle_velocity=np.zeros(max(sim.n_muscles, 0)), joint_lock_torque=np.zeros(J),
                x_back=np.empty((V, 3)), v_back=np.empty((V, 3)))
     return st
 
@@ -435,7 +441,8 @@ def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
 
 
 def make_control(sim: SimModel) -> Control:
-    return Control(activation=np.zeros(sim.n_muscles))
+    return Control(activation=np.zeros(sim.n_muscles), joint_lock=np.zeros(sim.n_joints, bool),
+                   joint_target=sim.j_rest.copy())
 
 
 def muscle_indices(sim: SimModel, name: str) -> list:

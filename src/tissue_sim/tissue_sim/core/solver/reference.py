@@ -87,8 +87,10 @@ def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_a
     return out, energy, ln, R
 
 
-def reference_step(sim: SimModel, state: State, activation, dt: float | None = None) -> State:
-    """One step of dt (None: params.dt) in n_substeps sub-steps, in place, as step() (no divergence check)."""
+def reference_step(sim: SimModel, state: State, activation, dt: float | None = None, joint_lock=None,
+                   joint_target=None) -> State:
+    """One step of dt (None: params.dt) in n_substeps sub-steps, in place, as step() (no divergence check).
+    joint_lock (J,) bool, joint_target (J,) [rad]: Control's joint lock (None: no joint locked)."""
     p, pad = sim.params, padded(sim)
     dt = p.dt if dt is None else float(dt)
     n_sub = sim.n_substeps if dt == p.dt else substeps_for(p, sim.omega_max, sim.damp_rate, dt)
@@ -96,6 +98,11 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     a = np.asarray(activation, np.float64)
     vol_gain = h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0
     inv_den, free = sim.inv_denominator(h), sim.inv_mass > 0
+    J = sim.n_joints
+    lock = np.zeros(J, bool) if joint_lock is None else np.asarray(joint_lock, bool)
+    q_target = sim.j_rest.copy() if joint_target is None else np.asarray(joint_target, np.float64)
+    if state.joint_lock_torque is None:
+        state.joint_lock_torque = np.zeros(J)
     for _ in range(n_sub):
         # 1. muscle tension: contraction state towards 1 - a (1 - min_stretch), the tension's activation x
         # the force-velocity factor of the last measured muscle velocity, every cell's force
@@ -115,10 +122,11 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.muscle_velocity[seen] += h / (p.fv_filter_time + h) * (
                 (length - state.muscle_length)[seen] / h - state.muscle_velocity[seen])
             state.muscle_length[:] = length
-        # 2. skeleton: joint torques from the forces on the bone-attached vertices, joint dynamics, poses
+        # 2. skeleton: joint torques from the forces on the bone-attached vertices, joint dynamics (a locked
+        # hinge is driven to its target, its torque in state.joint_lock_torque), poses
         SK.skeleton_step(h, state.q, state.qd, f, state.x, sim.skeleton, sim.att_idx, sim.att_seg,
                          p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
-                         np.zeros((max(sim.n_joints, 1), 9)))
+                         np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque)
         # 3. soft tissue: symplectic Euler for the free vertices, the bone-attached ones follow their segment
         state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
         state.x[free] += h * state.v[free]

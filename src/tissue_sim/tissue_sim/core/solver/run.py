@@ -41,7 +41,10 @@ def observe(sim: SimModel, state: State) -> dict:
     muscle_volumes (M,) [m^3] (sum of its cells' volumes, divergence theorem on the triangulated
     prism surface), muscle_stretch (M,) (contraction state lambda), kinetic_energy [J] (free
     vertices), elastic_energy [J] (sum 0.5 k |G - x|^2 at the last force evaluation),
-    skeleton_energy [J] (segments' kinetic + gravitational potential),
+    skeleton_energy [J] (segments' kinetic + gravitational potential), joint_lock_torque (J,) [N m] (the
+    torque each joint lock applied in the last sub-step about the joint axis, + in the direction q grows; in
+    a static hold it balances the tissue's and gravity's torque: the isometric joint torque is its negative;
+    0 where no lock),
     segment_poses (S, 7) x y z qx qy qz qw (the transform from rest to current pose), time [s], step."""
     M = sim.n_muscles
     vol = cell_volumes(sim, state.x)
@@ -53,6 +56,8 @@ def observe(sim: SimModel, state: State) -> dict:
     ml = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)
     ke = kinetic_energy(sim, state)
     return dict(time=state.time, skeleton_energy=skeleton_energy(sim, state), step=state.step, joint_positions=state.q.copy(), joint_velocities=state.qd.copy(),
+                joint_lock_torque=(state.joint_lock_torque.copy() if state.joint_lock_torque is not None
+                                   else np.zeros(sim.n_joints)),
                 muscle_lengths=ml, muscle_volumes=mv, muscle_stretch=state.lam.copy(), kinetic_energy=ke,
                 elastic_energy=float(state.cell_energy.sum()),
                 segment_poses=np.concatenate([state.seg_t, _quat_from_mat(state.seg_R)], axis=1))

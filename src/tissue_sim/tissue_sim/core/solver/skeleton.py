@@ -55,14 +55,22 @@ def _cross(a, b, out):
 
 
 @njit(cache=True)
-def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work):
+def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work,
+                  lock, target, lock_tau):
     """One step of the skeleton (a tree of rigid segments, hinge or fixed joints, fixed root).
 
     tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
     tissue's reaction on the bone). Joint-space mass matrix M from segment masses/inertias by
     Jacobians; bias (Coriolis, centrifugal, gravity) by recursive Newton-Euler with qdd = 0;
     range limits as an implicit stiff, critically damped end stop (no jolt). Symplectic Euler:
-    qd += h qdd, q += h qd; then forward kinematics. Returns False if qdd is not finite."""
+    qd += h qdd, q += h qd; then forward kinematics. Returns False if qdd is not finite.
+
+    Joint lock (docs/solver.md "Joint lock"): a hinge j with lock[j] is driven to target[j] within the step
+    (its qdd is prescribed so that qd = (target - q) / h and q = target after it: a steady target holds it
+    with qd = 0); the other joints move under the lock's reaction. lock_tau[j] [N m] is the torque the lock
+    applies about the joint axis (positive about +axis, the direction q grows): tau_lock = M_j. qdd - rhs_j,
+    i.e. in a static hold minus the tissue's torque plus the gravity torque on the segments below. 0 for a
+    joint not locked. work: (J, 8 + J) scratch."""
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_inertia, j_parent, j_child, j_type, j_axis, j_centre, \
         j_rest, j_range, anc, gravity = sk
     S = seg_mass.shape[0]
@@ -196,7 +204,33 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
                     for r in range(3):
                         acc += a[j, r] * (Iw[s, r, 0] * a[k, 0] + Iw[s, r, 1] * a[k, 1] + Iw[s, r, 2] * a[k, 2])
             M[j, k] = acc
+    # --- joint lock (begin): save the locked rows (the lock torque is M_j. qdd - rhs_j), prescribe their qdd
+    n_lock = 0
     for j in range(J):
+        lock_tau[j] = 0.0
+        if lock[j] and j_type[j] == 1:
+            n_lock += 1
+    if n_lock > 0:
+        row = np.empty((J, J + 1))
+        for j in range(J):
+            if lock[j] and j_type[j] == 1:
+                for k in range(J):
+                    row[j, k] = M[j, k]
+                row[j, J] = rhs[j]
+        for j in range(J):
+            if lock[j] and j_type[j] == 1:
+                qddl = ((target[j] - q[j]) / h - qd[j]) / h
+                for k in range(J):
+                    if k != j:
+                        rhs[k] -= M[k, j] * qddl
+                        M[k, j] = 0.0
+                        M[j, k] = 0.0
+                M[j, j] = 1.0
+                rhs[j] = qddl
+    # --- joint lock (end)
+    for j in range(J):
+        if lock[j] and j_type[j] == 1:           # locked: prescribed above (no damping, no end stop)
+            continue
         if j_type[j] != 1:                       # fixed joint: no motion
             for k in range(J):
                 M[j, k] = 0.0
@@ -247,5 +281,14 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
         if j_type[j] == 1:
             qd[j] += h * qdd[j]
             q[j] += h * qd[j]
+    if n_lock > 0:                               # --- joint lock (begin): its torque; the coordinate exactly on target
+        for j in range(J):
+            if lock[j] and j_type[j] == 1:
+                acc = -row[j, J]
+                for k in range(J):
+                    acc += row[j, k] * qdd[k]
+                lock_tau[j] = acc
+                q[j] = target[j]
+    # --- joint lock (end)
     forward_kinematics(q, sk, seg_R, seg_t)
     return True

@@ -37,11 +37,12 @@ CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
 CAUSE_SPEED = 2             # a vertex exceeded max_speed (energy blow-up)
 CAUSE_SKELETON = 3          # non-finite joint acceleration
 CAUSE_ACTIVATION = 4        # an activation outside [0, 1] or not finite (input error: nothing is done)
+CAUSE_LOCK_TARGET = 5       # a locked joint's target not finite (input error: nothing is done)
 CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPEED: 'vertex speed above max_speed (energy blow-up)',
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
-                                'muscle_length muscle_velocity')       # the State's arrays (xb, vb: back buffers)
+                                'muscle_length muscle_velocity joint_lock_torque')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha')
@@ -49,21 +50,22 @@ Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mle
 
 
 @njit(cache=True)
-def advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
+def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
-    same for every step), in place. Positions and velocities alternate between (x, v) and the back buffers
+    same for every step) and the joint lock (lock (J,) bool, target (J,) [rad]: Control.joint_lock/joint_target),
+    in place. Positions and velocities alternate between (x, v) and the back buffers
     (xb, vb); returns how many swaps happened. On failure info = (step, cell, cause) and the state is left
     at the last good sub-step (an activation outside [0, 1] or not finite: nothing is done,
     info = (-1, muscle, CAUSE_ACTIVATION)).
 
     The arguments come as plain tuples in the order of the named tuples (numba's dispatcher types a plain
     tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here."""
-    return _advance(n_steps, n_sub, h, acts, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk),
+    return _advance(n_steps, n_sub, h, acts, lock, target, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk),
                     Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]), info)
 
 
 @njit(cache=True)
-def _advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info):
+def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
     work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
@@ -71,6 +73,10 @@ def _advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info)
             if not (acts[n, m] >= 0.0 and acts[n, m] <= 1.0):      # (NaN fails both)
                 info[1], info[2] = m, CAUSE_ACTIVATION
                 return 0
+    for j in range(lock.shape[0]):
+        if lock[j] and not math.isfinite(target[j]):
+            info[1], info[2] = j, CAUSE_LOCK_TARGET
+            return 0
     swaps = 0
     CK.to_lanes(st.quat, st.pressure, st.cell_energy, st.cell_length, cells, work)   # per-cell state in lane order
     for n in range(n_steps):
@@ -93,7 +99,7 @@ def _advance(n_steps, n_sub, h, acts, st, cells, tissue, sk, num, scratch, info)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
             ok = SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
-                                  st.seg_R, st.seg_t, scratch.skel_work)
+                                  st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
             fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
                                 st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
@@ -118,6 +124,7 @@ class Workspace:
     def __init__(self, sim: SimModel):
         self.sim = sim
         self._by_h = {}
+        self.no_lock = (np.zeros(sim.n_joints, np.bool_), np.zeros(sim.n_joints))    # (lock, target): no joint locked
 
     def arrays(self, h: float):
         """(cells, tissue, skeleton, numbers, scratch) for sub-step length h, as named tuples."""
@@ -154,14 +161,16 @@ class Workspace:
                       p.max_contraction_velocity > 0 and p.specific_tension > 0, float(p.fv_max_lengthening),
                       h / (p.fv_filter_time + h))
         M, J = sim.n_muscles, sim.n_joints
-        scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 9)), np.empty(J), np.empty(J), np.empty(M),
+        scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M))
         return cells, tissue, sim.skeleton, num, scratch
 
 
-def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int | None = None) -> None:
+def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int | None = None, lock=None,
+         target=None) -> None:
     """Advance state in place by n_steps (None: len(acts)) steps of dt under per-step activations
-    acts (n_steps, M), or (1, M): the same for every step. Raises ValueError for an activation outside
+    acts (n_steps, M), or (1, M): the same for every step, and the joint lock (lock (J,) bool, target (J,)
+    [rad]; None: no joint locked). Raises ValueError for an activation outside
     [0, 1] or not finite (nothing done), DivergenceError (state left at the last good sub-step)."""
     n_steps = acts.shape[0] if n_steps is None else n_steps
     if acts.ndim != 2 or acts.shape[1] != sim.n_muscles or acts.shape[0] not in (1, n_steps):
@@ -173,14 +182,21 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
     ws = state.workspace
     if ws is None or ws.sim is not sim:
         ws = state.workspace = Workspace(sim)
+    if state.joint_lock_torque is None:
+        state.joint_lock_torque = np.zeros(sim.n_joints)
     st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
           state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
-          state.muscle_velocity)                                              # (the fields of Arrays)
-    swaps = advance(n_steps, n_sub, h, acts, st, *ws.plain(h), info)
+          state.muscle_velocity, state.joint_lock_torque)                     # (the fields of Arrays)
+    if lock is None:
+        lock, target = ws.no_lock
+    swaps = advance(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)
     if info[2] == CAUSE_ACTIVATION:
         m = int(info[1])
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]; muscle {m} '
                          f'({sim.tissue.muscle_names[m]!r}) has {acts[np.flatnonzero(~((acts[:, m] >= 0) & (acts[:, m] <= 1)))[0], m]}')
+    if info[2] == CAUSE_LOCK_TARGET:
+        raise ValueError(f'joint_target must be finite where joint_lock is set; joint {int(info[1])} '
+                         f'({sim.tissue.joint_names[int(info[1])]!r}) has {target[int(info[1])]}')
     if swaps % 2:
         state.x, state.x_back = state.x_back, state.x
         state.v, state.v_back = state.v_back, state.v
@@ -207,5 +223,34 @@ def step(sim: SimModel, state: State, ctrl: Control, dt: float | None = None, n_
     a = np.asarray(ctrl.activation, np.float64)
     if a.shape != (sim.n_muscles,):
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1], got shape {a.shape}')
-    _run(sim, state, a.reshape(1, -1), dt, int(n_steps))
+    lock, target = joint_lock_of(sim, ctrl)
+    _run(sim, state, a.reshape(1, -1), dt, int(n_steps), lock, target)
     return state
+
+
+def joint_lock_of(sim: SimModel, ctrl: Control):
+    """(lock, target) of a Control for advance(): (None, None) when it has no joint_lock; ValueError naming the
+    field for a joint_lock that is not J booleans or a joint_target that is not J numbers (a target that is
+    not finite where locked is refused by advance(): nothing done). Kept to attribute checks: it runs on
+    every step() call."""
+    lk, tg = ctrl.joint_lock, ctrl.joint_target
+    if lk is None:
+        return None, None
+    J = sim.n_joints
+    if not (type(lk) is np.ndarray and lk.dtype is _BOOL and lk.shape == (J,) and lk.flags.c_contiguous):
+        lk = np.ascontiguousarray(lk)
+        if lk.shape != (J,) or lk.dtype != _BOOL:
+            raise ValueError(f'joint_lock must be {J} booleans (one per joint), got {lk.dtype} of shape {lk.shape}')
+    if tg is None:
+        tg = sim.j_rest
+    elif not (type(tg) is np.ndarray and tg.dtype is _F64 and tg.shape == (J,) and tg.flags.c_contiguous):
+        try:
+            tg = np.ascontiguousarray(tg, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f'joint_target must be {J} joint coordinates [rad]') from None
+        if tg.shape != (J,):
+            raise ValueError(f'joint_target must be {J} joint coordinates [rad], got shape {tg.shape}')
+    return lk, tg
+
+
+_BOOL, _F64 = np.dtype(np.bool_), np.dtype(np.float64)
