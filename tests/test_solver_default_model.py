@@ -131,7 +131,7 @@ def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim)
         st, ctl = solver.make_state(sim), solver.make_control(sim)
         ctl.activation[ham] = 1.0
         q, L, v = [], [], []
-        for _ in range(40):                      # 0.8 s in 20-ms frames
+        for _ in range(60):                      # 1.2 s in 20-ms frames (the end stop is reached by ~1 s)
             solver.step(sim, st, ctl, n_steps=20)
             o = solver.observe(sim, st)
             q.append(o['joint_positions'][j]); L.append(o['muscle_lengths'][ham]); v.append(st.muscle_velocity[ham])
