@@ -341,21 +341,20 @@ def test_no_free_vertex_deeper_than_1mm_in_a_bone(limb_runs, run):
 
 @pytest.mark.slow
 def test_inverted_cells_with_contact_are_the_measured_known_ones(limb_runs, default_tm):
-    """Measured, documented limitation (docs/contact.md): with contact, the inverted cells at the end of
-    either run are fat cells at the knee (rest centroid within 6 cm of the joint centre's height:
-    bound across the knee, crushed by the patella rigid with the shank, or folding behind the knee),
-    at most 10, and in the active run only up to 6 more in the two lowest slices (the sole, squeezed
-    against the foot bones as the shank whips to its end stop). If this fails because there are
-    fewer, update docs/contact.md and these bounds."""
-    from tissue_sim.core.model import TISSUE_FAT
+    """Measured, documented limitation (docs/contact.md): with contact, every cell inverted at any of the recorded
+    instants lies at the knee (rest centroid within 6 cm of the joint centre's height) or, in the active run, in the
+    two lowest slices (the sole, as the foot whips to the knee's end stop); at the end of either run at most 3, all
+    at the knee. Measured on main's solver: active 2 (fat cell 675, inverted without contact too, and cell 238 of
+    the medial gastrocnemius 3 cm below the knee, crushed at 120 deg between the bones, where its free vertices
+    are held at the margin: V/V0 -0.08; 0.12 without contact, its vertices then inside the bone); passive 2 (fat
+    670 and 675, both inverted without contact too). If this fails because there are fewer, update
+    docs/contact.md and these bounds."""
     tm = default_tm
     zk = tm.joint_centre[_knee(solver.compile_model(tm, solver.Params.paper()))][2]
     for run in ('active', 'passive'):
         for r in limb_runs[True][run]:
             for c in r[3]:
                 z = tm.rest_positions[tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]], 2].mean()
-                assert tm.cell_tissue[c] == TISSUE_FAT, (run, c)
                 assert abs(z - zk) < 0.06 or (run == 'active' and tm.cell_slice[c] <= 1), (run, c, z)
         last = limb_runs[True][run][-1][3]
-        sole = [c for c in last if tm.cell_slice[c] <= 1]
-        assert len(last) - len(sole) <= 10 and len(sole) <= (6 if run == 'active' else 0), (run, last)
+        assert len(last) <= 3 and not any(tm.cell_slice[c] <= 1 for c in last), (run, last)
