@@ -297,7 +297,7 @@ def _deep(sim, st):
 @pytest.fixture(scope='module')
 def limb_runs(default_tm):
     """Physical set, contact on and off: full hamstring activation for 1.5 s (the knee reaches its
-    120-deg stop in about 0.4 s), and a passive sweep 0-120 deg (the knee driven at 100 deg/s,
+    120-deg stop between 0.5 and 1 s), and a passive sweep 0-120 deg (the knee driven at 100 deg/s,
     then held 0.5 s); (deep count, deepest, inverted cells) every 0.25 s / 20 deg."""
     out = {}
     for on in (True, False):
