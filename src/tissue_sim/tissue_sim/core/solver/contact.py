@@ -264,12 +264,16 @@ def sample_grid(g_origin, g_inv_h, g_dims, g_off, g_phi, b, P, out, grad_out):
 
 # ------------------------------------------------------------------------------- the step's stage
 LIPSCHITZ = 1.7320508075688772 + 1e-6   # bound on |grad| of a trilinear interpolation of a 1-Lipschitz grid
+PROJECTIONS = 4         # at most this many projections of a vertex per grid and sub-step (beyond the exact band the
+                        # grid's distance is approximate, so one projection from deep inside can fall short)
+PROJECTION_TOL = 1e-6   # [m] a projected vertex this close below its floor is done
 
 
 @njit(cache=True, fastmath={'contract'}, inline='always')
 def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0):
     """Vertex i inside grid b's box (rest-frame point p, grid coordinates g; s the segment): project
-    it out when it is closer than its floor (and fix its velocity). Returns a lower bound of
+    it out when it is closer than its floor, again from where that put it while it is still below it
+    (at most PROJECTIONS times), and fix its velocity with the last normal. Returns a lower bound of
     (sampled distance - floor) before the projection, for the broad phase, and whether it was projected."""
     nx, ny, nz = cg.g_dims[b, 0], cg.g_dims[b, 1], cg.g_dims[b, 2]
     lim = cg.floor[i]
@@ -283,20 +287,36 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0):
     gn = math.sqrt(ga * ga + gb * gb + gc * gc)
     if not gn > 0.0:
         return d - lim, False
-    # world normal n = R (grad / |grad|)
-    ux, uy, uz = ga / gn, gb / gn, gc / gn
-    n0 = seg_R[s, 0, 0] * ux + seg_R[s, 0, 1] * uy + seg_R[s, 0, 2] * uz
-    n1 = seg_R[s, 1, 0] * ux + seg_R[s, 1, 1] * uy + seg_R[s, 1, 2] * uz
-    n2 = seg_R[s, 2, 0] * ux + seg_R[s, 2, 1] * uy + seg_R[s, 2, 2] * uz
+    d_first = d
     # the bone's velocity at the vertex: (x - x_before) / h, x_before = R0 p + t0
     ih_t = 1.0 / h
     bx = (x[i, 0] - (R0[s, 0, 0] * px + R0[s, 0, 1] * py + R0[s, 0, 2] * pz + t0[s, 0])) * ih_t
     by = (x[i, 1] - (R0[s, 1, 0] * px + R0[s, 1, 1] * py + R0[s, 1, 2] * pz + t0[s, 1])) * ih_t
     bz = (x[i, 2] - (R0[s, 2, 0] * px + R0[s, 2, 1] * py + R0[s, 2, 2] * pz + t0[s, 2])) * ih_t
-    push = lim - d
-    x[i, 0] += push * n0
-    x[i, 1] += push * n1
-    x[i, 2] += push * n2
+    ih = cg.g_inv_h[b]
+    n0 = n1 = n2 = 0.0
+    for _ in range(PROJECTIONS):
+        # world normal n = R (grad / |grad|); the vertex moves by (floor - d) n, its rest-frame point by (floor - d) u
+        ux, uy, uz = ga / gn, gb / gn, gc / gn
+        n0 = seg_R[s, 0, 0] * ux + seg_R[s, 0, 1] * uy + seg_R[s, 0, 2] * uz
+        n1 = seg_R[s, 1, 0] * ux + seg_R[s, 1, 1] * uy + seg_R[s, 1, 2] * uz
+        n2 = seg_R[s, 2, 0] * ux + seg_R[s, 2, 1] * uy + seg_R[s, 2, 2] * uz
+        push = lim - d
+        x[i, 0] += push * n0
+        x[i, 1] += push * n1
+        x[i, 2] += push * n2
+        px += push * ux
+        py += push * uy
+        pz += push * uz
+        gx = (px - cg.g_origin[b, 0]) * ih
+        gy = (py - cg.g_origin[b, 1]) * ih
+        gz = (pz - cg.g_origin[b, 2]) * ih
+        if not (gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= nx - 1 and gy <= ny - 1 and gz <= nz - 1):
+            break
+        d, ga, gb, gc = _sample(cg.g_phi, cg.g_off[b], nx, ny, nz, gx, gy, gz)
+        gn = math.sqrt(ga * ga + gb * gb + gc * gc)
+        if d >= lim - PROJECTION_TOL or not gn > 0.0:
+            break
     rx, ry, rz = v[i, 0] - bx, v[i, 1] - by, v[i, 2] - bz
     vn = rx * n0 + ry * n1 + rz * n2
     if vn < 0.0:
@@ -309,7 +329,7 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0):
         v[i, 0] = bx + tx
         v[i, 1] = by + ty
         v[i, 2] = bz + tz
-    return d - lim, True
+    return d_first - lim, True
 
 
 @njit(cache=True, fastmath={'contract'})

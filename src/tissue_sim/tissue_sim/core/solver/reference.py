@@ -12,7 +12,7 @@ import collections
 
 import numpy as np
 
-from tissue_sim.core.solver import cells as CK, skeleton as SK
+from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK
 from tissue_sim.core.solver.model import SimModel, State, substeps_for
 
 Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
@@ -158,10 +158,12 @@ def grid_sample(cg, b, P):
 def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
     """Stage 4, bone contact (docs/contact.md), in place on the positions and velocities stage 3 wrote: grid by grid
     (cg: the SimModel's ContactGrids; none: nothing), every free vertex whose sampled distance d is below its floor
-    moves by (floor - d) along the grid's gradient direction n (world frame), and its velocity relative to the bone
-    (whose velocity there is (x - (R0 p + t0)) / h, p the vertex in the bone's rest frame, R0 t0 the pose at the
-    sub-step's start) loses its inward normal part; with friction mu its tangential part shrinks by mu x that.
-    No broad phase: every vertex is tested every sub-step (contact.bone_contact gives the same result faster)."""
+    moves by (floor - d) along the grid's gradient direction n (world frame), again from there while it is still
+    below (by more than contact.PROJECTION_TOL; at most contact.PROJECTIONS times), and its velocity relative to the
+    bone (whose velocity there is (x - (R0 p + t0)) / h, p the vertex in the bone's rest frame before the projection,
+    R0 t0 the pose at the sub-step's start) loses its inward part along the last n; with friction mu its tangential
+    part shrinks by mu x that. No broad phase: every vertex is tested every sub-step (contact.bone_contact gives the
+    same result faster)."""
     free = cg.free_idx
     floor, mu = cg.floor[free], cg.par[1]
     for b, s in enumerate(cg.g_seg):
@@ -169,9 +171,21 @@ def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
         d, grad = grid_sample(cg, b, p)
         gn = np.linalg.norm(grad, axis=1)
         hit = (d < floor) & (gn > 0)
-        i, p, n = free[hit], p[hit], (grad[hit] / gn[hit, None]) @ seg_R[s].T      # world normals
-        v_bone = (x[i] - (p @ R0[s].T + t0[s])) / h
-        x[i] += (floor[hit] - d[hit])[:, None] * n
+        i = free[hit]
+        v_bone = (x[i] - (p[hit] @ R0[s].T + t0[s])) / h
+        u = np.zeros((len(p), 3))                                           # the last projection's rest-frame normal
+        todo = hit.copy()
+        for _ in range(CT.PROJECTIONS):
+            if not todo.any():
+                break
+            u[todo] = grad[todo] / gn[todo, None]
+            push = (floor[todo] - d[todo])[:, None]
+            x[free[todo]] += push * (u[todo] @ seg_R[s].T)
+            p[todo] += push * u[todo]
+            d[todo], grad[todo] = grid_sample(cg, b, p[todo])               # (outside the box: +inf, done)
+            gn[todo] = np.linalg.norm(grad[todo], axis=1)
+            todo[todo] = (d[todo] < floor[todo] - CT.PROJECTION_TOL) & (gn[todo] > 0)
+        n = u[hit] @ seg_R[s].T                                             # world normals
         rel = v[i] - v_bone
         vn = np.sum(rel * n, axis=1)
         tang = rel - vn[:, None] * n
