@@ -13,7 +13,7 @@ import numpy as np
 
 from tissue_sim.core.model import JOINT_HINGE, TISSUE_MUSCLE, TissueModel
 from tissue_sim.core.geometry import prism_volumes
-from tissue_sim.core.solver import cells as CK, skeleton as SK
+from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK
 from tissue_sim.core.solver.measures import cell_axial_lengths
 from tissue_sim.core.solver.params import Params
 
@@ -88,6 +88,8 @@ class SimModel:
     gravity: np.ndarray             # (3,)
     skeleton: SK.Skeleton           # the skeleton arrays above (seg_* ... gravity) as the skeleton kernels read them
     cell_blocks: CK.CellLayout      # the cells again, as the cell kernel reads them: rings, chains, SIMD lanes (pack_cells)
+    contact: CT.ContactGrids        # bone contact: a signed-distance grid per segment with bones, each free vertex's floor
+                                    # (contact.build; no grid when params.bone_contact is off: stage 4 does nothing)
 
     def inv_denominator(self, h: float) -> np.ndarray:
         """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
@@ -307,6 +309,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
         skeleton=None,
         cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv))
+    sim_kw['contact'] = CT.build(tm, p, rest, vs)          # bone signed-distance grids (stage 4; none when off)
     sim_kw['skeleton'] = SK.Skeleton(*(sim_kw[n] for n in SK.Skeleton._fields))
     c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0
     sim = SimModel(damp_rate=c_max, **sim_kw)

@@ -72,6 +72,12 @@ class Params:
     joint_damping: float = 20.0           # [N m s/rad] passive viscous damping of every hinge (implicit)
     limit_omega_dt: float = 1.0           # end-stop natural frequency x h (stiffness relative to the joint's inertia; implicit)
     limit_damping_ratio: float = 1.0      # end-stop damping, fraction of critical
+    # --- bone contact (docs/contact.md) -----------------------------------------------------
+    bone_contact: bool = False            # keep free soft-tissue vertices outside the bones (signed-distance grid per segment,
+                                          # projection after the integration); the paper has none: off in Params.paper()
+    contact_margin: float = 5e-4          # [m] distance from a bone's surface a free vertex is projected back to
+    contact_friction: float = 0.0         # Coulomb coefficient of the tissue-bone contact (0: frictionless sliding)
+    contact_grid: float = 1.5e-3          # [m] spacing of the bones' signed-distance grids
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
@@ -87,7 +93,8 @@ class Params:
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=1.0, max_speed=50.0,
-                    integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0)   # gram masses, stiff active tension: h = 0.25 ms with
+                    integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
+                    bone_contact=True)   # gram masses, stiff active tension: h = 0.25 ms with
         # selective mass scaling (the light tendon/edge vertices get heavier; docs/solver.md gives the added mass)
         base.update(kw)
         return cls(**base).validate()
@@ -116,6 +123,9 @@ class Params:
         need(0.2 <= self.min_stretch <= 1, 'min_stretch must be in [0.2, 1] (a muscle cannot shorten without bound)')
         need(len(tuple(self.gravity)) == 3, 'gravity must be 3 numbers')
         self.gravity = tuple(float(g) for g in self.gravity)
+        need(0 <= self.contact_margin <= 0.01, 'contact_margin must be in [0, 0.01] m')
+        need(self.contact_friction >= 0, 'contact_friction must be >= 0')
+        need(2e-4 <= self.contact_grid <= 0.01, 'contact_grid must be in [2e-4, 0.01] m')
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
         need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')
         need(self.fixed_root, 'fixed_root False (floating base) is not supported yet')

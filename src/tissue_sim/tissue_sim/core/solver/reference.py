@@ -1,7 +1,7 @@
 """The readable step: the solver's physics in plain numpy (docs/method.md sections 2-3, docs/solver.md).
 
 ``reference_step(sim, state, activation)`` advances a State like ``step()`` does, in the paper's order:
-1. muscle tension (contraction state, every cell's force), 2. skeleton, 3. soft tissue. Cells are rows of a
+1. muscle tension (contraction state, every cell's force), 2. skeleton, 3. soft tissue, 4. bone contact. Cells are rows of a
 padded array (one cell per row), the rotation of each cell is the exact polar factor by a batched SVD.
 It is the definition the fast kernels (cells.py: SIMD lanes along chains of cells, a warm-started Newton
 rotation) are tested against (tests/test_solver_reference.py); it is ~150x slower (bench/solver.py).
@@ -12,7 +12,7 @@ import collections
 
 import numpy as np
 
-from tissue_sim.core.solver import cells as CK, skeleton as SK
+from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK
 from tissue_sim.core.solver.model import SimModel, State, substeps_for
 
 Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
@@ -104,6 +104,7 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     if state.joint_lock_torque is None:
         state.joint_lock_torque = np.zeros(J)
     for _ in range(n_sub):
+        R0, t0 = state.seg_R.copy(), state.seg_t.copy()        # the segment poses at the sub-step's start (stage 4)
         # 1. muscle tension: contraction state towards 1 - a (1 - min_stretch), the tension's activation x
         # the force-velocity factor of the last measured muscle velocity, every cell's force
         target = 1.0 - a * (1.0 - p.min_stretch)
@@ -133,11 +134,73 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         i, s = sim.att_idx, sim.att_seg
         xa = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[i]) + state.seg_t[s]
         state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
+        # 4. bone contact: free vertices closer to a bone than their floor are projected out (Params.bone_contact)
+        contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h)
         state.f[:] = f
     state.quat[:] = rotation_quaternions(R)
     state.step += 1
     state.time += dt
     return state
+
+
+def grid_sample(cg, b, P):
+    """Trilinear value [m] of bone grid b of ContactGrids cg at rest-frame points P (n, 3) and its gradient (n, 3)
+    in grid units; +inf and 0 outside the grid's box."""
+    dims = cg.g_dims[b]
+    phi = cg.g_phi[cg.g_off[b]:cg.g_off[b + 1]].reshape(dims).astype(np.float64)
+    g = (P - cg.g_origin[b]) * cg.g_inv_h[b]                               # grid coordinates
+    inside = np.all((g >= 0) & (g <= dims - 1), axis=1)
+    ijk = np.minimum(np.floor(np.where(inside[:, None], g, 0)).astype(np.int64), dims - 2)   # the cell's lower corner
+    fr = np.where(inside[:, None], g - ijk, 0.0)                          # position in the cell, [0, 1]^3
+    value, grad = np.zeros(len(P)), np.zeros((len(P), 3))
+    for corner in np.ndindex(2, 2, 2):                                     # weights prod (1 - f) or f per axis
+        c = phi[ijk[:, 0] + corner[0], ijk[:, 1] + corner[1], ijk[:, 2] + corner[2]]
+        w = np.where(np.array(corner) == 1, fr, 1.0 - fr)                  # (n, 3) per-axis weights
+        sign = np.where(np.array(corner) == 1, 1.0, -1.0)
+        value += c * w.prod(1)
+        for a in range(3):
+            grad[:, a] += c * sign[a] * np.prod(np.delete(w, a, axis=1), axis=1)
+    return np.where(inside, value, np.inf), grad * inside[:, None]
+
+
+def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
+    """Stage 4, bone contact (docs/contact.md), in place on the positions and velocities stage 3 wrote: grid by grid
+    (cg: the SimModel's ContactGrids; none: nothing), every free vertex whose sampled distance d is below its floor
+    moves by (floor - d) along the grid's gradient direction n (world frame), again from there while it is still
+    below (by more than contact.PROJECTION_TOL; at most contact.PROJECTIONS times), and its velocity relative to the
+    bone (whose velocity there is (x - (R0 p + t0)) / h, p the vertex in the bone's rest frame before the projection,
+    R0 t0 the pose at the sub-step's start) loses its inward part along the last n; with friction mu its tangential
+    part shrinks by mu x that. No broad phase: every vertex is tested every sub-step (contact.bone_contact gives the
+    same result faster)."""
+    free = cg.free_idx
+    floor, mu = cg.floor[free], cg.par[1]
+    for b, s in enumerate(cg.g_seg):
+        p = (x[free] - seg_t[s]) @ seg_R[s]                                 # rest-frame points R^T (x - t)
+        d, grad = grid_sample(cg, b, p)
+        gn = np.linalg.norm(grad, axis=1)
+        hit = (d < floor) & (gn > 0)
+        i = free[hit]
+        v_bone = (x[i] - (p[hit] @ R0[s].T + t0[s])) / h
+        u = np.zeros((len(p), 3))                                           # the last projection's rest-frame normal
+        todo = hit.copy()
+        for _ in range(CT.PROJECTIONS):
+            if not todo.any():
+                break
+            u[todo] = grad[todo] / gn[todo, None]
+            push = (floor[todo] - d[todo])[:, None]
+            x[free[todo]] += push * (u[todo] @ seg_R[s].T)
+            p[todo] += push * u[todo]
+            d[todo], grad[todo] = grid_sample(cg, b, p[todo])               # (outside the box: +inf, done)
+            gn[todo] = np.linalg.norm(grad[todo], axis=1)
+            todo[todo] = (d[todo] < floor[todo] - CT.PROJECTION_TOL) & (gn[todo] > 0)
+        n = u[hit] @ seg_R[s].T                                             # world normals
+        rel = v[i] - v_bone
+        vn = np.sum(rel * n, axis=1)
+        tang = rel - vn[:, None] * n
+        vt = np.linalg.norm(tang, axis=1)
+        keep = np.maximum(0.0, 1.0 - mu * -vn / np.where(vt > 0, vt, 1.0)) if mu > 0 else np.ones_like(vn)
+        keep = np.where((vt > 0) | (mu == 0), keep, 0.0)
+        v[i] = np.where((vn < 0)[:, None], v_bone + keep[:, None] * tang, v[i])
 
 
 def rotation_quaternions(R: np.ndarray) -> np.ndarray:

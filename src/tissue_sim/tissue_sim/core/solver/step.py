@@ -4,7 +4,8 @@
 numpy. Its arguments are named tuples: the state's arrays (``Arrays``), the cell layout (``cells.CellLayout``),
 the vertex constants (``Tissue``), the skeleton (``skeleton.Skeleton``), the scalar parameters (``Numbers``)
 and the scratch buffers (``Scratch``, with ``cells.CellWork``), all made once per model and sub-step length
-by ``Workspace`` (owned by the State being stepped: the SimModel stays immutable).
+by ``Workspace`` (owned by the State being stepped: the SimModel stays immutable); stage 4, bone contact, reads
+the model's grids (``contact.ContactGrids``) and the Workspace's ``contact.ContactWork``.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ def _drop_stale_advance_cache() -> None:
     from pathlib import Path
     here = Path(__file__).resolve()
     try:
-        newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py'))
+        newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py'))
         for f in (here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'):     # advance and _advance
             if f.stat().st_mtime < newest:
                 f.unlink(missing_ok=True)
@@ -31,6 +32,7 @@ def _drop_stale_advance_cache() -> None:
 
 _drop_stale_advance_cache()
 from tissue_sim.core.solver import cells as CK, integration as IK, skeleton as SK  # noqa: E402
+from tissue_sim.core.solver import contact as CT  # noqa: E402
 from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for  # noqa: E402
 
 CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
@@ -50,7 +52,7 @@ Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mle
 
 
 @njit(cache=True)
-def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, info):
+def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, contact, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
     same for every step) and the joint lock (lock (J,) bool, target (J,) [rad]: Control.joint_lock/joint_target),
     in place. Positions and velocities alternate between (x, v) and the back buffers
@@ -59,13 +61,15 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
     info = (-1, muscle, CAUSE_ACTIVATION)).
 
     The arguments come as plain tuples in the order of the named tuples (numba's dispatcher types a plain
-    tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here."""
-    return _advance(n_steps, n_sub, h, acts, lock, target, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk),
-                    Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]), info)
+    tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here;
+    contact = (the model's contact.ContactGrids, the Workspace's contact.ContactWork)."""
+    return _advance(n_steps, n_sub, h, acts, lock, target, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue),
+                    SK.Skeleton(*sk), Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]),
+                    CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1]), info)
 
 
 @njit(cache=True)
-def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, info):
+def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
     work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
@@ -109,6 +113,11 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 SK.forward_kinematics(q, sk, st.seg_R, st.seg_t)
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
+            # 4. bone contact: free vertices closer to a bone than the margin are projected out, their inward
+            # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
+            if cgrid.g_seg.shape[0] > 0:
+                SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
+                CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork)
             x, xb = xb, x
             v, vb = vb, v
             swaps += 1
@@ -119,15 +128,19 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
 class Workspace:
     """What ``advance`` reads besides the state, for one model: per sub-step length h the constants
     (Tissue, Numbers) and the scratch buffers (Scratch; their contents on entry do not matter). Owned by
-    the State it steps (``state.workspace``, made on its first step, rebuilt for another model)."""
+    the State it steps (``state.workspace``, made on its first step, rebuilt for another model). The bone
+    contact's buffers (``contact``: the broad phase's records, the poses at a sub-step's start) are one
+    ``contact.ContactWork`` for every h."""
 
     def __init__(self, sim: SimModel):
         self.sim = sim
         self._by_h = {}
         self.no_lock = (np.zeros(sim.n_joints, np.bool_), np.zeros(sim.n_joints))    # (lock, target): no joint locked
+        self.contact = CT.work(sim.contact, sim.n_segments)
 
     def arrays(self, h: float):
-        """(cells, tissue, skeleton, numbers, scratch) for sub-step length h, as named tuples."""
+        """(cells, tissue, skeleton, numbers, scratch, (contact grids, contact work)) for sub-step length h, as
+        named tuples."""
         return self._get(h)[0]
 
     def plain(self, h: float):
@@ -140,8 +153,9 @@ class Workspace:
             if len(self._by_h) > 8:
                 self._by_h.clear()
             named = self._make(h)
-            cells, tissue, sk, num, scratch = named
-            plain = (tuple(cells), tuple(tissue), tuple(sk), tuple(num), (tuple(scratch.cell_work),) + tuple(scratch)[1:])
+            cells, tissue, sk, num, scratch, (cgrid, cwork) = named
+            plain = (tuple(cells), tuple(tissue), tuple(sk), tuple(num), (tuple(scratch.cell_work),) + tuple(scratch)[1:],
+                     (tuple(cgrid), tuple(cwork)))
             t = self._by_h[h] = (named, plain)
         return t
 
@@ -163,7 +177,7 @@ class Workspace:
         M, J = sim.n_muscles, sim.n_joints
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M))
-        return cells, tissue, sim.skeleton, num, scratch
+        return cells, tissue, sim.skeleton, num, scratch, (sim.contact, self.contact)
 
 
 def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int | None = None, lock=None,

@@ -1,0 +1,546 @@
+"""Bone contact: soft tissue is kept outside the bones (docs/contact.md), stage 4 of the step.
+
+At compile time the bone meshes of each segment become one signed-distance grid in its rest frame (the
+frame the bone mesh is given in: a rest point X of segment s is at R_s X + t_s): exact point-triangle
+distances in a narrow band about the surface, a Euclidean distance transform beyond it, the sign from
+the winding number along grid columns (negative inside). They are constants of the model
+(``SimModel.contact``, a ``ContactGrids`` named tuple of read-only arrays; no grid when
+``Params.bone_contact`` is off). In the step, after the soft tissue has integrated, ``bone_contact``
+samples each free vertex in the grids whose box holds it (trilinear value and gradient) and projects a
+vertex closer than its floor (the margin) back to it along the gradient, removing its inward velocity
+relative to the bone (Coulomb friction optional). Its mutable buffers (the segment poses at the
+sub-step's start, the broad phase's records) are a ``ContactWork`` owned by the State being stepped
+(``step.Workspace``), so two states stepping one model share nothing.
+"""
+from __future__ import annotations
+
+import collections
+import math
+
+import numpy as np
+from numba import njit
+
+ContactGrids = collections.namedtuple('ContactGrids', 'g_seg g_origin g_inv_h g_dims g_off g_phi c_dims c_off c_min '
+                                      'floor free_idx par')
+"""Constants (SimModel.contact, read-only): per grid b (B grids, one per segment with bones) its segment
+g_seg (B,) int32, origin (B, 3) [m], 1/spacing g_inv_h (B,), dims (B, 3) int64, values g_phi[g_off[b]:g_off[b+1]]
+(float32, C order, negative inside); the broad phase's block minima c_min[c_off[b]:...] over blocks of BLOCK^3
+cells, block dims c_dims (B, 3); each free vertex's lowest allowed distance floor (V,) [m] (the margin, or its
+distance at rest where that is smaller); the free vertices free_idx (F,) int32; par = (margin, friction)."""
+ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats')
+"""Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
+the broad phase's records qc (B, F, 3) (rest-frame point where a vertex was last tested) and slack (B, F) (0: test it);
+cand (F,) int32 scratch; stats (2,) int64 = (calls, vertex-grid tests so far)."""
+
+
+# ------------------------------------------------------------------------------- grid building
+@njit(cache=True)
+def _tri_dist2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Squared distance from p to triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:
+        qx, qy, qz = ax, ay, az
+    else:
+        bpx, bpy, bpz = px - bx, py - by, pz - bz
+        d3 = abx * bpx + aby * bpy + abz * bpz
+        d4 = acx * bpx + acy * bpy + acz * bpz
+        if d3 >= 0.0 and d4 <= d3:
+            qx, qy, qz = bx, by, bz
+        else:
+            vc = d1 * d4 - d3 * d2
+            if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+                w = d1 / (d1 - d3)
+                qx, qy, qz = ax + w * abx, ay + w * aby, az + w * abz
+            else:
+                cpx, cpy, cpz = px - cx, py - cy, pz - cz
+                d5 = abx * cpx + aby * cpy + abz * cpz
+                d6 = acx * cpx + acy * cpy + acz * cpz
+                if d6 >= 0.0 and d5 <= d6:
+                    qx, qy, qz = cx, cy, cz
+                else:
+                    vb = d5 * d2 - d1 * d6
+                    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+                        w = d2 / (d2 - d6)
+                        qx, qy, qz = ax + w * acx, ay + w * acy, az + w * acz
+                    else:
+                        va = d3 * d6 - d5 * d4
+                        if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+                            w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+                            qx, qy, qz = bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz)
+                        else:
+                            den = 1.0 / (va + vb + vc)
+                            v_ = vb * den
+                            w = vc * den
+                            qx = ax + abx * v_ + acx * w
+                            qy = ay + aby * v_ + acy * w
+                            qz = az + abz * v_ + acz * w
+    dx, dy, dz = px - qx, py - qy, pz - qz
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True)
+def _band_distances(V, T, origin, h, dims, band, d2):
+    """d2[i, j, k] = min squared distance to the triangles of every grid point within `band` of a
+    triangle's bounding box (other points keep their value)."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    for t in range(T.shape[0]):
+        a, b, c = T[t, 0], T[t, 1], T[t, 2]
+        lo = np.empty(3, np.int64)
+        hi = np.empty(3, np.int64)
+        for d in range(3):
+            mn = min(V[a, d], V[b, d], V[c, d]) - band
+            mx = max(V[a, d], V[b, d], V[c, d]) + band
+            lo[d] = max(0, int(math.floor((mn - origin[d]) / h)))
+            hi[d] = min(dims[d] - 1, int(math.ceil((mx - origin[d]) / h)))
+        for i in range(lo[0], hi[0] + 1):
+            px = origin[0] + i * h
+            for j in range(lo[1], hi[1] + 1):
+                py = origin[1] + j * h
+                for k in range(lo[2], hi[2] + 1):
+                    pz = origin[2] + k * h
+                    e = _tri_dist2(px, py, pz, V[a, 0], V[a, 1], V[a, 2], V[b, 0], V[b, 1], V[b, 2],
+                                   V[c, 0], V[c, 1], V[c, 2])
+                    if e < d2[i, j, k]:
+                        d2[i, j, k] = e
+    return nx * ny * nz
+
+
+@njit(cache=True)
+def _column_winding(V, T, origin, h, dims, wind):
+    """Winding number of every grid point about the mesh, counted along +z columns: each triangle a
+    column crosses adds +1 (entering: outward normal facing -z) or -1 (leaving) to the points above
+    the crossing. Returns the number of columns that do not end at 0 (an open mesh); they are zeroed."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    for t in range(T.shape[0]):
+        a, b, c = T[t, 0], T[t, 1], T[t, 2]
+        ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
+        bx, by, bz = V[b, 0], V[b, 1], V[b, 2]
+        cx, cy, cz = V[c, 0], V[c, 1], V[c, 2]
+        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)     # 2 x signed xy area = 2 x normal z
+        if area == 0.0:
+            continue
+        s = -1 if area > 0.0 else 1
+        i0 = max(0, int(math.ceil((min(ax, bx, cx) - origin[0]) / h)))
+        i1 = min(nx - 1, int(math.floor((max(ax, bx, cx) - origin[0]) / h)))
+        j0 = max(0, int(math.ceil((min(ay, by, cy) - origin[1]) / h)))
+        j1 = min(ny - 1, int(math.floor((max(ay, by, cy) - origin[1]) / h)))
+        for i in range(i0, i1 + 1):
+            px = origin[0] + i * h
+            for j in range(j0, j1 + 1):
+                py = origin[1] + j * h
+                # barycentric coordinates in the xy projection (the grid is offset so that no column
+                # passes exactly through an edge)
+                w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) / area
+                w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) / area
+                w2 = 1.0 - w0 - w1
+                if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                    continue
+                z = w0 * az + w1 * bz + w2 * cz
+                k = int(math.ceil((z - origin[2]) / h))
+                if k < 0:
+                    k = 0
+                if k < nz:
+                    wind[i, j, k] += s
+    bad = 0
+    for i in range(nx):
+        for j in range(ny):
+            acc = 0
+            for k in range(nz):
+                acc += wind[i, j, k]
+                wind[i, j, k] = acc
+            if acc != 0:
+                bad += 1
+                for k in range(nz):
+                    wind[i, j, k] = 0
+    return bad
+
+
+def bone_sdf(V: np.ndarray, T: np.ndarray, h: float, pad: float):
+    """Signed-distance grid [m] of a closed triangle mesh (V, T), negative inside: (origin (3,),
+    dims (3,) int64, phi (nx, ny, nz) float32, open_columns). Grid points lie at origin + h (i, j, k)
+    and cover the mesh's bounding box plus pad on every side. Exact within 3 h of the surface,
+    beyond it 2 h + the Euclidean distance transform to that band (within about a cell of the
+    distance; the values stay 1-Lipschitz between neighbouring grid points)."""
+    from scipy import ndimage
+    V = np.ascontiguousarray(V, np.float64)
+    T = np.ascontiguousarray(T, np.int64)
+    lo, hi = V.min(0) - pad, V.max(0) + pad
+    # an irrational sub-cell offset: no grid column runs exactly through a mesh edge or vertex
+    origin = lo - h * np.array([0.31830988618, 0.27182818284, 0.14142135623])
+    dims = (np.ceil((hi - origin) / h).astype(np.int64) + 1)
+    d2 = np.full(tuple(dims), np.inf)
+    band = 3.0 * h
+    _band_distances(V, T, origin, float(h), dims, band, d2)
+    near = d2 <= band * band
+    d = np.sqrt(d2)
+    if not near.all():
+        # beyond the band: 2 h + h x the distance (in cells) to the band; with the band's exact
+        # values this keeps the grid 1-Lipschitz (the broad phase relies on it)
+        d = np.where(near, d, 2.0 * h + h * ndimage.distance_transform_edt(~near))
+    wind = np.zeros(tuple(dims), np.int64)
+    open_cols = _column_winding(V, T, origin, float(h), dims, wind)
+    phi = np.where(wind > 0, -d, d).astype(np.float32)
+    return origin, dims, phi, int(open_cols)
+
+
+BLOCK = 4      # cells per side of the coarse blocks of the broad phase
+
+
+@njit(cache=True)
+def _block_min(phi, m, out):
+    """out[I, J, K] = min of phi over the grid points [m I, m I + m] x ... (the corners every
+    trilinear sample in the block's cells reads): a vertex in a block whose minimum is above its
+    floor is not in contact (a trilinear value is never below its corners)."""
+    nx, ny, nz = phi.shape
+    for I in range(out.shape[0]):
+        for J in range(out.shape[1]):
+            for K in range(out.shape[2]):
+                v = np.inf
+                for i in range(m * I, min(m * I + m, nx - 1) + 1):
+                    for j in range(m * J, min(m * J + m, ny - 1) + 1):
+                        for k in range(m * K, min(m * K + m, nz - 1) + 1):
+                            if phi[i, j, k] < v:
+                                v = phi[i, j, k]
+                out[I, J, K] = v
+
+
+def block_min(phi: np.ndarray, m: int = BLOCK) -> np.ndarray:
+    """The broad phase's coarse grid of phi (nx, ny, nz): blocks of m cells, float32."""
+    nb = [max(1, -(-(n - 1) // m)) for n in phi.shape]
+    out = np.empty(nb, np.float32)
+    _block_min(phi, m, out)
+    return out
+
+
+# ------------------------------------------------------------------------------- sampling
+@njit(cache=True, inline='always')
+def _sample(phi, base, nx, ny, nz, gx, gy, gz):
+    """Trilinear value of grid phi (flat from base, dims nx ny nz) at grid coordinates (gx, gy, gz)
+    (inside [0, n-1]) and its gradient in grid units: (value, d/dgx, d/dgy, d/dgz)."""
+    i = min(int(gx), nx - 2)
+    j = min(int(gy), ny - 2)
+    k = min(int(gz), nz - 2)
+    fx, fy, fz = gx - i, gy - j, gz - k
+    b = base + (i * ny + j) * nz + k
+    c000 = phi[b]; c001 = phi[b + 1]
+    c010 = phi[b + nz]; c011 = phi[b + nz + 1]
+    b1 = b + ny * nz
+    c100 = phi[b1]; c101 = phi[b1 + 1]
+    c110 = phi[b1 + nz]; c111 = phi[b1 + nz + 1]
+    # along z
+    c00 = c000 + fz * (c001 - c000); c01 = c010 + fz * (c011 - c010)
+    c10 = c100 + fz * (c101 - c100); c11 = c110 + fz * (c111 - c110)
+    c0 = c00 + fy * (c01 - c00); c1 = c10 + fy * (c11 - c10)
+    gz0 = (1.0 - fy) * (c001 - c000) + fy * (c011 - c010)
+    gz1 = (1.0 - fy) * (c101 - c100) + fy * (c111 - c110)
+    return (c0 + fx * (c1 - c0), c1 - c0, (1.0 - fx) * (c01 - c00) + fx * (c11 - c10),
+            (1.0 - fx) * gz0 + fx * gz1)
+
+
+@njit(cache=True)
+def sample_grid(g_origin, g_inv_h, g_dims, g_off, g_phi, b, P, out, grad_out):
+    """Signed distance [m] and unit gradient of bone grid b at rest-frame points P (n, 3); points
+    outside the grid get +inf and a zero gradient."""
+    nx, ny, nz = g_dims[b, 0], g_dims[b, 1], g_dims[b, 2]
+    ih = g_inv_h[b]
+    for p in range(P.shape[0]):
+        gx = (P[p, 0] - g_origin[b, 0]) * ih
+        gy = (P[p, 1] - g_origin[b, 1]) * ih
+        gz = (P[p, 2] - g_origin[b, 2]) * ih
+        if not (gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= nx - 1 and gy <= ny - 1 and gz <= nz - 1):
+            out[p] = np.inf
+            grad_out[p, :] = 0.0
+            continue
+        out[p], g0, g1, g2 = _sample(g_phi, g_off[b], nx, ny, nz, gx, gy, gz)
+        n = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        grad_out[p, 0] = g0 / n if n > 0 else 0.0
+        grad_out[p, 1] = g1 / n if n > 0 else 0.0
+        grad_out[p, 2] = g2 / n if n > 0 else 0.0
+
+
+# ------------------------------------------------------------------------------- the step's stage
+LIPSCHITZ = 1.7320508075688772 + 1e-6   # bound on |grad| of a trilinear interpolation of a 1-Lipschitz grid
+PROJECTIONS = 4         # at most this many projections of a vertex per grid and sub-step (beyond the exact band the
+                        # grid's distance is approximate, so one projection from deep inside can fall short)
+PROJECTION_TOL = 1e-6   # [m] a projected vertex this close below its floor is done
+
+
+@njit(cache=True, fastmath={'contract'}, inline='always')
+def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0):
+    """Vertex i inside grid b's box (rest-frame point p, grid coordinates g; s the segment): project
+    it out when it is closer than its floor, again from where that put it while it is still below it
+    (at most PROJECTIONS times), and fix its velocity with the last normal. Returns a lower bound of
+    (sampled distance - floor) before the projection, for the broad phase, and whether it was projected."""
+    nx, ny, nz = cg.g_dims[b, 0], cg.g_dims[b, 1], cg.g_dims[b, 2]
+    lim = cg.floor[i]
+    i_, j_, k_ = min(int(gx), nx - 2), min(int(gy), ny - 2), min(int(gz), nz - 2)
+    cm = cg.c_min[cg.c_off[b] + ((i_ // BLOCK) * cg.c_dims[b, 1] + j_ // BLOCK) * cg.c_dims[b, 2] + k_ // BLOCK]
+    if cm >= lim:                                    # the block's minimum: no sample needed
+        return cm - lim, False
+    d, ga, gb, gc = _sample(cg.g_phi, cg.g_off[b], nx, ny, nz, gx, gy, gz)
+    if d >= lim:
+        return d - lim, False
+    gn = math.sqrt(ga * ga + gb * gb + gc * gc)
+    if not gn > 0.0:
+        return d - lim, False
+    d_first = d
+    # the bone's velocity at the vertex: (x - x_before) / h, x_before = R0 p + t0
+    ih_t = 1.0 / h
+    bx = (x[i, 0] - (R0[s, 0, 0] * px + R0[s, 0, 1] * py + R0[s, 0, 2] * pz + t0[s, 0])) * ih_t
+    by = (x[i, 1] - (R0[s, 1, 0] * px + R0[s, 1, 1] * py + R0[s, 1, 2] * pz + t0[s, 1])) * ih_t
+    bz = (x[i, 2] - (R0[s, 2, 0] * px + R0[s, 2, 1] * py + R0[s, 2, 2] * pz + t0[s, 2])) * ih_t
+    ih = cg.g_inv_h[b]
+    n0 = n1 = n2 = 0.0
+    for _ in range(PROJECTIONS):
+        # world normal n = R (grad / |grad|); the vertex moves by (floor - d) n, its rest-frame point by (floor - d) u
+        ux, uy, uz = ga / gn, gb / gn, gc / gn
+        n0 = seg_R[s, 0, 0] * ux + seg_R[s, 0, 1] * uy + seg_R[s, 0, 2] * uz
+        n1 = seg_R[s, 1, 0] * ux + seg_R[s, 1, 1] * uy + seg_R[s, 1, 2] * uz
+        n2 = seg_R[s, 2, 0] * ux + seg_R[s, 2, 1] * uy + seg_R[s, 2, 2] * uz
+        push = lim - d
+        x[i, 0] += push * n0
+        x[i, 1] += push * n1
+        x[i, 2] += push * n2
+        px += push * ux
+        py += push * uy
+        pz += push * uz
+        gx = (px - cg.g_origin[b, 0]) * ih
+        gy = (py - cg.g_origin[b, 1]) * ih
+        gz = (pz - cg.g_origin[b, 2]) * ih
+        if not (gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= nx - 1 and gy <= ny - 1 and gz <= nz - 1):
+            break
+        d, ga, gb, gc = _sample(cg.g_phi, cg.g_off[b], nx, ny, nz, gx, gy, gz)
+        gn = math.sqrt(ga * ga + gb * gb + gc * gc)
+        if d >= lim - PROJECTION_TOL or not gn > 0.0:
+            break
+    rx, ry, rz = v[i, 0] - bx, v[i, 1] - by, v[i, 2] - bz
+    vn = rx * n0 + ry * n1 + rz * n2
+    if vn < 0.0:
+        tx, ty, tz = rx - vn * n0, ry - vn * n1, rz - vn * n2
+        mu = cg.par[1]
+        if mu > 0.0:
+            vt = math.sqrt(tx * tx + ty * ty + tz * tz)
+            keep = max(0.0, 1.0 - mu * (-vn) / vt) if vt > 0.0 else 0.0
+            tx *= keep; ty *= keep; tz *= keep
+        v[i, 0] = bx + tx
+        v[i, 1] = by + ty
+        v[i, 2] = bz + tz
+    return d_first - lim, True
+
+
+@njit(cache=True, fastmath={'contract'})
+def bone_contact(h, x, v, seg_R, seg_t, cg, cw):
+    """Stage 4 of the step: project every free vertex closer to a bone than its floor (the margin)
+    back onto it along the distance gradient, in place on (x, v) (the positions and velocities the
+    integration just wrote); its velocity relative to the bone loses its inward normal part (and,
+    with friction mu, up to mu x that much of its tangential part). The bone's velocity at the vertex
+    comes from the segment pose at the sub-step's start (cw.R0, cw.t0) and now (seg_R, seg_t). Grid by
+    grid, vertices in ascending order. cg: ContactGrids (constants), cw: ContactWork. Returns the contacts made.
+
+    Broad phase, per grid b and vertex: a record, the rest-frame point qc[b, i] where the vertex was
+    last tested and a slack (a lower bound there of the grid's sampled distance above the vertex's
+    floor, or of the distance to the grid's box; stored as (slack - 1e-6) / LIPSCHITZ). A vertex is
+    tested again only once its rest-frame point has moved by LIPSCHITZ |p - qc| + 1e-6 >= slack,
+    and its record is renewed. The grid is 1-Lipschitz between grid points, its trilinear
+    interpolation sqrt(3)-Lipschitz: the result is that of testing every vertex every sub-step,
+    whatever the history (reference.contact_stage does that)."""
+    g_seg, g_origin, g_inv_h, g_dims, free_idx = cg.g_seg, cg.g_origin, cg.g_inv_h, cg.g_dims, cg.free_idx
+    R0, t0, qc, slack, cand, stats = cw.R0, cw.t0, cw.qc, cw.slack, cw.cand, cw.stats
+    B = g_seg.shape[0]
+    F = free_idx.shape[0]
+    hits = 0
+    stats[0] += 1
+    for b in range(B):
+        s = g_seg[b]
+        r00, r01, r02 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2]
+        r10, r11, r12 = seg_R[s, 1, 0], seg_R[s, 1, 1], seg_R[s, 1, 2]
+        r20, r21, r22 = seg_R[s, 2, 0], seg_R[s, 2, 1], seg_R[s, 2, 2]
+        tx, ty, tz = seg_t[s, 0], seg_t[s, 1], seg_t[s, 2]
+        ox, oy, oz, ih = g_origin[b, 0], g_origin[b, 1], g_origin[b, 2], g_inv_h[b]
+        mx, my, mz = g_dims[b, 0] - 1.0, g_dims[b, 1] - 1.0, g_dims[b, 2] - 1.0
+        still = (r00 == 1.0 and r11 == 1.0 and r22 == 1.0 and r01 == 0.0 and r02 == 0.0 and r10 == 0.0
+                 and r12 == 0.0 and r20 == 0.0 and r21 == 0.0 and tx == 0.0 and ty == 0.0 and tz == 0.0)
+        n = 0
+        if still:                   # the segment at its rest pose (the fixed root): rest frame = world
+            for ii in range(F):
+                i = free_idx[ii]
+                ex, ey, ez = x[i, 0] - qc[b, ii, 0], x[i, 1] - qc[b, ii, 1], x[i, 2] - qc[b, ii, 2]
+                q = slack[b, ii]
+                if q <= 0.0 or ex * ex + ey * ey + ez * ez >= q * q:
+                    cand[n] = ii
+                    n += 1
+        else:
+            for ii in range(F):
+                i = free_idx[ii]
+                dx, dy, dz = x[i, 0] - tx, x[i, 1] - ty, x[i, 2] - tz
+                ex = r00 * dx + r10 * dy + r20 * dz - qc[b, ii, 0]
+                ey = r01 * dx + r11 * dy + r21 * dz - qc[b, ii, 1]
+                ez = r02 * dx + r12 * dy + r22 * dz - qc[b, ii, 2]
+                q = slack[b, ii]
+                if q <= 0.0 or ex * ex + ey * ey + ez * ez >= q * q:
+                    cand[n] = ii
+                    n += 1
+        stats[1] += n
+        for k in range(n):
+            ii = cand[k]
+            i = free_idx[ii]
+            dx, dy, dz = x[i, 0] - tx, x[i, 1] - ty, x[i, 2] - tz
+            px = r00 * dx + r10 * dy + r20 * dz
+            py = r01 * dx + r11 * dy + r21 * dz
+            pz = r02 * dx + r12 * dy + r22 * dz
+            gx, gy, gz = (px - ox) * ih, (py - oy) * ih, (pz - oz) * ih
+            if gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= mx and gy <= my and gz <= mz:
+                d, hit = _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0)
+                hits += hit
+            else:                       # outside the box: a lower bound of the distance to it
+                d, hit = max(max(-gx, gx - mx), max(max(-gy, gy - my), max(-gz, gz - mz))) / ih, False
+            qc[b, ii, 0], qc[b, ii, 1], qc[b, ii, 2] = px, py, pz
+            slack[b, ii] = 0.0 if hit else (d - 1e-6) * (1.0 / LIPSCHITZ)    # projected: tested again next sub-step
+    return hits
+
+
+# ------------------------------------------------------------------------------- compile time
+_SDF_CACHE: dict = {}
+
+
+def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
+    """SimModel.contact for TissueModel tm under Params p: when p.bone_contact one grid (spacing p.contact_grid)
+    per segment that carries bones, the union of its bone meshes (distance to the nearest triangle of any,
+    inside where the summed winding number is positive), so a vertex is tested once per segment; none
+    otherwise (the stage then does nothing)."""
+    meshes, segs = [], []
+    if p.bone_contact:
+        for s in sorted(set(int(b) for b in tm.bone_segment)):
+            parts = [tm.bone_mesh(b) for b in np.flatnonzero(np.asarray(tm.bone_segment) == s)]
+            parts = [(V, T) for V, T in parts if len(T)]
+            if not parts:
+                continue
+            off = np.cumsum([0] + [len(V) for V, _ in parts])
+            meshes.append((np.concatenate([V for V, _ in parts]),
+                           np.concatenate([np.asarray(T, np.int64) + o for (_, T), o in zip(parts, off)])))
+            segs.append(s)
+    return build_grids(meshes, np.array(segs, np.int32), float(p.contact_margin), float(p.contact_friction),
+                       float(p.contact_grid), rest, vertex_segment)
+
+
+def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: float, rest: np.ndarray,
+                vertex_segment: np.ndarray) -> ContactGrids:
+    """ContactGrids for bone meshes [(V, T), ...] (rest frame) on segments bone_segment, free vertices those
+    with vertex_segment < 0 at rest positions rest. Every array read-only (with or without grids: one
+    compiled step). A bone whose mesh is open has grid columns whose winding does not return to 0: they
+    count as outside."""
+    free_idx = np.flatnonzero(np.asarray(vertex_segment) < 0).astype(np.int32)
+    par = np.array([float(margin), float(friction)])
+    origins, dims, phis, inv_h, segs, cdims, cmins = [], [], [], [], [], [], []
+    for b, (V, T) in enumerate(meshes):
+        if len(T) == 0:
+            continue
+        o, d, phi, cmin, _open = _cached_sdf(V, T, float(spacing))
+        origins.append(o), dims.append(d), phis.append(phi.reshape(-1)), inv_h.append(1.0 / spacing)
+        cdims.append(cmin.shape), cmins.append(cmin.reshape(-1))
+        segs.append(int(bone_segment[b]))
+    g_off = np.zeros(len(phis) + 1, np.int64)
+    g_off[1:] = np.cumsum([a.size for a in phis]) if phis else []
+    c_off = np.zeros(len(cmins) + 1, np.int64)
+    c_off[1:] = np.cumsum([a.size for a in cmins]) if cmins else []
+    f32 = lambda parts: np.concatenate(parts).astype(np.float32) if parts else np.zeros(0, np.float32)  # noqa: E731
+    g = dict(g_seg=np.array(segs, np.int32), g_origin=np.array(origins, np.float64).reshape(-1, 3),
+             g_inv_h=np.array(inv_h, np.float64), g_dims=np.array(dims, np.int64).reshape(-1, 3), g_off=g_off,
+             g_phi=f32(phis), c_dims=np.array(cdims, np.int64).reshape(-1, 3), c_off=c_off, c_min=f32(cmins))
+    # each free vertex's floor: the margin, or less where the rest shape already is closer
+    floor = np.full(len(rest), float(margin))
+    if len(segs):
+        d = np.empty(len(free_idx))
+        gr = np.empty((len(free_idx), 3))
+        for b in range(len(segs)):
+            sample_grid(g['g_origin'], g['g_inv_h'], g['g_dims'], g['g_off'], g['g_phi'], b,
+                        np.ascontiguousarray(rest[free_idx], np.float64), d, gr)
+            floor[free_idx] = np.minimum(floor[free_idx], d)
+    cg = ContactGrids(floor=floor, free_idx=free_idx, par=par, **g)
+    for a in cg:
+        a.flags.writeable = False
+    return cg
+
+
+def work(cg: ContactGrids, n_segments: int) -> ContactWork:
+    """Fresh mutable buffers of the contact stage for one State (records empty: every vertex tested first)."""
+    S, B, F = max(int(n_segments), 1), cg.g_seg.shape[0], cg.free_idx.shape[0]
+    return ContactWork(np.tile(np.eye(3), (S, 1, 1)), np.zeros((S, 3)), np.zeros((B, F, 3)), np.zeros((B, F)),
+                       np.zeros(F, np.int32), np.zeros(2, np.int64))
+
+
+def _cached_sdf(V, T, h):
+    """bone_sdf, memoised on the mesh bytes and h (a model compiled twice builds its grids once)."""
+    import hashlib
+    key = (hashlib.sha1(np.ascontiguousarray(V, np.float64).tobytes() + np.ascontiguousarray(T, np.int64).tobytes())
+           .hexdigest(), h)
+    r = _SDF_CACHE.get(key)
+    if r is None:
+        if len(_SDF_CACHE) > 64:
+            _SDF_CACHE.clear()
+        o, d, phi, n_open = bone_sdf(V, T, h, pad=max(4.0 * h, 5e-3))
+        cmin = block_min(phi)
+        phi.flags.writeable = False
+        r = _SDF_CACHE[key] = (o, d, phi, cmin, n_open)
+    return r
+
+
+def signed_distances(sim, positions: np.ndarray, seg_R: np.ndarray, seg_t: np.ndarray) -> np.ndarray:
+    """(P, G) signed distance [m] of world points to every contact grid (bone) of a compiled model,
+    in the pose (seg_R, seg_t); +inf outside a grid. For analysis and tests."""
+    cg = sim.contact
+    P = np.asarray(positions, np.float64)
+    out = np.full((len(P), len(cg.g_seg)), np.inf)
+    d = np.empty(len(P))
+    gr = np.empty((len(P), 3))
+    for b, s in enumerate(cg.g_seg):
+        X = np.ascontiguousarray((P - seg_t[s]) @ seg_R[s])       # R^T (x - t), row-wise
+        sample_grid(cg.g_origin, cg.g_inv_h, cg.g_dims, cg.g_off, cg.g_phi, b, X, d, gr)
+        out[:, b] = d
+    return out
+
+
+# ------------------------------------------------------------------------------- measurement
+def mesh_penetration(sim, state) -> dict:
+    """Free vertices inside each bone, measured on the bone meshes themselves (not the grids): the
+    generalised winding number of the posed mesh (> 0.5 inside) and the exact distance to its
+    triangles. {bone name: (count inside, count deeper than 1 mm, max depth [m])}."""
+    import trimesh
+    from tissue_sim.core.builder.bones import winding_number
+    tm = sim.tissue
+    P = state.x[sim.free_idx]
+    out = {}
+    for b, name in enumerate(tm.bone_names):
+        V, T = tm.bone_mesh(b)
+        s = int(tm.bone_segment[b])
+        Vw = V @ state.seg_R[s].T + state.seg_t[s]
+        lo, hi = Vw.min(0), Vw.max(0)
+        box = np.all((P >= lo) & (P <= hi), axis=1)
+        inside = np.zeros(len(P), bool)
+        if np.any(box):
+            inside[box] = winding_number(Vw, T, P[box]) > 0.5
+        depth = np.zeros(int(inside.sum()))
+        if depth.size:
+            tri = Vw[T]
+            Q = np.repeat(P[inside], len(T), axis=0)
+            cp = trimesh.triangles.closest_point(np.tile(tri, (depth.size, 1, 1)), Q)
+            depth = np.linalg.norm(cp - Q, axis=1).reshape(depth.size, len(T)).min(1)
+        out[name] = (int(inside.sum()), int(np.sum(depth > 1e-3)), float(depth.max()) if depth.size else 0.0)
+    return out
+
+
+def inverted_cells(sim, x) -> tuple:
+    """(indices of cells with V/V0 <= 0 at positions x, their V/V0, V/V0 of every cell): signed
+    volumes from core.geometry.prism_volumes (fat rings reversed, as the builder's quality check)."""
+    from tissue_sim.core.geometry import prism_volumes
+    from tissue_sim.core.model import TISSUE_FAT
+    tm = sim.tissue
+    flip = tm.cell_tissue == TISSUE_FAT
+    r = prism_volumes(x, tm.cell_offsets, tm.cell_vertices, flip) / prism_volumes(tm.rest_positions, tm.cell_offsets,
+                                                                                   tm.cell_vertices, flip)
+    bad = np.flatnonzero(r <= 0)
+    return bad, r[bad], r
