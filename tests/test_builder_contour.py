@@ -153,6 +153,33 @@ def test_a_muscle_not_crossing_the_knee_is_not_bound_across_it():
     assert np.any((tm0.vertex_segment[vs0] == lower) & (tm0.rest_positions[vs0, 2] < KNEE_Z / 1000))
 
 
+def test_end_ring_vertex_shared_with_a_muscle_not_crossing_the_joint_stays_unbound():
+    """The flexor (origin 'upper', insertion 'lower') ends beside the extensor (origin and insertion on
+    'upper'), which shares two of the flexor's insertion-ring vertices: the rest of the ring is fixed to
+    'lower', those two are not (they would bind the extensor across the knee), and the report says so."""
+    from phantoms import _grid
+    lab, aff, tab = make_phantom('column')
+    _, _, x, y, z = _grid()
+    lab[lab == 12] = 40
+    lab[(np.hypot(x + 20, y - 34) <= 18) & (lab == 40)] = 12           # the extensor against the flexor
+    tab['labels'][11] = dict(tab['labels'][11], origin='upper', insertion='lower')
+    tab['labels'][12] = dict(tab['labels'][12], origin='upper', insertion='upper')
+    tm, rep = build_model((lab, aff), tab, **P)
+    f, e = tm.muscle_index('flexor'), tm.muscle_index('extensor')
+    vf = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == f)[0]]))
+    ve = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == e)[0]]))
+    zz = tm.rest_positions[vf, 2]
+    bot = vf[np.isclose(zz, zz.min())]
+    shared = np.intersect1d(bot, ve)
+    lower = tm.segment_names.index('lower')
+    assert len(shared) > 0
+    assert not np.any(tm.vertex_segment[ve] == lower)
+    assert np.all(tm.vertex_segment[np.setdiff1d(bot, shared)] == lower)
+    assert tm.meta['anchors']['flexor']['insertion'] == ['lower', len(bot) - len(shared)]
+    assert any(w.startswith('muscle flexor:') and 'insertion ring' in w and 'does not span lower' in w
+               for w in rep['warnings'])
+
+
 def test_bad_sections_setting():
     lab, aff, tab = make_phantom('column')
     with pytest.raises(UserError, match='sections'):

@@ -120,3 +120,26 @@ def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
     vs = np.unique(np.concatenate([tm.cell(c) for c in np.nonzero(tm.cell_muscle == m)[0]]))
     on_shank = vs[tm.vertex_segment[vs] == shank]
     assert np.all(tm.rest_positions[on_shank, 0] > knee[0] + 0.02)        # anterior: beside the patella
+
+
+def test_hamstring_end_rings_fully_bound_to_origin_and_insertion(built):
+    """Every vertex of each hamstring's proximal end ring is bound to its origin segment and every vertex
+    of its distal end ring to its insertion segment, the ones it shares with neighbouring muscles or the
+    fat included (a shared end-ring vertex left free is pulled along the muscle by its active tension:
+    the long head and semimembranosus then delivered 30 % and 5 % of Fmax at a held knee)."""
+    from tissue_sim.core.builder.table import load_tissue_table
+    tm, _ = built
+    tab = load_tissue_table(builder.default_inputs()[1])['labels']
+    ends = {v['name']: (v.get('origin'), v.get('insertion')) for v in tab.values() if v['tissue'] == 'muscle'}
+    for name in ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus', 'semitendinosus'):
+        m = tm.muscle_index(name)
+        cells = np.flatnonzero(tm.cell_muscle == m)
+        vs = np.unique(np.concatenate([tm.cell(c) for c in cells]))
+        z = tm.rest_positions[vs, 2]
+        top, bot = vs[np.isclose(z, z.max())], vs[np.isclose(z, z.min())]
+        assert len(top) == len(bot) == len(tm.cell(cells[0])) // 2, name
+        assert np.any(tm.vertex_flags[bot] & M.VF_SHARED), name            # the case the rule is about
+        origin, insertion = ends[name]
+        assert np.all(tm.vertex_segment[top] == tm.segment_names.index(origin)), name
+        assert np.all(tm.vertex_segment[bot] == tm.segment_names.index(insertion)), name
+        assert tm.meta['anchors'][name] == {'origin': [origin, len(top)], 'insertion': [insertion, len(bot)]}

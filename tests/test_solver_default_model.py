@@ -131,13 +131,13 @@ def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim)
         st, ctl = solver.make_state(sim), solver.make_control(sim)
         ctl.activation[ham] = 1.0
         q, L, v = [], [], []
-        for _ in range(60):                      # 1.2 s in 20-ms frames (the end stop is reached by ~1 s)
+        for _ in range(60):                      # 1.2 s in 20-ms frames (the end stop is reached by ~0.4 s)
             solver.step(sim, st, ctl, n_steps=20)
             o = solver.observe(sim, st)
             q.append(o['joint_positions'][j]); L.append(o['muscle_lengths'][ham]); v.append(st.muscle_velocity[ham])
         res[name] = np.array(q), np.array(L), np.array(v)
     (q_on, L_on, v_on), (q_off, _, v_off) = res['on'], res['off']
-    k = 20                                       # t = 0.42 s, the knee swinging (measured 67 vs 75 deg)
+    k = 14                                       # t = 0.30 s, the knee swinging (measured 77 vs 94 deg)
     assert q_on[k] < q_off[k] - math.radians(5)
     hi = physical_sim.j_range[j][1]
     assert abs(q_on[-1] - hi) < math.radians(1.5) and abs(q_off[-1] - hi) < math.radians(1.5)
@@ -180,3 +180,27 @@ def test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest(defau
     assert np.all(np.diff(wins) <= tol), np.diff(wins).max()
     assert wins.max() <= wins[0] + tol
     assert ke[-w:].max() < 0.05 * ke.max(), (ke[-w:].max(), ke.max())
+
+
+@pytest.mark.slow
+def test_hamstrings_deliver_most_of_their_max_force_at_a_locked_knee(physical_sim):
+    """Issue 19 target, physical set: the knee locked at 0 deg (the source model's optimal fibre length of
+    the long head, semimembranosus and semitendinosus lies nearest 0 deg, docs/validation.md), all four
+    hamstrings fully active, each of those three puts >= 60 % of its max isometric force on the shank
+    (measured 83, 72, 85 %; 30, 5, 65 % while the shared vertices of their end rings were left free). The
+    short head is not asserted: its proximal label lies in front of the femur (slices 38-39) and, with no
+    bone contact, its belly cuts through the femur under tension (measured 32 % at 0 deg)."""
+    import yaml
+
+    from tissue_sim.core import validation
+    from tissue_sim.core.builder import default_inputs
+    tm = physical_sim.tissue
+    table = yaml.safe_load(open(default_inputs()[1]))
+    muscles = validation.knee_muscles(tm, table)
+    hams = ['biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus', 'semitendinosus']
+    r = validation.hold_sweep(physical_sim, muscles, [0.0], hams, settle=0.6, ramp_speed=200.0)
+    assert r['diverged'] is None
+    frac = {km.name: r['muscle_force'][0][i] / km.max_force for i, km in enumerate(muscles)}
+    for name in ('biceps_femoris_long_head', 'semimembranosus', 'semitendinosus'):
+        assert frac[name] >= 0.60, (name, frac)
+    assert r['torque'][0] > 0.0                           # they flex the knee

@@ -171,41 +171,29 @@ def segment_span(parent, a: int | None, b: int | None) -> np.ndarray | None:
     return np.array(pa[:pa.index(common) + 1] + pb[:pb.index(common)], dtype=np.int64)
 
 
-def vertex_users(V: int, verts, offsets, ctiss, cmus) -> tuple[list, np.ndarray]:
-    """Per vertex: the set of muscles whose cells use it, and whether a fat cell uses it."""
-    sizes = np.diff(offsets)
-    who = np.repeat(np.where(ctiss == M.TISSUE_MUSCLE, cmus, -1), sizes)
-    users = [set() for _ in range(V)]
-    fat = np.zeros(V, bool)
-    for v, w in zip(verts.tolist(), who.tolist()):
-        if w < 0:
-            fat[v] = True
-        else:
-            users[v].add(w)
-    return users, fat
-
-
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
-                       vseg, warnings, pos) -> dict:
+                       vseg, warnings, pos, allowed) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
     attachments from anatomy atlases, section 4.2), in place on ``vseg``.
 
     The end rings are the muscle's ring vertices on its highest (proximal, +z) and lowest slice.
-    Only end-ring vertices of the muscle itself are fixed: a vertex it shares with the fat, or with a
-    muscle for which the vertex is not an end-ring vertex fixed to the same segment, keeps its own
-    binding (so a belly's end ring never drags a neighbour across a joint, while tendons that end
-    together, e.g. the pes anserinus, are fixed together). Where bones of other segments share the
-    ring's slice (a quadriceps ring around the femur, beside the patella), only the ring vertices
-    nearer to the segment's bone than to any other bone are fixed: the rest would swing through the
-    other bone when the joint turns.
+    The whole ring is fixed, vertices shared (2.4) with the fat or with other muscles included: the
+    active tension pulls on every ring vertex, and a shared vertex left free is pulled along the
+    muscle by it (held only by its soft neighbours), so the muscle shortens inside and its cells lose
+    their tension. Two guards: a shared vertex is not fixed to a segment outside the origin-insertion
+    span of any muscle using it (``allowed``, (V, n_segments): nothing of a muscle is bound across a
+    joint it does not cross), nor where another muscle's end ring claims it for a different segment.
+    Where bones of other segments share the ring's slice (a quadriceps ring around the femur, beside
+    the patella), only the ring vertices nearer to the segment's bone than to any other bone are fixed:
+    the rest would swing through the other bone when the joint turns (and would drag the back-of-knee
+    vertices they share with the hamstrings through the femur).
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
     joint, so it is left free and a warning says so. Returns {muscle: {end: [segment, n_vertices]}}."""
     out = {}
     up = slice_z[-1] >= slice_z[0]
-    users, fat = vertex_users(len(vseg), verts, offsets, ctiss, cmus)
     proposals = {}                                   # vertex -> {muscle: segment}
     rings = []
     for m, lab in enumerate(mlabels):
@@ -234,12 +222,13 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
                 warnings.append(f'muscle {tab[lab]["name"]}: no {seg} bone on the slice of its {end} ring '
                                 f'(slice {int(zi)}, z {slice_z[zi]:.3f} m): left unanchored')
     for m, lab, end, seg, si, ring in rings:
-        own = [v for v in ring.tolist() if not fat[v] and all(proposals[v].get(u) == si for u in users[v])]
-        vseg[own] = si
-        out.setdefault(tab[lab]['name'], {})[end] = [seg, len(own)]
-        if not own:
-            warnings.append(f'muscle {tab[lab]["name"]}: every vertex of its {end} ring is shared with another tissue: '
-                            f'none fixed to {seg}')
+        fix = [v for v in ring.tolist() if allowed[v, si] and all(s_ == si for s_ in proposals[v].values())]
+        vseg[fix] = si
+        out.setdefault(tab[lab]['name'], {})[end] = [seg, len(fix)]
+        if len(fix) < len(ring):
+            warnings.append(f'muscle {tab[lab]["name"]}: {len(ring) - len(fix)} of the {len(ring)} vertices of its {end} '
+                            f'ring are shared with a muscle that does not span {seg} (or ends on another segment): '
+                            f'left to their own binding')
     return out
 
 
@@ -559,7 +548,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
 
     # ---------------------------------------------------------------- muscle origins and insertions
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
-                                 tab, seg_names, bonepix, vseg, warnings, pos) if s['anchor_muscles'] else {}
+                                 tab, seg_names, bonepix, vseg, warnings, pos, allowed) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
