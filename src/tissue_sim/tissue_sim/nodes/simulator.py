@@ -89,7 +89,7 @@ class Simulator(Node):
         from ..core import solver, tissue_cdr
         from ..core.load import load_model, load_params
         super().__init__('simulator', **kw)
-        self.solver, self.tcdr = solver, tissue_cdr
+        self.solver, self.tcdr, self.TFMessage = solver, tissue_cdr, TFMessage
         self.P = P = declare(self, PARAMS)
         t0 = time.monotonic()
         self.tm = load_model(P['model'])
@@ -104,13 +104,18 @@ class Simulator(Node):
                                                  bone_resolution=P['bone_marker_resolution']) if P['publish_markers'] else None
         self._rest_area = None
         self._fat_def = None
-        # warm the kernels (numba compile) on a scratch state before the clock starts, and time a few steps
+        # warm every path of a frame before the clock starts (no first-frame or first-step stall): the
+        # kernels (numba compile) on a scratch state, timing a few steps; the marker colours (their rest
+        # references come from the start state, as the first frame would take them) and encoder; the TF
+        # message. (ros.common.main then freezes the set-up's objects out of the garbage collector.)
         self.pacer = realtime.Pacer(lambda k: solver.step(self.sim, self.state, self.ctrl, self.dt, n_steps=k), self.dt)
         warm = solver.make_state(self.sim)
         solver.step(self.sim, warm, self.ctrl, self.dt)
         self.pacer.warm_up(lambda k: solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=k))
         if self.marker_enc is not None:
-            self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'])
+            self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'],
+                                   self.corner_colours(self.state.x))
+        self.tf_message(0, range(self.tm.n_segments))
         self.get_logger().info(f'model {self.tm.name!r}: {self.tm.n_vertices} vertices, {self.tm.n_cells} cells, '
                                f'{self.tm.n_muscles} muscles; params {self.params.preset}, dt {self.dt:g} s; '
                                f'ready in {time.monotonic() - t0:.1f} s')
@@ -126,7 +131,6 @@ class Simulator(Node):
         self.pub_tf_static = self.create_publisher(TFMessage, TOPIC_TF_STATIC, qos_latched()) if P['publish_tf'] else None
         self.pub_description = (self.create_publisher(String, TOPIC_ROBOT_DESCRIPTION, qos_latched())
                                 if P['publish_robot_description'] else None)
-        self.TFMessage = TFMessage
         self.tf_moving = [s for s in range(self.tm.n_segments) if not urdf.is_static(self.tm, s, self.params.fixed_root)]
         self.create_subscription(MuscleActivation, TOPIC_ACTIVATION, self.on_activation, qos_stream())
         self.create_service(Trigger, '~/reset', self.on_reset)
