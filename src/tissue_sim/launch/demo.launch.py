@@ -67,12 +67,23 @@ def simulator_and_tf(context):
     simulator = Node(
         package='tissue_sim', executable='simulator', name='simulator', output='screen',
         parameters=[{'model': model, 'params': LaunchConfiguration('params'),
-                     'publish_markers': LaunchConfiguration('publish_markers'), 'publish_tf': not rsp, 'publish_robot_description': not rsp}])
+                     'publish_markers': LaunchConfiguration('publish_markers'),
+                     'publish_tf': not rsp, 'publish_robot_description': not rsp}])
     if not rsp:
         return [simulator]
-    from tissue_sim.core import urdf
-    from tissue_sim.core.load import load_model
-    description = urdf.robot_description(load_model(model))
     return [simulator, Node(package='robot_state_publisher', executable='robot_state_publisher',
                             name='robot_state_publisher', output='screen',
-                            parameters=[{'robot_description': description, 'use_sim_time': True}])]
+                            parameters=[{'robot_description': robot_description(model), 'use_sim_time': True}])]
+
+
+def robot_description(model: str) -> str:
+    """The URDF of the simulator's model: the installed file for the bundled limb (tests/test_urdf.py
+    keeps it equal to the generated one), else generated from the model file."""
+    from pathlib import Path
+    from ament_index_python.packages import get_package_share_directory
+    if not model:
+        return (Path(get_package_share_directory('tissue_sim')) / 'urdf' / 'lower_limb_r.urdf').read_text()
+    from tissue_sim.core import urdf
+    from tissue_sim.core.load import load_model
+    return urdf.robot_description(load_model(model))
+

@@ -5,8 +5,11 @@
     recorder -o run.mcap --split-size 500 --split-duration 60
 
 Default topics: /tissue/state, /tissue/topology, /tissue/activation, /joint_states, /diagnostics
-(/tissue/markers only when named: ~7 MB/s). Types are discovered from the ROS graph (or given as
-``/topic:pkg/msg/Type``). Files: profile ros2, ros2msg schemas, cdr, zstd chunks, a ``tissue_sim``
+(/tissue/markers only when named: ~7 MB/s). The topics of tissue_sim's nodes (ros.common.TOPIC_TYPES)
+and those given as ``/topic:pkg/msg/Type`` are subscribed at start-up, before their publishers
+appear: creating a subscription takes 5-200 ms (measured) in the node's one thread, which would
+delay, and so gap the log times of, the topics already flowing. Other topics' types are discovered
+from the ROS graph. Files: profile ros2, ros2msg schemas, cdr, zstd chunks, a ``tissue_sim``
 metadata record (model, parameters, versions, topics); rosbag2 and Foxglove open them. Log times
 are the receive time (wall clock, ns). SIGINT/SIGTERM finish the file; after SIGKILL the file is
 readable up to the last flushed chunk (``--flush`` seconds) by tissue_sim.core.mcapio.
@@ -24,8 +27,11 @@ from pathlib import Path
 from ..core import mcapio
 from rclpy.node import Node
 
-from ..ros.common import TISSUE_TOPICS, TOPIC_TOPOLOGY, qos_latched, qos_stream
+from ..ros.common import (TISSUE_TOPICS, TOPIC_ROBOT_DESCRIPTION, TOPIC_TF_STATIC, TOPIC_TOPOLOGY, TOPIC_TYPES,
+                          qos_latched, qos_stream)
 from ..ros.common import main as node_main
+
+LATCHED = (TOPIC_TOPOLOGY, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTION)   # published once, transient local
 
 
 def build_parser():
@@ -53,7 +59,7 @@ class Recorder(Node):
         self.wanted = {}               # topic -> explicit type or None
         for t in ([] if args.only else list(TISSUE_TOPICS)) + list(args.topics):
             name, _, typ = t.partition(':')
-            self.wanted[name] = typ or None
+            self.wanted[name] = typ or TOPIC_TYPES.get(name)
         meta = {'recorder_topics': json.dumps(sorted(self.wanted)), 'versions': json.dumps(mcapio.versions()),
                 'command': ' '.join(sys.argv), 'started_wall_ns': str(time.time_ns())}
         for kv in args.meta:
@@ -66,6 +72,9 @@ class Recorder(Node):
         self.subs = {}
         self.counts = {}
         self.closed = False
+        for topic, typ in self.wanted.items():
+            if typ is not None:
+                self.subscribe(topic, typ)
         self.create_timer(0.5, self.discover)
         self.create_timer(max(args.flush, 0.05), self.writer.flush)
         self.discover()
@@ -92,18 +101,20 @@ class Recorder(Node):
             self.get_logger().error(f'cannot record {topic} ({typ}): {e}')
             self.subs[topic] = None
             return
-        qos = qos_latched() if topic == TOPIC_TOPOLOGY else qos_stream(100)
+        qos = qos_latched() if topic in LATCHED else qos_stream(100)
         self.subs[topic] = self.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data),
                                                          qos, raw=True)
-        self.get_logger().info(f'recording {topic} [{typ}]')
+        self.get_logger().info(f'subscribed to {topic} [{typ}]')
 
     def on_message(self, topic, data):
         if self.closed:
             return
         self.writer.write(topic, data, time.time_ns())
         self.counts[topic] = self.counts.get(topic, 0) + 1
-        if topic == TOPIC_TOPOLOGY and self.counts[topic] == 1:
-            self.note_model(data)
+        if self.counts[topic] == 1:
+            self.get_logger().info(f'recording {topic}: first message received')
+            if topic == TOPIC_TOPOLOGY:
+                self.note_model(data)
 
     def note_model(self, data):
         """Model name, hash and parameters of the run (from the topology) as a metadata record."""

@@ -19,6 +19,12 @@ TOPIC_TF = '/tf'
 TOPIC_TF_STATIC = '/tf_static'
 TOPIC_ROBOT_DESCRIPTION = '/robot_description'
 TISSUE_TOPICS = (TOPIC_STATE, TOPIC_TOPOLOGY, TOPIC_ACTIVATION, TOPIC_JOINTS, TOPIC_DIAGNOSTICS)
+TOPIC_TYPES = {      # the types of the topics the nodes publish (a recorder subscribes before they appear)
+    TOPIC_STATE: 'tissue_msgs/msg/TissueState', TOPIC_TOPOLOGY: 'tissue_msgs/msg/TissueTopology',
+    TOPIC_ACTIVATION: 'tissue_msgs/msg/MuscleActivation', TOPIC_JOINTS: 'sensor_msgs/msg/JointState',
+    TOPIC_DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray', TOPIC_MARKERS: 'visualization_msgs/msg/MarkerArray',
+    TOPIC_CLOCK: 'rosgraph_msgs/msg/Clock', TOPIC_TF: 'tf2_msgs/msg/TFMessage', TOPIC_TF_STATIC: 'tf2_msgs/msg/TFMessage',
+    TOPIC_ROBOT_DESCRIPTION: 'std_msgs/msg/String'}
 
 
 def parse_args(parser: argparse.ArgumentParser, argv=None):
