@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 import rosutil  # noqa: F401  (activates the workspace before rclpy; skips if not built)
 from rosutil import isolated_domain, ros_context, run_executable, spin_until, wait_for_subscribers
+from test_urdf import _urdf_fk      # the URDF's forward kinematics by the URDF specification
 
 pytestmark = pytest.mark.ros
 
@@ -50,7 +51,7 @@ def test_tf_static_and_robot_description_of_the_running_model(knee_model):
         tf, states, js = [], [], []
         node.create_subscription(TFMessage, '/tf', tf.append, 100)
         node.create_subscription(TissueState, '/tissue/state', states.append, 100, raw=True)
-        node.create_subscription(JointState, '/joint_states', js.append, 10)
+        node.create_subscription(JointState, '/joint_states', js.append, 100)
         pub = node.create_publisher(MuscleActivation, '/tissue/activation', 10)
         sim.wait_for_output('simulator ready', timeout=120)
         wait_for_subscribers(node, pub, 1, timeout=30)
@@ -85,7 +86,8 @@ def test_tf_static_and_robot_description_of_the_running_model(knee_model):
     assert all([(ts.header.frame_id, ts.child_frame_id) for ts in msg.transforms] == [('thigh', 'shank')]
                for msg in tf)
     by_stamp = {_stamp(msg.transforms[0].header): msg for msg in tf}
-    matched = 0
+    js_by_stamp = {_stamp(m.header): m for m in js}
+    matched = fk_matched = 0
     for raw in states:
         s = tissue_cdr.decode_state(raw)
         if s.stamp_ns not in by_stamp or s.joint_positions[0] < 0.1:
@@ -98,9 +100,17 @@ def test_tf_static_and_robot_description_of_the_running_model(knee_model):
             world[ts.child_frame_id] = (Rp @ R, pp + Rp @ p)
         seg_R = Rotation.from_quat(s.segment_poses[:, 3:]).as_matrix()
         R_link, p_link = urdf.link_poses(tm, seg_R, s.segment_poses[:, :3])
+        # what robot_state_publisher makes from /joint_states alone: the URDF's forward kinematics
+        j = js_by_stamp.get(s.stamp_ns)
+        fk = _urdf_fk(desc[0].data, dict(zip(j.name, j.position))) if j is not None else None
+        fk_matched += j is not None
         for i, seg in enumerate(tm.segment_names):
             np.testing.assert_allclose(world[seg][0], R_link[i], atol=1e-6, err_msg=seg)
             np.testing.assert_allclose(world[seg][1], p_link[i], atol=1e-6, err_msg=seg)
+            if fk is not None:
+                np.testing.assert_allclose(fk[seg][0], R_link[i], atol=1e-6, err_msg=seg)
+                np.testing.assert_allclose(fk[seg][1], p_link[i], atol=1e-6, err_msg=seg)
+    assert fk_matched > 5, f'only {fk_matched} states matched a /joint_states message by stamp'
     assert matched > 5, f'only {matched} states with a flexed knee matched a /tf message by stamp'
 
 

@@ -132,6 +132,10 @@ class Recorder(Node):
         if self.closed:
             return
         self.closed = True
+        # a second SIGINT/SIGTERM (`ros2 launch` forwards the Ctrl-C its process group already got)
+        # must not interrupt the summary and footer half written: ignored from here on
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
         self.writer.close()
         total = sum(self.counts.values())
         print(f'recorder: {total} messages in {", ".join(str(f) for f in self.writer.files)} '
