@@ -65,7 +65,8 @@ def test_ros2_run_topic_hz_param_and_interface():
             rate = float(m.group(1))
             assert 30.0 < rate < 40.0, f'ros2 topic hz saw {rate} Hz on /joint_states'
 
-            assert '/simulator' in ros2(env, 'node', 'list', '--no-daemon').stdout.split()
+            # --spin-time: discovery without the daemon takes longer than the default 0.5 s on a loaded machine
+            assert '/simulator' in ros2(env, 'node', 'list', '--no-daemon', '--spin-time', '5').stdout.split()
             r = ros2(env, 'param', 'set', '/simulator', 'rate', '0.5', '--no-daemon')
             assert r.returncode == 0 and 'successful' in r.stdout, r.stdout + r.stderr
             r = ros2(env, 'param', 'get', '/simulator', 'rate', '--no-daemon')
