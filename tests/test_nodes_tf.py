@@ -12,17 +12,10 @@ from scipy.spatial.transform import Rotation
 
 import rosutil  # noqa: F401  (activates the workspace before rclpy; skips if not built)
 from rosutil import isolated_domain, ros_context, run_executable, spin_until, wait_for_subscribers
+from test_nodes import knee_model   # noqa: F401  (fixture: the knee phantom as a file)
 from test_urdf import _urdf_fk      # the URDF's forward kinematics by the URDF specification
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture(scope='module')
-def knee_model(tmp_path_factory):
-    from tissue_sim.core.solver import phantom
-    p = tmp_path_factory.mktemp('model') / 'knee.npz'
-    phantom.knee().save(p)
-    return p
 
 
 def _pose(ts):
