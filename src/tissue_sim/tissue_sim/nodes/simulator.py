@@ -138,9 +138,9 @@ class Simulator(Node):
         self.publish_topology()
         if self.pub_description is not None:
             self.pub_description.publish(String(data=urdf.robot_description(self.tm)))
-        if self.pub_tf_static is not None:
-            self.pub_tf_static.publish(self.tf_message(0, [s for s in range(self.tm.n_segments)
-                                                           if s not in self.tf_moving]))
+        fixed = [s for s in range(self.tm.n_segments) if s not in self.tf_moving]
+        if self.pub_tf_static is not None and fixed:
+            self.pub_tf_static.publish(self.tf_message(0, fixed))
         # bookkeeping
         self.paused = bool(P['start_paused'])
         self.diverged = ''
