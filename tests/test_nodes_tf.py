@@ -62,6 +62,7 @@ def test_tf_static_and_robot_description_of_the_running_model(knee_model):
         spin_until(lambda: time.monotonic() - t0 > 0.5, node, 5, 'a few more frames')
         node.destroy_node()
     assert sim.returncode == 0, sim.output
+    assert 'params physical' in sim.output          # the default parameter set
 
     # /robot_description: the URDF of the model this node runs (the knee phantom, not the bundled limb)
     assert len(desc) == 1 and desc[0].data == urdf.robot_description(tm)

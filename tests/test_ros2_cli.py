@@ -56,7 +56,7 @@ def ros2(env, *args, timeout=60.0):
 def test_ros2_run_topic_hz_param_and_interface():
     with isolated_domain() as dom:
         env = dict(dom.env)
-        with started([ROS2, 'run', 'tissue_sim', 'simulator', '--ros-args', '-p', 'params:=physical'], env) as sim:
+        with started([ROS2, 'run', 'tissue_sim', 'simulator'], env) as sim:
             sim.wait_for_output(r'publishing at', timeout=240)
             # ros2 topic hz prints 'average rate: X' once a second: take the third
             with started([ROS2, 'topic', 'hz', '/joint_states', '--window', '60'], env) as hz:
@@ -71,6 +71,8 @@ def test_ros2_run_topic_hz_param_and_interface():
             assert r.returncode == 0 and 'successful' in r.stdout, r.stdout + r.stderr
             r = ros2(env, 'param', 'get', '/simulator', 'rate', '--no-daemon')
             assert re.search(r'0\.5\b', r.stdout), r.stdout + r.stderr
+            r = ros2(env, 'param', 'get', '/simulator', 'params', '--no-daemon')      # the default set moves the knee
+            assert 'physical' in r.stdout, r.stdout + r.stderr
             r = ros2(env, 'param', 'set', '/simulator', 'params', 'paper', '--no-daemon')   # read-only
             assert 'successful' not in r.stdout, r.stdout
             r = ros2(env, 'param', 'describe', '/simulator', 'publish_rate', '--no-daemon')
