@@ -84,7 +84,8 @@ def test_joint_states_have_no_gap_across_start_pause_resume_reset(tmp_path):
     at = {k: (v - t[0]) * 1e-9 for k, v in events.items()}
     print(f'\n{len(t)} frames over {(t[-1] - t[0]) * 1e-9:.2f} s; events at ' +
           ', '.join(f'{k} {v:.2f} s' for k, v in at.items()) +
-          f'\nlargest gaps: ' + ', '.join(f'{1e3 * gaps[i]:.0f} ms at {(t[i + 1] - t[0]) * 1e-9:.2f} s' for i in worst) +
+          '\nlargest gaps: ' + ', '.join(f'{1e3 * gaps[i]:.0f} ms at {(t[i + 1] - t[0]) * 1e-9:.2f} s'
+                                          for i in worst) +
           f'\np99 {1e3 * np.percentile(gaps, 99):.0f} ms; limit {1e3 * LIMIT_S:.0f} ms ({"idle" if IDLE else "loaded"} '
           f'machine, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)')
     assert at['resume'] > 0.5 and len(t) > 100        # paused frames, then the whole sequence
@@ -97,8 +98,8 @@ def test_the_set_up_objects_are_frozen_out_of_the_garbage_collector(monkeypatch)
     object of the set-up (~140 000: modules, model, compiled kernels) in 54-125 ms. The nodes' main
     freezes them (ros.common.freeze_setup_objects) before spinning: a later full collection scans
     only what the run allocated."""
-    import gc
     import argparse
+    import gc
     from tissue_sim.nodes.simulator import Simulator
     from tissue_sim.ros import common
     from rclpy.parameter import Parameter

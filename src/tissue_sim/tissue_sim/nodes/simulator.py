@@ -128,10 +128,12 @@ class Simulator(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, qos_stream())
         self.pub_topo = self.create_publisher(TissueTopology, TOPIC_TOPOLOGY, qos_latched())
         self.pub_tf = self.create_publisher(TFMessage, TOPIC_TF, qos_stream(100)) if P['publish_tf'] else None
-        self.pub_tf_static = self.create_publisher(TFMessage, TOPIC_TF_STATIC, qos_latched()) if P['publish_tf'] else None
+        self.pub_tf_static = (self.create_publisher(TFMessage, TOPIC_TF_STATIC, qos_latched())
+                              if P['publish_tf'] else None)
         self.pub_description = (self.create_publisher(String, TOPIC_ROBOT_DESCRIPTION, qos_latched())
                                 if P['publish_robot_description'] else None)
-        self.tf_moving = [s for s in range(self.tm.n_segments) if not urdf.is_static(self.tm, s, self.params.fixed_root)]
+        self.tf_moving = [s for s in range(self.tm.n_segments)
+                          if not urdf.is_static(self.tm, s, self.params.fixed_root)]
         self.create_subscription(MuscleActivation, TOPIC_ACTIVATION, self.on_activation, qos_stream())
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.create_service(SetBool, '~/pause', self.on_pause)
