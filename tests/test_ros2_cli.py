@@ -50,14 +50,18 @@ def started(argv, env):
 
 
 def ros2(env, *args, timeout=60.0):
+    """Run a ros2 command. Without the daemon it discovers the graph itself for --spin-time
+    (default 0.5 s): too short on a loaded machine ('Node not found'), so 5 s."""
+    if '--no-daemon' in args:
+        args = (*args, '--spin-time', '5')
     return subprocess.run([ROS2, *args], env=env, capture_output=True, text=True, timeout=timeout)
 
 
 def ros2_graph(env, *args):
     """A `ros2` verb that must discover the simulator first (--no-daemon: each call is a new
-    participant): 5 s of discovery, and a second try on a loaded machine."""
+    participant): 5 s of discovery (ros2()), and a second try on a loaded machine."""
     for _ in range(2):
-        r = ros2(env, *args, '--no-daemon', '--spin-time', '5')
+        r = ros2(env, *args, '--no-daemon')
         if 'Node not found' not in r.stderr:
             break
     return r
@@ -66,7 +70,7 @@ def ros2_graph(env, *args):
 def test_ros2_run_topic_hz_param_and_interface():
     with isolated_domain() as dom:
         env = dict(dom.env)
-        with started([ROS2, 'run', 'tissue_sim', 'simulator', '--ros-args', '-p', 'params:=physical'], env) as sim:
+        with started([ROS2, 'run', 'tissue_sim', 'simulator'], env) as sim:
             sim.wait_for_output(r'publishing at', timeout=240)
             # ros2 topic hz prints 'average rate: X' once a second: take the third
             with started([ROS2, 'topic', 'hz', '/joint_states', '--window', '60'], env) as hz:
@@ -80,6 +84,8 @@ def test_ros2_run_topic_hz_param_and_interface():
             assert r.returncode == 0 and 'successful' in r.stdout, r.stdout + r.stderr
             r = ros2_graph(env, 'param', 'get', '/simulator', 'rate')
             assert re.search(r'0\.5\b', r.stdout), r.stdout + r.stderr
+            r = ros2_graph(env, 'param', 'get', '/simulator', 'params')      # the default set moves the knee
+            assert 'physical' in r.stdout, r.stdout + r.stderr
             r = ros2_graph(env, 'param', 'set', '/simulator', 'params', 'paper')   # read-only
             assert r.stdout and 'successful' not in r.stdout, r.stdout + r.stderr
             r = ros2_graph(env, 'param', 'describe', '/simulator', 'publish_rate')
@@ -96,7 +102,12 @@ def test_ros2_launch_demo_moves_the_knee_and_one_sigint_stops_all(tmp_path):
     out = tmp_path / 'launch.mcap'
     with isolated_domain() as dom, ros_context(dom.id) as ctx:
         node = rclpy.create_node('probe', context=ctx)
-        knee = []
+        knee, tf, desc = [], [], []
+        from std_msgs.msg import String
+        from tf2_msgs.msg import TFMessage
+        from tissue_sim.ros.common import qos_latched
+        node.create_subscription(TFMessage, '/tf', tf.append, 100)
+        node.create_subscription(String, '/robot_description', desc.append, qos_latched())
         sub = node.create_subscription(
             JointState, '/joint_states',
             lambda m: knee.append(m.position[list(m.name).index('knee_r')]) if 'knee_r' in m.name else None, 10)
@@ -105,6 +116,10 @@ def test_ros2_launch_demo_moves_the_knee_and_one_sigint_stops_all(tmp_path):
             wait_for_publishers(node, sub, 1, timeout=240)
             spin_until(lambda: knee and abs(knee[-1]) > math.radians(20), node, 60,
                        'the launched activation profile to flex the knee beyond 20 degrees')
+            # the pip set-up has no robot_state_publisher: the simulator publishes TF and the description
+            spin_until(lambda: tf and desc, node, 20, '/tf and /robot_description')
+            assert {t.child_frame_id for t in tf[-1].transforms} == {'shank'}
+            assert '<robot name="lower_limb_r">' in desc[0].data
             os.killpg(launch.popen.pid, signal.SIGINT)          # one Ctrl-C
             rc = launch.popen.wait(30)
         node.destroy_node()
@@ -116,3 +131,39 @@ def test_ros2_launch_demo_moves_the_knee_and_one_sigint_stops_all(tmp_path):
     with open(out, 'rb') as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
     assert {'/tissue/state', '/joint_states'} <= topics
+
+
+def test_launch_file_starts_robot_state_publisher_only_when_present_with_the_simulator_tf_off():
+    """The launch file's two set-ups, evaluated by launch itself: where robot_state_publisher is
+    installed (forced here: the pip set-up has none) it runs with the URDF of the simulator's model
+    and sim time, and the simulator's own TF and description are off; where it is absent (this
+    set-up, robot_state_publisher:=auto) only the simulator runs, publishing them itself."""
+    import importlib.util
+    from launch import LaunchContext
+    from launch_ros.utilities import evaluate_parameters
+    from tissue_sim.core import urdf
+    from tissue_sim.core.load import load_model
+    path = rosutil.INSTALL / 'tissue_sim' / 'share' / 'tissue_sim' / 'launch' / 'demo.launch.py'
+    spec = importlib.util.spec_from_file_location('demo_launch', path)
+    demo = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(demo)
+    assert not demo.have_robot_state_publisher()          # the pip set-up
+
+    def actions(**conf):
+        ctx = LaunchContext()
+        ctx.launch_configurations.update(dict({'params': 'physical', 'publish_markers': 'true'}, **conf))
+        return {a.node_executable: evaluate_parameters(ctx, a._Node__parameters)[0]
+                for a in demo.simulator_and_tf(ctx)}
+
+    got = actions(model='', robot_state_publisher='auto')
+    assert list(got) == ['simulator']
+    assert got['simulator']['publish_tf'] is True and got['simulator']['publish_robot_description'] is True
+    for model in ('', 'phantom:knee'):
+        got = actions(model=model, robot_state_publisher='true')
+        assert list(got) == ['simulator', 'robot_state_publisher']
+        assert got['simulator']['publish_tf'] is False and got['simulator']['publish_robot_description'] is False
+        rsp = got['robot_state_publisher']
+        assert rsp['use_sim_time'] is True
+        assert rsp['robot_description'] == urdf.robot_description(load_model(model))
+    with pytest.raises(ValueError, match='robot_state_publisher:=maybe'):
+        actions(model='', robot_state_publisher='maybe')

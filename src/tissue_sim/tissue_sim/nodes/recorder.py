@@ -6,8 +6,11 @@
     recorder -o run.mcap --topics /tissue/markers --max-rate /tissue/markers=10   # markers at <= 10 Hz
 
 Default topics: /tissue/state, /tissue/topology, /tissue/activation, /joint_states, /diagnostics
-(/tissue/markers only when named: ~7 MB/s). Types are discovered from the ROS graph (or given as
-``/topic:pkg/msg/Type``). Files: profile ros2, ros2msg schemas, cdr, zstd chunks, a ``tissue_sim``
+(/tissue/markers only when named: ~7 MB/s). The topics of tissue_sim's nodes (ros.common.TOPIC_TYPES)
+and those given as ``/topic:pkg/msg/Type`` are subscribed at start-up, before their publishers
+appear: creating a subscription takes 5-200 ms (measured) in the node's one thread, which would
+delay, and so gap the log times of, the topics already flowing. Other topics' types are discovered
+from the ROS graph. Files: profile ros2, ros2msg schemas, cdr, zstd chunks, a ``tissue_sim``
 metadata record (model, parameters, versions, topics); rosbag2 and Foxglove open them. Log times
 are the receive time (wall clock, ns). SIGINT/SIGTERM finish the file; after SIGKILL the file is
 readable up to the last flushed chunk (``--flush`` seconds) by tissue_sim.core.mcapio.
@@ -25,8 +28,11 @@ from pathlib import Path
 from ..core import mcapio
 from rclpy.node import Node
 
-from ..ros.common import TISSUE_TOPICS, TOPIC_TOPOLOGY, qos_latched, qos_stream
+from ..ros.common import (TISSUE_TOPICS, TOPIC_ROBOT_DESCRIPTION, TOPIC_TF_STATIC, TOPIC_TOPOLOGY, TOPIC_TYPES,
+                          qos_latched, qos_stream)
 from ..ros.common import main as node_main
+
+LATCHED = (TOPIC_TOPOLOGY, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTION)   # published once, transient local
 
 
 def build_parser():
@@ -57,7 +63,7 @@ class Recorder(Node):
         self.wanted = {}               # topic -> explicit type or None
         for t in ([] if args.only else list(TISSUE_TOPICS)) + list(args.topics):
             name, _, typ = t.partition(':')
-            self.wanted[name] = typ or None
+            self.wanted[name] = typ or TOPIC_TYPES.get(name)
         meta = {'recorder_topics': json.dumps(sorted(self.wanted)), 'versions': json.dumps(mcapio.versions()),
                 'command': ' '.join(sys.argv), 'started_wall_ns': str(time.time_ns())}
         for kv in args.meta:
@@ -79,8 +85,13 @@ class Recorder(Node):
                                         split_bytes=int(args.split_size * 1e6), split_seconds=args.split_duration,
                                         flush_seconds=args.flush, metadata=meta)
         self.subs = {}
-        self.counts = {}
+        self.types = {}                # topic -> type of a subscribed topic
+        self.unrecordable = set()      # topics whose channel could not be written (logged once)
+        self.counts = {}               # topic -> messages written (present once its channel is written)
         self.closed = False
+        for topic, typ in self.wanted.items():
+            if typ is not None:
+                self.subscribe(topic, typ)
         self.create_timer(0.5, self.discover)
         self.create_timer(max(args.flush, 0.05), self.writer.flush)
         self.discover()
@@ -99,30 +110,40 @@ class Recorder(Node):
             self.subscribe(topic, typ)
 
     def subscribe(self, topic, typ):
-        """Record ``topic``: its channel carries the QoS its publishers offer (as rosbag2 records it, so
-        ``ros2 bag play`` offers it again), and the subscription is transient-local when every
-        publisher offers that (as rosbag2 does), so latched topics (/tissue/topology, /tf_static,
-        /robot_description, /tissue/bone_markers) are caught even when they were sent before."""
-        from rclpy.qos import DurabilityPolicy
-
+        """Subscribe to ``topic`` (raw CDR). Transient-local for the topics tissue_sim publishes latched
+        (/tissue/topology, /tf_static, /robot_description) and for any whose publishers all offer it, as
+        rosbag2 does, so a message sent before the subscription is still caught. The channel is written
+        at the first message (:meth:`add_channel`), with the QoS its publishers offer then."""
         from ..ros.common import get_message
-        infos = self.get_publishers_info_by_topic(topic)
-        offered = [mcapio.Qos.from_profile(i.qos_profile) for i in infos]
-        latched = bool(infos) and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
-        if not offered:
-            offered = [mcapio.QOS_LATCHED if topic == TOPIC_TOPOLOGY else mcapio.qos_stream()]
-            latched = topic == TOPIC_TOPOLOGY
         try:
             cls = get_message(typ)
-            self.writer.add_channel(topic, typ, qos=offered)
+            mcapio.full_type_name(typ)
         except (ValueError, AttributeError, ModuleNotFoundError, mcapio.McapIOError) as e:
             self.get_logger().error(f'cannot record {topic} ({typ}): {e}')
             self.subs[topic] = None
             return
+        self.types[topic] = typ
+        offered = self.offered(topic)
+        latched = topic in LATCHED or (offered and all(q.durability == 'transient_local' for q in offered))
         qos = qos_latched() if latched else qos_stream(100)
         self.subs[topic] = self.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data),
                                                     qos, raw=True)
-        self.get_logger().info(f'recording {topic} [{typ}]')
+        self.get_logger().info(f'subscribed to {topic} [{typ}]')
+
+    def offered(self, topic) -> list:
+        """The QoS profiles the topic's publishers offer now (rosbag2's ``offered_qos_profiles``)."""
+        return [mcapio.Qos.from_profile(i.qos_profile) for i in self.get_publishers_info_by_topic(topic)]
+
+    def add_channel(self, topic):
+        """Write the topic's channel: the QoS its publishers offer (what ``ros2 bag play`` offers again),
+        or, with no publisher seen, what tissue_sim's nodes offer for it."""
+        offered = self.offered(topic) or [mcapio.QOS_LATCHED if topic in LATCHED else mcapio.qos_stream()]
+        try:
+            self.writer.add_channel(topic, self.types[topic], qos=offered)
+        except mcapio.McapIOError as e:
+            self.get_logger().error(f'cannot record {topic}: {e}')
+            return False
+        return True
 
     def on_message(self, topic, data):
         if self.closed:
@@ -134,10 +155,16 @@ class Recorder(Node):
             if now - self.last_kept_ns.get(topic, -gap) < gap * 0.9:
                 return
             self.last_kept_ns[topic] = now
+        if topic not in self.counts:
+            if topic in self.unrecordable or not self.add_channel(topic):
+                self.unrecordable.add(topic)
+                return
         self.writer.write(topic, data, now)
         self.counts[topic] = self.counts.get(topic, 0) + 1
-        if topic == TOPIC_TOPOLOGY and self.counts[topic] == 1:
-            self.note_model(data)
+        if self.counts[topic] == 1:
+            self.get_logger().info(f'recording {topic}: first message received')
+            if topic == TOPIC_TOPOLOGY:
+                self.note_model(data)
 
     def note_model(self, data):
         """Model name, hash and parameters of the run (from the topology) as a metadata record."""
@@ -155,6 +182,13 @@ class Recorder(Node):
         if self.closed:
             return
         self.closed = True
+        # a second SIGINT/SIGTERM (`ros2 launch` forwards the Ctrl-C its process group already got)
+        # must not interrupt the summary and footer half written: ignored from here on
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
+        for topic in self.types:             # the subscribed topics that never spoke: their channels too (as rosbag2)
+            if topic not in self.counts and topic not in self.unrecordable:
+                self.add_channel(topic)
         self.writer.close()
         total = sum(self.counts.values())
         print(f'recorder: {total} messages in {", ".join(str(f) for f in self.writer.files)} '

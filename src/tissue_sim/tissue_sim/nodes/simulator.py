@@ -1,9 +1,16 @@
 """`simulator` node: runs the tissue solver in real time and publishes the deformed limb.
 
 Publishes (at ``publish_rate`` Hz of wall time): /clock (sim time), /joint_states,
-/tissue/state (TissueState), /tissue/markers (MarkerArray of the whole model), /diagnostics (1 Hz),
-and /tissue/topology once (transient-local). Subscribes to /tissue/activation. Services
-~/reset (std_srvs/Trigger) and ~/pause (std_srvs/SetBool, true = pause).
+/tissue/state (TissueState), /tissue/markers (MarkerArray of the whole model), /tf (the moving
+segments' frames, sim time), /diagnostics (1 Hz); once (transient-local): /tissue/topology,
+/tf_static (the fixed frames, the root segment under ``world`` when the root is fixed) and
+/robot_description (the URDF of the model the node runs, tissue_sim.core.urdf). Subscribes to
+/tissue/activation. Services ~/reset (std_srvs/Trigger) and ~/pause (std_srvs/SetBool, true = pause).
+
+TF frames are the model's segment names (thigh, shank, foot for the bundled limb) under the root
+frame ``world`` (the model frame, the hip joint centre of the bundled limb at its origin); a segment's
+frame is its URDF link frame, so robot_state_publisher fed the same /robot_description and
+/joint_states gives the same tree (then run the simulator with ``publish_tf: false``).
 
 Timing (tissue_sim.core.realtime): in real-time mode (``realtime: true``) each frame advances sim
 time by the wall time since the last frame x ``rate``, in solver steps of params.dt, at most
@@ -25,16 +32,18 @@ import numpy as np
 from rclpy.node import Node
 
 from ..core import markers as mk
-from ..core import measures, realtime
+from ..core import measures, realtime, urdf
 from ..core.activation import REASONS, Muscles
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
-                          TOPIC_STATE, TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
+                          TOPIC_ROBOT_DESCRIPTION, TOPIC_STATE, TOPIC_TF, TOPIC_TF_STATIC,
+                          TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
 from ..ros.common import main as node_main
 
 PARAMS = (
     Param('model', '', "model file (.npz); '' = the bundled lower limb; phantom:knee = the solver's knee phantom",
           read_only=True),
-    Param('params', 'paper', 'solver parameters: paper, physical or a YAML file', read_only=True),
+    Param('params', 'physical', "solver parameters: physical (SI), paper (the paper's Table 2: the reproduction "
+          'setting) or a YAML file', read_only=True),
     Param('dt', 0.0, "solver step [s]; 0 = the parameter set's dt", lo=0.0, hi=0.01, read_only=True),
     Param('publish_rate', 34.0, 'floor on frames published per second of wall time [Hz]; frames are scheduled '
           f'{100 * (realtime.HEADROOM - 1):.0f} % above it so timer jitter never drops below it',
@@ -50,6 +59,10 @@ PARAMS = (
           'red [m]', lo=1e-6, hi=10.0),
     Param('bone_marker_resolution', 0.003, 'bone meshes in the markers are simplified by vertex clustering on a '
           'grid of this size [m]; 0 = full meshes', lo=0.0, hi=0.05, read_only=True),
+    Param('publish_tf', True, 'publish /tf (moving segments, each frame) and /tf_static (fixed ones); false when '
+          'robot_state_publisher makes the tree from /joint_states', read_only=True),
+    Param('publish_robot_description', True, 'publish the URDF of the model on /robot_description (transient local)',
+          read_only=True),
     Param('frame_id', 'world', 'frame of positions and markers (REP-103)', read_only=True),
     Param('max_steps_per_tick', 2000, 'cap on solver steps per published frame', lo=1, hi=1000000),
     Param('start_paused', False, 'start paused (resume with ~/pause false)', read_only=True),
@@ -68,13 +81,15 @@ class Simulator(Node):
         from diagnostic_msgs.msg import DiagnosticArray
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
         from std_srvs.srv import SetBool, Trigger
+        from tf2_msgs.msg import TFMessage
         from tissue_msgs.msg import MuscleActivation, TissueState, TissueTopology
         from visualization_msgs.msg import MarkerArray
         from ..core import solver, tissue_cdr
         from ..core.load import load_model, load_params
         super().__init__('simulator', **kw)
-        self.solver, self.tcdr = solver, tissue_cdr
+        self.solver, self.tcdr, self.TFMessage = solver, tissue_cdr, TFMessage
         self.P = P = declare(self, PARAMS)
         t0 = time.monotonic()
         self.tm = load_model(P['model'])
@@ -89,13 +104,18 @@ class Simulator(Node):
                                                  bone_resolution=P['bone_marker_resolution']) if P['publish_markers'] else None
         self._rest_area = None
         self._fat_def = None
-        # warm the kernels (numba compile) on a scratch state before the clock starts, and time a few steps
+        # warm every path of a frame before the clock starts (no first-frame or first-step stall): the
+        # kernels (numba compile) on a scratch state, timing a few steps; the marker colours (their rest
+        # references come from the start state, as the first frame would take them) and encoder; the TF
+        # message. (ros.common.main then freezes the set-up's objects out of the garbage collector.)
         self.pacer = realtime.Pacer(lambda k: solver.step(self.sim, self.state, self.ctrl, self.dt, n_steps=k), self.dt)
         warm = solver.make_state(self.sim)
         solver.step(self.sim, warm, self.ctrl, self.dt)
         self.pacer.warm_up(lambda k: solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=k))
         if self.marker_enc is not None:
-            self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'])
+            self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'],
+                                   self.corner_colours(self.state.x))
+        self.tf_message(0, range(self.tm.n_segments))
         self.get_logger().info(f'model {self.tm.name!r}: {self.tm.n_vertices} vertices, {self.tm.n_cells} cells, '
                                f'{self.tm.n_muscles} muscles; params {self.params.preset}, dt {self.dt:g} s; '
                                f'ready in {time.monotonic() - t0:.1f} s')
@@ -107,10 +127,22 @@ class Simulator(Node):
         self.pub_markers = self.create_publisher(MarkerArray, TOPIC_MARKERS, qos_stream(2))
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, qos_stream())
         self.pub_topo = self.create_publisher(TissueTopology, TOPIC_TOPOLOGY, qos_latched())
+        self.pub_tf = self.create_publisher(TFMessage, TOPIC_TF, qos_stream(100)) if P['publish_tf'] else None
+        self.pub_tf_static = (self.create_publisher(TFMessage, TOPIC_TF_STATIC, qos_latched())
+                              if P['publish_tf'] else None)
+        self.pub_description = (self.create_publisher(String, TOPIC_ROBOT_DESCRIPTION, qos_latched())
+                                if P['publish_robot_description'] else None)
+        self.tf_moving = [s for s in range(self.tm.n_segments)
+                          if not urdf.is_static(self.tm, s, self.params.fixed_root)]
         self.create_subscription(MuscleActivation, TOPIC_ACTIVATION, self.on_activation, qos_stream())
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.create_service(SetBool, '~/pause', self.on_pause)
         self.publish_topology()
+        if self.pub_description is not None:
+            self.pub_description.publish(String(data=urdf.robot_description(self.tm)))
+        fixed = [s for s in range(self.tm.n_segments) if s not in self.tf_moving]
+        if self.pub_tf_static is not None and fixed:
+            self.pub_tf_static.publish(self.tf_message(0, fixed))
         # bookkeeping
         self.paused = bool(P['start_paused'])
         self.diverged = ''
@@ -217,6 +249,8 @@ class Simulator(Node):
         js.position = [float(v) for v in obs['joint_positions']]
         js.velocity = [float(v) for v in obs['joint_velocities']]
         self.pub_joints.publish(js)
+        if self.pub_tf is not None and self.tf_moving:
+            self.pub_tf.publish(self.tf_message(stamp, self.tf_moving))
         if self.get_parameter('publish_state').value:
             self.pub_state.publish(self.tcdr.encode_frame(self.tm, st, obs, self.ctrl.activation,
                                                           stamp_ns=stamp, frame_id=self.frame_id))
@@ -229,6 +263,24 @@ class Simulator(Node):
             t2 = time.perf_counter()
             self.marker_ms.append(1e3 * (t2 - t0))
             self.marker_encode_ms.append(1e3 * (t1 - t0))
+
+    def tf_message(self, stamp_ns: int, segments):
+        """TFMessage of the given segments' transforms (urdf.tf_transforms: each under its parent
+        segment, the root under ``world``) in the current state, stamped ``stamp_ns``."""
+        from geometry_msgs.msg import TransformStamped
+        st = self.state
+        tfs = urdf.tf_transforms(self.tm, st.seg_R, st.seg_t)
+        msg = self.TFMessage()
+        for s in segments:
+            parent, child, t, q = tfs[s]
+            ts = TransformStamped()
+            ts.header.stamp.sec, ts.header.stamp.nanosec = stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000
+            ts.header.frame_id, ts.child_frame_id = parent, child
+            tr, rot = ts.transform.translation, ts.transform.rotation
+            tr.x, tr.y, tr.z = (float(v) for v in t)
+            rot.x, rot.y, rot.z, rot.w = (float(v) for v in q)
+            msg.transforms.append(ts)
+        return msg
 
     def corner_colours(self, x):
         enc = self.marker_enc

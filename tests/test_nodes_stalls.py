@@ -1,0 +1,122 @@
+"""No stalls in the frame stream (issue 21, item 6): a demo-like run of the real nodes over DDS
+(recorder + simulator on the bundled limb, markers on, started paused; activation node; resume,
+pause, resume, reset through the services) is recorded, and the recorder's log times of
+/joint_states, from the first frame on, have no gap above the limit.
+
+The limit. The requirement is 60 ms (under two frame periods at 34 Hz) on an idle machine; the test
+uses it when the machine is idle (1-minute load average below half the CPU count). On a loaded
+machine the operating system alone delays a runnable process by tens of milliseconds: 60-111 ms
+gaps were measured here with 2 cores shared by 7 jobs in runs whose every gap matched a late timer
+tick of the simulator, not a slow frame. There the limit is 250 ms: above those delays, below the
+one-time stalls of the issue (0.32 s and 0.68 s on an idle machine). The gaps found are printed
+either way (pytest -s)."""
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+import rosutil  # noqa: F401  (activates the workspace before rclpy; skips if not built)
+from rosutil import isolated_domain, ros_context, run_executable, spin_until
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+IDLE = os.getloadavg()[0] < 0.5 * (os.cpu_count() or 1)
+LIMIT_S = 0.060 if IDLE else 0.250
+
+
+def _call(node, client, req, timeout=20):
+    assert client.wait_for_service(timeout_sec=timeout), f'service {client.srv_name} not available'
+    fut = client.call_async(req)
+    spin_until(fut.done, node, timeout, f'{client.srv_name} reply')
+    assert fut.result().success, fut.result().message
+
+
+def test_joint_states_have_no_gap_across_start_pause_resume_reset(tmp_path):
+    import rclpy
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import SetBool, Trigger
+    from tissue_sim.core import mcapio
+    out = tmp_path / 'run.mcap'
+    events = {}
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = rclpy.create_node('probe', context=ctx)
+        js = []
+        node.create_subscription(JointState, '/joint_states', js.append, 10)
+        pause = node.create_client(SetBool, '/simulator/pause')
+        reset = node.create_client(Trigger, '/simulator/reset')
+
+        def wait(seconds, what):
+            t0 = time.monotonic()
+            spin_until(lambda: time.monotonic() - t0 >= seconds, node, seconds + 5, what)
+
+        with run_executable('recorder', '-o', out, env=dom.env) as rec, \
+                run_executable('simulator', '--ros-args', '-p', 'start_paused:=true', env=dom.env,
+                               stop_timeout=20) as sim:
+            sim.wait_for_output('simulator ready', timeout=240)
+            rec.wait_for_output('recording /joint_states', timeout=30)
+            wait(1.0, 'paused frames')
+            with run_executable('activation', '--profile', 'ramp', '--rise', '2', env=dom.env) as act:
+                act.wait_for_output('profile ramp', timeout=60)
+                events['resume'] = time.time_ns()
+                _call(node, pause, SetBool.Request(data=False))
+                spin_until(lambda: js and js[-1].position[js[-1].name.index('knee_r')] > 0.05, node, 30,
+                           'the knee to flex')
+                wait(1.0, 'running')
+                events['pause'] = time.time_ns()
+                _call(node, pause, SetBool.Request(data=True))
+                wait(0.7, 'paused')
+                events['resume again'] = time.time_ns()
+                _call(node, pause, SetBool.Request(data=False))
+                wait(1.0, 'running')
+                events['reset'] = time.time_ns()
+                _call(node, reset, Trigger.Request())
+                wait(1.5, 'running after the reset')
+                events['end'] = time.time_ns()
+            sim.stop(signal.SIGINT, timeout=20)
+        node.destroy_node()
+    assert sim.returncode == 0 and rec.returncode == 0, sim.output + rec.output
+    t = np.array([m.log_time for m in mcapio.iter_messages(out, ['/joint_states'])], np.int64)
+    t = t[t <= events['end']]
+    gaps = np.diff(t) * 1e-9
+    worst = np.argsort(gaps)[::-1][:5]
+    at = {k: (v - t[0]) * 1e-9 for k, v in events.items()}
+    print(f'\n{len(t)} frames over {(t[-1] - t[0]) * 1e-9:.2f} s; events at ' +
+          ', '.join(f'{k} {v:.2f} s' for k, v in at.items()) +
+          '\nlargest gaps: ' + ', '.join(f'{1e3 * gaps[i]:.0f} ms at {(t[i + 1] - t[0]) * 1e-9:.2f} s'
+                                          for i in worst) +
+          f'\np99 {1e3 * np.percentile(gaps, 99):.0f} ms; limit {1e3 * LIMIT_S:.0f} ms ({"idle" if IDLE else "loaded"} '
+          f'machine, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)')
+    assert at['resume'] > 0.5 and len(t) > 100        # paused frames, then the whole sequence
+    assert gaps.max() < LIMIT_S, f'{1e3 * gaps.max():.0f} ms gap in /joint_states at {at}'
+
+
+def test_the_set_up_objects_are_frozen_out_of_the_garbage_collector(monkeypatch):
+    """The cause of the stalls found by timing the simulator's frames: the first full (generation-2)
+    collection, triggered a few seconds into the run by the frames' allocations, scanned every
+    object of the set-up (~140 000: modules, model, compiled kernels) in 54-125 ms. The nodes' main
+    freezes them (ros.common.freeze_setup_objects) before spinning: a later full collection scans
+    only what the run allocated."""
+    import argparse
+    import gc
+    from tissue_sim.nodes.simulator import Simulator
+    from tissue_sim.ros import common
+    from rclpy.parameter import Parameter
+    seen = {}
+
+    def make(args):
+        node = Simulator(parameter_overrides=[Parameter('model', value='phantom:knee')])
+
+        def run():          # in place of rclpy.spin: what a full collection would scan now
+            seen.update(frozen=gc.get_freeze_count(), tracked=len(gc.get_objects()))
+        node.run = run
+        return node
+    with isolated_domain() as dom:
+        monkeypatch.setenv('ROS_DOMAIN_ID', str(dom.id))
+        try:
+            assert common.main(make, argparse.ArgumentParser(), ['simulator']) == 0
+        finally:
+            gc.unfreeze()
+    print(f"\nfrozen {seen['frozen']} objects; {seen['tracked']} left to the collector")
+    assert seen['frozen'] > 50_000 and seen['tracked'] < 0.02 * seen['frozen'], seen
