@@ -269,7 +269,8 @@ def test_replay_of_a_simulator_run_restores_state_clock_and_topology(knee_model,
             sim.wait_for_output('simulator ready', timeout=60)
             rec.wait_for_output('recording /tissue/topology', timeout=30)
             rec.wait_for_output('recording /tissue/state', timeout=30)
-            spin_until(lambda: len(seen.t) >= 70, node, 30, '2 s of states')
+            n0 = len(seen.t)                 # counted from the recorder's first state on
+            spin_until(lambda: len(seen.t) >= n0 + 70, node, 30, '2 s of states')
         states = [m for m in mcapio.iter_messages(out, ['/tissue/state'])]
         topo = [m.data for m in mcapio.iter_messages(out, ['/tissue/topology'])]
         assert len(states) >= 60 and len(topo) == 1

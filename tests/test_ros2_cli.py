@@ -87,7 +87,7 @@ def test_ros2_run_topic_hz_param_and_interface():
             r = ros2_graph(env, 'param', 'get', '/simulator', 'params')      # the default set moves the knee
             assert 'physical' in r.stdout, r.stdout + r.stderr
             r = ros2_graph(env, 'param', 'set', '/simulator', 'params', 'paper')   # read-only
-            assert r.stdout and 'successful' not in r.stdout, r.stdout + r.stderr
+            assert 'successful' not in r.stdout and 'read-only' in r.stdout + r.stderr, r.stdout + r.stderr
             r = ros2_graph(env, 'param', 'describe', '/simulator', 'publish_rate')
             assert 'Read only: true' in r.stdout, r.stdout
         r = ros2(env, 'interface', 'show', 'tissue_msgs/msg/MuscleActivation')
