@@ -137,7 +137,7 @@ def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim)
             q.append(o['joint_positions'][j]); L.append(o['muscle_lengths'][ham]); v.append(st.muscle_velocity[ham])
         res[name] = np.array(q), np.array(L), np.array(v)
     (q_on, L_on, v_on), (q_off, _, v_off) = res['on'], res['off']
-    k = 20                                       # t = 0.42 s, the knee swinging (measured 67 vs 75 deg)
+    k = 25                                       # t = 0.52 s, the knee swinging (measured 79 deg; 47 at k = 20)
     assert q_on[k] < q_off[k] - math.radians(5)
     hi = physical_sim.j_range[j][1]
     assert abs(q_on[-1] - hi) < math.radians(1.5) and abs(q_off[-1] - hi) < math.radians(1.5)
