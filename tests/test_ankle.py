@@ -5,9 +5,9 @@ OpenSim's ankle_angle_r) with end stops at -50 deg (plantarflexion) and +20 deg 
 With ``Params.physical()`` the calf muscles, which reach the calcaneus through their calcaneal-tendon
 cells, plantarflex it and tibialis anterior, through its tendon on the foot bone, dorsiflexes it:
 in the right direction by at least the stated amount, stably, inside the range, and with muscle
-volumes within the documented bounds (docs/anatomy.md, free ankle). Measured limits, pinned here:
-full tibialis anterior activation diverges (xfail below); cells around the ankle invert at large
-angles (counted, not asserted; docs/anatomy.md).
+volumes within the documented bounds (docs/anatomy.md, free ankle). Measured limits: at full
+activation tibialis anterior's and the gastrocnemii's volumes leave the 6 % bound; cells around the
+ankle invert at large angles (counted and printed, not asserted; docs/anatomy.md).
 """
 import math
 
@@ -115,11 +115,15 @@ def test_tibialis_anterior_dorsiflexes_the_ankle(physical_sim, tibant_run):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(raises=solver.DivergenceError, strict=True,
-                   reason='measured: full tibialis anterior activation diverges at ~85 ms, 14 deg '
-                          '(a 38-mg tendon vertex in front of the tibia; the same with dt/4); docs/anatomy.md')
-def test_full_tibialis_anterior_activation_is_stable(physical_sim):
-    _run(physical_sim, 'tibialis_anterior', duration=0.3)
+def test_full_tibialis_anterior_activation_reaches_the_stop_stably(physical_sim):
+    """Full activation: stable, at the dorsal stop, inside the range; its volume leaves the 6 % bound
+    (measured 26 %: the thin tendon cells in front of the tibia; docs/anatomy.md), so only a loose
+    bound is held here."""
+    qa, qk, ke, dv, ninv = _run(physical_sim, 'tibialis_anterior', a=1.0)
+    lo, hi = np.degrees(physical_sim.j_range[_ankle(physical_sim)])
+    assert qa[-1] >= hi - 1.0 and qa.max() <= hi + 1.0
+    assert np.all(np.isfinite(ke)) and ke.max() < KE_BOUND
+    assert dv.max() < 0.35, dv.max()
 
 
 @pytest.mark.slow

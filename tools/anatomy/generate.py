@@ -374,6 +374,14 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
                 free &= ~ndimage.binary_dilation(sl > 0, iterations=int(MU.TENDON_GAP_MM))
             if k in taken:
                 free &= ~taken[k]
+            if s > z_ins + MU.TENDON_SNAP_MM and t['name'] in MU.TENDON_OFF_BONE:
+                # a gliding tendon squeezed between skin and bone (the path crosses the subcutaneous
+                # tibia) moves to the nearest place where its disc fits beside the bone
+                room = ndimage.distance_transform_edt(free)
+                ci = np.clip(np.round(c).astype(int), 0, np.array(room.shape) - 1)
+                fit = np.argwhere(room >= r - 1.0)
+                if len(fit) and room[ci[0], ci[1]] < r - 1.0:
+                    c = fit[np.argmin(np.linalg.norm(fit - c, axis=1))].astype(float)
             centres = [c]
             if s <= z_ins + MU.TENDON_SNAP_MM and tb.any():
                 bp = np.argwhere(tb & ndimage.binary_dilation(free))

@@ -91,8 +91,10 @@ TENDON_OFFSET_MM = {
 }
 # Tendons that run along a bone of the segment they leave (tibialis anterior on the anterior tibia)
 # keep this gap to bone above their insertion: a tendon glides over the bone; bound to it, its active
-# cells would be squeezed between bound vertices.  (The calcaneal tendon lies behind the ankle,
-# mostly clear of bone; with the gap its three parts no longer fit between talus and skin.)
+# cells would be squeezed between bound vertices.  Where such a tendon's path crosses a bone that
+# lies under the skin (the tibia's medial face) it moves to the nearest place where it fits.  (The
+# calcaneal tendon lies behind the ankle, mostly clear of bone; with the gap its three parts no
+# longer fit between talus and skin.)
 TENDON_OFF_BONE = ('tibialis_anterior',)
 TENDON_GAP_MM = 1.0
 TENDON_RADIUS_MM = 5.0    # disc of ~0.8 cm^2 (larger than real hamstring tendons, ~0.2-0.5 cm^2, so the
