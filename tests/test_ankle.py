@@ -6,8 +6,9 @@ With ``Params.physical()`` the calf muscles, which reach the calcaneus through t
 cells, plantarflex it and tibialis anterior, through its tendon on the foot bone, dorsiflexes it:
 in the right direction by at least the stated amount, stably, inside the range, and with muscle
 volumes within the documented bounds (docs/anatomy.md, free ankle). Measured limits: at full
-activation tibialis anterior's and the gastrocnemii's volumes leave the 6 % bound; cells around the
-ankle invert at large angles (counted and printed, not asserted; docs/anatomy.md).
+activation tibialis anterior's volume leaves the 6 % bound (29 %) and the triceps surae's reaches
+6.9 %; cells around the ankle invert at large angles (counted and printed, not asserted;
+docs/anatomy.md).
 """
 import math
 
@@ -89,12 +90,12 @@ def tibant_run(physical_sim):
     return _run(physical_sim, 'tibialis_anterior', a=0.5)
 
 
-def _check_common(sim, run):
+def _check_common(sim, run, volume_bound=VOLUME_BOUND):
     qa, qk, ke, dv, ninv = run
     lo, hi = np.degrees(sim.j_range[_ankle(sim)])
     assert qa.min() >= lo - 1.0 and qa.max() <= hi + 1.0          # the end stops hold
     assert np.all(np.isfinite(ke)) and ke.max() < KE_BOUND
-    assert dv.max() < VOLUME_BOUND, dv.max()
+    assert dv.max() < volume_bound, dv.max()
     print(f'ankle {qa[-1]:.1f} deg, max volume change {dv.max():.1%}, inverted cells {ninv}')
 
 
@@ -117,7 +118,7 @@ def test_tibialis_anterior_dorsiflexes_the_ankle(physical_sim, tibant_run):
 @pytest.mark.slow
 def test_full_tibialis_anterior_activation_reaches_the_stop_stably(physical_sim):
     """Full activation: stable, at the dorsal stop, inside the range; its volume leaves the 6 % bound
-    (measured 26 %: the thin tendon cells in front of the tibia; docs/anatomy.md), so only a loose
+    (measured 29 %: the thin tendon cells in front of the tibia; docs/anatomy.md), so only a loose
     bound is held here."""
     qa, qk, ke, dv, ninv = _run(physical_sim, 'tibialis_anterior', a=1.0)
     lo, hi = np.degrees(physical_sim.j_range[_ankle(physical_sim)])
@@ -127,12 +128,11 @@ def test_full_tibialis_anterior_activation_reaches_the_stop_stably(physical_sim)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('muscle', ['gastrocnemius_medialis', 'triceps_surae'])
-def test_calf_muscles_plantarflex_the_ankle(physical_sim, muscle):
-    """Half activation: measured -41 deg (gastrocnemius medialis) and the -50-deg stop (triceps surae,
-    both gastrocnemii and soleus) at 1.5 s. At full activation the gastrocnemii's volumes leave the 6 %
-    bound (15-16 %, their thin calcaneal-tendon cells) and gastrocnemius medialis alone diverges at
-    0.17 s: docs/anatomy.md."""
-    run = _run(physical_sim, muscle, a=0.5)
+@pytest.mark.parametrize('a', [0.5, 1.0])
+def test_triceps_surae_plantarflexes_the_ankle(physical_sim, a):
+    """Both gastrocnemii and soleus: measured -31.7 deg at half activation, the -50-deg stop at full
+    (volumes 2.9 % and 6.9 %: the full-activation bound is 8 %). The gastrocnemii have no tendon of
+    their own (tools/anatomy/muscles.py TENDONS) and alone do not move the foot."""
+    run = _run(physical_sim, 'triceps_surae', a=a)
     assert run[0][-1] <= -MIN_PLANTAR_DEG, run[0][-1]
-    _check_common(physical_sim, run)
+    _check_common(physical_sim, run, VOLUME_BOUND if a < 1.0 else 0.08)

@@ -353,15 +353,12 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
             c = np.array([c[0] - R0, c[1] - A0])
             # the straight OpenSim path ignores wrapping and retinacula: where it leaves the body (behind
             # and in front of the ankle) the tendon lies just under the skin, at the nearest point
-            # MU.TENDON_RADIUS_MM + 2 mm deep (the knee tendons' paths stay inside: unchanged); then
-            # the parts of a shared tendon are set side by side (MU.TENDON_OFFSET_MM)
+            # MU.TENDON_RADIUS_MM + 2 mm deep (the knee tendons' paths stay inside: unchanged)
             depth = ndimage.distance_transform_edt(skins[k])
             deep = np.argwhere(depth >= r + 2.0)
-            for off in ((0.0, 0.0), MU.TENDON_OFFSET_MM.get(t['name'], (0.0, 0.0))):
-                c = c + off
-                ci = np.clip(np.round(c).astype(int), 0, np.array(depth.shape) - 1)
-                if len(deep) and depth[ci[0], ci[1]] < 2.0:
-                    c = deep[np.argmin(np.linalg.norm(deep - c, axis=1))].astype(float)
+            ci = np.clip(np.round(c).astype(int), 0, np.array(depth.shape) - 1)
+            if len(deep) and depth[ci[0], ci[1]] < 2.0:
+                c = deep[np.argmin(np.linalg.norm(deep - c, axis=1))].astype(float)
             sl = lab[..., k]
             tb = np.isin(sl, targets)
             seen = seen or tb.any()

@@ -62,10 +62,13 @@ MUSCLES = [
 # biceps femoris (both heads) on the fibular head; semimembranosus on the posteromedial tibial condyle;
 # semitendinosus, gracilis, sartorius (pes anserinus) on the anteromedial proximal tibia; the four
 # quadriceps through the common quadriceps tendon on the base and anterior surface of the patella;
-# (ch. 83) gastrocnemius (both heads) and soleus through the calcaneal (Achilles) tendon on the
-# posterior calcaneus, tibialis anterior on the medial cuneiform and first metatarsal base: label 6
-# (foot bone), the Rajagopal insertions on calcn_r.  Without them the calf and tibialis anterior
-# bellies end 60-190 mm above the ankle with no link to the foot and cannot move it.
+# (ch. 83) soleus through the calcaneal (Achilles) tendon on the posterior calcaneus, tibialis
+# anterior on the medial cuneiform and first metatarsal base: label 6 (foot bone), the Rajagopal
+# insertions on calcn_r.  Without them these bellies end 60-130 mm above the ankle with no link to
+# the foot and cannot move it.  The gastrocnemii, whose tendons join the calcaneal tendon, are left
+# without one: with their own thin tendon cells beside the soleus's, their full activation diverged
+# (a 2-g vertex behind the ankle) and their volumes changed by 15 %; they act on the foot only
+# through the tissue they share with the soleus.
 TENDONS = {
     'biceps_femoris_long_head': (4, 3),
     'biceps_femoris_short_head': (4, 3),
@@ -77,24 +80,13 @@ TENDONS = {
     'vastus_lateralis': (2,),
     'vastus_medialis': (2,),
     'vastus_intermedius': (2,),
-    'gastrocnemius_medialis': (6,),
-    'gastrocnemius_lateralis': (6,),
     'soleus': (6,),
     'tibialis_anterior': (6,),
-}
-# The three calcaneal-tendon parts share one OpenSim insertion point: side by side in the slice
-# (R, A offsets in mm; R lateral for this right leg), soleus in the middle, as in the Achilles tendon,
-# whose gastrocnemius fibres lie medial and lateral of the soleus part at the calcaneus.
-TENDON_OFFSET_MM = {
-    'gastrocnemius_medialis': (-9.0, 0.0),
-    'gastrocnemius_lateralis': (9.0, 0.0),
 }
 # Tendons that run along a bone of the segment they leave (tibialis anterior on the anterior tibia)
 # keep this gap to bone above their insertion: a tendon glides over the bone; bound to it, its active
 # cells would be squeezed between bound vertices.  Where such a tendon's path crosses a bone that
-# lies under the skin (the tibia's medial face) it moves to the nearest place where it fits.  (The
-# calcaneal tendon lies behind the ankle, mostly clear of bone; with the gap its three parts no
-# longer fit between talus and skin.)
+# lies under the skin (the tibia's medial face) it moves to the nearest place where it fits.
 TENDON_OFF_BONE = ('tibialis_anterior',)
 TENDON_GAP_MM = 1.0
 TENDON_RADIUS_MM = 5.0    # disc of ~0.8 cm^2 (larger than real hamstring tendons, ~0.2-0.5 cm^2, so the
