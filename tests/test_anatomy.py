@@ -149,6 +149,28 @@ def test_hamstring_tendons_continuous(data):
     assert not bad, f'tendon slices without the tendon: {bad}'
 
 
+def test_ankle_tendons_reach_the_foot(data):
+    """Soleus (the calcaneal tendon) and tibialis anterior continue below their bellies as tendons
+    that are present in every slice down to the foot bone (no gap: a model builder links each
+    muscle-tendon unit in one chain) and lie on the foot bone (label 6,
+    calcaneus / medial cuneiform) over at least 20 mm below the ankle centre, so they can move it."""
+    lab, labels = data['lab'], data['labels']
+    ankle_z = _joint(data, 'ankle_r')['centre'][2] * 1000
+    dz = abs(data['img'].affine[2, 2])
+    byname = {v['name']: k for k, v in labels.items()}
+    foot = next(k for k, v in labels.items() if v['name'] == 'foot')
+    for name in ('soleus', 'tibialis_anterior'):
+        lbl = byname[name]
+        t = labels[lbl]['tendon']
+        assert t['inserts_on'] == ['foot'] and 0.1 < t['volume_cm3'] < 15.0, (name, t)
+        ks = range(t['slices'][0], t['slices'][1] + 1)
+        gaps = [k for k in ks if not (lab[..., k] == lbl).any()]
+        assert not gaps, (name, 'tendon slices without the tendon', gaps)
+        touch = [data['S'][k] for k in ks
+                 if (ndimage.binary_dilation(lab[..., k] == lbl) & (lab[..., k] == foot)).any()]
+        assert len(touch) * dz >= 20 and min(touch) < ankle_z - 20, (name, touch)
+
+
 def test_physiology_from_opensim(data):
     """Fmax and optimal fibre length in the table are the Rajagopal values (sums / volume-weighted)."""
     if importlib.util.find_spec('Pose2Sim') is None:

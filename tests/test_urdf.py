@@ -98,7 +98,7 @@ def test_tf_tree_composes_to_the_link_poses(tm):
     for s, seg in enumerate(tm.segment_names):
         np.testing.assert_allclose(world[seg][0], R_sim[s], atol=1e-9)
         np.testing.assert_allclose(world[seg][1], p_sim[s], atol=1e-9)
-    assert [urdf.is_static(tm, s) for s in range(3)] == [True, False, True]
+    assert [urdf.is_static(tm, s) for s in range(3)] == [True, False, False]   # thigh root, knee, free ankle
     assert urdf.is_static(tm, 0, fixed_root=False) is False
 
 

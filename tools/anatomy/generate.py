@@ -37,7 +37,7 @@ FAT_MAX_MM = 60.0
 MAX_COVER_SHIFT_MM = 30
 MIN_COVER_MM = 3          # where shifting is not enough, bone gets at least this much cover
 BONE_COVER_MM = 5.0      # least soft tissue over bone (mm), e.g. the subcutaneous tibial border
-SOLE_MARGIN_MM = 6.0     # the stack ends this far above the sole: planes nearly parallel to the flat sole
+SOLE_MARGIN_MM = 22.0    # the stack ends this far above the sole, where the foot section is the whole footprint (see README)
                          # of the MakeHuman mesh give degenerate sections
 FAT_NOMINAL_MM = {'thigh': 10.0, 'shank': 6.0}  # used only to choose the girth scale
 SHAPE_BOUNDS = (0.4, 2.5)  # redistributed area stays within these multiples of the spindle
@@ -324,7 +324,7 @@ def snap_inside(p, region, feat):
 
 
 def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
-    """Distal tendons of the knee-crossing muscles (MU.TENDONS), placed before the muscles are.
+    """Distal tendons of the knee- and ankle-crossing muscles (MU.TENDONS), placed before the muscles are.
 
     Per slice below the belly: a disc of MU.TENDON_RADIUS_MM centred where the OpenSim path crosses the
     slice (below the last path point, straight down from it); from MU.TENDON_SNAP_MM above the insertion
@@ -351,14 +351,34 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
             s = s_mm[k]
             c = path_point_at(path, s)[:2] if s >= z_ins else path[-1, :2]
             c = np.array([c[0] - R0, c[1] - A0])
+            # the straight OpenSim path ignores wrapping and retinacula: where it leaves the body (behind
+            # and in front of the ankle) the tendon lies just under the skin, at the nearest point
+            # MU.TENDON_RADIUS_MM + 2 mm deep (the knee tendons' paths stay inside: unchanged)
+            depth = ndimage.distance_transform_edt(skins[k])
+            deep = np.argwhere(depth >= r + 2.0)
+            ci = np.clip(np.round(c).astype(int), 0, np.array(depth.shape) - 1)
+            if len(deep) and depth[ci[0], ci[1]] < 2.0:
+                c = deep[np.argmin(np.linalg.norm(deep - c, axis=1))].astype(float)
             sl = lab[..., k]
             tb = np.isin(sl, targets)
             seen = seen or tb.any()
             if seen and not tb.any():                       # past the end of the insertion bone
                 break
             free = ndimage.binary_erosion(skins[k], iterations=2) & (sl == 0)
+            if s > z_ins + MU.TENDON_SNAP_MM and t['name'] in MU.TENDON_OFF_BONE:
+                # above its insertion a tendon running along a bone keeps MU.TENDON_GAP_MM off it, so
+                # that a model builder does not bind it to that bone (it glides over it)
+                free &= ~ndimage.binary_dilation(sl > 0, iterations=int(MU.TENDON_GAP_MM))
             if k in taken:
                 free &= ~taken[k]
+            if s > z_ins + MU.TENDON_SNAP_MM and t['name'] in MU.TENDON_OFF_BONE:
+                # a gliding tendon squeezed between skin and bone (the path crosses the subcutaneous
+                # tibia) moves to the nearest place where its disc fits beside the bone
+                room = ndimage.distance_transform_edt(free)
+                ci = np.clip(np.round(c).astype(int), 0, np.array(room.shape) - 1)
+                fit = np.argwhere(room >= r - 1.0)
+                if len(fit) and room[ci[0], ci[1]] < r - 1.0:
+                    c = fit[np.argmin(np.linalg.norm(fit - c, axis=1))].astype(float)
             centres = [c]
             if s <= z_ins + MU.TENDON_SNAP_MM and tb.any():
                 bp = np.argwhere(tb & ndimage.binary_dilation(free))
@@ -592,6 +612,12 @@ DE_LEVA_MALE = {  # mass fraction, COM from proximal (fraction of length), radii
 }
 
 
+# Ankle end stops [deg], dorsiflexion positive: 50 deg plantarflexion, 20 deg dorsiflexion (normal
+# active range, AAOS 1965; the Rajagopal model's own coordinate range, +-60 deg, is a clamp for
+# gait fitting, not an anatomical range).
+ANKLE_RANGE_DEG = (-50.0, 20.0)
+
+
 def write_joints(out_dir, model, knee_m, ankle_m):
     B = model['bodies']
     mass_total = sum(b['mass'] for b in B.values())
@@ -624,15 +650,27 @@ def write_joints(out_dir, model, knee_m, ankle_m):
     axis = os_to_model(axis_os)
     # OpenSim knee_angle_r positive = flexion about +x_offset; report the axis for positive flexion
     rng = np.degrees(kj['ranges']['knee_angle_r'])
+    # ankle_r (talocrural): CustomJoint whose rotation1 about its (oblique) axis is ankle_angle_r with
+    # a unit LinearFunction, the other rotations/translations constant 0: a hinge.  Axis in the model
+    # frame = parent body rotation (tibia_r in the femur frame, identity at knee 0) x parent offset
+    # frame rotation x the TransformAxis axis.  OpenSim ankle_angle_r > 0 = dorsiflexion; positive
+    # rotation about this axis is the positive coordinate, so the hinge angle is dorsiflexion-positive.
     aj = model['joints']['ankle_r']
-    ank_axis = os_to_model(np.array([-0.10501355, -0.17402245, 0.97912632]))
+    ank_os = osim.transform_axis(aj, 'rotation1', 'ankle_angle_r')
+    ank_axis = os_to_model(B[aj['parent']]['T'][:3, :3] @ aj['P'][:3, :3] @ ank_os)
+    ank_rng = np.degrees(aj['ranges']['ankle_angle_r'])
     joints = {
         'source': ('segment masses, centres of mass and radii of gyration: de Leva P. (1996) Adjustments '
                    'to Zatsiorsky-Seluyanov\'s segment inertia parameters. J Biomech 29(9):1223-1230, '
                    'Table 4 (male), applied to the Rajagopal 2016 generic model (total mass '
                    f'{mass_total:.2f} kg) with segment lengths between its joint centres; knee axis, '
                    'centre and range: OpenSim Rajagopal 2016 walker_knee_r as shipped in pose2sim 0.10.49 '
-                   '(range 0-155 deg there; the original Rajagopal range 0-120 deg is used as the limit)'),
+                   '(range 0-155 deg there; the original Rajagopal range 0-120 deg is used as the limit); '
+                   'ankle (talocrural) axis and centre: OpenSim Rajagopal 2016 ankle_r (pose2sim 0.10.49, '
+                   'range -60..60 deg there), positive = dorsiflexion as OpenSim ankle_angle_r; limit '
+                   '-50 (plantarflexion) .. +20 deg (dorsiflexion), the normal active range of motion of '
+                   'the AAOS (1965) Joint motion: method of measuring and recording; subtalar and MTP '
+                   'joints fixed at 0 (one foot segment)'),
         'body_mass': round(mass_total, 3),
         'segments': out,
         'joints': [
@@ -641,10 +679,10 @@ def write_joints(out_dir, model, knee_m, ankle_m):
              'axis': [round(float(v), 6) for v in axis], 'centre': [round(float(v), 5) for v in knee_m],
              'range_deg': [0.0, 120.0], 'rest_deg': 0.0,
              'opensim_range_deg': [round(float(rng[0]), 2), round(float(rng[1]), 2)]},
-            {'name': 'ankle_r', 'type': 'fixed', 'parent': 'shank', 'child': 'foot',
-             'centre': [round(float(v), 5) for v in ankle_m],
-             'axis': [round(float(v), 6) for v in ank_axis / np.linalg.norm(ank_axis)],
-             'range_deg': [round(float(v), 2) for v in np.degrees(aj['ranges']['ankle_angle_r'])]},
+            {'name': 'ankle_r', 'type': 'hinge', 'parent': 'shank', 'child': 'foot',
+             'axis': [round(float(v), 6) for v in ank_axis], 'centre': [round(float(v), 5) for v in ankle_m],
+             'range_deg': list(ANKLE_RANGE_DEG), 'rest_deg': 0.0,
+             'opensim_range_deg': [round(float(ank_rng[0]), 2), round(float(ank_rng[1]), 2)]},
         ],
     }
     with open(out_dir / 'joints.yaml', 'w') as fh:

@@ -52,7 +52,7 @@ MUSCLES = [
     ('flexor_hallucis_longus', ('fhl',), 'deep_plantarflexors', (1.35, 1.92)),
 ]
 
-# Distal tendons of the knee-crossing muscles (labelled with their muscle's label, below its belly):
+# Distal tendons of the knee- and ankle-crossing muscles that move a joint (labelled with their muscle's label, below its belly):
 # name -> bone labels it inserts on (biceps: the fibular head, or where muscles cover it in this
 # model, the lateral tibial condyle beside it).  Each tendon follows the muscle's
 # OpenSim path (Rajagopal 2016; last path point = insertion, in the tibia/patella frames) from the
@@ -61,7 +61,14 @@ MUSCLES = [
 # builder slice, ~18 mm apart, cuts the attached part).  Insertions (Gray's Anatomy, 41st ed., ch. 80):
 # biceps femoris (both heads) on the fibular head; semimembranosus on the posteromedial tibial condyle;
 # semitendinosus, gracilis, sartorius (pes anserinus) on the anteromedial proximal tibia; the four
-# quadriceps through the common quadriceps tendon on the base and anterior surface of the patella.
+# quadriceps through the common quadriceps tendon on the base and anterior surface of the patella;
+# (ch. 83) soleus through the calcaneal (Achilles) tendon on the posterior calcaneus, tibialis
+# anterior on the medial cuneiform and first metatarsal base: label 6 (foot bone), the Rajagopal
+# insertions on calcn_r.  Without them these bellies end 60-130 mm above the ankle with no link to
+# the foot and cannot move it.  The gastrocnemii, whose tendons join the calcaneal tendon, are left
+# without one: with their own thin tendon cells beside the soleus's, their full activation diverged
+# (a 2-g vertex behind the ankle) and their volumes changed by 15 %; they act on the foot only
+# through the tissue they share with the soleus.
 TENDONS = {
     'biceps_femoris_long_head': (4, 3),
     'biceps_femoris_short_head': (4, 3),
@@ -73,7 +80,15 @@ TENDONS = {
     'vastus_lateralis': (2,),
     'vastus_medialis': (2,),
     'vastus_intermedius': (2,),
+    'soleus': (6,),
+    'tibialis_anterior': (6,),
 }
+# Tendons that run along a bone of the segment they leave (tibialis anterior on the anterior tibia)
+# keep this gap to bone above their insertion: a tendon glides over the bone; bound to it, its active
+# cells would be squeezed between bound vertices.  Where such a tendon's path crosses a bone that
+# lies under the skin (the tibia's medial face) it moves to the nearest place where it fits.
+TENDON_OFF_BONE = ('tibialis_anterior',)
+TENDON_GAP_MM = 1.0
 TENDON_RADIUS_MM = 5.0    # disc of ~0.8 cm^2 (larger than real hamstring tendons, ~0.2-0.5 cm^2, so the
                           # model builder's 12-ray polygon and 10 mm^2 component threshold keep it)
 TENDON_ATTACH_MM = 25.0   # length over which the tendon lies on its bone at the insertion

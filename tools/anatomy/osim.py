@@ -83,6 +83,29 @@ def _joint_motion(joint, coords):
     return M
 
 
+def transform_axis(joint, name, coordinate):
+    """Unit axis (child-offset = parent-offset frame at 0) of a CustomJoint's TransformAxis `name`,
+    checked to be driven by `coordinate` through a unit LinearFunction (a plain hinge about it) and the
+    joint's other TransformAxes to be constant 0 (no coupled motion). joint: an entry of load()['joints']."""
+    el = joint['element']
+    if el.tag != 'CustomJoint':
+        raise ValueError(f'{el.get("name")}: {el.tag}, not a CustomJoint')
+    axis = None
+    for ta in el.find('SpatialTransform'):
+        fn = [c for c in ta if c.tag not in ('coordinates', 'axis')][0]
+        cname = (ta.find('coordinates').text or '').strip()
+        if ta.get('name') == name:
+            if cname != coordinate or fn.tag != 'LinearFunction' or \
+                    [float(v) for v in fn.find('coefficients').text.split()] != [1.0, 0.0]:
+                raise ValueError(f'{el.get("name")} {name}: not {coordinate} through a unit LinearFunction')
+            axis = _vec(ta, 'axis')
+        elif cname or fn.tag != 'Constant' or float(fn.find('value').text) != 0.0:
+            raise ValueError(f'{el.get("name")} {ta.get("name")}: not constant 0 (the joint is not a plain hinge)')
+    if axis is None:
+        raise ValueError(f'{el.get("name")}: no TransformAxis {name}')
+    return axis / np.linalg.norm(axis)
+
+
 def load(path, coords=None):
     """Parse the .osim file. coords: coordinate values in rad/m (default: all 0, full extension).
 
