@@ -20,8 +20,9 @@
 # Environment: DEMO_SECONDS (sim seconds, default 10), DEMO_MODEL (model .npz; default the bundled
 # anatomy), DEMO_PARAMS (physical|paper|file, default physical), DEMO_ACTIVATION (arguments of the
 # activation node; default: --profile ramp --rise 8 --others 0 (the node's default muscles are the
-# model's hamstrings), or --profile paper with DEMO_PARAMS=paper), DEMO_MARKERS (1: also record the
-# markers), ROS_DOMAIN_ID (default: derived from the pid), DEMO_TIMEOUT (wall seconds, default 600).
+# model's hamstrings), or --profile paper with DEMO_PARAMS=paper), DEMO_MARKERS (default 1: also
+# record the markers, the soft tissue at DEMO_MARKER_HZ, default 3), ROS_DOMAIN_ID (default:
+# derived from the pid), DEMO_TIMEOUT (wall seconds, default 600).
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -73,8 +74,14 @@ if [ -z "${DEMO_MODEL:-}" ] && ! python -c 'from tissue_sim.core import builder;
   exit 1
 fi
 
-REC_TOPICS=()
-[ "${DEMO_MARKERS:-0}" = 1 ] && REC_TOPICS=(--topics /tissue/markers)
+# Recorded besides the tissue topics: the TF tree, the robot description and the bone markers (once),
+# and the soft-tissue markers at DEMO_MARKER_HZ (the full mesh is ~0.15 MB a frame compressed; at the
+# default 3 Hz a run is ~1.8 MB/s on disk, 1.4 of it /tissue/state), so the run opens in Foxglove's 3D
+# panel (bones move with /tf at the full frame rate). DEMO_MARKERS=0: no markers.
+REC_TOPICS=(--topics /tf /tf_static /robot_description)
+if [ "${DEMO_MARKERS:-1}" = 1 ]; then
+  REC_TOPICS+=(/tissue/bone_markers /tissue/markers --max-rate "/tissue/markers=${DEMO_MARKER_HZ:-3}")
+fi
 "$EXE/recorder" -o "$RUN/run.mcap" "${REC_TOPICS[@]}" --meta "demo_seconds=$SECONDS_SIM" \
   >"$RUN/logs/recorder.log" 2>&1 &
 REC=$!; PIDS+=("$REC")

@@ -87,6 +87,7 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         mk = Collector(node, MarkerArray, '/tissue/markers', raw=True)
         st = Collector(node, TissueState, '/tissue/state', raw=True)
         topo = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
+        bones = Collector(node, MarkerArray, '/tissue/bone_markers', qos=qos_latched())
         sim.wait_for_output('simulator ready', timeout=60)
         spin_until(lambda: len(js.t) > 10 and len(mk.t) > 10, node, 30, 'frames to flow')
         t0 = time.monotonic()
@@ -95,14 +96,18 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         r_mk, n_mk = mk.rate_over(t0, t0 + 5.0)
         print(f'joint_states {r_js:.2f} Hz ({n_js}), markers {r_mk:.2f} Hz ({n_mk})')
         assert r_js >= 34.0 and r_mk >= 34.0
-        # markers: the whole model in 'world': muscle opaque, skin/fat translucent, bones opaque
+        # markers: the soft tissue in 'world' each frame (muscle opaque, skin/fat translucent); the bones
+        # once, opaque, in their segments' TF frames, frame-locked (viewers move them with /tf)
         from rclpy.serialization import deserialize_message
         m = deserialize_message(mk.msgs[-1], MarkerArray)
         ns = {x.ns: x for x in m.markers}
-        assert {'tissue/muscle/flexor', 'tissue/skin', 'tissue/bone/lower'} <= set(ns)
+        assert {'tissue/muscle/flexor', 'tissue/skin'} <= set(ns) and not any('/bone/' in k for k in ns)
         assert all(x.header.frame_id == 'world' and len(x.points) > 0 for x in m.markers)
         assert ns['tissue/muscle/flexor'].color.a == 1.0 and ns['tissue/skin'].color.a < 0.5
-        assert ns['tissue/bone/lower'].color.a == 1.0
+        assert len(bones.msgs) == 1
+        b = {x.ns: x for x in bones.msgs[0].markers}
+        assert b['tissue/bone/lower'].color.a == 1.0 and b['tissue/bone/lower'].header.frame_id == 'lower'
+        assert b['tissue/bone/lower'].frame_locked and len(b['tissue/bone/lower'].points) > 0
         # the compact state decodes, is finite, and matches the topology sent once (transient-local)
         assert len(topo.msgs) == 1
         tp = tissue_cdr.decode_topology(topo.msgs[0])

@@ -28,11 +28,13 @@ from pathlib import Path
 from ..core import mcapio
 from rclpy.node import Node
 
-from ..ros.common import (TISSUE_TOPICS, TOPIC_ROBOT_DESCRIPTION, TOPIC_TF_STATIC, TOPIC_TOPOLOGY, TOPIC_TYPES,
+from ..ros.common import (TISSUE_TOPICS, TOPIC_BONE_MARKERS, TOPIC_ROBOT_DESCRIPTION, TOPIC_TF_STATIC,
+                          TOPIC_TOPOLOGY, TOPIC_TYPES,
                           qos_latched, qos_stream)
 from ..ros.common import main as node_main
 
-LATCHED = (TOPIC_TOPOLOGY, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTION)   # published once, transient local
+# published once, transient local
+LATCHED = (TOPIC_TOPOLOGY, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTION, TOPIC_BONE_MARKERS)
 
 
 def build_parser():

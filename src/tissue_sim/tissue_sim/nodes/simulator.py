@@ -35,7 +35,7 @@ from ..core import markers as mk
 from ..core import measures, realtime, urdf
 from ..core.activation import REASONS, Muscles
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
-                          TOPIC_ROBOT_DESCRIPTION, TOPIC_STATE, TOPIC_TF, TOPIC_TF_STATIC,
+                          TOPIC_BONE_MARKERS, TOPIC_ROBOT_DESCRIPTION, TOPIC_STATE, TOPIC_TF, TOPIC_TF_STATIC,
                           TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
 from ..ros.common import main as node_main
 
@@ -100,8 +100,10 @@ class Simulator(Node):
         self.dt = self.params.dt
         self.muscles = Muscles.of(self.tm)
         self.frame_id = P['frame_id']
+        # the soft tissue each frame; the bones once, in their segments' TF frames (/tissue/bone_markers)
         self.marker_enc = mk.MarkerArrayEncoder(self.tm, self.frame_id, P['marker_colouring'],
-                                                 bone_resolution=P['bone_marker_resolution']) if P['publish_markers'] else None
+                                                bone_resolution=P['bone_marker_resolution'],
+                                                bones=False) if P['publish_markers'] else None
         self._rest_area = None
         self._fat_def = None
         # warm every path of a frame before the clock starts (no first-frame or first-step stall): the
@@ -125,6 +127,8 @@ class Simulator(Node):
         self.pub_joints = self.create_publisher(JointState, TOPIC_JOINTS, qos_stream())
         self.pub_state = self.create_publisher(TissueState, TOPIC_STATE, qos_stream())
         self.pub_markers = self.create_publisher(MarkerArray, TOPIC_MARKERS, qos_stream(2))
+        self.pub_bone_markers = (self.create_publisher(MarkerArray, TOPIC_BONE_MARKERS, qos_latched())
+                                 if self.marker_enc is not None else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, qos_stream())
         self.pub_topo = self.create_publisher(TissueTopology, TOPIC_TOPOLOGY, qos_latched())
         self.pub_tf = self.create_publisher(TFMessage, TOPIC_TF, qos_stream(100)) if P['publish_tf'] else None
@@ -298,6 +302,9 @@ class Simulator(Node):
     def publish_topology(self):
         self.pub_topo.publish(self.tcdr.encode_topology(self.tm, parameters_yaml=self.params.to_yaml(),
                                                         stamp_ns=0, frame_id=self.frame_id))
+        if self.pub_bone_markers is not None:
+            self.pub_bone_markers.publish(mk.bone_marker_array(
+                self.tm, bone_resolution=float(self.get_parameter('bone_marker_resolution').value)))
 
     # ------------------------------------------------------------------ diagnostics
     def figures(self, now) -> dict:

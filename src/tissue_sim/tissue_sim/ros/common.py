@@ -12,6 +12,7 @@ TOPIC_ACTIVATION = '/tissue/activation'
 TOPIC_STATE = '/tissue/state'
 TOPIC_TOPOLOGY = '/tissue/topology'
 TOPIC_MARKERS = '/tissue/markers'
+TOPIC_BONE_MARKERS = '/tissue/bone_markers'
 TOPIC_JOINTS = '/joint_states'
 TOPIC_CLOCK = '/clock'
 TOPIC_DIAGNOSTICS = '/diagnostics'
@@ -23,6 +24,7 @@ TOPIC_TYPES = {      # the types of the topics the nodes publish (a recorder sub
     TOPIC_STATE: 'tissue_msgs/msg/TissueState', TOPIC_TOPOLOGY: 'tissue_msgs/msg/TissueTopology',
     TOPIC_ACTIVATION: 'tissue_msgs/msg/MuscleActivation', TOPIC_JOINTS: 'sensor_msgs/msg/JointState',
     TOPIC_DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray', TOPIC_MARKERS: 'visualization_msgs/msg/MarkerArray',
+    TOPIC_BONE_MARKERS: 'visualization_msgs/msg/MarkerArray',
     TOPIC_CLOCK: 'rosgraph_msgs/msg/Clock', TOPIC_TF: 'tf2_msgs/msg/TFMessage',
     TOPIC_TF_STATIC: 'tf2_msgs/msg/TFMessage', TOPIC_ROBOT_DESCRIPTION: 'std_msgs/msg/String'}
 
