@@ -116,12 +116,24 @@ def test_export_run_meshes_and_vtu_series(run_dir, tmp_path):
     ds = root.findall('./Collection/DataSet')
     assert len(ds) == 2 * 4                              # frames 0, 6, 12, 18: cells + bones each
     g = pv.read(out / 'vtu' / ds[0].get('file'))
-    sizes = g.compute_cell_sizes(length=False, area=False)['Volume']
-    assert np.all(sizes > 0)                             # hexahedra and wedges correctly oriented
+    assert g.n_cells == len(np.asarray(g.cell_data['cell'])) and np.all(g.cell_data['cell'] == np.arange(g.n_cells))
+    last = pv.read(out / 'vtu' / ds[-2].get('file'))
+    # the cells are the solver's, frame by frame: each VTK cell (one per model cell) encloses the
+    # geometry.prism_volumes volume of that frame's positions (polyhedra by VTK's own volume)
+    from tissue_sim.core import model as M
+    from tissue_sim.core.geometry import prism_volumes
+    from tissue_sim.core.runio import load_run
+    run = load_run(run_dir)
+    k = int(np.flatnonzero(run.frame_index == 18)[0])
+    ref = prism_volumes(run.frames[k].astype(np.float64), run.model.cell_offsets, run.model.cell_vertices,
+                        np.asarray(run.model.cell_tissue) == M.TISSUE_FAT)
+    poly = last.celltypes == pv.CellType.POLYHEDRON
+    vol = np.array([last.GetCell(c).ComputeVolume() if poly[c] else np.nan for c in range(last.n_cells)])
+    vol[~poly] = last.compute_cell_sizes(length=False, area=False)['Volume'][~poly]
+    assert poly.any() and np.allclose(vol, ref, rtol=1e-6, atol=1e-12), np.abs(vol / ref - 1).max()
     assert set(np.unique(g.cell_data['tissue'])) == {1, 2}
     fat = g.cell_data['tissue'] == 2
     assert np.all(np.isfinite(g.cell_data['area_ratio'][fat])) and np.all(np.isnan(g.cell_data['d_paper_m'][~fat]))
-    last = pv.read(out / 'vtu' / ds[-2].get('file'))
     assert float(ds[-2].get('timestep')) == pytest.approx(18 / 34.0)
     assert np.abs(last.point_data['displacement_m']).max() > 0.01
 

@@ -95,3 +95,84 @@ def chain_surface(rings: list[np.ndarray], pos: np.ndarray) -> np.ndarray:
     tt = ear_clip(pos[top, :2])
     tris.append(top[tt])
     return np.concatenate(tris).astype(np.int32)
+
+
+VTK_HEXAHEDRON = 12
+VTK_POLYHEDRON = 42
+
+
+def cell_faces(bot, top, cap_bot: int, cap_top: int, quad_centres) -> list:
+    """The outward triangles of one prism cell exactly as :func:`prism_volumes` decomposes it: each
+    cap a fan from its centroid (point ``cap_bot``/``cap_top``), each side quad four triangles about its
+    centroid (point ``quad_centres[i]`` for the quad bot[i], bot[i+1], top[i+1], top[i]). Rings
+    counter-clockwise seen from +z (fat rings reversed before)."""
+    n = len(bot)
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        q = quad_centres[i]
+        faces += [(cap_bot, bot[j], bot[i]), (cap_top, top[i], top[j]),
+                  (q, bot[i], bot[j]), (q, bot[j], top[j]), (q, top[j], top[i]), (q, top[i], bot[i])]
+    return faces
+
+
+class CellGrid:
+    """The model's cells as VTK cells, the same cells the solver integrates (one VTK cell per model
+    cell): a prism cell is a VTK_POLYHEDRON whose faces are :func:`prism_volumes`'s triangles, so VTK's
+    polyhedron volume equals the model's cell volume also where side quads are not planar; a fat cell
+    with 4-vertex rings a VTK_HEXAHEDRON (its trilinear volume is the same decomposition's). The cap and
+    side-quad centroids are extra points after the model's vertices: ``points(X)`` appends them for any
+    vertex positions X (a frame of a run), ``model_vertex`` maps points back (-1 for a centroid).
+
+    ``offsets``, ``vertices``: the model's cell arrays; ``fat``: (C,) bool, cells whose rings are
+    clockwise by the model contract (fat)."""
+
+    def __init__(self, offsets, vertices, fat, n_vertices: int):
+        offsets = np.asarray(offsets, np.int64)
+        vertices = np.asarray(vertices, np.int64)
+        V = int(n_vertices)
+        groups, index = [], {}
+
+        def centre(ids) -> int:
+            key = tuple(sorted(int(i) for i in ids))
+            k = index.get(key)
+            if k is None:
+                k = index[key] = V + len(groups)
+                groups.append(np.array(key, np.int64))
+            return k
+
+        cells, types = [], []
+        for c in range(len(offsets) - 1):
+            v = vertices[offsets[c]:offsets[c + 1]]
+            n = len(v) // 2
+            if fat[c] and n == 4:
+                # contract ring order is clockwise from +z; VTK wants the bottom face counter-clockwise
+                cells += [8, *v[[3, 2, 1, 0]], *v[[7, 6, 5, 4]]]
+                types.append(VTK_HEXAHEDRON)
+                continue
+            bot, top = v[:n], v[n:]
+            if fat[c]:
+                bot, top = bot[::-1], top[::-1]
+            quads = [centre((bot[i], bot[(i + 1) % n], top[(i + 1) % n], top[i])) for i in range(n)]
+            faces = cell_faces(bot, top, centre(bot), centre(top), quads)
+            stream = [len(faces)]
+            for f in faces:
+                stream += [3, *f]
+            cells += [len(stream), *stream]
+            types.append(VTK_POLYHEDRON)
+        self.cells = np.array(cells, np.int64)
+        self.types = np.array(types, np.uint8)
+        self.n_vertices = V
+        sizes = np.array([len(g) for g in groups], np.int64)
+        self._members = np.concatenate(groups) if groups else np.zeros(0, np.int64)
+        self._starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]) if groups else np.zeros(0, np.int64)
+        self._sizes = sizes
+        self.model_vertex = np.concatenate([np.arange(V), np.full(len(groups), -1)]).astype(np.int32)
+
+    def points(self, X) -> np.ndarray:
+        """(V + centroids, 3): the model's vertex positions X followed by the centroids."""
+        X = np.asarray(X, np.float64)
+        if not len(self._sizes):
+            return X.copy()
+        sums = np.add.reduceat(X[self._members], self._starts, axis=0)
+        return np.vstack([X, sums / self._sizes[:, None]])

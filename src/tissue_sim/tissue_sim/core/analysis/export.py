@@ -4,10 +4,12 @@
   coloured (skin yellow, hamstrings red, other muscles brown, bones ivory). GLB keeps one named
   node per part (viewers can hide the skin); PLY is one merged coloured mesh.
 * ``cells_<n>.vtu`` + ``cells.pvd`` (ParaView time series): the soft-tissue cells as an
-  unstructured grid (fat hexahedra as VTK_HEXAHEDRON, muscle prisms as fans of VTK_WEDGE sharing
-  the cell's own vertices) with cell data ``cell`` (topology cell id), ``tissue`` (1 muscle, 2 fat),
-  ``muscle`` (-1 for fat), ``area_ratio``, ``d_paper_m``, ``d_rotfree_m`` (fat; NaN elsewhere) and
-  point data ``displacement_m`` (from rest). Times in the .pvd are the simulated times [s].
+  unstructured grid of the cells the solver integrates, one VTK cell per model cell
+  (:class:`tissue_sim.core.geometry.CellGrid`, as `build-model --vtu`: prisms as VTK_POLYHEDRON with
+  ``prism_volumes``'s faces, 4-vertex fat cells as VTK_HEXAHEDRON, face centroids as extra points) with
+  cell data ``cell`` (model cell id), ``tissue`` (1 muscle, 2 fat), ``muscle`` (-1 for fat),
+  ``area_ratio``, ``d_paper_m``, ``d_rotfree_m`` (fat; NaN elsewhere) and point data
+  ``displacement_m`` (from rest) and ``model_vertex`` (-1 for a centroid). Times in the .pvd are the simulated times [s].
   Bones are written as ``bones_<n>.vtp`` in the same series file (part 1).
 """
 from __future__ import annotations
@@ -20,10 +22,7 @@ import numpy as np
 
 from tissue_sim.core import measures
 from tissue_sim.core.analysis import measure, render
-from tissue_sim.core.geometry import prism_volumes
-
-VTK_HEXAHEDRON = 12
-VTK_WEDGE = 13
+from tissue_sim.core.geometry import CellGrid
 
 
 def _rgba(c, a=1.0):
@@ -69,37 +68,6 @@ def write_meshes(topo, X, poses, out: Path, stem: str, formats=('glb', 'ply')) -
     return files
 
 
-def cell_grid_topology(topo):
-    """(VTK cell connectivity stream, cell types, owner topology cell) for all soft-tissue cells.
-
-    VTK wants positively oriented cells; fat rings are clockwise by the model contract (inner a,
-    inner b, outer b, outer a), so cells whose signed rest volume (:func:`~tissue_sim.core.geometry.prism_volumes`)
-    is negative get their rings swapped.
-    """
-    offsets = np.asarray(topo.cell_offsets, np.int64)
-    verts = np.asarray(topo.cell_vertices, np.int64)
-    negative = prism_volumes(np.asarray(topo.rest_positions, np.float64), offsets, verts) < 0
-    conn, types, owner = [], [], []
-    for c in range(topo.n_cells):
-        vs = verts[offsets[c]:offsets[c + 1]]
-        n = len(vs) // 2
-        if negative[c]:
-            vs = np.concatenate([vs[n:], vs[:n]])
-        if n == 4:
-            conn.append(np.concatenate([[8], vs]))
-            types.append(VTK_HEXAHEDRON)
-            owner.append(c)
-            continue
-        b, t = vs[:n], vs[n:]
-        for i in range(1, n - 1):            # VTK wedge: counter-clockwise base (0,1,2) below (3,4,5)
-            conn.append(np.array([6, b[0], b[i], b[i + 1], t[0], t[i], t[i + 1]]))
-            types.append(VTK_WEDGE)
-            owner.append(c)
-    if not conn:
-        return np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int64)
-    return np.concatenate(conn), np.array(types, np.uint8), np.array(owner, np.int64)
-
-
 def write_vtu_series(run, out: Path, frames=None, measures=None) -> list[Path]:
     """One .vtu (cells) and .vtp (bones) per frame of ``run`` (a runio.Run; ``frames``: positions in
     it, default all) and the ``cells.pvd`` index. ``measures``: the run's Measurements if computed."""
@@ -110,18 +78,21 @@ def write_vtu_series(run, out: Path, frames=None, measures=None) -> list[Path]:
     topo = run.model
     sel = np.arange(run.n_frames) if frames is None else np.asarray(frames, np.int64)
     m, row = measure.rows_for(run, set(sel.tolist()) | {0}, measures)
-    conn, types, owner = cell_grid_topology(topo)
-    rest = np.asarray(topo.rest_positions, np.float64)
+    from tissue_sim.core import model as M
+    cg = CellGrid(topo.cell_offsets, topo.cell_vertices, np.asarray(topo.cell_tissue) == M.TISSUE_FAT,
+                  len(topo.rest_positions))
+    owner = np.arange(topo.n_cells)
+    rest = cg.points(topo.rest_positions)
     fat_local = np.full(topo.n_cells, -1, np.int64)
     fat_local[m.fat_cells] = np.arange(m.fat_cells.size)
-    fl = fat_local[owner]
+    fl = fat_local
     area0 = m.skin_area[row[0]]
     files, entries = [], []
     for i in sel:
         k = row[int(i)]
-        X = run.frames[i].astype(np.float64)
+        X = cg.points(run.frames[i])
         a, dp, dr = m.skin_area[k], m.d_paper[k], m.d_rotation_free[k]
-        grid = pv.UnstructuredGrid(conn, types, X)
+        grid = pv.UnstructuredGrid(cg.cells, cg.types, X)
         grid.cell_data['cell'] = owner.astype(np.int32)
         grid.cell_data['tissue'] = np.asarray(topo.cell_tissue)[owner].astype(np.int32)
         grid.cell_data['muscle'] = np.asarray(topo.cell_muscle)[owner].astype(np.int32)
@@ -131,6 +102,7 @@ def write_vtu_series(run, out: Path, frames=None, measures=None) -> list[Path]:
             col[fl >= 0] = v[fl[fl >= 0]]
             grid.cell_data[name] = col
         grid.point_data['displacement_m'] = X - rest
+        grid.point_data['model_vertex'] = cg.model_vertex
         f = int(run.frame_index[i])
         p = out / f'cells_{f:05d}.vtu'
         grid.save(p)

@@ -67,76 +67,28 @@ def to_ply(tm: M.TissueModel, path, name=None) -> Path:
     return _write_bytes(path, m.export(file_type='ply'), name)
 
 
-def cell_faces(bot: np.ndarray, top: np.ndarray, cap_bot: int, cap_top: int, quad_centres) -> list:
-    """The outward triangles of one prism cell exactly as ``geometry.prism_volumes`` decomposes it:
-    each cap a fan from its centroid (point ``cap_bot``/``cap_top``), each side quad four triangles
-    about its centroid (point ``quad_centres[i]`` for the quad bot[i], bot[i+1], top[i+1], top[i]).
-    Rings counter-clockwise seen from +z (fat rings reversed before)."""
-    n = len(bot)
-    faces = []
-    for i in range(n):
-        j = (i + 1) % n
-        q = quad_centres[i]
-        faces += [(cap_bot, bot[j], bot[i]), (cap_top, top[i], top[j]),
-                  (q, bot[i], bot[j]), (q, bot[j], top[j]), (q, top[j], top[i]), (q, top[i], bot[i])]
-    return faces
-
-
 def to_unstructured_grid(tm: M.TissueModel):
-    """pyvista.UnstructuredGrid of all cells, the same cells the solver integrates.
-
-    A prism cell is a VTK_POLYHEDRON whose faces are the triangles of ``geometry.prism_volumes``'s
-    decomposition (cap fans from the cap centroid, side quads as four triangles about the quad
-    centroid), so its enclosed volume is the model's cell volume also where side quads are not
-    planar. The centroids are extra points after the model's vertices (point data ``model_vertex``:
-    the model vertex index, -1 for such a centroid). A fat cell with 4-vertex rings is a
-    VTK_HEXAHEDRON (its trilinear volume equals the same decomposition's). Cell data: tissue,
-    muscle, k_scale, volume (the model's, m^3), fibre; point data: segment, flags, model_vertex.
-    """
+    """pyvista.UnstructuredGrid of all cells, the same cells the solver integrates
+    (:class:`tissue_sim.core.geometry.CellGrid`: prisms as VTK_POLYHEDRON with ``prism_volumes``'s faces,
+    4-vertex fat cells as VTK_HEXAHEDRON, the face centroids as extra points). Cell data: tissue,
+    muscle, k_scale, volume (the model's, m^3), fibre; point data: segment, flags, model_vertex (the
+    model vertex index, -1 for a centroid)."""
     import pyvista as pv
-    from tissue_sim.core.geometry import prism_volumes
+    from tissue_sim.core.geometry import CellGrid, prism_volumes
     pos = np.asarray(tm.rest_positions, dtype=np.float64)
-    V = len(pos)
-    extra, index = [], {}
-
-    def centre(ids) -> int:
-        key = tuple(sorted(int(i) for i in ids))
-        k = index.get(key)
-        if k is None:
-            k = index[key] = V + len(extra)
-            extra.append(pos[list(ids)].mean(axis=0))
-        return k
-
-    cells, types = [], []
-    for c in range(tm.n_cells):
-        v = tm.cell(c)
-        n = len(v) // 2
-        if tm.cell_tissue[c] == M.TISSUE_FAT and n == 4:
-            # contract ring order is clockwise from +z; VTK wants the bottom face counter-clockwise
-            cells += [8, *v[[3, 2, 1, 0]], *v[[7, 6, 5, 4]]]
-            types.append(pv.CellType.HEXAHEDRON)
-            continue
-        bot, top = v[:n], v[n:]
-        if tm.cell_tissue[c] == M.TISSUE_FAT:
-            bot, top = bot[::-1], top[::-1]
-        quads = [centre((bot[i], bot[(i + 1) % n], top[(i + 1) % n], top[i])) for i in range(n)]
-        faces = cell_faces(bot, top, centre(bot), centre(top), quads)
-        stream = [len(faces)]
-        for f in faces:
-            stream += [3, *f]
-        cells += [len(stream), *stream]
-        types.append(pv.CellType.POLYHEDRON)
-    points = np.vstack([pos, np.asarray(extra).reshape(-1, 3)])
-    grid = pv.UnstructuredGrid(np.array(cells, dtype=np.int64), np.array(types, dtype=np.uint8), points)
+    fat = tm.cell_tissue == M.TISSUE_FAT
+    cg = CellGrid(tm.cell_offsets, tm.cell_vertices, fat, len(pos))
+    grid = pv.UnstructuredGrid(cg.cells, cg.types, cg.points(pos))
     grid.cell_data['tissue'] = tm.cell_tissue.astype(np.int32)
     grid.cell_data['muscle'] = tm.cell_muscle.astype(np.int32)
     grid.cell_data['k_scale'] = tm.cell_k_scale
-    grid.cell_data['volume'] = prism_volumes(pos, tm.cell_offsets, tm.cell_vertices, tm.cell_tissue == M.TISSUE_FAT)
+    grid.cell_data['volume'] = prism_volumes(pos, tm.cell_offsets, tm.cell_vertices, fat)
     grid.cell_data['fibre'] = tm.cell_fibre
-    pad = np.full(len(extra), -1, np.int32)
+    extra = len(cg.model_vertex) - len(pos)
+    pad = np.full(extra, -1, np.int32)
     grid.point_data['segment'] = np.concatenate([tm.vertex_segment.astype(np.int32), pad])
-    grid.point_data['flags'] = np.concatenate([tm.vertex_flags.astype(np.int32), np.zeros(len(extra), np.int32)])
-    grid.point_data['model_vertex'] = np.concatenate([np.arange(V, dtype=np.int32), pad])
+    grid.point_data['flags'] = np.concatenate([tm.vertex_flags.astype(np.int32), np.zeros(extra, np.int32)])
+    grid.point_data['model_vertex'] = cg.model_vertex
     return grid
 
 
