@@ -229,14 +229,9 @@ def timeline_entries(timeline: dict, source='timeline') -> list:
 
 def load_timeline(path) -> dict:
     """YAML timeline file -> {selector: (times (K,), values (K,))}; checks values and ordering."""
-    import yaml
+    from tissue_sim.core.load import read_yaml
     p = Path(path)
-    if not p.is_file():
-        raise ActivationError(f'{p}: no such timeline file')
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as e:
-        raise ActivationError(f'{p}: not valid YAML ({e})') from None
+    doc = read_yaml(p, 'timeline', ActivationError)
     if not isinstance(doc, dict) or not isinstance(doc.get('muscles'), dict) or not doc['muscles']:
         raise ActivationError(f'{p}: expected a mapping "muscles: {{name: [[t, a], ...]}}"')
     return {str(name): knots(name, pts, str(p)) for name, pts in doc['muscles'].items()}

@@ -7,6 +7,20 @@ import dataclasses
 PARAM_SETS = ('paper', 'physical')
 
 
+def read_yaml(path, what: str, error=ValueError):
+    """The YAML document of a user's file (parameter set, activation timeline, ...); ``error`` (a
+    ValueError subclass) with one line naming the file when it is missing or not valid YAML."""
+    import yaml
+    from pathlib import Path
+    p = Path(path)
+    if not p.is_file():
+        raise error(f'{p}: no such {what} file')
+    try:
+        return yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise error(f'{p}: not valid YAML ({e})') from None
+
+
 def load_model(spec: str | None = None):
     """The TissueModel named by ``spec``: a model file (.npz from ``tissue-sim build-model``);
     ``None`` or ``''`` = the bundled lower limb; ``phantom:knee`` = the solver's analytic knee

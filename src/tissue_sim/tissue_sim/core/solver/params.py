@@ -174,13 +174,9 @@ class Params:
 
     @classmethod
     def from_yaml(cls, path) -> 'Params':
+        from tissue_sim.core.load import read_yaml
         path = Path(path)
-        if not path.is_file():
-            raise ValueError(f'{path}: no such parameter file')
-        try:
-            d = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as e:
-            raise ValueError(f'{path}: not valid YAML ({e})') from None
+        d = read_yaml(path, 'parameter')
         try:
             return cls.from_dict(d or {})
         except ValueError as e:
