@@ -11,8 +11,15 @@ import pytest
 
 from tissue_sim.cli import main
 
-opensim = pytest.importorskip('opensim', reason='requirements/validation.txt not installed (make test installs it)')
-pytest.importorskip('Pose2Sim', reason='requirements/anatomy.txt not installed (make test installs it)')
+# find_spec, not import: importing opensim rewrites this process's LD_LIBRARY_PATH, PATH and SIMBODY_HOME
+# (core/validation.py imports it with the environment kept), which would break every ROS program the
+# test session starts after collection
+import importlib.util  # noqa: E402
+
+if importlib.util.find_spec('opensim') is None:
+    pytest.skip('requirements/validation.txt not installed (make test installs it)', allow_module_level=True)
+if importlib.util.find_spec('Pose2Sim') is None:
+    pytest.skip('requirements/anatomy.txt not installed (make test installs it)', allow_module_level=True)
 
 from tissue_sim.core import solver, validation as V  # noqa: E402
 
@@ -104,8 +111,9 @@ def test_targets_follow_the_data(reference):
 
 
 def _locked_hold(sim, state, ctrl, j, n):
-    """The knee ramped to 10 deg at 100 deg/s by the solver's joint lock, then held (n steps in all)."""
-    ctrl.joint_lock[j] = True
+    """The knee ramped to 10 deg at 100 deg/s by the solver's joint lock, then held (n steps in all); the
+    other joints (the ankle) locked at rest, as validation.hold_sweep does."""
+    ctrl.joint_lock[:] = True
     for i in range(n):
         ctrl.joint_target[j] = math.radians(min(10.0, 0.1 * (i + 1)))
         solver.step(sim, state, ctrl)
@@ -230,3 +238,23 @@ def test_a_sweep_that_diverges_ends_in_nan_and_says_where(default_tm, knee_muscl
     assert r['diverged'] is not None and r['diverged']['at_deg'] == 0.0 and 'max_speed' in r['diverged']['error']
     assert len(r['torque']) == len(r['length']) == 2
     assert np.all(np.isnan(r['torque'])) and np.all(np.isnan(r['length']))
+
+
+def test_the_opensim_reference_leaves_the_environment_as_it_was():
+    """The opensim wheel rewrites LD_LIBRARY_PATH, PATH and SIMBODY_HOME on import; ROS programs a
+    process starts after computing the reference (the nodes of later tests, a user's script) must still
+    find rcl. Checked in a fresh interpreter, where opensim is imported for the first time."""
+    import subprocess
+    import sys
+    code = (
+        "import os, subprocess, sys\n"
+        "from tissue_sim.core import validation as V\n"
+        "before = dict(os.environ)\n"
+        "V.opensim_reference(V.source_model_path(), [], [0.0], {})\n"
+        "assert dict(os.environ) == before, sorted(k for k in set(before) | set(os.environ)"
+        " if before.get(k) != os.environ.get(k))\n"
+        "r = subprocess.run([sys.executable, '-c', 'import rclpy.impl.implementation_singleton'],"
+        " capture_output=True, text=True)\n"
+        "assert r.returncode == 0, r.stderr[-300:]\n")
+    r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-800:]

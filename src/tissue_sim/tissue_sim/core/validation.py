@@ -38,6 +38,37 @@ class ValidationError(ValueError):
     """Bad validation input (angles, settle time, missing source model): the message names it."""
 
 
+_OPENSIM_ENV = ('LD_LIBRARY_PATH', 'PATH', 'SIMBODY_HOME')
+
+
+def _import_opensim():
+    """``import opensim`` without its side effects on this process's environment: the opensim 4.6 wheel
+    rewrites LD_LIBRARY_PATH (to its own folder + PATH), PATH and SIMBODY_HOME when imported, and its
+    C++ side sets them again when a model is loaded, which breaks every ROS 2 program this process
+    starts afterwards (they no longer find the rcl libraries). Use it with :func:`_environment_kept`
+    around all OpenSim work: the variables are put back as they were (through os.environ, i.e. putenv,
+    so the C-level environment children inherit is restored too)."""
+    with _environment_kept():
+        import opensim
+    return opensim
+
+
+class _environment_kept:
+    def __enter__(self):
+        import os
+        self.saved = {k: os.environ.get(k) for k in _OPENSIM_ENV}
+
+    def __exit__(self, *exc):
+        import os
+        for k, v in self.saved.items():
+            if v is None:
+                os.environ[k] = ''             # putenv first: the C environment may hold it without os.environ
+                del os.environ[k]
+            else:
+                os.environ[k] = v
+        return False
+
+
 def source_model_path() -> Path:
     """The OpenSim model the bundled limb is derived from (pose2sim 0.10.49, requirements/anatomy.txt)."""
     try:
@@ -118,8 +149,13 @@ def opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: d
     the tendon slack length, where the rigid-tendon fibre length is meaningless: ``slack`` true),
     ``active_fraction`` (active fibre force along the tendon / Fmax), ``norm_fibre_length``, and
     ``torque`` [N m] = sum of moment arm x force over the knee muscles."""
+    with _environment_kept():       # opensim's side effects on the environment undone (_import_opensim)
+        return _opensim_reference(osim_path, muscles, angles_deg, active_sets)
+
+
+def _opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: dict) -> dict:
     try:
-        import opensim as osim
+        osim = _import_opensim()
     except ImportError:
         raise ValidationError('the OpenSim reference needs the opensim package (pip install --no-deps -r '
                               'requirements/validation.txt)') from None
@@ -255,7 +291,8 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
 
     The knee is held by the solver's joint lock (``Control.joint_lock`` / ``joint_target``, docs/solver.md
     "Joint lock"): inside every sub-step the knee is put on its target (qd = 0 in the hold), the tissue
-    moves and the bones do not. Returns per angle: muscle lengths (all knee muscles) [m]; the isometric
+    moves and the bones do not. Every other hinge (the ankle) is locked at its rest coordinate, as a
+    dynamometer straps the foot and as the source model's reference has it at its default. Returns per angle: muscle lengths (all knee muscles) [m]; the isometric
     knee torque [N m] (positive = flexing): minus the torque the lock applies (``joint_lock_torque``), mean
     over the last 10 % of the hold; the same torque from the static forces of every cell on the
     bone-attached vertices below the knee (``torque_static``, zero velocity: no damping); per muscle the
@@ -265,8 +302,8 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
     j = list(sim.tissue.joint_names).index(KNEE_JOINT)
     state = solver.make_state(sim)
     ctrl = solver.make_control(sim)
-    ctrl.joint_lock[j] = True
-    ctrl.joint_target[j] = state.q[j]
+    ctrl.joint_lock[:] = True                 # the knee, and the other joints at rest (the foot strapped)
+    ctrl.joint_target[:] = state.q
     for km in muscles:
         if km.name in active:
             ctrl.activation[km.index] = 1.0
