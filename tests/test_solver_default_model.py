@@ -78,9 +78,9 @@ def test_physical_hamstring_contraction_flexes_knee_to_limit(physical_sim, physi
     """The issue's criterion, physical parameter set: >= 60 deg, reaches the 120-deg limit, the end
     stop holds, no divergence. Volumes: within 14 % here (measured 13.3 % at worst: semitendinosus at
     the onset, t = 0.2 s, its thin tendon cells near the knee strongly deformed (docs/builder.md,
-    connected muscles; 10.2 % before the bone contact, the free ankle and the physical set's
-    stability_limit 1.4 / joint_damping 5, with which this run no longer diverges at step 438); 7.0 % at
-    the end; the 2 % of the issue holds for the paper set, test below)."""
+    connected muscles; 10.2 % before the bone contact and the free ankle, 13.6 % after them, 13.3 % with
+    the physical set's stability_limit 1.4 / joint_damping 5); 7.0 % at the end; the 2 % of the issue
+    holds for the paper set, test below)."""
     j, q, vol = physical_hamstring_run
     lo, hi = physical_sim.j_range[j]
     assert q.max() - q[0] >= math.radians(60)
