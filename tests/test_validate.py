@@ -148,7 +148,8 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     axis, centre = V._knee_frame(sim, state, j)
     static_tau = V._torque(state.x[att], V._Forces(sim)(state, ctrl.activation)[att], axis, centre)
     assert state.q[j] == math.radians(10.0) and state.qd[j] == 0.0
-    assert float(np.abs(state.v[att]).max()) < 1e-9
+    shank = sim.att_idx[sim.att_seg == sim.j_child[j]]     # (the foot below, on its free ankle, may still creep:
+    assert float(np.abs(state.v[shank]).max()) < 1e-9       # the physical set's joint damping 5 N m s/rad)
     assert abs(static_tau) > 5.0 and -state.joint_lock_torque[j] == pytest.approx(static_tau, rel=0.01)
     # the old way: step freely, then put the joint back
     plain, ctrl2 = solver.make_state(sim), solver.make_control(sim)

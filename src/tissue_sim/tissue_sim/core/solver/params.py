@@ -92,10 +92,18 @@ class Params:
     def physical(cls, **kw) -> 'Params':
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
-                    damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=1.0, max_speed=50.0,
+                    damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
-                    bone_contact=True)   # gram masses, stiff active tension: h = 0.25 ms with
-        # selective mass scaling (the light tendon/edge vertices get heavier; docs/solver.md gives the added mass)
+                    bone_contact=True, stability_limit=1.4)
+        # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
+        # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
+        # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
+        # strongly (V/V0 2.4, semitendinosus near the knee) it was measured ~1.5x that (omega h 1.98 at 1.8: a
+        # hamstring contraction without force-velocity diverged at step 140). joint_damping 5 N m s/rad, not 1:
+        # when the knee reaches its stop the light free foot whipped on (ankle -4 -> -22 deg in 20 ms, the soleus
+        # and ankle fat cells at V/V0 0.56..5, omega h 2.04 at 1.4: divergence at step ~440 with or without
+        # force-velocity); at 5 the ankle stays within -6..+2 deg. (tests/test_solver_default_model.py::
+        # test_physical_without_force_velocity_is_stable)
         base.update(kw)
         return cls(**base).validate()
 
