@@ -199,7 +199,7 @@ def test_save_load_roundtrip(column, tmp_path):
 
 def test_tapered_muscle_ends_between_slices():
     lab, aff, tab = make_phantom('tapered')
-    tm, rep = build_model((lab, aff), tab, **P)
+    tm, rep = build_model((lab, aff), tab, merge_gaps=1, **P)          # one cell per slice gap: countable
     f = muscle_cells(tm, 'flexor')
     # present (area >= 20 mm^2) on z = -100 .. 25 mm: 6 rings, 5 cells; the z = 50 sliver is dropped and reported
     assert len(f) == 5
@@ -243,7 +243,7 @@ def test_two_bones_in_one_slice():
 
 def test_split_region_gives_two_chains():
     lab, aff, tab = make_phantom('split')
-    tm, rep = build_model((lab, aff), tab, **P)
+    tm, rep = build_model((lab, aff), tab, merge_gaps=1, **P)          # one cell per slice gap: countable
     f = muscle_cells(tm, 'flexor')
     # one disc on z < 0 (4 slices), two discs on z >= 0 (5 slices): chain of 9 rings + chain of 5 rings
     assert len(f) == 8 + 4

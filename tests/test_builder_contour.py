@@ -60,8 +60,9 @@ def test_cells_valid_surfaces_closed_and_untwisted(hard):
         assert polygon_area(v[:n, :2]) > 0 and polygon_area(v[n:, :2]) > 0
 
 
-def test_split_muscle_is_two_chains_and_one_bone_becomes_two(hard):
-    tm, rep = hard
+def test_split_muscle_is_two_chains_and_one_bone_becomes_two():
+    lab, aff, tab = make_hard_phantom()
+    tm, rep = build_model((lab, aff), tab, merge_gaps=1, **P)          # one cell per slice gap: countable
     m = tm.muscle_index('split')
     cs = tm.cell_slice[tm.cell_muscle == m]
     zc = tm.slice_z[cs]
@@ -118,11 +119,33 @@ def test_area_matching_keeps_a_crescent_area():
 def test_thin_tendon_beside_its_belly_stays_one_chain():
     """No overlap between tendon and belly on neighbouring slices: the chain is still linked."""
     lab, aff, tab = make_phantom('tendon')
-    tm, rep = build_model((lab, aff), tab, **P)
+    tm, rep = build_model((lab, aff), tab, merge_gaps=1, **P)           # one cell per slice gap
     m = tm.muscle_index('flexor')
     cs = np.sort(tm.cell_slice[tm.cell_muscle == m])
     assert np.array_equal(cs, np.arange(len(tm.slice_z) - 1))
     assert rep['quality']['breaks'] == []
+
+
+def test_uniform_tendon_is_one_longer_cell():
+    """The flexor's straight uniform tendon (r 4 mm, slices 4-8 at z = 0..100 mm) needs no cell per slice
+    gap: its rings at z = 25, 50 lie on the straight prism from z = 0 to z = 75, so that is one cell over
+    merge_gaps = 3 gaps, then one to z = 100; the belly and the belly-tendon transition keep one cell per
+    gap, the chain stays whole, the volume is that of the per-gap cells, the uniform extensor is untouched."""
+    lab, aff, tab = make_phantom('tendon')
+    tm1, _ = build_model((lab, aff), tab, merge_gaps=1, **P)
+    tm, rep = build_model((lab, aff), tab, **P)
+    m = tm.muscle_index('flexor')
+    c = np.flatnonzero(tm.cell_muscle == m)
+    assert np.array_equal(np.sort(tm.cell_slice[c]), [0, 1, 2, 3, 4, 7])
+    h = np.ptp(tm.rest_positions[tm.cell(c[tm.cell_slice[c] == 4][0]), 2])
+    assert h == pytest.approx(3 * 0.025)
+    assert rep['quality']['breaks'] == [] and rep['cells']['inverted'] == 0
+    v1 = cell_volumes(tm1)[tm1.cell_muscle == m].sum()
+    assert cell_volumes(tm)[c].sum() == pytest.approx(v1, rel=0.01)
+    e = tm.muscle_index('extensor')
+    assert np.count_nonzero(tm.cell_muscle == e) == np.count_nonzero(tm1.cell_muscle == e) == len(tm.slice_z) - 1
+    assert all(v['watertight'] for v in surface_checks(tm).values())
+    assert tm.n_cells == tm1.n_cells - 2
 
 
 def test_a_real_break_is_an_error_naming_the_muscle_and_slices():

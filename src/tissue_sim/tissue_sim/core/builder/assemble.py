@@ -21,6 +21,7 @@ from tissue_sim.core import geometry
 from . import contours as CT
 from . import slices as S
 from .io import LabelVolume, voxel_to_model
+from .rays import polygon_area
 from .sharing import share_groups
 
 # Default settings: a model of the paper's size (Table 1 of Inaba et al. 2005: Visible Human slices
@@ -42,12 +43,42 @@ DEFAULTS = {
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
     'sections': 'contour',     # cross-sections: 'contour' (traced label outline, area kept) or 'rays' (the paper's)
     'allow_broken': False,     # a muscle whose chain breaks between slices: warning instead of error
+    'tendon_frac': 0.3,        # a muscle section of at most this x the muscle's largest is thin (a tendon) ...
+    'merge_tol': 0.25,         # ... and is one longer cell with its neighbours where it lies within this x the
+                               # muscle's largest equivalent radius of the straight prism between them
+    'merge_gaps': 3,           # a merged tendon cell spans at most this many slice gaps (1 = the paper's: one per gap)
     'shear_limit': 2.0,        # quality report: a cell sheared more than this x its height is reported (warning)
     'ray_hit': 'first',        # 'first' (polygon inside the region) or 'last' boundary crossing
     'ray_origin': 'best',      # 'best' (largest polygon among centroid and interior maxima) or 'centroid'
     'bone_mesh_step': 2,       # marching-cubes step [voxels] for bone surfaces without a mesh file
     'allow_missing': False,    # table labels absent from the volume: warning instead of error
 }
+
+
+def uniform_runs(rings: list, thin_m2: float, tol_m: float, max_gaps: int) -> list:
+    """Indices of the rings of one muscle chain to keep. An inner ring is left out when it is thin (area
+    at most ``thin_m2``: a tendon) and lies on the straight prism between the kept rings on either side
+    (every vertex within ``tol_m`` of the linear interpolation along the chain's axis): a thin uniform
+    section is one longer cell spanning up to ``max_gaps`` slice gaps instead of one cell per gap. The
+    end rings are always kept; max_gaps = 1 keeps every ring (the paper's one cell per slice gap)."""
+    if max_gaps < 2 or len(rings) < 3:
+        return list(range(len(rings)))
+    keep = [0]
+    for j in range(2, len(rings)):
+        if j - keep[-1] > max_gaps:                 # a merged cell spans at most max_gaps slice gaps
+            keep.append(j - 1)
+            continue
+        a, b = rings[keep[-1]], rings[j]
+        za, zb = a[:, 2].mean(), b[:, 2].mean()
+        for m in range(keep[-1] + 1, j):
+            r = rings[m]
+            t = (r[:, 2].mean() - za) / (zb - za) if zb != za else 0.5
+            dev = np.linalg.norm((r - ((1 - t) * a + t * b))[:, :2], axis=1).max()
+            if abs(polygon_area(r[:, :2])) > thin_m2 or dev > tol_m:
+                keep.append(j - 1)
+                break
+    keep.append(len(rings) - 1)
+    return keep
 
 
 def settings_with_defaults(settings: dict) -> dict:
@@ -87,6 +118,14 @@ def settings_with_defaults(settings: dict) -> dict:
         raise UserError(f"sections must be 'contour' or 'rays', got {s['sections']!r}")
     if not isinstance(s['allow_broken'], bool):
         raise UserError(f'allow_broken must be true or false, got {s["allow_broken"]!r}')
+    if not isinstance(s['merge_gaps'], (int, float)) or isinstance(s['merge_gaps'], bool) or \
+            int(s['merge_gaps']) != s['merge_gaps'] or s['merge_gaps'] < 1:
+        raise UserError(f'merge_gaps must be an integer >= 1 (1 = one cell per slice gap), got {s["merge_gaps"]!r}')
+    s['merge_gaps'] = int(s['merge_gaps'])
+    if isinstance(s['tendon_frac'], bool) or not (isinstance(s['tendon_frac'], (int, float)) and 0 <= s['tendon_frac'] <= 1):
+        raise UserError(f'tendon_frac must be a number in [0, 1], got {s["tendon_frac"]!r}')
+    if isinstance(s['merge_tol'], bool) or not (isinstance(s['merge_tol'], (int, float)) and math.isfinite(s['merge_tol']) and s['merge_tol'] >= 0):
+        raise UserError(f'merge_tol must be a number >= 0, got {s["merge_tol"]!r}')
     if not (isinstance(s['shear_limit'], (int, float)) and math.isfinite(s['shear_limit']) and s['shear_limit'] > 0):
         raise UserError(f'shear_limit must be a positive number, got {s["shear_limit"]!r}')
     if s['ray_hit'] not in ('first', 'last'):
@@ -388,7 +427,11 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         muscle_names.append(tab[lab]['name']); muscle_groups.append(tab[lab]['group']); muscle_labels_used.append(lab)
         mforce.append(tab[lab]['max_isometric_force']); mfibre.append(tab[lab]['optimal_fibre_length'])
         mscale.append(tab[lab]['stiffness_scale'])
+        biggest = max(abs(polygon_area(regions[z][lab][ii].ring[:, :2])) for ch in chains for (z, ii) in ch)
         for chain in chains:
+            rings = [regions[z][lab][ii].ring for (z, ii) in chain]
+            chain = [chain[q] for q in uniform_runs(rings, s['tendon_frac'] * biggest, s['merge_tol'] * math.sqrt(biggest / math.pi),
+                                                    s['merge_gaps'])]
             rids = []
             for (z, ii) in chain:
                 rids.append(new_ring(regions[z][lab][ii].ring, mi, z))
