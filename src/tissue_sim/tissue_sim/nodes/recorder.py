@@ -133,8 +133,13 @@ class Recorder(Node):
         self.get_logger().info(f'subscribed to {topic} [{typ}]')
 
     def offered(self, topic) -> list:
-        """The QoS profiles the topic's publishers offer now (rosbag2's ``offered_qos_profiles``)."""
-        return [mcapio.Qos.from_profile(i.qos_profile) for i in self.get_publishers_info_by_topic(topic)]
+        """The QoS profiles the topic's publishers offer now (rosbag2's ``offered_qos_profiles``); none
+        when the graph cannot be asked (at shutdown, after the context is gone)."""
+        try:
+            infos = self.get_publishers_info_by_topic(topic)
+        except Exception:
+            return []
+        return [mcapio.Qos.from_profile(i.qos_profile) for i in infos]
 
     def add_channel(self, topic):
         """Write the topic's channel: the QoS its publishers offer (what ``ros2 bag play`` offers again),
@@ -188,10 +193,12 @@ class Recorder(Node):
         # must not interrupt the summary and footer half written: ignored from here on
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, signal.SIG_IGN)
-        for topic in self.types:             # the subscribed topics that never spoke: their channels too (as rosbag2)
-            if topic not in self.counts and topic not in self.unrecordable:
-                self.add_channel(topic)
-        self.writer.close()
+        try:
+            for topic in self.types:         # the subscribed topics that never spoke: their channels too (as rosbag2)
+                if topic not in self.counts and topic not in self.unrecordable:
+                    self.add_channel(topic)
+        finally:
+            self.writer.close()
         total = sum(self.counts.values())
         print(f'recorder: {total} messages in {", ".join(str(f) for f in self.writer.files)} '
               f'({", ".join(f"{k}: {v}" for k, v in sorted(self.counts.items()))})', flush=True)
