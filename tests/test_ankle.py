@@ -7,7 +7,7 @@ cells, plantarflex it and tibialis anterior, through its tendon on the foot bone
 in the right direction by at least the stated amount, stably, inside the range, and with muscle
 volumes within the documented bounds (docs/anatomy.md, free ankle). Measured limits: at full
 activation tibialis anterior's volume leaves the 6 % bound (29 %) and the triceps surae's reaches
-6.9 %; cells around the ankle invert at large angles (counted and printed, not asserted;
+9.2 % (with whole end rings bound, the soleus' tendon cells carry its full force); cells around the ankle invert at large angles (counted and printed, not asserted;
 docs/anatomy.md).
 """
 import math
@@ -135,4 +135,4 @@ def test_triceps_surae_plantarflexes_the_ankle(physical_sim, a):
     their own (tools/anatomy/muscles.py TENDONS) and alone do not move the foot."""
     run = _run(physical_sim, 'triceps_surae', a=a)
     assert run[0][-1] <= -MIN_PLANTAR_DEG, run[0][-1]
-    _check_common(physical_sim, run, VOLUME_BOUND if a < 1.0 else 0.08)
+    _check_common(physical_sim, run, VOLUME_BOUND if a < 1.0 else 0.10)     # measured 9.2 % at a = 1

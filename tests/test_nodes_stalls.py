@@ -8,8 +8,9 @@ uses it when the machine is idle (1-minute load average below half the CPU count
 machine the operating system alone delays a runnable process by tens of milliseconds: 60-111 ms
 gaps were measured here with 2 cores shared by 7 jobs in runs whose every gap matched a late timer
 tick of the simulator, not a slow frame. There the limit is 250 ms: above those delays, below the
-one-time stalls of the issue (0.32 s and 0.68 s on an idle machine). The gaps found are printed
-either way (pytest -s)."""
+one-time stalls of the issue (0.32 s and 0.68 s on an idle machine). The load is taken when a run
+ends; a run over the limit is repeated once (a node's stall shows twice, another process holding a
+core for a moment does not). The gaps found are printed either way (pytest -s)."""
 import os
 import signal
 import time
@@ -22,8 +23,11 @@ from rosutil import isolated_domain, ros_context, run_executable, spin_until
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-IDLE = os.getloadavg()[0] < 0.5 * (os.cpu_count() or 1)
-LIMIT_S = 0.060 if IDLE else 0.250
+def _limit_s() -> tuple[float, bool]:
+    """(limit [s], idle): taken when a sequence ends (the 1-minute load average over its run), not
+    at collection: in a whole test session the load comes from the session itself."""
+    idle = os.getloadavg()[0] < 0.5 * (os.cpu_count() or 1)
+    return (0.060 if idle else 0.250), idle
 
 
 def _call(node, client, req, timeout=20):
@@ -34,10 +38,23 @@ def _call(node, client, req, timeout=20):
 
 
 def test_joint_states_have_no_gap_across_start_pause_resume_reset(tmp_path):
+    """The sequence runs once more when its largest gap is over the limit (another process of a busy
+    machine can hold a core for a moment); a stall of the node shows in both runs and fails."""
+    first = _sequence(tmp_path / 'first')
+    if first is None:
+        return
+    again = _sequence(tmp_path / 'again')
+    assert again is None, f'{first}\nand again: {again}'
+
+
+def _sequence(tmp_path):
+    """Start paused, resume, pause, resume, reset, with the recorder on; None when the recorded
+    /joint_states have no gap over the limit, else what was seen."""
     import rclpy
     from sensor_msgs.msg import JointState
     from std_srvs.srv import SetBool, Trigger
     from tissue_sim.core import mcapio
+    tmp_path.mkdir(parents=True, exist_ok=True)
     out = tmp_path / 'run.mcap'
     events = {}
     with isolated_domain() as dom, ros_context(dom.id) as ctx:
@@ -80,16 +97,21 @@ def test_joint_states_have_no_gap_across_start_pause_resume_reset(tmp_path):
     t = np.array([m.log_time for m in mcapio.iter_messages(out, ['/joint_states'])], np.int64)
     t = t[t <= events['end']]
     gaps = np.diff(t) * 1e-9
+    limit, idle = _limit_s()
     worst = np.argsort(gaps)[::-1][:5]
     at = {k: (v - t[0]) * 1e-9 for k, v in events.items()}
     print(f'\n{len(t)} frames over {(t[-1] - t[0]) * 1e-9:.2f} s; events at ' +
           ', '.join(f'{k} {v:.2f} s' for k, v in at.items()) +
           '\nlargest gaps: ' + ', '.join(f'{1e3 * gaps[i]:.0f} ms at {(t[i + 1] - t[0]) * 1e-9:.2f} s'
                                           for i in worst) +
-          f'\np99 {1e3 * np.percentile(gaps, 99):.0f} ms; limit {1e3 * LIMIT_S:.0f} ms ({"idle" if IDLE else "loaded"} '
+          f'\np99 {1e3 * np.percentile(gaps, 99):.0f} ms; limit {1e3 * limit:.0f} ms ({"idle" if idle else "loaded"} '
           f'machine, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)')
     assert at['resume'] > 0.5 and len(t) > 100        # paused frames, then the whole sequence
-    assert gaps.max() < LIMIT_S, f'{1e3 * gaps.max():.0f} ms gap in /joint_states at {at}'
+    if gaps.max() < limit:
+        return None
+    i = int(np.argmax(gaps))
+    return (f'{1e3 * gaps.max():.0f} ms gap in /joint_states at {(t[i + 1] - t[0]) * 1e-9:.2f} s '
+            f'(limit {1e3 * limit:.0f} ms); events at {at}')
 
 
 def test_the_set_up_objects_are_frozen_out_of_the_garbage_collector(monkeypatch):
