@@ -75,18 +75,20 @@ if [ -z "${DEMO_MODEL:-}" ] && ! python -c 'from tissue_sim.core import builder;
 fi
 
 # Recorded besides the tissue topics: the TF tree, the robot description and the bone markers (once),
-# and the soft-tissue markers at DEMO_MARKER_HZ (the full mesh is ~0.15 MB a frame compressed; at the
-# default 3 Hz a run is ~1.8 MB/s on disk, 1.4 of it /tissue/state), so the run opens in Foxglove's 3D
-# panel (bones move with /tf at the full frame rate). DEMO_MARKERS=0: no markers.
+# and the soft-tissue markers, which the simulator publishes at DEMO_MARKER_HZ (its marker_rate: the
+# full mesh is ~0.8 MB a frame, ~0.15 MB compressed; at the default 3 Hz a run is ~1.8 MB/s on disk,
+# 1.4 of it /tissue/state, and the recorder is not flooded with 26 MB/s it would drop), so the run
+# opens in Foxglove's 3D panel (bones move with /tf at the full frame rate). DEMO_MARKERS=0: no markers.
 REC_TOPICS=(--topics /tf /tf_static /robot_description)
 if [ "${DEMO_MARKERS:-1}" = 1 ]; then
-  REC_TOPICS+=(/tissue/bone_markers /tissue/markers --max-rate "/tissue/markers=${DEMO_MARKER_HZ:-3}")
+  REC_TOPICS+=(/tissue/bone_markers /tissue/markers)
 fi
 "$EXE/recorder" -o "$RUN/run.mcap" "${REC_TOPICS[@]}" --meta "demo_seconds=$SECONDS_SIM" \
   >"$RUN/logs/recorder.log" 2>&1 &
 REC=$!; PIDS+=("$REC")
 
-SIM_P=(-p "params:=$PARAMS")
+MARKER_HZ="${DEMO_MARKER_HZ:-3}"; [[ "$MARKER_HZ" == *.* ]] || MARKER_HZ="$MARKER_HZ.0"   # a ROS double
+SIM_P=(-p "params:=$PARAMS" -p "marker_rate:=$MARKER_HZ")
 [ -n "${DEMO_MODEL:-}" ] && SIM_P+=(-p "model:=$DEMO_MODEL")
 "$EXE/simulator" --ros-args --params-file "$ROOT/src/tissue_sim/tissue_sim/config/simulator.yaml" \
   "${SIM_P[@]}" -p start_paused:=true >"$RUN/logs/simulator.log" 2>&1 &

@@ -52,6 +52,8 @@ PARAMS = (
     Param('realtime', True, 'true: sim time follows wall time x rate; false: as fast as possible',
           aliases=(('--as-fast-as-possible', False),)),
     Param('publish_markers', True, 'publish /tissue/markers (full deformed mesh)', aliases=(('--no-markers', False),)),
+    Param('marker_rate', 0.0, 'publish /tissue/markers at most this often [Hz of wall time]; 0 = every frame '
+          '(a full-mesh frame is ~0.8 MB: a recorder or a remote viewer may want fewer)', lo=0.0, hi=240.0),
     Param('publish_state', True, 'publish /tissue/state (compact state, for recording)'),
     Param('marker_colouring', 'none', 'skin colouring: none, skin_area (Fig. 8) or fat_deformation (Fig. 9)',
           choices=mk.COLOURINGS, read_only=True, aliases=('--colouring',)),
@@ -258,7 +260,7 @@ class Simulator(Node):
         if self.get_parameter('publish_state').value:
             self.pub_state.publish(self.tcdr.encode_frame(self.tm, st, obs, self.ctrl.activation,
                                                           stamp_ns=stamp, frame_id=self.frame_id))
-        if self.marker_enc is not None and self.get_parameter('publish_markers').value:
+        if self.marker_enc is not None and self.get_parameter('publish_markers').value and self.marker_due():
             t0 = time.perf_counter()
             rgba = self.corner_colours(st.x)
             data = self.marker_enc.encode(stamp, st.x, obs['segment_poses'], rgba)
@@ -267,6 +269,17 @@ class Simulator(Node):
             t2 = time.perf_counter()
             self.marker_ms.append(1e3 * (t2 - t0))
             self.marker_encode_ms.append(1e3 * (t1 - t0))
+
+    def marker_due(self) -> bool:
+        """Whether this frame carries markers (``marker_rate``: at most that many per second of wall time)."""
+        rate = float(self.get_parameter('marker_rate').value)
+        if rate <= 0.0:
+            return True
+        now = time.monotonic()
+        if now - getattr(self, '_last_marker_t', -1e9) < 0.98 / rate:
+            return False
+        self._last_marker_t = now
+        return True
 
     def tf_message(self, stamp_ns: int, segments):
         """TFMessage of the given segments' transforms (urdf.tf_transforms: each under its parent
