@@ -1,36 +1,15 @@
 """Observations and headless runs: observe(), simulate() (activation timelines: tissue_sim.core.activation)."""
 from __future__ import annotations
 
-import math
 from typing import Iterator
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from tissue_sim.core.activation import timeline_function
 from tissue_sim.core.solver.measures import cell_axial_lengths, cell_volumes, kinetic_energy, skeleton_energy
 from tissue_sim.core.solver.model import SimModel, State, make_state
 from tissue_sim.core.solver.step import _run
-
-
-def _quat_from_mat(R: np.ndarray) -> np.ndarray:
-    """(S, 3, 3) -> (S, 4) x y z w."""
-    out = np.empty((R.shape[0], 4))
-    for s, m in enumerate(R):
-        tr = np.trace(m)
-        if tr > 0:
-            w = math.sqrt(1 + tr) * 2
-            out[s] = ((m[2, 1] - m[1, 2]) / w, (m[0, 2] - m[2, 0]) / w, (m[1, 0] - m[0, 1]) / w, 0.25 * w)
-        else:
-            i = int(np.argmax(np.diag(m)))
-            j, k = (i + 1) % 3, (i + 2) % 3
-            w = math.sqrt(1 + m[i, i] - m[j, j] - m[k, k]) * 2
-            v = np.empty(4)
-            v[i] = 0.25 * w
-            v[j] = (m[j, i] + m[i, j]) / w
-            v[k] = (m[k, i] + m[i, k]) / w
-            v[3] = (m[k, j] - m[j, k]) / w
-            out[s] = v
-    return out
 
 
 def observe(sim: SimModel, state: State) -> dict:
@@ -60,7 +39,7 @@ def observe(sim: SimModel, state: State) -> dict:
                                    else np.zeros(sim.n_joints)),
                 muscle_lengths=ml, muscle_volumes=mv, muscle_stretch=state.lam.copy(), kinetic_energy=ke,
                 elastic_energy=float(state.cell_energy.sum()),
-                segment_poses=np.concatenate([state.seg_t, _quat_from_mat(state.seg_R)], axis=1))
+                segment_poses=np.concatenate([state.seg_t, Rotation.from_matrix(state.seg_R).as_quat()], axis=1))
 
 
 
