@@ -52,6 +52,10 @@ DEFAULTS = {
     'ray_origin': 'best',      # 'best' (largest polygon among centroid and interior maxima) or 'centroid'
     'bone_mesh_step': 2,       # marching-cubes step [voxels] for bone surfaces without a mesh file
     'allow_missing': False,    # table labels absent from the volume: warning instead of error
+    'max_fragment': 0.01,      # a piece of a muscle cut off from its main part by slices without its label and holding at
+                               # most this share of the muscle's volume is left out (reported); 0 = every such piece is a break
+    'refine': 1.0,             # N x finer: slice gaps, muscle_rays and fat_rays x refine (rounded), min_cell_volume_mm3
+                               # / refine^3; lengths (share_mm, attach_mm, min_area_mm2, min_fat_mm) stay (docs/builder.md)
 }
 
 
@@ -79,6 +83,39 @@ def uniform_runs(rings: list, thin_m2: float, tol_m: float, max_gaps: int) -> li
                 break
     keep.append(len(rings) - 1)
     return keep
+
+
+def cut_fragments(chains: list, ring_area, slice_z, max_share: float) -> tuple[list, list]:
+    """Split one muscle's chains (lists of (slice, component)) into pieces separated by slice gaps that no
+    cell spans (a break), and leave out every piece but the largest whose volume (trapezoid rule over its
+    rings' areas ``ring_area(slice, component)`` [m^2]) is at most ``max_share`` of the muscle's. Returns
+    (chains kept, [{'from_slice', 'to_slice', 'volume_mm3', 'share'} per piece left out]). A larger piece
+    is kept: the break check then reports it."""
+    if max_share <= 0 or len(chains) < 2:
+        return chains, []
+    def vol(ch):
+        a = [ring_area(z, i) for z, i in ch]
+        return sum(0.5 * (a[q] + a[q + 1]) * abs(slice_z[ch[q + 1][0]] - slice_z[ch[q][0]]) for q in range(len(ch) - 1))
+    pieces = []                                         # [first gap, last gap, chains]
+    for ch in sorted(chains, key=lambda c: c[0][0]):
+        g0, g1 = ch[0][0], ch[-1][0] - 1
+        if pieces and g0 <= pieces[-1][1] + 1:
+            pieces[-1][1] = max(pieces[-1][1], g1)
+            pieces[-1][2].append(ch)
+        else:
+            pieces.append([g0, g1, [ch]])
+    if len(pieces) < 2:
+        return chains, []
+    vols = [sum(vol(ch) for ch in p[2]) for p in pieces]
+    total = sum(vols)
+    big = int(np.argmax(vols))
+    dropped, cut = set(), []
+    for q, (p, v) in enumerate(zip(pieces, vols)):
+        if q != big and v <= max_share * total:
+            cut.append({'from_slice': int(p[0]), 'to_slice': int(p[1] + 1), 'volume_mm3': round(v * 1e9, 1),
+                        'share': round(v / total, 5)})
+            dropped.update(id(ch) for ch in p[2])
+    return [ch for ch in chains if id(ch) not in dropped], cut
 
 
 def settings_with_defaults(settings: dict) -> dict:
@@ -130,6 +167,35 @@ def settings_with_defaults(settings: dict) -> dict:
         raise UserError(f'shear_limit must be a positive number, got {s["shear_limit"]!r}')
     if s['ray_hit'] not in ('first', 'last'):
         raise UserError(f"ray_hit must be 'first' or 'last', got {s['ray_hit']!r}")
+    if isinstance(s['max_fragment'], bool) or not (isinstance(s['max_fragment'], (int, float)) and 0 <= s['max_fragment'] < 0.5):
+        raise UserError(f'max_fragment must be a number in [0, 0.5) (share of a muscle\'s volume), got {s["max_fragment"]!r}')
+    return refined(s)
+
+
+def refined(s: dict) -> dict:
+    """Settings ``s`` made ``s['refine']`` times finer: slice gaps (``slices``: (n - 1) x R + 1, so the coarse
+    slices are among the fine ones for an integer R; ``slice_mm`` / R; ``slice_step`` / R, which must stay an
+    integer), ``muscle_rays`` and ``fat_rays`` x R (rounded), ``min_cell_volume_mm3`` / R^3 (cells are R^3
+    smaller). Physical lengths stay: ``share_mm``, ``attach_mm``, ``min_area_mm2``, ``min_fat_mm`` (which
+    tissues touch and what is bone-attached does not change with the mesh). Returns a new dict."""
+    R = s['refine']
+    if isinstance(R, bool) or not (isinstance(R, (int, float)) and math.isfinite(R) and 1 <= R <= 50):
+        raise UserError(f'refine must be a number in [1, 50] (N x finer than the other settings), got {R!r}')
+    s = dict(s, refine=float(R))
+    if R == 1:
+        return s
+    if s['slice_step'] is not None:
+        step = s['slice_step'] / R
+        if abs(step - round(step)) > 1e-9 or round(step) < 1:
+            raise UserError(f'refine {R:g} with slice_step {s["slice_step"]}: the step / refine must be a whole number of slices')
+        s['slice_step'] = int(round(step))
+    elif s['slice_mm'] is not None:
+        s['slice_mm'] = s['slice_mm'] / R
+    else:
+        s['slices'] = int(round((s['slices'] - 1) * R)) + 1
+    for k in ('muscle_rays', 'fat_rays'):
+        s[k] = int(round(s[k] * R))
+    s['min_cell_volume_mm3'] = s['min_cell_volume_mm3'] / R ** 3
     return s
 
 
@@ -172,7 +238,8 @@ def _select_slices(vol: LabelVolume, s: dict) -> np.ndarray:
         n = int(s['slices'])
         span = int(body_k[-1] - body_k[0])
         if n > span + 1:
-            raise UserError(f'{vol.source}: wrong spacing: {n} slices asked for but the labelled extent has only {span + 1}')
+            how = f' (refine {s["refine"]:g})' if s['refine'] != 1 else ''
+            raise UserError(f'{vol.source}: wrong spacing: {n} slices asked for{how} but the labelled extent has only {span + 1}')
         ks = np.unique(np.round(np.linspace(body_k[0], body_k[-1], n)).astype(int))
         step = None
     elif s['slice_step'] is not None:
@@ -354,6 +421,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     not_represented = []                 # contour regions with a hole or without a simple ring (reported)
     single = []
     breaks = []
+    fragments = []                       # small pieces of a muscle cut off by slices without its label (left out)
     bridged = CT.bridge_gaps(regions, smalls, muscle_labels, dropped)
     for lab in muscle_labels:
         mi = len(muscle_names)
@@ -408,6 +476,14 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
                         break
                     ii = links[(z, ii)]; z += 1
                 chains.append(chain)
+        chains, cut = cut_fragments(chains, lambda z, ii: abs(polygon_area(regions[z][lab][ii].ring[:, :2])), slice_z,
+                                    s['max_fragment'])
+        for f in cut:
+            f.update(muscle=tab[lab]['name'], label=lab)
+            fragments.append(f)
+            warnings.append(f'muscle {tab[lab]["name"]}: a fragment on slices {f["from_slice"]}-{f["to_slice"]} '
+                            f'({f["volume_mm3"]:.0f} mm^3, {100 * f["share"]:.2f} % of the muscle) is cut off from the muscle '
+                            f'by slices without its label: left out (max_fragment {s["max_fragment"]:g})')
         if not chains:
             warnings.append(f'muscle {tab[lab]["name"]} (label {lab}) gives no cell at this slice spacing: left out of the model')
             continue
@@ -690,7 +766,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     vox_m3 = float(np.prod(vol.pixel_mm)) * 1e-9
     label_vol = {tab[l]['name']: float(counts[l]) * vox_m3 for l in muscle_labels}
     label_vol['fat'] = float(sum(counts[l] for l in fat_labels)) * vox_m3
-    checks = {'label_volume_m3': label_vol, 'breaks': breaks, 'bridged': [[tab[l]['name'], z] for l, z in bridged],
+    checks = {'label_volume_m3': label_vol, 'breaks': breaks, 'fragments': fragments, 'bridged': [[tab[l]['name'], z] for l, z in bridged],
               'bone_touch': {tab[l]['name']: bone_touch.get(tab[l]['name'], 0) for l in bone_labels},
               'refused_across_joint': refused, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
     report = quality_report(tm, checks=checks, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
