@@ -1,0 +1,205 @@
+#!/usr/bin/env python3
+"""Mesh convergence of the knee motion: the demo's experiment (physical set, the hamstrings fully active
+from t = 0) on the bundled limb built 1x, 3x and 6x finer (`build-model --refine R`), one integrator.
+
+    . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--integrator NAME] [--substeps matched|set|N]
+                                              [--duration 0.4] [--out DIR] [--quick]
+
+For each refinement: vertices, cells, sub-steps per 1-ms step, steps per CPU second (one thread, the
+stepping alone), the knee angle every 10 ms (or the step where the run diverged). Then the knee-angle
+differences between successive refinements (max and RMS over the run, degrees): a converging scheme
+shows them shrinking. Writes DIR/convergence.json and DIR/convergence.png (knee angle vs time per
+refinement); default DIR bench/out/. Last line: one JSON object.
+
+--integrator: default the fastest stable one available ('implicit' where core/solver has it, else the
+physical set's 'mass_scaled'). --substeps: 'set' = the parameter set's own (physical: 4 sub-steps);
+'matched' (default with mass_scaled) = omega_max h kept at the default model's value with the set's own
+sub-steps, i.e. sub-steps x omega_max(R) / omega_max(1): the mass scaling adds a vertex mass of
+h^2 kappa / limit^2, which grows with refinement at a fixed h (cells stiffer and lighter), so a fixed h
+converges to a heavier limb, not to the physics; an integer N = N sub-steps for every model. --quick: 1x
+and 2x, 0.3 s (for `make bench`).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+for _v in ('NUMBA_NUM_THREADS', 'OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ.setdefault(_v, '1')
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / 'src' / 'tissue_sim'))
+
+import numpy as np  # noqa: E402
+
+from tissue_sim.core import solver  # noqa: E402
+from tissue_sim.core.solver import params as P  # noqa: E402
+
+SAMPLE_EVERY = 10          # steps between knee samples (10 ms at the physical set's 1-ms step)
+
+
+def default_integrator() -> str:
+    return 'implicit' if 'implicit' in P.INTEGRATORS else 'mass_scaled'
+
+
+def run_one(tm, params, duration, label):
+    """Knee angle [deg] every SAMPLE_EVERY steps of the demo experiment, steps per CPU second, divergence."""
+    sim = solver.compile_model(tm, params)
+    knee = list(tm.joint_names).index('knee') if 'knee' in tm.joint_names else 0
+    ham = {'hamstrings': [(0.0, 1.0)]}
+    warm = solver.make_state(sim)
+    solver.step(sim, warm, solver.make_control(sim))          # numba compile / caches outside the timing
+    t, q, diverged = [], [], None
+    n = int(round(duration / params.dt))
+    c0, w0 = time.process_time(), time.perf_counter()
+    try:
+        for tt, st in solver.simulate(sim, duration, ham, every=SAMPLE_EVERY, output='state'):   # (observe() costs
+            t.append(round(float(tt), 6))                                                   # ~4 ms: not timed)
+            q.append(float(np.degrees(st.q[knee])))
+    except solver.DivergenceError as e:
+        diverged = {'step': e.step, 'time_s': round(e.step * params.dt, 4), 'cause': e.cause}
+    cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    done = (len(t) - 1) * SAMPLE_EVERY if diverged is None else diverged['step']
+    out = dict(label=label, vertices=int(tm.n_vertices), cells=int(tm.n_cells), integrator=params.integrator,
+               substeps=int(sim.n_substeps), omega_max_dt=round(float(sim.omega_max * params.dt), 2),
+               steps=int(done), steps_requested=n, cpu_s=round(cpu, 2), wall_s=round(wall, 2),
+               steps_per_cpu_s=round(done / max(cpu, 1e-9), 1), t=t, knee_deg=[round(v, 4) for v in q],
+               diverged=diverged)
+    fin = f'{q[-1]:.1f} deg at {t[-1]:.2f} s' if q else '-'
+    print(f'{label}: {out["vertices"]:,} vertices, {out["cells"]:,} cells, {params.integrator} x{out["substeps"]} '
+          f'(omega_max dT {out["omega_max_dt"]}): {out["steps_per_cpu_s"]:.0f} steps/CPU s, knee {fin}'
+          + (f'; DIVERGED at step {diverged["step"]} ({diverged["cause"]})' if diverged else ''), flush=True)
+    return out, sim
+
+
+def differences(a, b):
+    """Max and RMS |knee_a - knee_b| [deg] over the samples both runs reached."""
+    n = min(len(a['knee_deg']), len(b['knee_deg']))
+    if n < 2:
+        return None
+    d = np.abs(np.asarray(a['knee_deg'][:n]) - np.asarray(b['knee_deg'][:n]))
+    return {'max_deg': round(float(d.max()), 3), 'rms_deg': round(float(np.sqrt(np.mean(d ** 2))), 3),
+            'up_to_s': a['t'][n - 1]}
+
+
+def plot(runs, path, title):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
+    for r in runs:
+        lab = f'{r["label"]}: {r["vertices"]:,} vertices, x{r["substeps"]}'
+        if r['diverged']:
+            lab += f' (diverged at step {r["diverged"]["step"]})'
+        ax.plot(r['t'], r['knee_deg'], label=lab)
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('knee flexion [deg]')
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def markdown(out) -> str:
+    rows = ['| model | vertices | cells | integrator, sub-steps | steps/CPU s | knee at end | diff. to next finer: max / RMS [deg] |',
+            '|---|---|---|---|---|---|---|']
+    for i, r in enumerate(out['runs']):
+        d = out['differences'][i] if i < len(out['differences']) else None
+        end = f'{r["knee_deg"][-1]:.1f} deg at {r["t"][-1]:.2f} s' if r['knee_deg'] else '-'
+        if r['diverged']:
+            end += f', diverged at step {r["diverged"]["step"]}'
+        dd = f'{d["max_deg"]} / {d["rms_deg"]}' if d else '-'
+        rows.append(f'| {r["label"]} | {r["vertices"]:,} | {r["cells"]:,} | {r["integrator"]} x{r["substeps"]} | '
+                    f'{r["steps_per_cpu_s"]:,.0f} | {end} | {dd} |')
+    return '\n'.join(rows)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--refine', default='1,3,6', help='refinements of the bundled limb, comma-separated (default 1,3,6)')
+    ap.add_argument('--integrator', default=None, choices=P.INTEGRATORS,
+                    help=f'time integrator (default {default_integrator()}, the fastest stable one here)')
+    ap.add_argument('--substeps', default=None,
+                    help="'set' (the parameter set's own), 'matched' (omega_max h of the default model) or an integer "
+                         "(default: matched with mass_scaled, else set)")
+    ap.add_argument('--duration', type=float, default=0.4, help='simulated seconds (default 0.4: the knee flexes to ~90 deg)')
+    ap.add_argument('--out', default=str(ROOT / 'bench' / 'out'), help='folder for convergence.json and .png')
+    ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
+    a = ap.parse_args()
+    if a.quick:
+        a.refine, a.duration = '1,2', 0.3
+    try:
+        refs = [float(x) for x in a.refine.split(',')]
+        if not refs or any(not (math.isfinite(r) and r >= 1) for r in refs):
+            raise ValueError
+    except ValueError:
+        sys.exit(f'error: --refine {a.refine!r}: expected numbers >= 1 separated by commas')
+    if not (0 < a.duration <= 10):
+        sys.exit('error: --duration must be in (0, 10] s')
+    integ = a.integrator or default_integrator()
+    mode = a.substeps or ('matched' if integ == 'mass_scaled' else 'set')
+    if mode not in ('set', 'matched') and not (mode.isdigit() and int(mode) >= 1):
+        sys.exit(f"error: --substeps {mode!r}: expected set, matched or an integer >= 1")
+    from tissue_sim.core.builder import default_model
+    base = P.Params.physical(integrator=integ)
+    if integ == 'explicit' and mode == 'set':
+        base = dataclasses.replace(base, substeps=0).validate()      # true masses: automatic sub-steps (stability)
+    runs, omega1 = [], None
+    for R in refs:
+        t0 = time.perf_counter()
+        tm = default_model(refine=R)
+        print(f'refine {R:g}: model ready in {time.perf_counter() - t0:.1f} s', flush=True)
+        params = base
+        if mode.isdigit():
+            params = dataclasses.replace(base, substeps=int(mode)).validate()
+        elif mode == 'matched':
+            if omega1 is None:
+                omega1 = solver.compile_model(default_model(), base).omega_max
+            sub = max(1, base.substeps or 1)
+            w = solver.compile_model(tm, dataclasses.replace(base, substeps=1).validate()).omega_max
+            params = dataclasses.replace(base, substeps=int(math.ceil(sub * w / omega1 - 1e-9))).validate()
+        r, _ = run_one(tm, params, a.duration, f'{R:g}x')
+        r['refine'] = R
+        runs.append(r)
+    diffs = [differences(runs[i], runs[i + 1]) for i in range(len(runs) - 1)]
+    cpu = 'unknown'
+    try:
+        with open('/proc/cpuinfo') as fh:
+            cpu = next((ln.split(':', 1)[1].strip() for ln in fh if ln.startswith('model name')), cpu)
+    except OSError:
+        pass
+    out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
+                         '--activate hamstrings=1)', 'integrator': integ, 'substeps_mode': mode,
+           'duration_s': a.duration, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
+           'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
+    shrink = [d['max_deg'] for d in diffs if d]
+    out['differences_shrink'] = bool(len(shrink) >= 2 and all(b < a_ for a_, b in zip(shrink, shrink[1:])))
+    od = Path(a.out)
+    od.mkdir(parents=True, exist_ok=True)
+    (od / 'convergence.json').write_text(json.dumps(out, indent=1))
+    try:
+        plot(runs, od / 'convergence.png', f'knee flexion, hamstrings fully active; {integ}, sub-steps {mode}')
+    except Exception as e:  # report, do not hide
+        print(f'plot not written ({type(e).__name__}: {e})')
+    print()
+    print(markdown(out))
+    print()
+    for i, d in enumerate(diffs):
+        if d:
+            print(f'{runs[i]["label"]} vs {runs[i + 1]["label"]}: max {d["max_deg"]} deg, RMS {d["rms_deg"]} deg '
+                  f'(up to {d["up_to_s"]} s)')
+    print(f'differences shrink with refinement: {out["differences_shrink"]}; {cpu}; load average '
+          f'{out["load_average_1min"]}; written {od / "convergence.json"}, {od / "convergence.png"}')
+    slim = dict(out, runs=[{k: v for k, v in r.items() if k not in ('t', 'knee_deg')} for r in runs])
+    print(json.dumps(slim))
+
+
+if __name__ == '__main__':
+    main()
