@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Benchmark: the simulator node at 34 Hz with full markers, seen from a separate subscriber process.
 
-Starts the installed `simulator` (the bundled anatomy by default; --model FILE or --phantom for
-the solver's knee phantom scaled up) in its own ROS domain, then this process subscribes to
+Starts the installed `simulator` (the bundled anatomy by default; --refine R for the bundled limb
+R x finer (`build-model --refine R`), --model FILE or --phantom for the solver's knee phantom scaled up) in its own ROS domain, then this process subscribes to
 /joint_states and /tissue/markers for --seconds and reports:
 
 * publish rate and inter-arrival p50/p99 per topic as received here;
@@ -12,8 +12,8 @@ the solver's knee phantom scaled up) in its own ROS domain, then this process su
 * side by side in this process: building the same MarkerArray as rclpy Python objects and
   serialising it, vs the numpy CDR encoder (ratio).
 
-Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom]
-      [--params paper|physical|FILE] [--as-fast-as-possible]
+Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom | --refine R]
+      [--params paper|physical|FILE] [--integrator NAME] [--as-fast-as-possible] [--no-objects]
 Last line: one JSON object.
 """
 import argparse
@@ -82,6 +82,10 @@ def main():
     ap.add_argument('--seconds', type=float, default=10.0, help='measurement window [s] (default 10)')
     ap.add_argument('--model', default='', help="model file (.npz); '' = the bundled anatomy")
     ap.add_argument('--phantom', action='store_true', help='use the knee phantom with extra muscles and fat')
+    ap.add_argument('--refine', type=float, default=1.0, help='the bundled limb R x finer (build-model --refine R; default 1)')
+    ap.add_argument('--integrator', default='', help="the parameter set's integrator replaced by this one ('' = the set's)")
+    ap.add_argument('--no-objects', action='store_true',
+                    help='skip the rclpy Python-object MarkerArray for comparison (seconds per frame on finer models)')
     ap.add_argument('--rate', type=float, default=34.0, help='publish_rate (default 34)')
     ap.add_argument('--colouring', default='none', help='marker colouring (none, skin_area, fat_deformation)')
     ap.add_argument('--params', default='', help="parameter set of the node (paper, physical or a YAML file; '' = the node's default)")
@@ -97,6 +101,22 @@ def main():
 
     tmp = Path(tempfile.mkdtemp(prefix='ros_rate_'))
     model = a.model
+    if a.refine != 1.0 and not (a.model or a.phantom):
+        from tissue_sim.core.builder import default_model
+        from tissue_sim.errors import UserError
+        try:
+            model = str(default_model(refine=a.refine).save(tmp / f'bundled_x{a.refine:g}.npz'))
+        except UserError as e:
+            sys.exit(f'error: {e}')
+    if a.integrator:
+        from tissue_sim.core.load import load_params
+        import dataclasses
+        try:
+            p = dataclasses.replace(load_params(a.params or 'physical'), integrator=a.integrator).validate()
+        except ValueError as e:
+            sys.exit(f'error: {e}')
+        a.params = str(tmp / 'params.yaml')
+        p.to_yaml(a.params)
     if a.phantom:
         from tissue_sim.core.solver import phantom
         model = str(phantom.knee(n_gaps=20, extra_muscles=8, fat_sectors=12).save(tmp / 'phantom.npz'))
@@ -150,9 +170,12 @@ def main():
             sim.kill()
             sim.wait()
     x = np.asarray(tm.rest_positions, np.float64)
-    py_ms, np_ms, nbytes = python_object_markers(tm, x)
+    if a.no_objects:
+        py_ms, np_ms, nbytes = float('nan'), float('nan'), 0
+    else:
+        py_ms, np_ms, nbytes = python_object_markers(tm, x)
     out = {
-        'model': tm.name, 'params': a.params or 'default', 'realtime': not a.as_fast_as_possible, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
+        'model': tm.name, 'refine': a.refine, 'params': a.params or 'default', 'integrator': a.integrator or 'the set\'s', 'realtime': not a.as_fast_as_possible, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
         'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2), 'publish_rate_target_hz': a.rate,
         'joint_states': js, 'markers': mkst,
         'simulator_cpu_percent_of_one_core': round(100 * (c1 - c0) / (w1 - w0), 1),

@@ -2,8 +2,9 @@
 
 Building this message as rclpy Python objects costs ~300 ms for the bundled anatomy; here the byte
 layout is fixed once (the triangle counts never change) and each frame only writes the stamps, the
-bone poses and the soft-tissue triangle corners (numpy fancy indexing straight into the message
-buffer). ROS-free: returns ``bytes`` to hand to ``Publisher.publish``.
+bone poses and the soft-tissue triangle corners (one compiled gather of every corner straight into
+the message buffer, :func:`gather_corners`; linear in the corner count, docs/ros.md has the figures).
+ROS-free: returns ``bytes`` to hand to ``Publisher.publish``.
 
 Markers (namespace ``tissue``), all TRIANGLE_LIST:
 * per frame (:class:`MarkerArrayEncoder`, in ``frame_id``): one per soft-tissue surface group
@@ -28,6 +29,7 @@ import colorsys
 import struct
 
 import numpy as np
+from numba import njit
 
 from tissue_sim.core.cdr import CdrWriter
 from tissue_sim.core.model import TISSUE_MUSCLE
@@ -77,6 +79,23 @@ def sequential_rgba(value: np.ndarray, scale: float, alpha: float = SKIN_RGBA[3]
     out[:, 2] = 1.0 - x
     out[:, 3] = alpha
     return out
+
+
+@njit(cache=True, boundscheck=False)
+def gather_corners(x, idx, starts, counts, out):
+    """Triangle corners into the message: for marker m, rows ``x[idx[j]]`` (the next ``counts[m]`` entries
+    of ``idx``) go to ``out[starts[m]:starts[m] + 3 counts[m]]`` (out: the payload as float64). One pass,
+    no temporaries; ~2.5x faster than ``np.take(x, idx, axis=0, out=...)`` per marker (3-wide rows)."""
+    j = 0
+    for m in range(starts.shape[0]):
+        o = starts[m]
+        for _ in range(counts[m]):
+            v = idx[j]
+            j += 1
+            out[o] = x[v, 0]
+            out[o + 1] = x[v, 1]
+            out[o + 2] = x[v, 2]
+            o += 3
 
 
 def _marker_template(w: CdrWriter, frame_id: str, ns: str, mid: int, npts: int, rgba, want_colors: bool,
@@ -209,6 +228,14 @@ class MarkerArrayEncoder:
             self._poses.append(pay[pose_off:pose_off + 56].view(np.float64))
             if kind == 'bone':
                 pv[:] = self._bones[k][1]
+        # every soft-tissue marker's corners in one gather (gather_corners): payload offsets in float64 units
+        soft = [(m, k) for m, (kind, k, *_r) in enumerate(self._layout) if kind == 'soft']
+        self._pay64 = pay[:len(pay) // 8 * 8].view(np.float64)
+        self._g_idx = (np.concatenate([self._soft[k][0] for _, k in soft]).astype(np.int64) if soft
+                       else np.zeros(0, np.int64))
+        self._g_starts = np.array([self._layout[m][3] // 8 for m, _ in soft], np.int64)
+        self._g_counts = np.array([len(self._soft[k][0]) for _, k in soft], np.int64)
+        self._g_need = int(self._g_idx.max()) + 1 if len(self._g_idx) else 0     # vertices encode() needs
         self._colors = []           # per coloured marker: (N, 4) float32 view into the buffer
         for off, n, k in col_offs:
             c = pay[off:off + 16 * n].view(np.float32).reshape(n, 4)
@@ -243,11 +270,13 @@ class MarkerArrayEncoder:
         for off in self._stamp_offsets:
             b[4 + off:12 + off] = np.frombuffer(stamp, np.uint8)
         positions = np.ascontiguousarray(positions, dtype=np.float64)
-        for m, (kind, k, *_rest) in enumerate(self._layout):
-            if kind == 'soft':
-                np.take(positions, self._soft[k][0], axis=0, out=self._points[m])
-            elif segment_poses is not None:
-                self._poses[m][:] = segment_poses[self._bones[k][0]]
+        if positions.ndim != 2 or positions.shape[1] != 3 or positions.shape[0] < self._g_need:
+            raise ValueError(f'marker positions: expected (V, 3) with V >= {self._g_need}, got {positions.shape}')
+        gather_corners(positions, self._g_idx, self._g_starts, self._g_counts, self._pay64)
+        if segment_poses is not None:
+            for m, (kind, k, *_rest) in enumerate(self._layout):
+                if kind == 'bone':
+                    self._poses[m][:] = segment_poses[self._bones[k][0]]
         if corner_rgba is not None and self._colors:
             i = 0
             for c in self._colors:
