@@ -16,7 +16,7 @@ help:
 	@echo '  make test-fast  the test suite without the cases marked slow'
 	@echo '  make test-ros   only the tests that use real ROS nodes over DDS'
 	@echo '  make setup      .venv with pinned ROS 2 Jazzy wheels + deps, colcon build of ros_ws, env.sh'
-	@echo '  make bench      run every benchmark in bench/ (figures; last line JSON)'
+	@echo '  make bench      run every benchmark in bench/ (figures; last line JSON; convergence and markers --quick)'
 	@echo '  make anatomy    regenerate the bundled lower-limb anatomy'
 	@echo '  make ros2-tools the ros2 command and ros2 launch for the pip set-up (from the Jazzy sources)'
 	@echo '  make clean      remove ros_ws build/install/log and env.sh (keeps .venv)'
@@ -73,7 +73,8 @@ test-ros: ros2-tools
 bench: setup
 	@$(ENV) && n=0 && for f in bench/*.py; do \
 	  [ -e "$$f" ] || continue; n=$$((n + 1)); \
-	  echo "== $$f"; python "$$f"; \
+	  case "$$f" in bench/convergence.py|bench/markers.py) args=--quick;; *) args=;; esac; \
+	  echo "== $$f $$args"; python "$$f" $$args; \
 	done; [ "$$n" -gt 0 ] || { echo 'make bench: no bench/*.py yet' >&2; exit 1; }
 
 anatomy: setup

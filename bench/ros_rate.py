@@ -13,7 +13,7 @@ R x finer (`build-model --refine R`), --model FILE or --phantom for the solver's
   serialising it, vs the numpy CDR encoder (ratio).
 
 Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom | --refine R]
-      [--params paper|physical|FILE] [--integrator NAME] [--as-fast-as-possible] [--no-objects]
+      [--params paper|physical|FILE] [--integrator NAME] [--as-fast-as-possible] [--paused] [--no-objects]
 Last line: one JSON object.
 """
 import argparse
@@ -84,6 +84,9 @@ def main():
     ap.add_argument('--phantom', action='store_true', help='use the knee phantom with extra muscles and fat')
     ap.add_argument('--refine', type=float, default=1.0, help='the bundled limb R x finer (build-model --refine R; default 1)')
     ap.add_argument('--integrator', default='', help="the parameter set's integrator replaced by this one ('' = the set's)")
+    ap.add_argument('--paused', action='store_true',
+                    help='start the simulator paused (start_paused:=true): frames and markers without stepping, the '
+                         'publishing and transport alone')
     ap.add_argument('--no-objects', action='store_true',
                     help='skip the rclpy Python-object MarkerArray for comparison (seconds per frame on finer models)')
     ap.add_argument('--rate', type=float, default=34.0, help='publish_rate (default 34)')
@@ -136,7 +139,8 @@ def main():
     sim = subprocess.Popen([str(EXE / 'simulator'), '--ros-args', '-p', f'model:={model}',
                             '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}']
                            + (['-p', f'params:={a.params}'] if a.params else [])
-                           + (['-p', 'realtime:=false'] if a.as_fast_as_possible else []),
+                           + (['-p', 'realtime:=false'] if a.as_fast_as_possible else [])
+                           + (['-p', 'start_paused:=true'] if a.paused else []),
                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         rclpy.init()
@@ -175,7 +179,7 @@ def main():
     else:
         py_ms, np_ms, nbytes = python_object_markers(tm, x)
     out = {
-        'model': tm.name, 'refine': a.refine, 'params': a.params or 'default', 'integrator': a.integrator or 'the set\'s', 'realtime': not a.as_fast_as_possible, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
+        'model': tm.name, 'refine': a.refine, 'params': a.params or 'default', 'integrator': a.integrator or 'the set\'s', 'paused': a.paused, 'realtime': not a.as_fast_as_possible, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
         'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2), 'publish_rate_target_hz': a.rate,
         'joint_states': js, 'markers': mkst,
         'simulator_cpu_percent_of_one_core': round(100 * (c1 - c0) / (w1 - w0), 1),
