@@ -270,8 +270,8 @@ def timeline_function(sim, timeline) -> Callable[[float], np.ndarray]:
 # ----------------------------------------------------------------------------- named motions
 class Motion(NamedTuple):
     """A named motion: knots [(t [s], a), ...] per selector (linear between, held after the last),
-    every muscle no selector names passive (0). ``joint``: the joint it moves (its extremes pick
-    the analysis frames); ``duration``: simulated time [s] that shows the whole motion."""
+    every muscle no selector names passive (0). ``joint``: the joint it is about (the analysis finds
+    the same from a recorded run: the joint that moves most, analysis.plots.main_joint); ``duration``: simulated time [s] that shows the whole motion."""
     description: str
     joint: str
     duration: float
@@ -329,8 +329,8 @@ def motion(name: str) -> Motion:
 def motion_timeline(name: str, level: float = 1.0, start: float = 0.0) -> dict:
     """The timeline {selector: [(t, a), ...], 'all': 0.0} of a named motion, its activations scaled
     by ``level`` and its times shifted by ``start`` [s] (what timeline_function and the node take)."""
-    if not (0.0 <= level <= 1.0) or not (start >= 0.0 and math.isfinite(start)):
-        raise ActivationError(f'motion {name}: level must be in [0, 1] and start >= 0')
+    if not (0.0 <= level <= 1.0) or not math.isfinite(start):
+        raise ActivationError(f'motion {name}: level must be in [0, 1] and start finite')
     tl = {'all': 0.0}
     for sel, pts in motion(name).muscles.items():
         tl[sel] = [(t + start, a * level) for t, a in pts]
