@@ -17,7 +17,9 @@
 #   logs/           the nodes' output
 #   analysis/, figures/   from `tissue-sim analyze` and `tissue-sim render`
 #
-# Environment: DEMO_SECONDS (sim seconds, default 10), DEMO_MODEL (model .npz; default the bundled
+# Environment: MOTION (a named motion of tissue_sim.core.activation.MOTIONS: knee_flexion, knee_extension,
+# kick, heel_raise, ankle_pump; the activation node runs --profile MOTION and DEMO_SECONDS defaults to the
+# motion's duration; unset: the default below), DEMO_SECONDS (sim seconds, default 10), DEMO_MODEL (model .npz; default the bundled
 # anatomy), DEMO_PARAMS (physical|paper|file, default physical), DEMO_ACTIVATION (arguments of the
 # activation node; default: --profile ramp --rise 8 --others 0 (the node's default muscles are the
 # model's hamstrings), or --profile paper with DEMO_PARAMS=paper), DEMO_MARKERS (default 1: also
@@ -32,8 +34,18 @@ if [ -z "${TISSUE_SIM_ROOT:-}" ]; then
 fi
 SECONDS_SIM="${DEMO_SECONDS:-10}"
 PARAMS="${DEMO_PARAMS:-physical}"
+MOTION="${MOTION:-}"
+if [ -n "$MOTION" ]; then
+  # the motion's duration (one definition: tissue_sim.core.activation); an unknown name: one error line, exit 2
+  MOTION_S="$(python -c 'import sys; from tissue_sim.core import activation as a
+try: print(a.motion(sys.argv[1]).duration)
+except a.ActivationError as e: sys.exit(f"demo: error: MOTION={sys.argv[1]}: {e}")' "$MOTION")" || exit 2
+  SECONDS_SIM="${DEMO_SECONDS:-$MOTION_S}"
+fi
 if [ -n "${DEMO_ACTIVATION:-}" ]; then
   read -r -a ACT_ARGS <<<"$DEMO_ACTIVATION"
+elif [ -n "$MOTION" ]; then
+  ACT_ARGS=(--profile "$MOTION")
 elif [ "$PARAMS" = paper ]; then
   ACT_ARGS=(--profile paper)
 else
@@ -177,6 +189,7 @@ summary = {
     'final_knee_angle_rad': round(float(js_last[0].position[0]), 5),
     'final_knee_angle_deg': round(float(js_last[0].position[0]) * 57.29577951308232, 2),
     'joint': js_last[0].name[0],
+    'final_joint_angles_deg': {n: round(float(p) * 57.29577951308232, 2) for n, p in zip(js_last[0].name, js_last[0].position)},
     'marker_encode_publish_ms_mean': float(dvals.get('marker_ms_mean', 'nan')),
     'diagnostics_level': ord(diag[0].status[0].level) if diag[0] else None,   # 0 OK, 1 WARN, 2 ERROR
     'diagnostics_message': diag[0].status[0].message if diag[0] else '',
@@ -202,6 +215,7 @@ print(f"  simulated            {s['sim_seconds']:.2f} s in {s['wall_seconds']:.2
 print(f"  publish rate         {s['publish_rate_hz']:.2f} Hz seen by a subscriber (floor {s['publish_rate_target_hz']:g} Hz), p99 gap {s['inter_arrival_p99_ms']} ms, max {s['inter_arrival_max_ms']} ms")
 print(f"  real-time factor     {s['real_time_factor']:.3f}")
 print(f"  final knee angle     {s['final_knee_angle_rad']:+.4f} rad ({s['final_knee_angle_deg']:+.1f} deg, {s['joint']})")
+print("  final joint angles   " + ', '.join(f"{n} {v:+.1f} deg" for n, v in s['final_joint_angles_deg'].items()))
 PY
 
 if tissue-sim analyze --help >/dev/null 2>&1; then

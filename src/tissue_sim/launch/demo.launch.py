@@ -7,6 +7,7 @@ URDF there). Without it the simulator publishes /tf, /tf_static and /robot_descr
 
     ros2 launch tissue_sim demo.launch.py
     ros2 launch tissue_sim demo.launch.py params:=paper profile:=step level:=0.5
+    ros2 launch tissue_sim demo.launch.py profile:=kick      # a named motion (its own muscles)
     ros2 launch tissue_sim demo.launch.py record:=true output:=/tmp/demo.mcap
 
 One Ctrl-C stops every node (the recorder closes its file). Launch arguments: see
@@ -26,9 +27,10 @@ def generate_launch_description():
                               description='solver parameter set: physical (SI), paper (Table 2) or a YAML file'),
         DeclareLaunchArgument('publish_markers', default_value='true', description='publish /tissue/markers'),
         DeclareLaunchArgument('profile', default_value='ramp',
-                              description='activation profile of the activation node (step, ramp, ramp_hold, sine, paper, ...)'),
+                              description='activation profile of the activation node (step, ramp, ramp_hold, sine, paper, ...) '
+                                          'or a named motion (knee_flexion, knee_extension, kick, heel_raise, ankle_pump)'),
         DeclareLaunchArgument('muscles', default_value='hamstrings',
-                              description='muscles or groups the profile drives (space separated)'),
+                              description='muscles or groups the profile drives (space separated; not used by a motion)'),
         DeclareLaunchArgument('level', default_value='1.0', description='peak activation in [0, 1]'),
         DeclareLaunchArgument('rise', default_value='8.0', description='ramp: rise time [s]'),
         DeclareLaunchArgument('record', default_value='false', description='start the MCAP recorder'),
@@ -37,14 +39,21 @@ def generate_launch_description():
                               description='auto: start robot_state_publisher when its package is installed; '
                                           'true or false: always or never'),
     ]
-    activation = Node(
-        package='tissue_sim', executable='activation', name='activation', output='screen',
-        arguments=['--profile', LaunchConfiguration('profile'), '--muscles', LaunchConfiguration('muscles'),
-                   '--level', LaunchConfiguration('level'), '--rise', LaunchConfiguration('rise')])
     recorder = Node(
         package='tissue_sim', executable='recorder', name='recorder', output='screen',
         arguments=['-o', LaunchConfiguration('output')], condition=IfCondition(LaunchConfiguration('record')))
-    return LaunchDescription(args + [OpaqueFunction(function=simulator_and_tf), activation, recorder])
+    return LaunchDescription(args + [OpaqueFunction(function=simulator_and_tf), OpaqueFunction(function=activation),
+                                     recorder])
+
+
+def activation(context):
+    """The activation node; a named motion drives its own muscles (no --muscles, --rise)."""
+    from tissue_sim.core.activation import MOTIONS
+    profile = LaunchConfiguration('profile').perform(context)
+    args = ['--profile', profile, '--level', LaunchConfiguration('level')]
+    if profile not in MOTIONS:
+        args += ['--muscles', LaunchConfiguration('muscles'), '--rise', LaunchConfiguration('rise')]
+    return [Node(package='tissue_sim', executable='activation', name='activation', output='screen', arguments=args)]
 
 
 def have_robot_state_publisher() -> bool:

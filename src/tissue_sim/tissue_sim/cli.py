@@ -14,7 +14,7 @@ from tissue_sim import __version__
 from tissue_sim.errors import UserError
 
 COMMAND_MODULES = ('build_model', 'make_anatomy', 'simulate', 'analyze', 'render', 'export', 'export_run',
-                   'info', 'repair', 'validate')
+                   'info', 'repair', 'validate', 'stiffness')
 
 
 def _commands():

@@ -68,6 +68,8 @@ def run(args) -> int:
           f'in {time.monotonic() - t0:.1f} s')
     for n, j in s['joints'].items():
         print(f'  joint {n}: {j["min_deg"]:.1f} .. {j["max_deg"]:.1f} deg')
+    if s.get('main_joint'):
+        print(f'  main joint {s["main_joint"]}; pictures at frames {", ".join(map(str, s["picture_frames"]))}')
     if s['fat']:
         f = s['fat']
         if f['area_ratio_min'] is not None:

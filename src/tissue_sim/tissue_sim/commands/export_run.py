@@ -26,7 +26,7 @@ def run(args) -> int:
     from tissue_sim.commands.render import _floats
     from tissue_sim.core import runio
     from tissue_sim.core.analysis import export, figures
-    from tissue_sim.core.analysis.plots import pick_frames
+    from tissue_sim.core.analysis.plots import pick_motion_frames
     from tissue_sim.core.cdr import CdrError
     path = Path(args.run)
     fmts = [f.strip().lower() for f in args.formats.split(',') if f.strip()]
@@ -43,7 +43,7 @@ def run(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
         mesh_fmts = [f for f in fmts if f in ('glb', 'ply')]
         if mesh_fmts:
-            chosen = figures.frames_at_times(loaded.times, _floats(args.times)) if args.times else pick_frames(loaded.times, 4)
+            chosen = figures.frames_at_times(loaded.times, _floats(args.times)) if args.times else pick_motion_frames(loaded.times, loaded.joint_positions, 4)
             for i in chosen:
                 files += export.write_meshes(loaded.model, loaded.frames[i], loaded.segment_poses[i], out,
                                              f'frame_{int(loaded.frame_index[i]):05d}', mesh_fmts)

@@ -18,13 +18,20 @@ HELP = ('run the elastic muscle model headless (no ROS) under muscle activations
 def add_arguments(p):
     p.add_argument('model', nargs='?', help='model file (.npz from build-model); default: the bundled anatomy; '
                    '"phantom:knee" for the solver\'s analytic knee phantom')
-    p.add_argument('--duration', type=float, default=3.0, help='simulated time [s] (default %(default)s)')
+    p.add_argument('--duration', type=float, default=None,
+                   help="simulated time [s] (default 3, or the motion's own duration with --motion)")
     p.add_argument('--activate', action='append', default=[], metavar='NAME=A[@T0[-T1]]',
                    help='activation A in [0, 1] of a muscle, a group (e.g. hamstrings) or "all", from T0 (default 0) '
                         'to T1 (default: the end) [s]; repeatable. A muscle selected by several entries takes the most '
                         'specific one (muscle > name prefix > group > all), as in the activation node')
+    p.add_argument('--motion', metavar='NAME',
+                   help='a named motion (the activation node\'s --profile NAME): knee_flexion, knee_extension, kick, '
+                        'heel_raise, ankle_pump (tissue_sim.core.activation.MOTIONS; docs/ros.md); --activate entries '
+                        'are added to it')
     p.add_argument('--timeline', metavar='FILE.yaml', help='timeline file, same format as the activation node: muscles: {name or group: [[t, a], ...]} (piecewise linear)')
-    p.add_argument('--params', default='paper', help='paper | physical | parameter file .yaml (default %(default)s)')
+    p.add_argument('--params', default=None,
+                   help='paper | physical | parameter file .yaml (default paper; physical with --motion, the set the '
+                        'motions are made for)')
     p.add_argument('--dt', type=float, help='step [s] (default: the parameter set\'s dt)')
     p.add_argument('--every', type=int, default=10, help='record every N steps (default %(default)s)')
     p.add_argument('--positions', action='store_true', help='.npz output: also record all vertex positions (large)')
@@ -68,7 +75,7 @@ def _parse_activation(spec: str, duration: float):
 
 def _load(args):
     """(model, params, activation function's timeline) of the command line; UserError naming a problem."""
-    from tissue_sim.core.activation import load_timeline
+    from tissue_sim.core.activation import load_timeline, motion_timeline
     from tissue_sim.core.load import load_model, load_params
     try:
         tm = load_model(args.model)
@@ -76,17 +83,28 @@ def _load(args):
         # the same timeline file format as `activation --profile timeline` (muscles: {name: [[t, a], ...]})
         timeline = {name: list(zip(times.tolist(), values.tolist()))
                     for name, (times, values) in (load_timeline(args.timeline) if args.timeline else {}).items()}
+        if args.motion:
+            timeline = motion_timeline(args.motion)
     except ValueError as e:               # ModelError, ActivationError, a bad parameter file
         raise UserError(str(e)) from None
     for spec in args.activate:
         name, pts = _parse_activation(spec, args.duration)
-        timeline[name] = pts if name not in timeline else list(timeline[name]) + pts
+        old = timeline.get(name)
+        timeline[name] = pts if old is None or isinstance(old, (int, float)) else list(old) + pts
     return tm, params, timeline
 
 
 def run(args) -> int:
     from tissue_sim.core import solver
-    from tissue_sim.core.activation import timeline_function
+    from tissue_sim.core.activation import MOTIONS, timeline_function
+    if args.motion is not None and args.timeline:
+        raise UserError('--motion and --timeline exclude each other')
+    if args.motion is not None and args.motion not in MOTIONS:
+        raise UserError(f'--motion {args.motion!r}: unknown motion; expected one of {", ".join(MOTIONS)}')
+    if args.params is None:
+        args.params = 'physical' if args.motion else 'paper'
+    if args.duration is None:
+        args.duration = MOTIONS[args.motion].duration if args.motion else 3.0
     if not (args.duration > 0 and math.isfinite(args.duration)):
         raise UserError('--duration must be > 0')
     if args.every < 1:
@@ -107,7 +125,7 @@ def run(args) -> int:
     failure = None
     st = solver.make_state(sim)
     out = Path(args.output) if args.output else None
-    writer = _open_run(out, tm, sim) if out is not None and out.suffix == '.mcap' else None
+    writer = _open_run(out, tm, sim, args.motion) if out is not None and out.suffix == '.mcap' else None
     t_wall = time.perf_counter()
     try:
         for t, o in solver.simulate(sim, args.duration, fn, every=args.every, state=st, output='obs'):
@@ -126,6 +144,7 @@ def run(args) -> int:
     wall = time.perf_counter() - t_wall
     arr = {k: np.asarray(v) for k, v in rec.items()}
     summary = _summary(sim, arr, wall, failure)
+    summary['motion'] = args.motion
     if out is not None and writer is None:
         extra = {'positions': np.asarray(positions)} if args.positions else {}
         try:
@@ -146,12 +165,12 @@ def run(args) -> int:
     return 0
 
 
-def _open_run(out: Path, tm, sim):
+def _open_run(out: Path, tm, sim, motion=None):
     """The run MCAP writer (the recorder's format: topology, then one TissueState per recorded step)."""
     from tissue_sim.core import mcapio, runio
     try:
         return runio.RunWriter(out, tm, parameters_yaml=sim.params.to_yaml(),
-                               metadata={'source': 'tissue-sim simulate'})
+                               metadata={'source': 'tissue-sim simulate', **({'motion': motion} if motion else {})})
     except (OSError, mcapio.McapIOError) as e:
         raise UserError(f'{out}: cannot write ({e})') from None
 

@@ -21,19 +21,25 @@ constant.
 
 **Profiles** (the ``activation`` node): ``paper`` (the paper's experiment: the hamstrings at
 ``level``, every other muscle passive), ``step``, ``ramp``, ``ramp_hold``, ``sine``, ``timeline``,
-``set`` (see :func:`shape`). Without a muscle selection a profile drives the hamstrings of the
-model: its group ``hamstrings``, else the muscles named like the paper's biceps femoris,
-semimembranosus and semitendinosus.
+``set`` (see :func:`shape`), and the named motions. Without a muscle selection a shape profile
+drives the hamstrings of the model: its group ``hamstrings``, else the muscles named like the
+paper's biceps femoris, semimembranosus and semitendinosus.
+
+**Named motions** (:data:`MOTIONS`): timelines of muscle groups, every other muscle passive,
+defined here once for the ``activation`` node (``--profile NAME``), ``tissue-sim simulate --motion
+NAME`` and ``make demo MOTION=NAME``: ``knee_flexion``, ``knee_extension``, ``kick``,
+``heel_raise``, ``ankle_pump`` (:func:`motion_timeline`; docs/ros.md lists them with the angles
+they reach on the bundled limb).
 """
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
-PROFILES = ('paper', 'step', 'ramp', 'ramp_hold', 'sine', 'timeline', 'set')
+SHAPES = ('paper', 'step', 'ramp', 'ramp_hold', 'sine', 'timeline', 'set')
 HAMSTRINGS = 'hamstrings'
 PAPER_MUSCLES = ('biceps_femoris', 'semimembranosus', 'semitendinosus')
 REASONS = ('nan', 'inf', 'out_of_range', 'unknown_muscle', 'length_mismatch', 'duplicate_muscle')
@@ -261,6 +267,76 @@ def timeline_function(sim, timeline) -> Callable[[float], np.ndarray]:
     return lambda t: a
 
 
+# ----------------------------------------------------------------------------- named motions
+class Motion(NamedTuple):
+    """A named motion: knots [(t [s], a), ...] per selector (linear between, held after the last),
+    every muscle no selector names passive (0). ``joint``: the joint it is about (the analysis finds
+    the same from a recorded run: the joint that moves most, analysis.plots.main_joint); ``duration``: simulated time [s] that shows the whole motion."""
+    description: str
+    joint: str
+    duration: float
+    muscles: dict
+
+
+def _alternate(first: str, second: str, level: float, period: float, cycles: int, on: float, edge: float) -> dict:
+    """Knots of two selectors that take turns: ``first`` from the start of each period, ``second``
+    from its middle, each at ``level`` for ``on`` s with ``edge``-s linear rises and falls."""
+    out = {first: [(0.0, 0.0)], second: [(0.0, 0.0)]}
+    for c in range(cycles):
+        for sel, t0 in ((first, c * period), (second, c * period + period / 2)):
+            out[sel] += [(t0, 0.0), (t0 + edge, level), (t0 + edge + on, level), (t0 + 2 * edge + on, 0.0)]
+    return out
+
+
+# Activations: the physical parameter set on the bundled limb (the paper's set moves the knee only a few
+# degrees); levels kept where the activated muscles hold their volume (tests/test_motions.py, docs/ros.md).
+MOTIONS = {
+    'knee_flexion': Motion(
+        "the paper's experiment: the hamstrings contract (ramped 0 -> 1 over 1 s, then held), every other "
+        'muscle passive: the knee flexes to its 120-deg stop', 'knee_r', 2.0,
+        {'hamstrings': [(0.0, 0.0), (1.0, 1.0)]}),
+    'knee_extension': Motion(
+        'the quadriceps extend the knee from flexion: the hamstrings (0.6) flex it first, from 0.9 s they '
+        'relax while the quadriceps ramp to 0.5 (over 0.5 s) and extend it to its 0-deg stop',
+        'knee_r', 2.5,
+        {'hamstrings': [(0.0, 0.0), (0.3, 0.6), (0.9, 0.6), (1.4, 0.0)],
+         'quadriceps': [(0.0, 0.0), (0.9, 0.0), (1.4, 0.5)]}),
+    'kick': Motion(
+        'a kick: a wind-up flexion (hamstrings 0 -> 0.8 over 0.4 s, held to 0.7 s), then a fast extension '
+        '(the hamstrings off and the quadriceps to 0.6 within 50 ms, held to 1.1 s, relaxed by 1.3 s)',
+        'knee_r', 1.6,
+        {'hamstrings': [(0.0, 0.0), (0.4, 0.8), (0.7, 0.8), (0.75, 0.0)],
+         'quadriceps': [(0.0, 0.0), (0.7, 0.0), (0.75, 0.6), (1.1, 0.6), (1.3, 0.0)]}),
+    'heel_raise': Motion(
+        'a heel raise: the triceps surae (gastrocnemii and soleus) ramp to 0.5 over 0.5 s and hold: the '
+        'ankle plantarflexes', 'ankle_r', 1.5,
+        {'triceps_surae': [(0.0, 0.0), (0.5, 0.5)]}),
+    'ankle_pump': Motion(
+        'an ankle pump: tibialis anterior (0.5) dorsiflexes the ankle, then the triceps surae (0.5) '
+        'plantarflex it, alternating (0.6 s each, a 1.5-s period, two cycles)', 'ankle_r', 3.0,
+        _alternate('tibialis_anterior', 'triceps_surae', 0.5, 1.5, 2, 0.5, 0.05)),
+}
+PROFILES = SHAPES + tuple(MOTIONS)
+
+
+def motion(name: str) -> Motion:
+    """The named motion; ActivationError naming the motions otherwise."""
+    if name not in MOTIONS:
+        raise ActivationError(f'unknown motion {name!r}; expected one of {", ".join(MOTIONS)}')
+    return MOTIONS[name]
+
+
+def motion_timeline(name: str, level: float = 1.0, start: float = 0.0) -> dict:
+    """The timeline {selector: [(t, a), ...], 'all': 0.0} of a named motion, its activations scaled
+    by ``level`` and its times shifted by ``start`` [s] (what timeline_function and the node take)."""
+    if not (0.0 <= level <= 1.0) or not math.isfinite(start):
+        raise ActivationError(f'motion {name}: level must be in [0, 1] and start finite')
+    tl = {'all': 0.0}
+    for sel, pts in motion(name).muscles.items():
+        tl[sel] = [(t + start, a * level) for t, a in pts]
+    return tl
+
+
 # ----------------------------------------------------------------------------- profiles
 def shape(kind: str, t: float, *, level=1.0, start=0.0, duration=0.0, rise=1.0, hold=1.0, fall=1.0,
           frequency=0.5) -> float:
@@ -286,7 +362,7 @@ def shape(kind: str, t: float, *, level=1.0, start=0.0, duration=0.0, rise=1.0, 
         return 0.0
     if kind == 'sine':
         return level * 0.5 * (1.0 - math.cos(2.0 * math.pi * frequency * u))
-    raise ActivationError(f'unknown profile {kind!r}; expected one of {", ".join(PROFILES)}')
+    raise ActivationError(f'unknown profile {kind!r}; expected one of {", ".join(SHAPES)}')
 
 
 def parse_set(items) -> dict:
@@ -312,12 +388,21 @@ def profile_entries(profile: str, muscles: Muscles | None, *, selectors=None, ot
 
     ``selectors``: the muscles a shape profile drives (default: :meth:`Muscles.hamstrings`, which
     needs ``muscles``); ``others``: a constant for every muscle not selected (an ``all`` entry, the
-    least specific); ``timeline``: {selector: knots} for ``timeline``; ``set_values``: for ``set``."""
+    least specific); ``timeline``: {selector: knots} for ``timeline``; ``set_values``: for ``set``.
+    A named motion (:data:`MOTIONS`) takes ``level`` (scales its activations) and ``start`` (shifts
+    it) of the keywords; its other muscles are passive unless ``others`` says otherwise."""
     entries = [] if others is None else [('all', lambda t, v=float(others): v)]
     if profile == 'set':
         return entries + [(n, lambda t, v=float(v): v) for n, v in set_values.items()]
     if profile == 'timeline':
         return entries + timeline_entries(timeline)
+    if profile in MOTIONS:
+        if selectors:
+            raise ActivationError(f'motion {profile}: its muscles are part of it (no muscle selection)')
+        tl = motion_timeline(profile, shape_kw.get('level', 1.0), shape_kw.get('start', 0.0))
+        if others is not None:
+            tl['all'] = float(others)
+        return timeline_entries(tl, f'motion {profile}')
     if profile not in PROFILES:
         raise ActivationError(f'unknown profile {profile!r}; expected one of {", ".join(PROFILES)}')
     shape(profile, 0.0, **shape_kw)           # checks the keywords

@@ -9,6 +9,8 @@ Examples::
     activation --profile sine --muscles quadriceps --frequency 0.5
     activation --profile timeline --timeline config/activation_timeline.yaml
     activation --set biceps_femoris_long_head=0.7 semitendinosus=0.3   # one message, then exit
+    activation --profile kick                        # a named motion (knee_flexion, knee_extension, kick,
+                                                     # heel_raise, ankle_pump; --level scales, --start shifts it)
 
 Time is simulated time from /clock (use_sim_time is on by default), so a profile is reproducible
 whatever the simulator's real-time rate. Muscle names, groups and the default muscles (the
@@ -32,7 +34,8 @@ def build_parser():
     p = argparse.ArgumentParser(prog='activation', description=__doc__.split('\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--profile', choices=act.PROFILES, default=None,
-                   help='activation profile (default: paper, or set when --set is given)')
+                   help='activation profile or named motion (default: paper, or set when --set is given); motions: '
+                        + '; '.join(f'{n}: {m.description}' for n, m in act.MOTIONS.items()))
     p.add_argument('--muscles', nargs='+', default=None,
                    help="muscle names, group names (e.g. hamstrings) or 'all' (default: the model's hamstrings)")
     p.add_argument('--others', type=float, default=None,
@@ -70,6 +73,8 @@ def check_args(a):
     for k in ('rise', 'hold', 'fall', 'duration', 'frequency'):
         if getattr(a, k) < 0:
             raise act.ActivationError(f'--{k}: must not be negative')
+    if a.profile in act.MOTIONS and a.muscles:
+        raise act.ActivationError(f'--profile {a.profile} is a named motion: its muscles are part of it (no --muscles)')
     if a.profile == 'timeline' and not a.timeline:
         raise act.ActivationError('--profile timeline needs --timeline FILE.yaml')
     return a

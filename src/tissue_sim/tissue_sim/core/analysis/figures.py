@@ -12,7 +12,7 @@ import numpy as np
 
 from tissue_sim.core import runio
 from tissue_sim.core.analysis import measure, render
-from tissue_sim.core.analysis.plots import pick_frames
+from tissue_sim.core.analysis.plots import pick_frames, pick_motion_frames
 
 
 def frames_at_times(times: np.ndarray, wanted) -> np.ndarray:
@@ -30,6 +30,10 @@ def render_run(run: runio.Run, out, measures: measure.Measurements | None = None
                anim_size=(480, 360), progress=None) -> list[Path]:
     """Render the figure set of a loaded run into ``out``; returns the files written.
 
+    Frames: ``times`` [s], else ``n_frames`` picked by :func:`~tissue_sim.core.analysis.plots.pick_motion_frames`
+    (the start, the extremes of the joint that moves most, the end: any motion, knee or ankle); the
+    close-up view centres on the joint that turns most (``render.knee_centre``).
+
     ``measures``: the run's :class:`~tissue_sim.core.analysis.measure.Measurements` when already
     computed (``analyze``); the frames drawn that it lacks (or all, if None) are measured here."""
     import imageio.v3 as iio
@@ -37,7 +41,7 @@ def render_run(run: runio.Run, out, measures: measure.Measurements | None = None
     out.mkdir(parents=True, exist_ok=True)
     topo = run.model
     t_all, poses_all, jn, jp_all = run.times, run.segment_poses, run.joint_names, run.joint_positions
-    chosen = frames_at_times(t_all, times) if times else pick_frames(t_all, n_frames)
+    chosen = frames_at_times(t_all, times) if times else pick_motion_frames(t_all, run.joint_positions, n_frames)
     anim = pick_frames(t_all, min(anim_frames, len(t_all))) if animation else np.zeros(0, np.int64)
     need = sorted(set(chosen.tolist()) | set(anim.tolist()) | {0})
     m, row = measure.rows_for(run, set(chosen.tolist()) | {0}, measures)
@@ -52,12 +56,12 @@ def render_run(run: runio.Run, out, measures: measure.Measurements | None = None
     pts = np.concatenate([run.frames[need].reshape(-1, 3).astype(np.float64)] + bones_all)
     knee = render.knee_centre(topo, poses_all, topo.rest_positions)
     height = float(np.ptp(pts[:, 2]))
-    jk = next((j for j, n in enumerate(jn) if 'knee' in n), 0 if jn else None)
+    moving = [j for j in range(len(jn)) if np.ptp(jp_all[:, j]) > np.deg2rad(0.1)] if len(jn) else []
 
-    def label(f):
+    def label(f):                       # every joint that moves in the run (all of them when none does)
         s = f't = {t_all[f]:.2f} s'
-        if jk is not None:
-            s += f'   {jn[jk]} {np.rad2deg(jp_all[f, jk]):.0f} deg'
+        for j in moving or range(len(jn)):
+            s += f'   {jn[j]} {np.rad2deg(jp_all[f, j]):.0f} deg'
         return s
 
     files = []

@@ -1,6 +1,7 @@
 """Plots of a run's measurements (matplotlib, Agg backend: no display needed).
 
-* ``joint_angles.png``: every joint's angle [deg] over time (the knee in the paper's experiment).
+* ``joint_angles.png``: every joint's angle [deg] over time (knee + = flexion, ankle + = dorsiflexion),
+  the frames the pictures draw marked.
 * ``muscles.png``: muscle length and volume relative to frame 0 over time (hamstrings highlighted),
   with activations.
 * ``fat_d_distribution.png``: the distribution of d over the fat cells at a few frames, the paper's
@@ -30,13 +31,51 @@ def pick_frames(times: np.ndarray, n: int = 4) -> np.ndarray:
     return np.unique(np.searchsorted(times, targets - 1e-9).clip(0, len(times) - 1))
 
 
+def main_joint(joint_positions: np.ndarray):
+    """Index of the joint that moves most over a run (largest range of its angle), or None when no
+    joint moves (by more than 0.1 deg): the joint a motion is about (knee flexion: the knee; heel raise:
+    the ankle)."""
+    q = np.asarray(joint_positions, np.float64)
+    if q.ndim != 2 or q.shape[0] == 0 or q.shape[1] == 0:
+        return None
+    rng = np.ptp(q, axis=0)
+    j = int(np.argmax(rng))
+    return j if rng[j] > np.deg2rad(0.1) else None
+
+
+def pick_motion_frames(times: np.ndarray, joint_positions: np.ndarray, n: int = 4) -> np.ndarray:
+    """n frame positions for the Fig. 8-9 style maps of any motion: the first frame, the extremes of
+    the main joint (:func:`main_joint`: its largest and smallest angle, the one farther from the start
+    first), the last frame, then frames evenly spread in time to fill n (each the farthest in time from
+    those already chosen). Without a moving joint: :func:`pick_frames`. Sorted, unique."""
+    F = len(times)
+    if F == 0 or n < 1:
+        return np.zeros(0, np.int64)
+    j = main_joint(joint_positions)
+    if j is None:
+        return pick_frames(times, n)
+    q = np.asarray(joint_positions)[:, j]
+    ext = sorted({int(np.argmax(q)), int(np.argmin(q))}, key=lambda f: -abs(q[f] - q[0]))
+    chosen = []
+    for f in ext + [0, F - 1]:
+        if f not in chosen and len(chosen) < n:
+            chosen.append(f)
+    rest = [int(f) for f in pick_frames(times, max(4 * n, 8)) if int(f) not in chosen]
+    while len(chosen) < n and rest:
+        gap = [min(abs(times[f] - times[c]) for c in chosen) for f in rest]
+        chosen.append(rest.pop(int(np.argmax(gap))))
+    return np.array(sorted(chosen), np.int64)
+
+
 def joint_angles(m: Measurements, out: Path) -> Path:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
     for j, n in enumerate(m.joint_names):
         ax.plot(m.times, np.rad2deg(m.joint_positions[:, j]), lw=2, label=n)
-    ax.set_xlabel('time [s]')
-    ax.set_ylabel('joint angle [deg] (knee: + = flexion)')
+    for f in pick_motion_frames(m.times, m.joint_positions, 4) if m.joint_names else ():
+        ax.axvline(m.times[f], color='0.5', lw=0.8, ls=':')
+    ax.set_xlabel('time [s] (dotted: the frames the pictures draw)')
+    ax.set_ylabel('joint angle [deg]\n(knee + = flexion, ankle + = dorsiflexion)')
     ax.set_title(f'Joint angles - {m.model_name}')
     ax.grid(alpha=0.3)
     if m.joint_names:
@@ -81,7 +120,7 @@ def muscles(m: Measurements, out: Path) -> Path:
 def d_distribution(m: Measurements, out: Path) -> Path:
     plt = _plt()
     fig, axs = plt.subplots(1, 3, figsize=(13, 3.8), dpi=110)
-    frames = pick_frames(m.times, 4)
+    frames = pick_motion_frames(m.times, m.joint_positions, 4)
     cmap = plt.get_cmap('viridis')
     dmax = max(float(np.nanmax(m.d_paper)) if m.d_paper.size else 0.0, 1e-9) * 1000
     bins = np.linspace(0, dmax, 40)

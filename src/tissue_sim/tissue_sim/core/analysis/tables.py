@@ -118,7 +118,12 @@ def summary(m: Measurements, run_path=None) -> dict:
     for j, n in enumerate(m.joint_names):
         q = np.rad2deg(m.joint_positions[:, j])
         out['joints'][n] = {'min_deg': _f(q.min()), 'max_deg': _f(q.max()), 'final_deg': _f(q[-1]),
-                            'time_of_max_s': _f(m.times[int(np.argmax(q))])}
+                            'range_deg': _f(np.ptp(q)), 'time_of_max_s': _f(m.times[int(np.argmax(q))]),
+                            'time_of_min_s': _f(m.times[int(np.argmin(q))])}
+    from tissue_sim.core.analysis.plots import main_joint, pick_motion_frames
+    jm = main_joint(m.joint_positions) if F else None
+    out['main_joint'] = m.joint_names[jm] if jm is not None else None
+    out['picture_frames'] = [int(m.frame_index[f]) for f in pick_motion_frames(m.times, m.joint_positions, 4)] if F else []
     for k, n in enumerate(m.muscle_names):
         L, Vv, Vm = m.muscle_lengths[:, k], m.muscle_volumes[:, k], m.muscle_volumes_mesh[:, k]
         with np.errstate(all='ignore'):
