@@ -12,7 +12,7 @@ import collections
 
 import numpy as np
 
-from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK
+from tissue_sim.core.solver import cells as CK, contact as CT, muscle as MU, skeleton as SK
 from tissue_sim.core.solver.model import SimModel, State, substeps_for
 
 Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
@@ -103,20 +103,42 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     q_target = sim.j_rest.copy() if joint_target is None else np.asarray(joint_target, np.float64)
     if state.joint_lock_torque is None:
         state.joint_lock_torque = np.zeros(J)
+    if state.activation is None:
+        state.activation = np.zeros(sim.n_muscles)
+    u = a                             # the commands: excitations when activation dynamics is on
+    lrest, inv_lopt, fmax = MU.muscle_constants(sim)
+    fl_on = p.force_length and p.specific_tension > 0
+    pe_on = p.passive_force_length and p.specific_tension > 0
     for _ in range(n_sub):
         R0, t0 = state.seg_R.copy(), state.seg_t.copy()        # the segment poses at the sub-step's start (stage 4)
+        # 0. activation dynamics (Thelen 2003 eq. 1): da/dt = (u - a) / tau, tau = tau_act (0.5 + 1.5 a) while u > a,
+        # else tau_deact / (0.5 + 1.5 a), tau frozen over the sub-step; activation_time 0: a = u (the paper)
+        if p.activation_time > 0:
+            s = 0.5 + 1.5 * state.activation
+            tau = np.where(u > state.activation, p.activation_time * s, p.deactivation_time / s)
+            state.activation[:] = state.activation + (u - state.activation) * (1.0 - np.exp(-h / tau))
+        else:
+            state.activation[:] = u
+        a = state.activation
         # 1. muscle tension: contraction state towards 1 - a (1 - min_stretch), the tension's activation x
-        # the force-velocity factor of the last measured muscle velocity, every cell's force
+        # the force-velocity factor of the last measured muscle velocity x the active force-length factor of the
+        # last measured fibre length, every cell's force
         target = 1.0 - a * (1.0 - p.min_stretch)
         shrink = np.maximum(state.lam * p.contraction_rate ** (a * h / p.rate_dt), target)
         state.lam[:] = np.where(state.lam > target, shrink, np.minimum(state.lam / p.relax_rate ** (h / p.rate_dt), target))
         fv_on = p.max_contraction_velocity > 0 and p.specific_tension > 0
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle
         vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
-        act_t = a * np.array([CK.force_velocity(u, p.fv_max_lengthening) for u in vn]) if fv_on else a
+        act_t = a * np.array([CK.force_velocity(w, p.fv_max_lengthening) for w in vn]) if fv_on else a.copy()
+        if fl_on:            # normalised fibre length l = l_rest + (L - L_rest) / L_opt (not measured yet: l_rest)
+            ln = np.where(state.muscle_length >= 0, p.rest_fibre_length + (state.muscle_length - lrest) * inv_lopt,
+                          p.rest_fibre_length)
+            act_t = act_t * np.exp(-(ln - 1.0) ** 2 / p.fl_width)
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
             sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
-        if fv_on:                    # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
+        if pe_on:            # passive fibre force F = Fmax f_PE(l) on each muscle cell, -F w_c dl_c/dx (conservative)
+            f += passive_forces(sim, pad, state.x, lrest, inv_lopt, fmax, p)
+        if fv_on or fl_on or pe_on:   # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
             mc = sim.cell_muscle >= 0
             length = np.bincount(sim.cell_muscle[mc], (sim.length_weight * state.cell_length)[mc], sim.n_muscles)
             seen = state.muscle_length >= 0
@@ -141,6 +163,33 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     state.step += 1
     state.time += dt
     return state
+
+
+def passive_forces(sim, pad: Padded, x, lrest, inv_lopt, fmax, p):
+    """(V, 3) [N] the passive fibre force of every muscle (Thelen 2003 eq. 3, docs/solver.md "Force-length"): the muscle's
+    length L = sum_c w_c l_c at x, l = rest_fibre_length + (L - L_rest) / L_opt, F = Fmax (exp(k (l - 1)/eps0) - 1) /
+    (exp(k) - 1) for l > 1 (else 0), and on each of its cells -F w_c dl_c/dx: +F w_c / n_ring along the unit axis u
+    (bottom -> top ring centroid) on every bottom-ring vertex, -that on every top-ring vertex."""
+    m = pad.mask
+    n = m.sum(1)
+    half = n // 2
+    xc = x[pad.idx] * m[..., None]
+    top = (xc * (~pad.bottom & m)[..., None]).sum(1) / half[:, None]
+    bot = (xc * pad.bottom[..., None]).sum(1) / half[:, None]
+    d = top - bot
+    lc = np.linalg.norm(d, axis=1)
+    mus = sim.cell_muscle >= 0
+    cm = np.maximum(sim.cell_muscle, 0)
+    L = np.bincount(sim.cell_muscle[mus], (sim.length_weight * lc)[mus], sim.n_muscles)
+    ln = p.rest_fibre_length + (L - lrest) * inv_lopt
+    k, e0 = p.fl_passive_shape, p.fl_passive_strain
+    F = np.where(ln > 1.0, fmax * (np.exp(k * (ln - 1.0) / e0) - 1.0) / (np.exp(k) - 1.0), 0.0)
+    g = np.where(mus & (lc > 0), F[cm] * sim.length_weight / (half * np.where(lc > 0, lc, 1.0)), 0.0)
+    per = g[:, None] * d                                                  # on each bottom-ring vertex
+    fv = np.where(pad.bottom[..., None], 1.0, -1.0) * per[:, None, :] * m[..., None]
+    out = np.zeros_like(x)
+    np.add.at(out, pad.idx[m], fv[m])
+    return out
 
 
 def grid_sample(cg, b, P):
