@@ -18,6 +18,7 @@ L_rest its rest value, L_opt the optimal fibre length of the anatomy, l_rest = P
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 from numba import njit
@@ -25,11 +26,14 @@ from numba import njit
 
 @njit(cache=True)
 def activation_step(u, a, h, tau_act, tau_deact):
-    """Activation after a sub-step h from a under excitation u (Thelen 2003 eq. 1), the time constant frozen over
-    the sub-step and the linear ODE solved exactly: a + (u - a)(1 - exp(-h / tau)); stays within [min(a, u), max(a, u)]."""
+    """Activation after a sub-step h from a under excitation u (Thelen 2003 eq. 1): over the sub-step the time constant
+    is frozen at its value at the midpoint activation (a predictor step with tau(a) gives it; second order) and the
+    linear ODE solved exactly, a + (u - a)(1 - exp(-h / tau)): it stays within [min(a, u), max(a, u)]."""
+    rising = u > a
     s = 0.5 + 1.5 * a
-    tau = tau_act * s if u > a else tau_deact / s
-    return a + (u - a) * (1.0 - math.exp(-h / tau))
+    a1 = a + (u - a) * (1.0 - math.exp(-h / (tau_act * s if rising else tau_deact / s)))
+    s = 0.5 + 1.5 * 0.5 * (a + a1)
+    return a + (u - a) * (1.0 - math.exp(-h / (tau_act * s if rising else tau_deact / s)))
 
 
 @njit(cache=True)
@@ -118,16 +122,30 @@ def passive_tension(x, f, off, cv, mcells, mcell_muscle, mcell_weight, lrest, in
     return energy
 
 
+_CONSTANTS = weakref.WeakKeyDictionary()     # SimModel -> its muscle constants (the model is immutable)
+
+
 def muscle_constants(sim):
     """(lrest (M,) [m], inv_lopt (M,) [1/m], fmax (M,) [N]) of a SimModel: each muscle's measured rest length, 1 / its
     optimal fibre length (the anatomy's; unknown: the muscle's rest length, the whole muscle taken as fibre), its
-    maximum isometric force (the active tension's calibration force F, model.muscle_force_scale)."""
-    from tissue_sim.core.solver.model import muscle_max_forces
-    lrest = np.asarray(sim.muscle_rest_length, np.float64)
-    lopt = np.asarray(sim.tissue.muscle_fibre_length, np.float64)
-    lopt = np.where(np.isfinite(lopt) & (lopt > 0), lopt, lrest)
-    inv = np.where(lopt > 0, 1.0 / np.where(lopt > 0, lopt, 1.0), 0.0)
-    return lrest, inv, muscle_max_forces(sim.tissue, sim.params, sim.rest_volume, sim.rest_length)
+    maximum isometric force (the active tension's calibration force, model.muscle_max_forces)."""
+    return _constants(sim)[:3]
+
+
+def _constants(sim):
+    c = _CONSTANTS.get(sim)
+    if c is None:
+        from tissue_sim.core.solver.model import muscle_max_forces
+        lrest = np.asarray(sim.muscle_rest_length, np.float64)
+        lopt = np.asarray(sim.tissue.muscle_fibre_length, np.float64)
+        lopt = np.where(np.isfinite(lopt) & (lopt > 0), lopt, lrest)
+        inv = np.where(lopt > 0, 1.0 / np.where(lopt > 0, lopt, 1.0), 0.0)
+        # per muscle: its cells, and each cell's slice gap among the muscle's gaps (for the median over gaps)
+        cells = [np.flatnonzero(sim.cell_muscle == m) for m in range(sim.n_muscles)]
+        gaps = [np.unique(sim.tissue.cell_slice[cm], return_inverse=True)[1] for cm in cells]
+        c = _CONSTANTS[sim] = (lrest, inv, muscle_max_forces(sim.tissue, sim.params, sim.rest_volume, sim.rest_length),
+                               cells, gaps)
+    return c
 
 
 def tension_activation(sim, state) -> np.ndarray:
@@ -163,7 +181,7 @@ def muscle_forces(sim, state) -> dict:
     M = sim.n_muscles
     alen = np.empty(sim.n_cells)
     cell_axial_lengths(state.x, sim.off, sim.cv, alen)
-    lrest, inv_lopt, fmax = muscle_constants(sim)
+    lrest, inv_lopt, fmax, mcells, mgaps = _constants(sim)
     mus = sim.cell_muscle
     sel = mus >= 0
     L = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)[:M]
@@ -172,12 +190,11 @@ def muscle_forces(sim, state) -> dict:
     n = np.diff(sim.off)
     active = np.zeros(M)
     for m in range(M):
-        c = np.flatnonzero(mus == m)
+        c = mcells[m]
         if c.size == 0 or not np.any(sim.k_active[c] > 0):
             continue
         T = act[m] * sim.k_active[c] * n[c] / 4.0 * np.maximum(alen[c] - state.lam[m] * sim.rest_length[c], 0.0)
-        gaps, inv = np.unique(sim.tissue.cell_slice[c], return_inverse=True)
-        active[m] = float(np.median(np.bincount(inv, weights=T, minlength=gaps.size)))
+        active[m] = float(np.median(np.bincount(mgaps[m], weights=T)))
     passive, energy = np.zeros(M), 0.0
     if p.passive_force_length and p.specific_tension > 0:
         passive = fmax * np.array([passive_force_length(v, p.fl_passive_shape, p.fl_passive_strain) for v in ln])

@@ -112,11 +112,14 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     for _ in range(n_sub):
         R0, t0 = state.seg_R.copy(), state.seg_t.copy()        # the segment poses at the sub-step's start (stage 4)
         # 0. activation dynamics (Thelen 2003 eq. 1): da/dt = (u - a) / tau, tau = tau_act (0.5 + 1.5 a) while u > a,
-        # else tau_deact / (0.5 + 1.5 a), tau frozen over the sub-step; activation_time 0: a = u (the paper)
+        # else tau_deact / (0.5 + 1.5 a), tau frozen over the sub-step at the midpoint activation of a predictor
+        # step; activation_time 0: a = u (the paper)
         if p.activation_time > 0:
-            s = 0.5 + 1.5 * state.activation
-            tau = np.where(u > state.activation, p.activation_time * s, p.deactivation_time / s)
-            state.activation[:] = state.activation + (u - state.activation) * (1.0 - np.exp(-h / tau))
+            a0, rising = state.activation.copy(), u > state.activation
+            tau = lambda act: np.where(rising, p.activation_time * (0.5 + 1.5 * act),        # noqa: E731
+                                       p.deactivation_time / (0.5 + 1.5 * act))
+            a1 = a0 + (u - a0) * (1.0 - np.exp(-h / tau(a0)))
+            state.activation[:] = a0 + (u - a0) * (1.0 - np.exp(-h / tau(0.5 * (a0 + a1))))
         else:
             state.activation[:] = u
         a = state.activation
