@@ -11,9 +11,14 @@ Sources (the numbers are Params fields):
 * passive force-length: Thelen 2003 eq. 3, f_PE = (exp(k_PE (l - 1) / eps0) - 1) / (exp(k_PE) - 1) for l > 1, 0 below
   (the clamp OpenSim's Thelen2003Muscle::calcfpe applies), k_PE = 5 (KshapePassive), eps0 = 0.6 (FmaxMuscleStrain:
   the fibre strain at which the passive force reaches Fmax).
-l is the normalised fibre length (muscle_fibre_lengths): rigid tendon, so the fibres take every change of the muscle's
-measured length: l = l_rest + (L - L_rest) / L_opt (L the muscle length the solver measures, muscle_lengths of observe,
-L_rest its rest value, L_opt the optimal fibre length of the anatomy, l_rest = Params.rest_fibre_length).
+l is the normalised fibre length (observe()'s fibre_lengths): l = l_rest + (C - C_rest) / L_opt, C the muscle's
+attachment chord (chord_lengths: the distance between the centroids of its vertices bound to its proximal and to its
+distal bone, a function of the joint angles only), C_rest its rest value, L_opt the anatomy's optimal fibre length,
+l_rest = Params.rest_fibre_length: a rigid tendon (as the source model's DeGrooteFregly2016 muscles,
+ignore_tendon_compliance), so the fibres take the whole change of the origin-insertion distance. Not the muscle length the
+solver measures along its cells (muscle_lengths): held isometric at the knee, the active hamstrings' cell chains
+straighten and shorten by 23-56 mm (semimembranosus: l 0.53 at 0 deg), which is the tissue's deformation, not the
+fibres' operating point.
 """
 from __future__ import annotations
 
@@ -69,67 +74,109 @@ def passive_energy_density(ln, k_pe, eps0):
 
 
 @njit(cache=True)
-def fibre_length(mlen, m, lrest, inv_lopt, l0):
-    """Normalised fibre length of muscle m at measured muscle length mlen [m] (< 0: not measured yet: l0)."""
-    return l0 + (mlen - lrest[m]) * inv_lopt[m] if mlen >= 0.0 else l0
+def chord_lengths(x, ch_off, ch_idx, lengths, axis):
+    """Per muscle m its attachment chord: the distance [m] between the centroid of its cells' vertices attached to its
+    proximal segment (ch_idx[ch_off[2m]:ch_off[2m+1]]) and of those attached to its distal one (the next group), into
+    lengths (M,), the unit vector proximal -> distal into axis (M, 3). Both groups move rigidly with their bones, so the
+    chord is a function of the joint angles alone (the tissue's own deformation does not change it). A muscle without
+    two such groups (both ends on one segment): length 0, axis 0."""
+    for m in range(lengths.shape[0]):
+        a0, a1, b1 = ch_off[2 * m], ch_off[2 * m + 1], ch_off[2 * m + 2]
+        lengths[m] = 0.0
+        axis[m, 0] = axis[m, 1] = axis[m, 2] = 0.0
+        if a1 == a0 or b1 == a1:
+            continue
+        px = py = pz = dx = dy = dz = 0.0
+        for k in range(a0, a1):
+            i = ch_idx[k]
+            px += x[i, 0]; py += x[i, 1]; pz += x[i, 2]
+        for k in range(a1, b1):
+            i = ch_idx[k]
+            dx += x[i, 0]; dy += x[i, 1]; dz += x[i, 2]
+        na, nb = a1 - a0, b1 - a1
+        ux, uy, uz = dx / nb - px / na, dy / nb - py / na, dz / nb - pz / na
+        n = math.sqrt(ux * ux + uy * uy + uz * uz)
+        lengths[m] = n
+        if n > 0.0:
+            axis[m, 0], axis[m, 1], axis[m, 2] = ux / n, uy / n, uz / n
 
 
 @njit(cache=True)
-def passive_tension(x, f, off, cv, mcells, mcell_muscle, mcell_weight, lrest, inv_lopt, fmax, l0, k_pe, eps0,
-                    lengths, tension):
-    """The passive fibre force of every muscle on its cells, added to f (V, 3) in place: with L = sum_c w_c l_c the
-    muscle's length (l_c the cell's ring-centroid distance at x, w_c its length weight) and F = Fmax f_PE(l(L)), each
-    muscle cell gets -F w_c dl_c/dx: F w_c (2/n) u on each bottom-ring vertex, minus that on each top-ring vertex
-    (u the unit axis bottom -> top, n the cell's vertex count). This is minus the gradient of the energy
-    Fmax L_opt int_1^l f_PE (passive_energy_density): conservative, zero net force and moment on the cell.
-    lengths (M,) gets the muscle lengths, tension (M,) the forces F [N]; returns the passive energy [J]."""
-    lengths[:] = 0.0
-    for k in range(mcells.shape[0]):
-        c = mcells[k]
-        a0 = off[c]
-        n = (off[c + 1] - a0) // 2
-        bx = by = bz = tx = ty = tz = 0.0
-        for t in range(n):
-            i, j = cv[a0 + t], cv[a0 + n + t]
-            bx += x[i, 0]; by += x[i, 1]; bz += x[i, 2]
-            tx += x[j, 0]; ty += x[j, 1]; tz += x[j, 2]
-        lengths[mcell_muscle[k]] += mcell_weight[k] * math.sqrt((tx - bx) ** 2 + (ty - by) ** 2 + (tz - bz) ** 2) / n
+def fibre_length(chord, m, ch_rest, inv_lopt, l0):
+    """Normalised fibre length of muscle m at attachment chord length chord [m]: l0 + (chord - rest chord) / L_opt
+    (rigid tendon; no chord: l0)."""
+    return l0 + (chord - ch_rest[m]) * inv_lopt[m] if ch_rest[m] > 0.0 else l0
+
+
+@njit(cache=True)
+def passive_tension(x, f, ch_off, ch_idx, ch_rest, inv_lopt, fmax, l0, k_pe, eps0, lengths, axis, tension):
+    """The passive fibre force of every muscle, added to f (V, 3) in place: F = Fmax f_PE(l) (l = fibre_length of its
+    attachment chord, chord_lengths) pulls its two attachment groups together along the chord, F / n_A on each of the
+    n_A proximal vertices, -F / n_B on each distal one: minus the gradient of the energy Fmax L_opt int_1^l f_PE
+    (passive_energy_density), which depends on the bones' poses only (the forces act on bone-attached vertices: they
+    reach the skeleton as joint torques). tension (M,) gets F [N]; returns the passive energy [J]."""
+    chord_lengths(x, ch_off, ch_idx, lengths, axis)
     energy = 0.0
     for m in range(lengths.shape[0]):
-        ln = fibre_length(lengths[m], m, lrest, inv_lopt, l0)
-        tension[m] = fmax[m] * passive_force_length(ln, k_pe, eps0)
-        if inv_lopt[m] > 0.0:
-            energy += fmax[m] / inv_lopt[m] * passive_energy_density(ln, k_pe, eps0)
-    for k in range(mcells.shape[0]):
-        F = tension[mcell_muscle[k]]
+        tension[m] = 0.0
+        if ch_rest[m] <= 0.0 or lengths[m] <= 0.0:
+            continue
+        ln = fibre_length(lengths[m], m, ch_rest, inv_lopt, l0)
+        F = fmax[m] * passive_force_length(ln, k_pe, eps0)
+        tension[m] = F
+        energy += fmax[m] / inv_lopt[m] * passive_energy_density(ln, k_pe, eps0)
         if F == 0.0:
             continue
-        c = mcells[k]
-        a0 = off[c]
-        n = (off[c + 1] - a0) // 2
-        ux = uy = uz = 0.0
-        for t in range(n):
-            i, j = cv[a0 + t], cv[a0 + n + t]
-            ux += x[j, 0] - x[i, 0]; uy += x[j, 1] - x[i, 1]; uz += x[j, 2] - x[i, 2]
-        norm = math.sqrt(ux * ux + uy * uy + uz * uz)
-        if norm <= 0.0:
-            continue
-        g = F * mcell_weight[k] / (n * norm)        # F w_c (1/n) u / |u| per vertex, u = n (top - bottom centroid)
-        for t in range(n):
-            i, j = cv[a0 + t], cv[a0 + n + t]
-            f[i, 0] += g * ux; f[i, 1] += g * uy; f[i, 2] += g * uz
-            f[j, 0] -= g * ux; f[j, 1] -= g * uy; f[j, 2] -= g * uz
+        a0, a1, b1 = ch_off[2 * m], ch_off[2 * m + 1], ch_off[2 * m + 2]
+        ga, gb = F / (a1 - a0), F / (b1 - a1)
+        for k in range(a0, a1):
+            i = ch_idx[k]
+            f[i, 0] += ga * axis[m, 0]; f[i, 1] += ga * axis[m, 1]; f[i, 2] += ga * axis[m, 2]
+        for k in range(a1, b1):
+            i = ch_idx[k]
+            f[i, 0] -= gb * axis[m, 0]; f[i, 1] -= gb * axis[m, 1]; f[i, 2] -= gb * axis[m, 2]
     return energy
+
+
+def attachment_groups(sim):
+    """(ch_off (2M+1,) int64, ch_idx int32) the CSR groups of chord_lengths: per muscle the bone-attached vertices of its
+    cells on its most proximal segment (fewest joints from the root), then those on its most distal one (most joints;
+    among equals the one with more of its vertices); both empty when all its attached vertices lie on one segment."""
+    depth = np.zeros(sim.n_segments, np.int64)
+    for s in range(sim.n_segments):
+        t = s
+        while sim.seg_parent[t] >= 0:
+            depth[s] += 1
+            t = sim.seg_parent[t]
+    groups = []
+    for m in range(sim.n_muscles):
+        cells = np.flatnonzero(sim.cell_muscle == m)
+        verts = np.unique(np.concatenate([sim.cv[sim.off[c]:sim.off[c + 1]] for c in cells])) if cells.size else np.zeros(0, int)
+        seg = sim.vertex_segment[verts]
+        verts, seg = verts[seg >= 0], seg[seg >= 0]
+        segs, counts = np.unique(seg, return_counts=True)
+        if segs.size < 2 or depth[segs].min() == depth[segs].max():
+            groups += [np.zeros(0, np.int32), np.zeros(0, np.int32)]
+            continue
+        key = lambda i: (depth[segs[i]], counts[i])             # noqa: E731
+        prox = segs[min(range(segs.size), key=lambda i: (depth[segs[i]], -counts[i]))]
+        dist = segs[max(range(segs.size), key=key)]
+        groups += [verts[seg == prox].astype(np.int32), verts[seg == dist].astype(np.int32)]
+    off = np.zeros(len(groups) + 1, np.int64)
+    off[1:] = np.cumsum([g.size for g in groups])
+    return off, (np.concatenate(groups) if groups else np.zeros(0, np.int32)).astype(np.int32)
 
 
 _CONSTANTS = weakref.WeakKeyDictionary()     # SimModel -> its muscle constants (the model is immutable)
 
 
 def muscle_constants(sim):
-    """(lrest (M,) [m], inv_lopt (M,) [1/m], fmax (M,) [N]) of a SimModel: each muscle's measured rest length, 1 / its
-    optimal fibre length (the anatomy's; unknown: the muscle's rest length, the whole muscle taken as fibre), its
-    maximum isometric force (the active tension's calibration force, model.muscle_max_forces)."""
-    return _constants(sim)[:3]
+    """(ch_rest (M,) [m], inv_lopt (M,) [1/m], fmax (M,) [N], ch_off, ch_idx) of a SimModel: each muscle's attachment
+    chord at rest (chord_lengths; 0: none), 1 / its optimal fibre length (the anatomy's; unknown: the muscle's measured
+    rest length, the whole muscle taken as fibre), its maximum isometric force (the active tension's calibration force,
+    model.muscle_max_forces), the chord's vertex groups (attachment_groups)."""
+    c = _constants(sim)
+    return c[0], c[1], c[2], c[5], c[6]
 
 
 def _constants(sim):
@@ -143,8 +190,11 @@ def _constants(sim):
         # per muscle: its cells, and each cell's slice gap among the muscle's gaps (for the median over gaps)
         cells = [np.flatnonzero(sim.cell_muscle == m) for m in range(sim.n_muscles)]
         gaps = [np.unique(sim.tissue.cell_slice[cm], return_inverse=True)[1] for cm in cells]
-        c = _CONSTANTS[sim] = (lrest, inv, muscle_max_forces(sim.tissue, sim.params, sim.rest_volume, sim.rest_length),
-                               cells, gaps)
+        ch_off, ch_idx = attachment_groups(sim)
+        ch_rest, axis = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3))
+        chord_lengths(sim.rest, ch_off, ch_idx, ch_rest, axis)
+        c = _CONSTANTS[sim] = (ch_rest, inv, muscle_max_forces(sim.tissue, sim.params, sim.rest_volume, sim.rest_length),
+                               cells, gaps, ch_off, ch_idx)
     return c
 
 
@@ -157,13 +207,15 @@ def tension_activation(sim, state) -> np.ndarray:
     a = np.asarray(state.activation if state.activation is not None else np.zeros(sim.n_muscles), np.float64).copy()
     if p.specific_tension <= 0:
         return a
-    lrest, inv_lopt, _ = muscle_constants(sim)
+    ch_rest, inv_lopt, _, ch_off, ch_idx = muscle_constants(sim)
     if p.max_contraction_velocity > 0:
         vl0 = p.max_contraction_velocity * np.asarray(sim.muscle_rest_length)
         vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
         a *= np.array([CK.force_velocity(w, p.fv_max_lengthening) for w in vn])
     if p.force_length:
-        a *= np.array([active_force_length(fibre_length(state.muscle_length[m], m, lrest, inv_lopt, p.rest_fibre_length),
+        chord, axis = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3))
+        chord_lengths(state.x, ch_off, ch_idx, chord, axis)
+        a *= np.array([active_force_length(fibre_length(chord[m], m, ch_rest, inv_lopt, p.rest_fibre_length),
                                            p.fl_width) for m in range(sim.n_muscles)])
     return a
 
@@ -175,17 +227,21 @@ def muscle_forces(sim, state) -> dict:
     (a' = tension_activation, l the cell's ring-centroid distance at the state's positions; docs/solver.md "Active
     tension"), the median over the muscle's gaps (cells in series carry one force); passive (M,): Fmax f_PE(l) of the
     passive force-length (passive_force_length on, else 0); total = active + passive; fibre_length (M,): the normalised
-    fibre length l (rest_fibre_length + (L - L_rest) / L_opt at the measured lengths L); passive_energy [J]."""
+    fibre length l (rest_fibre_length + (C - C_rest) / L_opt of the attachment chords C); passive_energy [J]."""
     from tissue_sim.core.solver.measures import cell_axial_lengths
     p = sim.params
     M = sim.n_muscles
     alen = np.empty(sim.n_cells)
     cell_axial_lengths(state.x, sim.off, sim.cv, alen)
-    lrest, inv_lopt, fmax, mcells, mgaps = _constants(sim)
-    mus = sim.cell_muscle
-    sel = mus >= 0
-    L = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)[:M]
-    ln = p.rest_fibre_length + (L - lrest) * inv_lopt
+    ch_rest, inv_lopt, fmax, mcells, mgaps, ch_off, ch_idx = _constants(sim)
+    chord, axis, passive = np.zeros(M), np.zeros((M, 3)), np.zeros(M)
+    energy = 0.0
+    if p.passive_force_length and p.specific_tension > 0:
+        energy = passive_tension(state.x, np.zeros_like(state.x), ch_off, ch_idx, ch_rest, inv_lopt, fmax,
+                                 p.rest_fibre_length, p.fl_passive_shape, p.fl_passive_strain, chord, axis, passive)
+    else:
+        chord_lengths(state.x, ch_off, ch_idx, chord, axis)
+    ln = np.array([fibre_length(chord[m], m, ch_rest, inv_lopt, p.rest_fibre_length) for m in range(M)])
     act = tension_activation(sim, state)
     n = np.diff(sim.off)
     active = np.zeros(M)
@@ -195,9 +251,4 @@ def muscle_forces(sim, state) -> dict:
             continue
         T = act[m] * sim.k_active[c] * n[c] / 4.0 * np.maximum(alen[c] - state.lam[m] * sim.rest_length[c], 0.0)
         active[m] = float(np.median(np.bincount(mgaps[m], weights=T)))
-    passive, energy = np.zeros(M), 0.0
-    if p.passive_force_length and p.specific_tension > 0:
-        passive = fmax * np.array([passive_force_length(v, p.fl_passive_shape, p.fl_passive_strain) for v in ln])
-        energy = float(sum(fmax[m] / inv_lopt[m] * passive_energy_density(ln[m], p.fl_passive_shape, p.fl_passive_strain)
-                           for m in range(M) if inv_lopt[m] > 0))
     return dict(active=active, passive=passive, total=active + passive, fibre_length=ln, passive_energy=energy)

@@ -106,7 +106,7 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     if state.activation is None:
         state.activation = np.zeros(sim.n_muscles)
     u = a                             # the commands: excitations when activation dynamics is on
-    lrest, inv_lopt, fmax = MU.muscle_constants(sim)
+    ch_rest, inv_lopt, fmax, ch_off, ch_idx = MU.muscle_constants(sim)
     fl_on = p.force_length and p.specific_tension > 0
     pe_on = p.passive_force_length and p.specific_tension > 0
     for _ in range(n_sub):
@@ -133,15 +133,15 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle
         vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
         act_t = a * np.array([CK.force_velocity(w, p.fv_max_lengthening) for w in vn]) if fv_on else a.copy()
-        if fl_on:            # normalised fibre length l = l_rest + (L - L_rest) / L_opt (not measured yet: l_rest)
-            ln = np.where(state.muscle_length >= 0, p.rest_fibre_length + (state.muscle_length - lrest) * inv_lopt,
-                          p.rest_fibre_length)
+        if fl_on:            # normalised fibre length l = l_rest + (C - C_rest) / L_opt of the attachment chords C
+            chord, _ = chords(sim, state.x, ch_off, ch_idx)
+            ln = np.where(ch_rest > 0, p.rest_fibre_length + (chord - ch_rest) * inv_lopt, p.rest_fibre_length)
             act_t = act_t * np.exp(-(ln - 1.0) ** 2 / p.fl_width)
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
             sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
-        if pe_on:            # passive fibre force F = Fmax f_PE(l) on each muscle cell, -F w_c dl_c/dx (conservative)
-            f += passive_forces(sim, pad, state.x, lrest, inv_lopt, fmax, p)
-        if fv_on or fl_on or pe_on:   # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
+        if pe_on:            # passive fibre force F = Fmax f_PE(l) pulling each muscle's attachments together
+            f += passive_forces(sim, state.x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
+        if fv_on:            # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
             mc = sim.cell_muscle >= 0
             length = np.bincount(sim.cell_muscle[mc], (sim.length_weight * state.cell_length)[mc], sim.n_muscles)
             seen = state.muscle_length >= 0
@@ -168,30 +168,31 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     return state
 
 
-def passive_forces(sim, pad: Padded, x, lrest, inv_lopt, fmax, p):
-    """(V, 3) [N] the passive fibre force of every muscle (Thelen 2003 eq. 3, docs/solver.md "Force-length"): the muscle's
-    length L = sum_c w_c l_c at x, l = rest_fibre_length + (L - L_rest) / L_opt, F = Fmax (exp(k (l - 1)/eps0) - 1) /
-    (exp(k) - 1) for l > 1 (else 0), and on each of its cells -F w_c dl_c/dx: +F w_c / n_ring along the unit axis u
-    (bottom -> top ring centroid) on every bottom-ring vertex, -that on every top-ring vertex."""
-    m = pad.mask
-    n = m.sum(1)
-    half = n // 2
-    xc = x[pad.idx] * m[..., None]
-    top = (xc * (~pad.bottom & m)[..., None]).sum(1) / half[:, None]
-    bot = (xc * pad.bottom[..., None]).sum(1) / half[:, None]
-    d = top - bot
-    lc = np.linalg.norm(d, axis=1)
-    mus = sim.cell_muscle >= 0
-    cm = np.maximum(sim.cell_muscle, 0)
-    L = np.bincount(sim.cell_muscle[mus], (sim.length_weight * lc)[mus], sim.n_muscles)
-    ln = p.rest_fibre_length + (L - lrest) * inv_lopt
+def chords(sim, x, ch_off, ch_idx):
+    """(M,) [m] each muscle's attachment chord (muscle.chord_lengths: from the centroid of its vertices bound to its
+    proximal bone to that of those bound to its distal bone; 0 without) and (M, 3) its unit direction."""
+    M = sim.n_muscles
+    cent = np.array([x[ch_idx[ch_off[g]:ch_off[g + 1]]].mean(0) if ch_off[g + 1] > ch_off[g] else np.zeros(3)
+                     for g in range(2 * M)]).reshape(M, 2, 3)
+    d = cent[:, 1] - cent[:, 0]
+    L = np.linalg.norm(d, axis=1)
+    return L, np.divide(d, L[:, None], out=np.zeros_like(d), where=L[:, None] > 0)
+
+
+def passive_forces(sim, x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p):
+    """(V, 3) [N] the passive fibre force of every muscle (Thelen 2003 eq. 3, docs/solver.md "Force-length"): l =
+    rest_fibre_length + (C - C_rest) / L_opt of its attachment chord C, F = Fmax (exp(k (l - 1)/eps0) - 1) / (exp(k) - 1)
+    for l > 1 (else 0), F / n along the chord on each of the n proximal attachment vertices, -F / n on each distal one."""
+    L, u = chords(sim, x, ch_off, ch_idx)
+    ln = p.rest_fibre_length + (L - ch_rest) * inv_lopt
     k, e0 = p.fl_passive_shape, p.fl_passive_strain
-    F = np.where(ln > 1.0, fmax * (np.exp(k * (ln - 1.0) / e0) - 1.0) / (np.exp(k) - 1.0), 0.0)
-    g = np.where(mus & (lc > 0), F[cm] * sim.length_weight / (half * np.where(lc > 0, lc, 1.0)), 0.0)
-    per = g[:, None] * d                                                  # on each bottom-ring vertex
-    fv = np.where(pad.bottom[..., None], 1.0, -1.0) * per[:, None, :] * m[..., None]
+    F = np.where((ch_rest > 0) & (L > 0) & (ln > 1.0), fmax * (np.exp(k * (ln - 1.0) / e0) - 1.0) / (np.exp(k) - 1.0), 0.0)
     out = np.zeros_like(x)
-    np.add.at(out, pad.idx[m], fv[m])
+    for m in range(sim.n_muscles):
+        if F[m] > 0:
+            a, b = ch_idx[ch_off[2 * m]:ch_off[2 * m + 1]], ch_idx[ch_off[2 * m + 1]:ch_off[2 * m + 2]]
+            out[a] += F[m] / a.size * u[m]
+            out[b] -= F[m] / b.size * u[m]
     return out
 
 

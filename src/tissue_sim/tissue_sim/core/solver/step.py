@@ -48,11 +48,12 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
                                 'muscle_length muscle_velocity joint_lock_torque activation')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
-                                'mcells off cv lrest inv_lopt fmax')
+                                'ch_rest inv_lopt fmax ch_off ch_idx')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 '
                                  'fl_rest')
-Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive')
+Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
+                                 'chord chord_axis')
 
 
 @njit(cache=True)
@@ -76,7 +77,6 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
 def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
     a_st = st.activation          # the activation state (the commands are its excitations when tau_act > 0)
-    measure = num.fv_on or num.fl_on or num.pe_on
     work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
         for m in range(acts.shape[1]):
@@ -99,19 +99,20 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             MU.advance_activation(act, a_st, h, num.tau_act, num.tau_deact)
             # 1. muscle tension: contraction state, the active tension's activation x the force-velocity
             # factor (muscle velocity from the last evaluation) x the active force-length factor (the fibre
-            # length of the last evaluation), then every cell's elastic + volume + damping force
+            # length of the attachment chord now), then every cell's elastic + volume + damping force
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
+            if num.fl_on:
+                MU.chord_lengths(x, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
             for m in range(act_t.shape[0]):
                 act_t[m] = a_st[m] * CK.force_velocity(mvel[m] * tissue.inv_vl0[m], num.fv_max) if num.fv_on else a_st[m]
                 if num.fl_on:
-                    act_t[m] *= MU.active_force_length(MU.fibre_length(mlen[m], m, tissue.lrest, tissue.inv_lopt,
-                                                                       num.fl_rest), num.fl_gamma)
+                    act_t[m] *= MU.active_force_length(MU.fibre_length(scratch.chord[m], m, tissue.ch_rest,
+                                                                       tissue.inv_lopt, num.fl_rest), num.fl_gamma)
             bad = CK.lane_forces(x, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
-            if num.pe_on:         # the passive fibre force along each muscle's cells (conservative, muscle.py)
-                MU.passive_tension(x, f, tissue.off, tissue.cv, tissue.mcells, tissue.mcell_muscle,
-                                   tissue.mcell_weight, tissue.lrest, tissue.inv_lopt, tissue.fmax, num.fl_rest, num.pe_k,
-                                   num.pe_eps0, scratch.muscle_sums, scratch.passive)
-            if measure:
+            if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
+                MU.passive_tension(x, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
+                                   num.fl_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
+            if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
                                    num.fv_alpha, scratch.muscle_sums)
             if bad >= 0:
@@ -187,7 +188,7 @@ class Workspace:
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
                         np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0),
-                        mcells, sim.off, sim.cv, *MU.muscle_constants(sim))   # the force-length's constants (muscle.py)
+                        *MU.muscle_constants(sim))       # the force-length's constants (muscle.py)
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
@@ -199,7 +200,8 @@ class Workspace:
                       float(p.fl_passive_strain), float(p.rest_fibre_length))
         M, J = sim.n_muscles, sim.n_joints
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
-                          np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M))
+                          np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M),
+                          np.empty((M, 3)))
         return cells, tissue, sim.skeleton, num, scratch, (sim.contact, self.contact)
 
 
