@@ -223,7 +223,7 @@ def decode_state(data, with_vertices: bool = True) -> StateFrame:
         vp = np.zeros((0, 3), np.float32)
     ke = r.float64()
     ee = r.float64()
-    if r.remaining() >= 4:
+    if r.remaining >= 4:
         ex, mf = r.array(np.float32), r.array(np.float32)
     else:                        # a recording made before the fields: the commands were the activations
         ex, mf = act.copy(), np.zeros(0, np.float32)
