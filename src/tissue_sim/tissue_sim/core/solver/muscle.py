@@ -28,6 +28,8 @@ import weakref
 import numpy as np
 from numba import njit
 
+from tissue_sim.core.solver.cells import force_velocity as _force_velocity
+
 
 @njit(cache=True)
 def activation_step(u, a, h, tau_act, tau_deact):
@@ -138,6 +140,20 @@ def passive_tension(x, f, ch_off, ch_idx, ch_rest, inv_lopt, fmax, l0, k_pe, eps
     return energy
 
 
+@njit(cache=True)
+def tension_activation_of(a, mvel, inv_vl0, fv_on, fv_max, chord, ch_rest, inv_lopt, l0, fl_on, gamma, out):
+    """out (M,) = the active tension's activation: a x the force-velocity factor of the muscle velocity mvel [m/s]
+    (cells.force_velocity of mvel / (v_max L0), inv_vl0 = 1 / (v_max L0); fv_on) x the active force-length factor of
+    the attachment chord (fl_on). The one definition the step and the observation (tension_activation) use."""
+    for m in range(out.shape[0]):
+        f = a[m]
+        if fv_on:
+            f *= _force_velocity(mvel[m] * inv_vl0[m], fv_max)
+        if fl_on:
+            f *= active_force_length(fibre_length(chord[m], m, ch_rest, inv_lopt, l0), gamma)
+        out[m] = f
+
+
 def attachment_groups(sim):
     """(ch_off (2M+1,) int64, ch_idx int32) the CSR groups of chord_lengths: per muscle the bone-attached vertices of its
     cells on its most proximal segment (fewest joints from the root), then those on its most distal one (most joints;
@@ -187,9 +203,19 @@ def _constants(sim):
         lopt = np.asarray(sim.tissue.muscle_fibre_length, np.float64)
         lopt = np.where(np.isfinite(lopt) & (lopt > 0), lopt, lrest)
         inv = np.where(lopt > 0, 1.0 / np.where(lopt > 0, lopt, 1.0), 0.0)
-        # per muscle: its cells, and each cell's slice gap among the muscle's gaps (for the median over gaps)
-        cells = [np.flatnonzero(sim.cell_muscle == m) for m in range(sim.n_muscles)]
-        gaps = [np.unique(sim.tissue.cell_slice[cm], return_inverse=True)[1] for cm in cells]
+        # the muscle cells, each one's slice gap (numbered over all muscles), and per muscle its gaps as a row of
+        # a (M, G) table padded with the index of a NaN (G = most gaps of a muscle; a muscle without any: a 0)
+        cells = np.flatnonzero(sim.cell_muscle >= 0)
+        key = sim.cell_muscle[cells].astype(np.int64) * (int(sim.tissue.cell_slice.max(initial=0)) + 1) \
+            + sim.tissue.cell_slice[cells]
+        ukey, gaps = np.unique(key, return_inverse=True)
+        gm = ukey // (int(sim.tissue.cell_slice.max(initial=0)) + 1)
+        counts = np.bincount(gm, minlength=sim.n_muscles)
+        table = np.full((sim.n_muscles, max(int(counts.max(initial=0)), 1)), ukey.size, np.int64)   # NaN slot
+        for m in range(sim.n_muscles):
+            table[m, :counts[m]] = np.flatnonzero(gm == m)
+        table[counts == 0, 0] = ukey.size + 1                                                 # the 0 slot
+        gaps = (gaps, table, ukey.size)
         ch_off, ch_idx = attachment_groups(sim)
         ch_rest, axis = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3))
         chord_lengths(sim.rest, ch_off, ch_idx, ch_rest, axis)
@@ -202,22 +228,22 @@ def tension_activation(sim, state) -> np.ndarray:
     """(M,) the active tension's activation factor at the state: the activation state x the force-velocity factor of
     its muscle velocity (max_contraction_velocity > 0) x the active force-length factor of its fibre length
     (force_length on), as the step applies them (specific_tension 0: the activation, unused)."""
-    from tissue_sim.core.solver import cells as CK
     p = sim.params
-    a = np.asarray(state.activation if state.activation is not None else np.zeros(sim.n_muscles), np.float64).copy()
+    M = sim.n_muscles
+    a = np.asarray(state.activation if state.activation is not None else np.zeros(M), np.float64).copy()
     if p.specific_tension <= 0:
         return a
     ch_rest, inv_lopt, _, ch_off, ch_idx = muscle_constants(sim)
-    if p.max_contraction_velocity > 0:
-        vl0 = p.max_contraction_velocity * np.asarray(sim.muscle_rest_length)
-        vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
-        a *= np.array([CK.force_velocity(w, p.fv_max_lengthening) for w in vn])
+    vl0 = p.max_contraction_velocity * np.asarray(sim.muscle_rest_length, np.float64)
+    inv_vl0 = np.divide(1.0, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
+    chord, axis = np.zeros(M), np.zeros((M, 3))
     if p.force_length:
-        chord, axis = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3))
         chord_lengths(state.x, ch_off, ch_idx, chord, axis)
-        a *= np.array([active_force_length(fibre_length(chord[m], m, ch_rest, inv_lopt, p.rest_fibre_length),
-                                           p.fl_width) for m in range(sim.n_muscles)])
-    return a
+    out = np.empty(M)
+    tension_activation_of(a, np.asarray(state.muscle_velocity, np.float64), inv_vl0, p.max_contraction_velocity > 0,
+                          float(p.fv_max_lengthening), chord, ch_rest, inv_lopt, float(p.rest_fibre_length),
+                          bool(p.force_length), float(p.fl_width), out)
+    return out
 
 
 def muscle_forces(sim, state) -> dict:
@@ -233,7 +259,7 @@ def muscle_forces(sim, state) -> dict:
     M = sim.n_muscles
     alen = np.empty(sim.n_cells)
     cell_axial_lengths(state.x, sim.off, sim.cv, alen)
-    ch_rest, inv_lopt, fmax, mcells, mgaps, ch_off, ch_idx = _constants(sim)
+    ch_rest, inv_lopt, fmax, mcells, (mgap, table, ng), ch_off, ch_idx = _constants(sim)
     chord, axis, passive = np.zeros(M), np.zeros((M, 3)), np.zeros(M)
     energy = 0.0
     if p.passive_force_length and p.specific_tension > 0:
@@ -243,12 +269,12 @@ def muscle_forces(sim, state) -> dict:
         chord_lengths(state.x, ch_off, ch_idx, chord, axis)
     ln = np.array([fibre_length(chord[m], m, ch_rest, inv_lopt, p.rest_fibre_length) for m in range(M)])
     act = tension_activation(sim, state)
-    n = np.diff(sim.off)
-    active = np.zeros(M)
-    for m in range(M):
-        c = mcells[m]
-        if c.size == 0 or not np.any(sim.k_active[c] > 0):
-            continue
-        T = act[m] * sim.k_active[c] * n[c] / 4.0 * np.maximum(alen[c] - state.lam[m] * sim.rest_length[c], 0.0)
-        active[m] = float(np.median(np.bincount(mgaps[m], weights=T)))
+    n = np.diff(sim.off)[mcells]
+    cm = sim.cell_muscle[mcells]
+    T = act[cm] * sim.k_active[mcells] * n / 4.0 * np.maximum(alen[mcells] - state.lam[cm] * sim.rest_length[mcells], 0.0)
+    gap_sums = np.concatenate([np.bincount(mgap, weights=T, minlength=ng), [np.nan, 0.0]])
+    rows = np.sort(gap_sums[table], axis=1)                          # NaN padding last
+    k = np.sum(~np.isnan(rows), axis=1)                              # >= 1 per row
+    idx = np.arange(M)
+    active = 0.5 * (rows[idx, (k - 1) // 2] + rows[idx, k // 2])     # the median over the muscle's gaps
     return dict(active=active, passive=passive, total=active + passive, fibre_length=ln, passive_energy=energy)

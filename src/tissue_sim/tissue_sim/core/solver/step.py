@@ -103,11 +103,8 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             if num.fl_on:
                 MU.chord_lengths(x, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
-            for m in range(act_t.shape[0]):
-                act_t[m] = a_st[m] * CK.force_velocity(mvel[m] * tissue.inv_vl0[m], num.fv_max) if num.fv_on else a_st[m]
-                if num.fl_on:
-                    act_t[m] *= MU.active_force_length(MU.fibre_length(scratch.chord[m], m, tissue.ch_rest,
-                                                                       tissue.inv_lopt, num.fl_rest), num.fl_gamma)
+            MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.chord, tissue.ch_rest,
+                                     tissue.inv_lopt, num.fl_rest, num.fl_on, num.fl_gamma, act_t)
             bad = CK.lane_forces(x, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
             if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
                 MU.passive_tension(x, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
