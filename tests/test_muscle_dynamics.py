@@ -189,3 +189,22 @@ def test_tissue_state_carries_excitations_and_forces():
     old = tissue_cdr.encode_state(**base)[:-16]       # without the excitations (length + 2 float32) and empty forces
     s0 = tissue_cdr.decode_state(old)
     assert np.allclose(s0.excitations, [0.25, 0.0]) and s0.muscle_forces.size == 0
+
+
+def test_a_recorded_run_tabulates_each_muscles_force_and_excitation(tmp_path):
+    """tissue-sim simulate -> run.mcap -> analyze: muscles.csv has the excitation (the command) and force_n, the
+    force observe() gives for the same headless run (float32 in the message), the activation its dynamic state."""
+    import csv
+
+    from tissue_sim.cli import main
+    assert main(['simulate', 'phantom:knee', '--duration', '0.1', '--activate', 'hamstring=1', '--params', 'physical',
+                 '-o', str(tmp_path / 'run.mcap')]) == 0
+    assert main(['analyze', str(tmp_path / 'run.mcap'), '-q', '--no-plots', '-o', str(tmp_path / 'an')]) == 0
+    rows = [r for r in csv.DictReader(open(tmp_path / 'an' / 'muscles.csv')) if r['muscle'] == 'hamstring']
+    last = rows[-1]
+    sim = solver.compile_model(phantom.knee(n_gaps=12), solver.Params.physical())      # what phantom:knee loads
+    *_, (t, obs) = solver.simulate(sim, 0.1, {'hamstring': 1.0}, every=100, output='obs')
+    assert float(last['time_s']) == pytest.approx(t)
+    assert float(last['excitation']) == 1.0 and float(rows[0]['activation']) == 0.0
+    assert float(last['activation']) == pytest.approx(obs['activations'][0], rel=1e-6) and 0.9 < obs['activations'][0] < 1
+    assert float(last['force_n']) == pytest.approx(obs['muscle_forces'][0], rel=1e-5) and obs['muscle_forces'][0] > 50
