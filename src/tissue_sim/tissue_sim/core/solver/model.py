@@ -146,6 +146,8 @@ class State:
     muscle_velocity: np.ndarray = None  # (M,) [m/s] lengthening velocity of each muscle, low-pass filtered (force-velocity on)
     joint_lock_torque: np.ndarray = None    # (J,) [N m] torque each joint lock applied about its axis in the last sub-step
                                     # (+ about the joint axis, the direction q grows; 0 where not locked)
+    activation: np.ndarray = None   # (M,) activation state in [0, 1] (Params.activation_time > 0: it follows the commanded
+                                    # excitation with first-order dynamics; otherwise it is the last command)
     step: int = 0
     time: float = 0.0               # [s]
     x_back: np.ndarray = None       # double buffers (internal)
@@ -334,20 +336,35 @@ def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarr
     L = np.maximum(alen, 1e-9)
     area = vol / L
     n_ring = sizes / 2
+    forces = muscle_max_forces(tm, p, vol, alen)
     for m in range(tm.n_muscles):
         cells = np.flatnonzero(tm.cell_muscle == m)
         if cells.size == 0:
             continue
         _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
+        share = area[cells] / np.bincount(gap, weights=area[cells])[gap]
+        k_active[cells] = 2.0 * forces[m] * share / (n_ring[cells] * (1.0 - p.min_stretch) * L[cells])
+    return k_active
+
+
+def muscle_max_forces(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarray) -> np.ndarray:
+    """(M,) [N] each muscle's maximum isometric force F as the physical set uses it (the active tension's calibration,
+    the passive force-length's scale): the anatomy's Fmax x specific_tension / 6e5, or specific_tension x the
+    muscle's mean cross section (volume / length) when the model has none; 0 with specific_tension 0 (the paper)."""
+    forces = np.zeros(tm.n_muscles)
+    L = np.maximum(alen, 1e-9)
+    for m in range(tm.n_muscles):
+        cells = np.flatnonzero(tm.cell_muscle == m)
+        if cells.size == 0:
+            continue
         fmax = float(tm.muscle_max_force[m]) if np.isfinite(tm.muscle_max_force[m]) else 0.0
         if fmax > 0:
-            F = fmax * p.specific_tension / 6.0e5
+            forces[m] = fmax * p.specific_tension / 6.0e5
         else:   # no force in the model: specific tension x mean cross section (volume / length)
+            _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
             length = float(np.sum(np.bincount(gap, weights=L[cells]) / np.bincount(gap)))
-            F = p.specific_tension * float(np.sum(vol[cells])) / length
-        share = area[cells] / np.bincount(gap, weights=area[cells])[gap]
-        k_active[cells] = 2.0 * F * share / (n_ring[cells] * (1.0 - p.min_stretch) * L[cells])
-    return k_active
+            forces[m] = p.specific_tension * float(np.sum(vol[cells])) / length
+    return forces
 
 
 def substeps_for(p: Params, omega: float, c: float, dt: float) -> int:
@@ -411,6 +428,7 @@ def make_state(sim: SimModel) -> State:
                lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
                cell_length=np.zeros(C), muscle_length=np.full(max(sim.n_muscles, 0), -1.0),
                muscle_velocity=np.zeros(max(sim.n_muscles, 0)), joint_lock_torque=np.zeros(J),
+               activation=np.zeros(max(sim.n_muscles, 0)),
                x_back=np.empty((V, 3)), v_back=np.empty((V, 3)))
     return st
 

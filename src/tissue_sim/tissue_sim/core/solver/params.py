@@ -65,6 +65,18 @@ class Params:
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
     fv_max_lengthening: float = 1.4       # eccentric plateau of the force-velocity factor (x isometric; Thelen 2003)
     fv_filter_time: float = 0.005         # [s] low-pass time constant of the muscle velocity the factor uses
+    activation_time: float = 0.0          # [s] activation time constant of the first-order excitation -> activation dynamics
+                                          # (Thelen 2003: 0.015; physical: 0.015); 0 = off: the command is the activation (paper)
+    deactivation_time: float = 0.05       # [s] its deactivation time constant (Thelen 2003: 0.050; used when activation_time > 0)
+    force_length: bool = False            # active force-length of the fibres, exp(-(l - 1)^2 / fl_width), multiplying the active
+                                          # tension (Thelen 2003; physical: on; needs specific_tension > 0)
+    passive_force_length: bool = False    # passive fibre force Fmax (exp(k (l - 1) / eps0) - 1) / (exp(k) - 1) for l > 1 along each
+                                          # muscle (Thelen 2003; needs specific_tension > 0; off in both sets, docs/solver.md)
+    fl_width: float = 0.45                # gamma, width of the active force-length curve (Thelen 2003 / OpenSim KshapeActive)
+    fl_passive_shape: float = 5.0         # k_PE, shape of the passive curve (Thelen 2003 / OpenSim KshapePassive)
+    fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
+    rest_fibre_length: float = 1.0        # normalised fibre length l of every muscle in the model's rest pose (l = rest_fibre_length
+                                          # + (L - L_rest) / L_opt: rigid tendon, the fibres take the measured length change)
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
@@ -94,7 +106,8 @@ class Params:
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
-                    bone_contact=True, stability_limit=1.4)
+                    bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
+                    force_length=True)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -124,6 +137,12 @@ class Params:
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')
         need(self.fv_max_lengthening >= 1, 'fv_max_lengthening must be >= 1')
+        need(0 <= self.activation_time <= 1, 'activation_time must be in [0, 1] s')
+        need(0 < self.deactivation_time <= 1, 'deactivation_time must be in (0, 1] s')
+        need(0 < self.fl_width <= 10, 'fl_width must be in (0, 10]')
+        need(0 < self.fl_passive_shape <= 50, 'fl_passive_shape must be in (0, 50]')
+        need(0 < self.fl_passive_strain <= 5, 'fl_passive_strain must be in (0, 5]')
+        need(0.2 <= self.rest_fibre_length <= 2, 'rest_fibre_length must be in [0.2, 2]')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
