@@ -3,11 +3,12 @@
 Projective-dynamics / quasi-Newton form. With y = x + h v + h^2 g the inertial prediction (bone-attached vertices
 at their current pose), one step solves backward Euler's M (x1 - y) / h^2 = f(x1, (x1 - x) / h) approximately by
 
-    A w = f(y, v) - Lhat_fa (xa1 - xa),    x1_free = y + w,    v1 = (x1 - x) / h,
+    A w = f(y, v) - Lhat_fa (xa1 - ya),    x1_free = y + w,    v1 = (x1 - x) / h,
 
 A = M/h^2 + Lhat_ff, Lhat = sum over cells of (k_c + k_active,c)(1 + volume term) + b_c/h times the cell's centring
 operator (I - 1 1^T / n) (the Hessian of the shape-matching energy with the cell's rotation held fixed, plus the
-deformation damping's over h; the same for x, y and z), xa1 - xa the bone-attached vertices' motion over the step.
+deformation damping's over h; the same for x, y and z), the bone-attached vertices predicted as ya = xa + h va and
+xa1 - ya their motion beyond that (the skeleton's step, between the force evaluation and the solve).
 A is constant per model and h: factored once (scipy's SuperLU, no pivoting: A is SPD). ``implicit_iterations`` > 1
 repeats the correction from the last iterate (residual f(x1, v1) - M (x1 - y)/h^2): local/global iterations.
 
@@ -161,20 +162,21 @@ def make(sim, h: float) -> Implicit:
 
 @njit(cache=True, fastmath={'contract'})
 def predict(h, x, v, y, mh2, gravity, vel_damp):
-    """y = x + h (1 - h c_v)(v + h g) for the free vertices (mh2 > 0), y = x for the bone-attached ones: the
-    positions the step's forces are evaluated at (the same free positions integration.integrate writes with a zero
-    force)."""
+    """y = x + h (1 - h c_v)(v + h g) for the free vertices (mh2 > 0), y = x + h v for the bone-attached ones (their
+    segment's motion continued): the positions the step's forces are evaluated at (the same free positions
+    integration.integrate writes with a zero force). The bones must be predicted too: with them where they are, tissue
+    moving with a bone would lie h v ahead of it and pull it on (a negative damping k h: the knee diverged in 24 steps)."""
     damp = 1.0 - h * vel_damp
     for i in range(x.shape[0]):
         if mh2[i] > 0.0:
             for a in range(3):
                 y[i, a] = x[i, a] + h * ((v[i, a] + h * gravity[a]) * damp)
         else:
-            y[i, 0] = x[i, 0]; y[i, 1] = x[i, 1]; y[i, 2] = x[i, 2]
+            y[i, 0] = x[i, 0] + h * v[i, 0]; y[i, 1] = x[i, 1] + h * v[i, 1]; y[i, 2] = x[i, 2] + h * v[i, 2]
 
 
 @njit(cache=True, fastmath={'contract'})
-def _solve(imp, f, xk, y, xold, first):
+def _solve(imp, f, xk, y, first):
     """Right-hand side in factor order, the two triangular solves (L, then D^-1, then L^T), xk_free += w."""
     z, Lp, Lj, Lx = imp.z, imp.Lp, imp.Lj, imp.Lx
     n = z.shape[0]
@@ -187,10 +189,10 @@ def _solve(imp, f, xk, y, xold, first):
             z[p, 2] = f[i, 2] - m * (xk[i, 2] - y[i, 2])
         else:
             s0 = s1 = s2 = 0.0
-            if first:                       # the bones' motion over the step, felt through the cell's centre
+            if first:                       # the bones' motion beyond the prediction, felt through the cell's centre
                 for q in range(imp.att_ptr[p], imp.att_ptr[p + 1]):
                     a = imp.att_idx[q]
-                    s0 += xk[a, 0] - xold[a, 0]; s1 += xk[a, 1] - xold[a, 1]; s2 += xk[a, 2] - xold[a, 2]
+                    s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
             k = imp.keff[imp.row_c[p]]
             z[p, 0] = k * s0; z[p, 1] = k * s1; z[p, 2] = k * s2
     for p in range(n):                      # L z' = z (unit lower)
@@ -233,15 +235,15 @@ def _velocities(h, x, xn, vn, mh2, vmax2):
 def integrate(h, x, v, f, xn, vn, imp, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp, vmax2):
     """Stage 3 with the implicit integrator, first iteration: f = the forces at imp.y (predict); the bone-attached
     vertices take their segment's new pose (integration.integrate), the free ones x1 = y + A^-1 (f - Lhat_fa
-    (xa1 - xa)), v1 = (x1 - x)/h. Reads x, v, writes xn, vn; returns how many vertices are too fast or not finite."""
+    (xa1 - ya)), v1 = (x1 - x)/h. Reads x, v, writes xn, vn; returns how many vertices are too fast or not finite."""
     nfast = IK.integrate(h, x, v, f, imp.zero_inv, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp,
                          vmax2)
-    _solve(imp, f, xn, imp.y, x, True)
+    _solve(imp, f, xn, imp.y, True)
     return nfast + _velocities(h, x, xn, vn, imp.mh2, vmax2)
 
 
 @njit(cache=True)
 def correct(h, x, f, xn, vn, imp, vmax2):
     """A further local/global iteration: f = the forces at (xn, vn); xn_free += A^-1 (f - M (xn - y)/h^2)."""
-    _solve(imp, f, xn, imp.y, x, False)
+    _solve(imp, f, xn, imp.y, False)
     return _velocities(h, x, xn, vn, imp.mh2, vmax2)

@@ -114,10 +114,10 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle
         vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
         act_t = a * np.array([CK.force_velocity(u, p.fv_max_lengthening) for u in vn]) if fv_on else a
-        # (integrator implicit: the forces at the inertial prediction y, the bone-attached vertices where they are)
+        # (integrator implicit: the forces at the inertial prediction y, bone-attached vertices at x + h v)
         implicit = p.integrator == 'implicit'
         y = np.where(free[:, None], state.x + h * (1.0 - h * p.velocity_damping) * (state.v + h * sim.gravity),
-                     state.x) if implicit else state.x
+                     state.x + h * state.v) if implicit else state.x
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
             sim, pad, y, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
         if fv_on:                    # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
@@ -138,7 +138,7 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         xa = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[i]) + state.seg_t[s]
         if implicit:
             x_old, moved = state.x.copy(), np.zeros_like(state.x)
-            moved[i] = xa - state.x[i]
+            moved[i] = xa - y[i]
             state.x[free] = IM.reference_solve(sim, h, f, y, y, moved)
             state.x[i] = xa
             state.v[:] = (state.x - x_old) / h
