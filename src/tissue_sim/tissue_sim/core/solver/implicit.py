@@ -178,22 +178,23 @@ def predict(h, x, v, y, mh2, gravity, vel_damp):
 @njit(cache=True, fastmath={'contract'})
 def _solve(imp, f, xk, y, first):
     """Right-hand side in factor order, the two triangular solves (L, then D^-1, then L^T), xk_free += w."""
-    z, Lp, Lj, Lx = imp.z, imp.Lp, imp.Lj, imp.Lx
+    z, Lp, Lj, Lx, dinv = imp.z, imp.Lp, imp.Lj, imp.Lx, imp.dinv
+    row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
     n = z.shape[0]
     for p in range(n):
-        i = imp.row_v[p]
+        i = row_v[p]
         if i >= 0:
-            m = imp.mh2[i]
+            m = mh2[i]
             z[p, 0] = f[i, 0] - m * (xk[i, 0] - y[i, 0])
             z[p, 1] = f[i, 1] - m * (xk[i, 1] - y[i, 1])
             z[p, 2] = f[i, 2] - m * (xk[i, 2] - y[i, 2])
         else:
             s0 = s1 = s2 = 0.0
             if first:                       # the bones' motion beyond the prediction, felt through the cell's centre
-                for q in range(imp.att_ptr[p], imp.att_ptr[p + 1]):
-                    a = imp.att_idx[q]
+                for q in range(att_ptr[p], att_ptr[p + 1]):
+                    a = att_idx[q]
                     s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
-            k = imp.keff[imp.row_c[p]]
+            k = keff[row_c[p]]
             z[p, 0] = k * s0; z[p, 1] = k * s1; z[p, 2] = k * s2
     for p in range(n):                      # L z' = z (unit lower)
         s0, s1, s2 = z[p, 0], z[p, 1], z[p, 2]
@@ -202,17 +203,17 @@ def _solve(imp, f, xk, y, first):
             l = Lx[q]
             s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
         z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
-    for p in range(n):                      # D^-1
-        d = imp.dinv[p]
+    for p in range(n):
+        d = dinv[p]
         z[p, 0] *= d; z[p, 1] *= d; z[p, 2] *= d
-    for p in range(n - 1, -1, -1):          # L^T w = D^-1 z'
+    for p in range(n - 1, -1, -1):          # L^T w = D^-1 z' (rows of L scattered from the last)
         w0, w1, w2 = z[p, 0], z[p, 1], z[p, 2]
         for q in range(Lp[p], Lp[p + 1]):
             j = Lj[q]
             l = Lx[q]
             z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
     for p in range(n):
-        i = imp.row_v[p]
+        i = row_v[p]
         if i >= 0:
             xk[i, 0] += z[p, 0]; xk[i, 1] += z[p, 1]; xk[i, 2] += z[p, 2]
 
