@@ -177,7 +177,10 @@ def predict(h, x, v, y, mh2, gravity, vel_damp):
 
 @njit(cache=True, fastmath={'contract'})
 def _solve(imp, f, xk, y, first):
-    """Right-hand side in factor order, the two triangular solves (L, then D^-1, then L^T), xk_free += w."""
+    """xk_free += w, A w = the right-hand side (f - M (xk - y)/h^2 on the vertices' rows; on the cells' rows in the
+    first iteration the bones' motion beyond the prediction, keff_c sum (xk_a - y_a)): L z' = rhs (the rhs formed row
+    by row as the forward pass reaches it), z' D^-1, L^T w = z' D^-1 (each w_p final when the backward pass leaves
+    row p: the update is made there)."""
     z, Lp, Lj, Lx, dinv = imp.z, imp.Lp, imp.Lj, imp.Lx, imp.dinv
     row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
     n = z.shape[0]
@@ -185,19 +188,17 @@ def _solve(imp, f, xk, y, first):
         i = row_v[p]
         if i >= 0:
             m = mh2[i]
-            z[p, 0] = f[i, 0] - m * (xk[i, 0] - y[i, 0])
-            z[p, 1] = f[i, 1] - m * (xk[i, 1] - y[i, 1])
-            z[p, 2] = f[i, 2] - m * (xk[i, 2] - y[i, 2])
+            s0 = f[i, 0] - m * (xk[i, 0] - y[i, 0])
+            s1 = f[i, 1] - m * (xk[i, 1] - y[i, 1])
+            s2 = f[i, 2] - m * (xk[i, 2] - y[i, 2])
         else:
             s0 = s1 = s2 = 0.0
-            if first:                       # the bones' motion beyond the prediction, felt through the cell's centre
+            if first:
                 for q in range(att_ptr[p], att_ptr[p + 1]):
                     a = att_idx[q]
                     s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
-            k = keff[row_c[p]]
-            z[p, 0] = k * s0; z[p, 1] = k * s1; z[p, 2] = k * s2
-    for p in range(n):                      # L z' = z (unit lower)
-        s0, s1, s2 = z[p, 0], z[p, 1], z[p, 2]
+                k = keff[row_c[p]]
+                s0 *= k; s1 *= k; s2 *= k
         for q in range(Lp[p], Lp[p + 1]):
             j = Lj[q]
             l = Lx[q]
@@ -206,16 +207,15 @@ def _solve(imp, f, xk, y, first):
     for p in range(n):
         d = dinv[p]
         z[p, 0] *= d; z[p, 1] *= d; z[p, 2] *= d
-    for p in range(n - 1, -1, -1):          # L^T w = D^-1 z' (rows of L scattered from the last)
+    for p in range(n - 1, -1, -1):
         w0, w1, w2 = z[p, 0], z[p, 1], z[p, 2]
         for q in range(Lp[p], Lp[p + 1]):
             j = Lj[q]
             l = Lx[q]
             z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
-    for p in range(n):
         i = row_v[p]
         if i >= 0:
-            xk[i, 0] += z[p, 0]; xk[i, 1] += z[p, 1]; xk[i, 2] += z[p, 2]
+            xk[i, 0] += w0; xk[i, 1] += w1; xk[i, 2] += w2
 
 
 @njit(cache=True, fastmath={'contract'})
