@@ -1,7 +1,7 @@
 """Implicit Euler of the free soft-tissue vertices (``integrator: implicit``; docs/solver.md "Implicit integrator").
 
 Projective-dynamics / quasi-Newton form. With y = x + h v + h^2 g the inertial prediction (bone-attached vertices
-at their current pose), one step solves backward Euler's M (x1 - y) / h^2 = f(x1, (x1 - x) / h) approximately by
+continued with their velocity, ya = xa + h va), one step solves backward Euler's M (x1 - y) / h^2 = f(x1, (x1 - x) / h) approximately by
 
     A w = f(y, v) - Lhat_fa (xa1 - ya),    x1_free = y + w,    v1 = (x1 - x) / h,
 
@@ -14,7 +14,7 @@ repeats the correction from the last iterate (residual f(x1, v1) - M (x1 - y)/h^
 
 The system is solved in its star form: one extra unknown per cell (the cell's centroid displacement u_c) with
 energy sum_c keff_c sum_i |u_i - u_c|^2, whose Schur complement on the vertices is exactly Lhat. Its factor is
-~4x sparser than A's (bundled model: 39k entries against 174k; the ~29k-vertex model 434k), the bone-attached
+~4x sparser than A's (bundled model: 39k entries against 174k; a 26k-vertex model 434k), the bone-attached
 vertices' motion enters the cells' rows (keff_c sum of their displacements), and the triangular solves, the
 right-hand side and the update run in numba inside the compiled step (``integrate``, ``correct``).
 
