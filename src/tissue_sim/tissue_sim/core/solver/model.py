@@ -95,7 +95,7 @@ class SimModel:
         """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
         1/max(m_i, h^2 kappa_i / stability_limit^2, (h^2 kappa_i + 2 h b_i) / 3.8) (mass_scaled, b_i the vertex's
         summed damping coefficient); 0 for bone-attached vertices."""
-        if self.params.integrator == 'explicit':
+        if self.params.integrator in ('explicit', 'implicit'):
             return self.inv_mass
         # selective mass scaling: a vertex whose cells' summed stiffness would exceed the explicit
         # limit at this h gets the mass that puts it at stability_limit (Gershgorin bound on omega h)
@@ -372,7 +372,7 @@ def substeps_for(p: Params, omega: float, c: float, dt: float) -> int:
     (the scaled masses keep omega h below stability_limit); else the explicit stability estimate."""
     if p.substeps:
         return p.substeps
-    if p.integrator == 'mass_scaled':
+    if p.integrator in ('mass_scaled', 'implicit'):
         return 1
     return stable_substeps(omega, c, dt, p.stability_limit)
 
