@@ -251,9 +251,7 @@ class Simulator(Node):
         js = self.JointState()
         js.header.stamp = clock.clock
         js.header.frame_id = self.frame_id
-        js.name = list(self.tm.joint_names)
-        js.position = [float(v) for v in obs['joint_positions']]
-        js.velocity = [float(v) for v in obs['joint_velocities']]
+        js.name, js.position, js.velocity = urdf.joint_states(self.sim, obs['joint_positions'], obs['joint_velocities'])
         self.pub_joints.publish(js)
         if self.pub_tf is not None and self.tf_moving:
             self.pub_tf.publish(self.tf_message(stamp, self.tf_moving))

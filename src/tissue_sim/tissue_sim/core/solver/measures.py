@@ -7,6 +7,8 @@ import numpy as np
 from numba import njit
 
 from tissue_sim.core.geometry import prism_volumes
+from tissue_sim.core.model import JOINT_COUPLED
+from tissue_sim.core.solver.skeleton import coupled_eval
 
 
 
@@ -56,6 +58,15 @@ def skeleton_energy(sim, state) -> float:
             if sim.anc[j, s]:
                 w += a[j] * state.qd[j]
                 v += np.cross(a[j], com - p[j]) * state.qd[j]
+        j = sim.seg_joint[s]
+        if j >= 0 and sim.j_type[j] == JOINT_COUPLED:       # + the coupling's motion (skeleton.coupled_eval)
+            Rp, tp = state.seg_R[sim.j_parent[j]], state.seg_t[sim.j_parent[j]]
+            ev = np.empty((4, 3))
+            coupled_eval(j, state.q[sim.j_driver[j]], sim.skeleton, ev)
+            W = Rp @ sim.j_axis[j] * ev[0, 1]
+            P = Rp @ (sim.j_centre[j] + ev[1:, 0]) + tp
+            w += W * state.qd[sim.j_driver[j]]
+            v += (np.cross(W, com - P) + Rp @ ev[1:, 1]) * state.qd[sim.j_driver[j]]
         Iw = state.seg_R[s] @ sim.seg_inertia[s] @ state.seg_R[s].T
         e += 0.5 * sim.seg_mass[s] * v @ v + 0.5 * w @ Iw @ w - sim.seg_mass[s] * sim.gravity @ (com - sim.seg_com[s])
     return float(e)
