@@ -580,7 +580,7 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
             'volume_in_stack_cm3': round(float((counts[lbl] - tendon_vox[m]) * vox / 1000.0), 1),
             'opensim_parts': list(t['parts']),
             'origin': {'segment': BODY_SEGMENT[t['origin_body']], 'body': t['origin_body']},
-            'insertion': {'segment': BODY_SEGMENT[t['insertion_body']], 'body': t['insertion_body']},
+            'insertion': PAT.insertion(t['name'], {'segment': BODY_SEGMENT[t['insertion_body']], 'body': t['insertion_body']}),
         }
         if m in tendon_slices:  # output slices run upwards: original slice k is K - 1 - k
             ks = [lab.shape[2] - 1 - k for k in tendon_slices[m]]

@@ -32,6 +32,7 @@ import osim  # noqa: E402
 STEP_DEG = 5.0
 RANGE_DEG = (0.0, 120.0)      # the knee's range in joints.yaml (Rajagopal 2016's original 0-120 deg)
 JOINT = 'patellofemoral_r'
+PATELLA_LABEL = 2           # generate.BONES
 DRIVER = 'knee_r'
 SOURCE = ('patella: segment (mass, centre of mass, inertia) = OpenSim body patella_r, and its path relative '
           'to the femur = the patellofemoral_r CustomJoint of the same model (pose2sim 0.10.49, SimmSplines of '
@@ -94,6 +95,18 @@ def joint(osim_path):
             'table_columns': ['driver_deg', 'angle_deg', 'dx', 'dy', 'dz'],
             'table': [[round(float(r[0]), 3), round(float(r[1]), 6)] + [round(float(v), 7) + 0.0 for v in r[2:]]
                       for r in rows]}
+
+
+def insertion(name, default):
+    """The insertion entry of tissues.yaml for muscle name: the patella segment for a muscle whose tendon
+    ends on the patella (the quadriceps, muscles.TENDONS), else default. In the source model the
+    quadriceps' paths run over the patella to the tibial tuberosity (the patellar ligament); here the
+    tendon ends on the patella, and the patellar ligament is the coupled joint: the quadriceps pull the
+    tibia through the patella's coupling Jacobian, as the source model's coupled patella does."""
+    import muscles as MU
+    if MU.TENDONS.get(name) == (PATELLA_LABEL,):
+        return {'segment': 'patella', 'body': 'patella_r'}
+    return default
 
 
 def main():
