@@ -223,7 +223,7 @@ def test_coupled_segment_energy_is_conserved(psim):
 
 # ------------------------------------------------------------------------- the bundled knee with its patella
 def _held_torque(sim, deg, active, settle=0.3):
-    """Knee held at deg (the solver's joint lock, the ankle locked at rest) with the muscles of the given
+    """Knee moved to deg at 200 deg/s, then held (the solver's joint lock, the ankle locked at rest) with the muscles of the given
     groups fully active: the tissue's knee torque [N m] (+ flexes), minus the lock's, mean over the last
     10 % of the hold (as tissue-sim validate measures it)."""
     st = solver.make_state(sim)
@@ -231,9 +231,12 @@ def _held_torque(sim, deg, active, settle=0.3):
     kj = sim.tissue.joint_names.index('knee_r')
     ctrl.joint_lock[:] = True
     ctrl.joint_target[:] = st.q
-    ctrl.joint_target[kj] = math.radians(deg)
     for m, g in enumerate(sim.tissue.muscle_groups):
         ctrl.activation[m] = 1.0 if g in active else 0.0
+    n_ramp = int(math.ceil(deg / 200.0 / sim.params.dt))      # to the angle at 200 deg/s (validate's ramp)
+    for i in range(n_ramp):
+        ctrl.joint_target[kj] = math.radians(deg * (i + 1) / n_ramp)
+        solver.step(sim, st, ctrl)
     n = int(round(settle / sim.params.dt))
     solver.step(sim, st, ctrl, n_steps=n - n // 10)
     tau = 0.0
