@@ -103,6 +103,8 @@ def robot_description(tm, package: str = 'tissue_sim', mesh_dir: str = 'meshes',
                     '  </joint>']
         elif tm.joint_type[j] == M.JOINT_COUPLED:
             rows = coupling_rows(tm, j)
+            pad = 0.1 * np.ptp(rows, axis=0) + 1e-4          # limits: the table's range + 10 % (spline, end stop)
+            lo_c, hi_c = rows.min(0) - pad, rows.max(0) + pad
             prev = pname
             for ch, ax in ((1, 'x'), (2, 'y'), (3, 'z')):
                 link = f'{jname}_t{ax}'
@@ -112,14 +114,14 @@ def robot_description(tm, package: str = 'tissue_sim', mesh_dir: str = 'meshes',
                         f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(link)}/>',
                         f'    {_origin(xyz if ch == 1 else (0.0, 0.0, 0.0))}',
                         f'    <axis xyz="{_fmt(unit)}"/>',
-                        f'    <limit lower="{rows[:, ch].min():.9g}" upper="{rows[:, ch].max():.9g}" effort="1000" velocity="1"/>',
+                        f'    <limit lower="{lo_c[ch]:.9g}" upper="{hi_c[ch]:.9g}" effort="1000" velocity="1"/>',
                         '  </joint>']
                 prev = link
             out += [f'  <joint name={quoteattr(jname)} type="revolute">',
                     f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(seg)}/>',
                     f'    {_origin((0.0, 0.0, 0.0))}',
                     f'    <axis xyz="{_fmt(tm.joint_axis[j])}"/>',
-                    f'    <limit lower="{rows[:, 0].min():.9g}" upper="{rows[:, 0].max():.9g}" effort="1000" velocity="20"/>',
+                    f'    <limit lower="{lo_c[0]:.9g}" upper="{hi_c[0]:.9g}" effort="1000" velocity="20"/>',
                     '  </joint>']
         else:
             out += [f'  <joint name={quoteattr(jname)} type="fixed">',
