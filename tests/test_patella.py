@@ -271,3 +271,20 @@ def test_hamstrings_still_flex_the_knee(sim):
     assert math.degrees(st.q[kj]) > 10.0
     pj = sim.tissue.joint_names.index('patellofemoral_r')
     assert st.q[pj] > 0.0                               # the patella followed the knee (its angle > 0)
+
+
+def test_joint_torques_equal_the_kernels(psim):
+    """measures.joint_torques (the analysis' generalized force of vertex forces) equals the torque the
+    skeleton kernel applies (the knee lock's reaction) for forces on every bone-attached vertex: shank
+    (hinge) and patella (coupling) alike."""
+    from tissue_sim.core.solver.measures import joint_torques
+    st = solver.set_joint_positions(psim, solver.make_state(psim), [math.radians(70.0), 0.0])
+    f = np.random.default_rng(1).standard_normal(st.x.shape)
+    tau = joint_torques(psim, st, f)
+    lt = np.zeros(2)
+    sk = psim.skeleton._replace(gravity=np.zeros(3))
+    SK.skeleton_step(1e-4, st.q, st.qd, f, st.x, sk, psim.att_idx, psim.att_seg, 0.0, 0.3, 1.0, st.seg_R, st.seg_t,
+                     np.zeros((2, 10)), np.array([True, False]), st.q.copy(), lt)
+    np.testing.assert_allclose(tau[0], -lt[0], rtol=1e-9)
+    on_patella = psim.att_idx[psim.att_seg == 2]
+    assert abs(joint_torques(psim, st, f, on_patella)[0]) > 0           # the patella's share is not zero
