@@ -7,7 +7,7 @@ segments' frames, sim time), /diagnostics (1 Hz); once (transient-local): /tissu
 /robot_description (the URDF of the model the node runs, tissue_sim.core.urdf). Subscribes to
 /tissue/activation. Services ~/reset (std_srvs/Trigger) and ~/pause (std_srvs/SetBool, true = pause).
 
-TF frames are the model's segment names (thigh, shank, foot for the bundled limb) under the root
+TF frames are the model's segment names (thigh, shank, foot, patella for the bundled limb) under the root
 frame ``world`` (the model frame, the hip joint centre of the bundled limb at its origin); a segment's
 frame is its URDF link frame, so robot_state_publisher fed the same /robot_description and
 /joint_states gives the same tree (then run the simulator with ``publish_tf: false``).

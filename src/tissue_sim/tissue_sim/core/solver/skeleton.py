@@ -119,7 +119,7 @@ def _cross(a, b, out):
 @njit(cache=True)
 def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work,
                   lock, target, lock_tau):
-    """One step of the skeleton (a tree of rigid segments, hinge or fixed joints, fixed root).
+    """One step of the skeleton (a tree of rigid segments, hinge, fixed or coupled joints, fixed root).
 
     tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
     tissue's reaction on the bone). Joint-space mass matrix M from segment masses/inertias by
@@ -132,7 +132,11 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
     with qd = 0); the other joints move under the lock's reaction. lock_tau[j] [N m] is the torque the lock
     applies about the joint axis (positive about +axis, the direction q grows): tau_lock = M_j. qdd - rhs_j,
     i.e. in a static hold minus the tissue's torque plus the gravity torque on the segments below. 0 for a
-    joint not locked. work: (J, 8 + J) scratch."""
+    joint not locked. work: (J, 8 + J) scratch.
+
+    A coupled joint (docs/solver.md "Coupled joints") has no equation of its own: its child's tissue wrench,
+    Newton-Euler wrench (inertia, gravity) and mass enter its driver's row through the coupling Jacobian;
+    after the step its coordinate follows the driver's (coupled_coordinates)."""
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_inertia, j_parent, j_child, j_type, j_axis, j_centre, \
         j_rest, j_range, anc, gravity, j_driver, cp_off, cp_x, cp_c = sk
     S = seg_mass.shape[0]
