@@ -455,7 +455,8 @@ def reset(sim: SimModel, state: State) -> State:
 
 def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
     """Pose the skeleton at joint coordinates q [rad] (and velocities qd), moving bone-attached
-    vertices with their segments; free vertices stay where they are. Returns state."""
+    vertices with their segments; free vertices stay where they are. A coupled joint's entry is
+    replaced by its driver's spline value (it has no freedom). Returns state."""
     q = np.asarray(q, np.float64)
     if q.shape != (sim.n_joints,) or not np.all(np.isfinite(q)):
         raise ValueError(f'q must be {sim.n_joints} finite joint coordinates')
