@@ -40,26 +40,17 @@ NEWTON_DONE = 1e-5          # [rad] a Newton rotation correction below this ends
 
 # ------------------------------------------------------------------------------------ contraction
 @njit(cache=True)
-def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref, mlen, inv_slack_l0):
+def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
     """Fibre stretch lam (M,) of each muscle's rest shape, in place.
 
     Target stretch lam* = 1 - a (1 - lam_min_full). Above it, lam shrinks by c^(a h/rate_dt)
     (the paper's c per dT at a = 1); below it (activation lowered or 0), lam recovers by
-    1/r^(h/rate_dt) towards lam*, i.e. back to 1 (rest length) at a = 0.
-    Passive slack (``inv_slack_l0[m]`` = 1/L0 > 0, Params.passive_slack): a muscle whose measured length
-    mlen is below its rest length L0 takes lam* = max(lam_min_full, 1 - (1 - a)(1 - mlen/L0)) where that is
-    lower (at a = 0 its rest length follows its length: a passive muscle shortened by its joints does not
-    push back along its fibres, it goes slack), reached at the full-activation rate c per dT."""
+    1/r^(h/rate_dt) towards lam*, i.e. back to 1 (rest length) at a = 0."""
     for m in range(lam.shape[0]):
         a = min(max(act[m], 0.0), 1.0)
         target = 1.0 - a * (1.0 - lam_min_full)
-        rate = a
-        if inv_slack_l0[m] > 0.0 and mlen[m] >= 0.0:
-            slack = max(1.0 - (1.0 - a) * (1.0 - mlen[m] * inv_slack_l0[m]), lam_min_full)
-            if slack < target:
-                target, rate = slack, 1.0
         if lam[m] > target:
-            lam[m] = max(lam[m] * math.exp(log_c * rate * h_over_ref), target)
+            lam[m] = max(lam[m] * math.exp(log_c * a * h_over_ref), target)
         elif lam[m] < target:
             lam[m] = min(lam[m] * math.exp(-log_r * h_over_ref), target)
 

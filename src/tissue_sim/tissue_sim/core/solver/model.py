@@ -67,7 +67,6 @@ class SimModel:
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
-    inv_slack_l0: np.ndarray        # (M,) [1/m] 1/muscle_rest_length of the muscles with passive slack, else 0 (Params.passive_slack)
     free_idx: np.ndarray            # (V - A,) int32 free vertices
     att_idx: np.ndarray             # (A,) int32 bone-attached vertices, grouped by segment (ascending vertex within)
     att_seg: np.ndarray             # (A,) int32 their segments
@@ -170,22 +169,6 @@ class Control:
 
 
 # ---------------------------------------------------------------------------------------- compile
-def _slack(tm, p, lw, alen) -> np.ndarray:
-    """(M,) 1/L0 of the muscles that go slack when shortened (Params.passive_slack: both end rings fixed to
-    bones, ``meta['anchors']``), 0 for the others (and for all with passive_slack off)."""
-    M = tm.n_muscles
-    out = np.zeros(M)
-    if not p.passive_slack or M == 0:
-        return out
-    L0 = np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0], minlength=M)[:M]
-    anchors = (tm.meta or {}).get('anchors', {})
-    for m, name in enumerate(tm.muscle_names):
-        a = anchors.get(name, {})
-        if L0[m] > 0 and all(a.get(e, [None, 0])[1] > 0 for e in ('origin', 'insertion')):
-            out[m] = 1.0 / L0[m]
-    return out
-
-
 def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     """TissueModel + Params -> SimModel (raises ValueError naming the problem for a bad model)."""
     p = (params or Params.paper()).validate()
@@ -316,7 +299,6 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         length_weight=_frozen(lw),
         muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
                                                minlength=tm.n_muscles)[:tm.n_muscles]),
-        inv_slack_l0=_frozen(_slack(tm, p, lw, alen)),
         free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
         seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),

@@ -65,9 +65,6 @@ class Params:
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
     fv_max_lengthening: float = 1.4       # eccentric plateau of the force-velocity factor (x isometric; Thelen 2003)
     fv_filter_time: float = 0.005         # [s] low-pass time constant of the muscle velocity the factor uses
-    passive_slack: bool = False           # a muscle fixed at both ends, shortened by its joints below its rest length, goes
-                                          # slack (its rest shape follows its length) instead of pushing back along its fibres
-                                          # (physical: on; needs the force-velocity's length measure; the paper: off)
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
@@ -97,7 +94,7 @@ class Params:
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
-                    bone_contact=True, stability_limit=1.4, passive_slack=True)
+                    bone_contact=True, stability_limit=1.4)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -127,9 +124,6 @@ class Params:
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')
         need(self.fv_max_lengthening >= 1, 'fv_max_lengthening must be >= 1')
-        need(not self.passive_slack or (self.max_contraction_velocity > 0 and self.specific_tension > 0),
-             'passive_slack needs the measured muscle lengths of the force-velocity (max_contraction_velocity > 0, '
-             'specific_tension > 0)')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')

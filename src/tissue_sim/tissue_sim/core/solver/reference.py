@@ -108,12 +108,7 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         # 1. muscle tension: contraction state towards 1 - a (1 - min_stretch), the tension's activation x
         # the force-velocity factor of the last measured muscle velocity, every cell's force
         target = 1.0 - a * (1.0 - p.min_stretch)
-        rate = a.copy()
-        # passive slack (Params.passive_slack): below its rest length a muscle's rest shape follows its length
-        slack = np.maximum(1.0 - (1.0 - a) * (1.0 - state.muscle_length * sim.inv_slack_l0), p.min_stretch)
-        use = (sim.inv_slack_l0 > 0) & (state.muscle_length >= 0) & (slack < target)
-        target, rate = np.where(use, slack, target), np.where(use, 1.0, rate)
-        shrink = np.maximum(state.lam * p.contraction_rate ** (rate * h / p.rate_dt), target)
+        shrink = np.maximum(state.lam * p.contraction_rate ** (a * h / p.rate_dt), target)
         state.lam[:] = np.where(state.lam > target, shrink, np.minimum(state.lam / p.relax_rate ** (h / p.rate_dt), target))
         fv_on = p.max_contraction_velocity > 0 and p.specific_tension > 0
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle

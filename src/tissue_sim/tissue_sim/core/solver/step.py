@@ -45,7 +45,7 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
 
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
                                 'muscle_length muscle_velocity joint_lock_torque')   # the State's arrays (xb, vb: back buffers)
-Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 inv_slack_l0')
+Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums')
@@ -89,7 +89,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             scratch.q0[:] = q; scratch.qd0[:] = qd; scratch.lam0[:] = lam; scratch.mlen0[:] = mlen; scratch.mvel0[:] = mvel
             # 1. muscle tension: contraction state, the active tension's activation x the force-velocity
             # factor (muscle velocity from the last evaluation), then every cell's elastic + volume + damping force
-            CK.update_contraction(lam, act, num.log_c, num.log_r, num.lam_min, h / num.h_ref, mlen, tissue.inv_slack_l0)
+            CK.update_contraction(lam, act, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             for m in range(act_t.shape[0]):
                 act_t[m] = act[m] * CK.force_velocity(mvel[m] * tissue.inv_vl0[m], num.fv_max) if num.fv_on else act[m]
             bad = CK.lane_forces(x, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
@@ -167,7 +167,7 @@ class Workspace:
         tissue = Tissue(sim.rest, sim.inv_denominator(h), sim.att_idx, sim.att_seg,
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
-                        np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0), sim.inv_slack_l0)
+                        np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0))
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
