@@ -152,6 +152,26 @@ def slice_targets(table, s_mm, dz, knee_z, ankle_z):
     return area, seeds
 
 
+def origin_along_bone(table, seeds, lab, s_mm, R0, A0):
+    """In place: above the first point of its OpenSim path, a muscle of MU.ORIGIN_ALONG_BONE keeps the
+    origin point's (R, A) offset from its bone's section centroid (the fleshy origin follows the bone)."""
+    for m, t in enumerate(table):
+        bone = MU.ORIGIN_ALONG_BONE.get(t['name'])
+        if bone is None:
+            continue
+        cen = {}
+        for k, s in enumerate(s_mm):
+            ij = np.argwhere(lab[..., k] == bone)
+            if len(ij):
+                cen[k] = ij.mean(0) + (R0, A0)
+        o = t['paths'][0][0]                          # origin point (RAS mm)
+        ko = min(cen, key=lambda k: abs(s_mm[k] - o[2]))
+        off = o[:2] - cen[ko]
+        for k in range(len(s_mm)):
+            if seeds[m][k] and s_mm[k] > o[2] and k in cen:
+                seeds[m][k] = [cen[k] + off for _ in t['paths']]
+
+
 def skin_slice(q, tri_all, reg, s_mm, grid):
     """Skin mask of the right leg in one slice (RAS mm plane S = s_mm)."""
     R0, A0, NI, NJ = grid
@@ -458,6 +478,7 @@ def build(out_dir: Path, verbose=True):
     # muscles
     table = muscle_table(model)
     area, seeds = slice_targets(table, s_mm, SLICE_MM, knee_m[2] * 1000, ankle_m[2] * 1000)
+    origin_along_bone(table, seeds, lab, s_mm, R0, A0)
     skins = leg_masks(q, tri_body, reg, s_mm, grid, lab)
     # girth: MakeHuman's mean body is slimmer than the Rajagopal (Handsfield 2014) muscle volumes need;
     # scale thigh and shank across their axis so the muscles fit inside a nominal fat layer.

@@ -124,6 +124,7 @@ def knee_muscles(tm, tissue_table: dict) -> list:
                 below.add(s)
                 break
             t = int(tm.segment_parent[t])
+    below |= {int(tm.joint_child[k]) for k in range(tm.n_joints) if tm.joint_driver[k] == j}   # coupled to it: the patella
     seg = {n: i for i, n in enumerate(tm.segment_names)}
     out = []
     for lab in tissue_table['labels'].values():
@@ -222,8 +223,9 @@ def _opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: 
 
 # ------------------------------------------------------------------------------------- elastic model
 def _below_knee(sim, j: int) -> np.ndarray:
-    """Indices into att_idx of the bone-attached vertices that the knee moves."""
-    return np.flatnonzero(sim.anc[j][sim.att_seg])
+    """Indices into att_idx of the bone-attached vertices that the knee moves (below it, or on a segment
+    coupled to it: the patella)."""
+    return np.flatnonzero(sim.anc[j][sim.att_seg] | np.isin(sim.att_seg, sim.j_child[sim.j_driver == j]))
 
 
 class _Forces:
