@@ -69,6 +69,43 @@ def unscaled_substeps(sim, tol=UNSCALED_TOL) -> int:
     return n
 
 
+def cell_moments(tm):
+    """(volume (C,) [m^3], J (C,) [m^2]: sum over a cell's vertices of |X_i - centroid|^2) at rest."""
+    from tissue_sim.core.builder.quality import cell_volumes
+    off, cv = np.asarray(tm.cell_offsets, np.int64), np.asarray(tm.cell_vertices, np.int64)
+    X = np.asarray(tm.rest_positions, np.float64)
+    sizes = np.diff(off)
+    J = np.zeros(len(sizes))
+    for n in np.unique(sizes):
+        cells = np.flatnonzero(sizes == n)
+        P = X[cv[off[cells][:, None] + np.arange(n)[None, :]]]
+        J[cells] = ((P - P.mean(axis=1, keepdims=True)) ** 2).sum(axis=(1, 2))
+    return np.abs(cell_volumes(tm)), J
+
+
+def moment_ratio(tm, params):
+    """Per tissue (muscle, fat): sum over cells of k J / sum of E V, for the 'modulus' stiffness of
+    core/solver/model.py (k = E cbrt(V) 4 / n x cell_k_scale): the shape-matching energy of a uniform strain
+    over the continuum's (1/2 E eps^2 V, up to a constant). A mesh-independent stiffness keeps it constant."""
+    V, J = cell_moments(tm)
+    n = np.diff(np.asarray(tm.cell_offsets))
+    mus = np.asarray(tm.cell_tissue) == 1
+    E = np.where(mus, params.youngs_muscle, params.youngs_fat)
+    k = E * np.cbrt(V) * 4.0 / n * np.asarray(tm.cell_k_scale)
+    return {t: float((k * J)[sel].sum() / (E * V)[sel].sum()) for t, sel in (('muscle', mus), ('fat', ~mus))}
+
+
+def with_moment_stiffness(tm, params, c):
+    """The model with cell_k_scale set so that every cell's k J = c[tissue] E V (the experiment of
+    --stiffness moment: the same stiffness per volume on every mesh; c from the default model)."""
+    import dataclasses as dc
+    V, J = cell_moments(tm)
+    n = np.diff(np.asarray(tm.cell_offsets))
+    mus = np.asarray(tm.cell_tissue) == 1
+    want = np.where(mus, c['muscle'], c['fat']) * V / J            # k / E wanted
+    return dc.replace(tm, cell_k_scale=want / (np.cbrt(V) * 4.0 / n))
+
+
 def run_one(tm, params, duration, label):
     """Knee angle [deg] every SAMPLE_EVERY steps of the demo experiment, steps per CPU second, divergence."""
     sim = solver.compile_model(tm, params)
@@ -158,6 +195,9 @@ def main():
                          "'set' (the parameter set's own; default otherwise), 'matched' (omega_max h of the default model) or an integer")
     ap.add_argument('--duration', type=float, default=0.3, help='simulated seconds (default 0.3: the knee flexes to ~60 deg)')
     ap.add_argument('--out', default=str(ROOT / 'bench' / 'out'), help='folder for convergence.json and .png')
+    ap.add_argument('--stiffness', choices=('as-is', 'moment'), default='as-is',
+                    help="'as-is': the models' own stiffness (default); 'moment' (an experiment): each cell's passive "
+                         "stiffness set so that k J = c E V with c of the default model (mesh-independent)")
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
     a = ap.parse_args()
     if a.quick:
@@ -181,10 +221,16 @@ def main():
     if integ == 'explicit' and mode == 'set':
         base = dataclasses.replace(base, substeps=0).validate()      # true masses: automatic sub-steps (stability)
     runs, omega1 = [], None
+    c_ref = moment_ratio(default_model(), base)
     for R in refs:
         t0 = time.perf_counter()
         tm = default_model(refine=R)
-        print(f'refine {R:g}: model ready in {time.perf_counter() - t0:.1f} s', flush=True)
+        ratio = moment_ratio(tm, base)
+        if a.stiffness == 'moment':
+            tm = with_moment_stiffness(tm, base, c_ref)
+        print(f'refine {R:g}: model ready in {time.perf_counter() - t0:.1f} s; passive stiffness sum kJ / sum EV: muscle '
+              f'{ratio["muscle"]:.2f}, fat {ratio["fat"]:.2f} (default model {c_ref["muscle"]:.2f}, {c_ref["fat"]:.2f})'
+              + ('; set to the default model\'s per cell (--stiffness moment)' if a.stiffness == 'moment' else ''), flush=True)
         params = base
         if mode.isdigit():
             params = dataclasses.replace(base, substeps=int(mode)).validate()
@@ -198,6 +244,7 @@ def main():
             params = dataclasses.replace(base, substeps=int(math.ceil(sub * w / omega1 - 1e-9))).validate()
         r, _ = run_one(tm, params, a.duration, f'{R:g}x')
         r['refine'] = R
+        r['stiffness_moment_ratio'] = {k: round(v, 3) for k, v in ratio.items()}
         runs.append(r)
     diffs = [differences(runs[i], runs[i + 1]) for i in range(len(runs) - 1)]
     cpu = 'unknown'
@@ -208,7 +255,7 @@ def main():
         pass
     out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
                          '--activate hamstrings=1)', 'integrator': integ, 'substeps_mode': mode,
-           'duration_s': a.duration, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
+           'duration_s': a.duration, 'stiffness': a.stiffness, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
     shrink = [d['max_deg'] for d in diffs if d]
     out['differences_shrink'] = bool(len(shrink) >= 2 and all(b < a_ for a_, b in zip(shrink, shrink[1:])))
@@ -216,7 +263,8 @@ def main():
     od.mkdir(parents=True, exist_ok=True)
     (od / 'convergence.json').write_text(json.dumps(out, indent=1))
     try:
-        plot(runs, od / 'convergence.png', f'knee flexion, hamstrings fully active; {integ}, sub-steps {mode}')
+        plot(runs, od / 'convergence.png', f'knee flexion, hamstrings fully active; {integ}, sub-steps {mode}'
+             + ('; stiffness per volume as the default model' if a.stiffness == 'moment' else ''))
     except Exception as e:  # report, do not hide
         print(f'plot not written ({type(e).__name__}: {e})')
     print()
