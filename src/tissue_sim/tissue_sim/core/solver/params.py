@@ -80,7 +80,8 @@ class Params:
     rest_fibre_length: float = 1.0        # normalised fibre length l of every muscle in the model's rest pose (l = rest_fibre_length
                                           # + (L - L_rest) / L_opt: rigid tendon, the fibres take the measured length change)
     # --- skeleton --------------------------------------------------------------------------
-    gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
+    gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame, e.g. (0, 0, -9.81) standing; off in both presets (the paper's figures;
+                                          # the isometric validation and the dynamometry it compares with exclude the limb's weight)
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
     attached_mass_to_segment: bool = True # bone-attached vertices' masses join their segment's inertia
     joint_damping: float = 20.0           # [N m s/rad] passive viscous damping of every hinge (implicit)
