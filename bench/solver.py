@@ -146,6 +146,9 @@ def main():
     phys, r_phys = solver_rate(solver.Params.physical(), 100)
     print(f'numba solver, physical params (make demo)    : {r_phys:9.0f} steps/s  ({phys.n_substeps} sub-steps per '
           f'step; real-time factor {r_phys * phys.params.dt:.2f})')
+    _, r_phys_nofat = solver_rate(solver.Params.physical(volume_stiffness_fat=0.0), 100)
+    print(f'numba solver, physical params, no fat volume : {r_phys_nofat:9.0f} steps/s  (volume_stiffness_fat 0: the '
+          f'fat volume term costs {100 * (1 - r_phys / r_phys_nofat):.1f} %)')
     # plain numpy: reference_step, the same physics and integrator as the paper-set step (exact rotations by SVD)
     st_np, st_nb = solver.make_state(sim), solver.make_state(sim)
     ctrl = solver.make_control(sim)
@@ -171,6 +174,7 @@ def main():
                real_time_factor=round(r_chunk * p.dt, 2), steps_per_s_explicit=round(r_explicit),
                explicit_substeps=xsim.n_substeps, physical_steps_per_s=round(r_phys),
                physical_substeps=phys.n_substeps, physical_real_time_factor=round(r_phys * phys.params.dt, 2),
+               physical_no_fat_volume_steps_per_s=round(r_phys_nofat),
                numpy_steps_per_s=round(r_numpy, 1), speedup_vs_numpy=round(r_step / r_numpy, 1), numpy_agreement_m=agree,
                target_steps_per_s=10000, target_met=bool(r_chunk >= 10000), steps_per_s_chunked_wall=round(r_chunk_wall),
                cpu_load_1min=round(os.getloadavg()[0], 2), timing='per CPU second of this process, one thread')
@@ -196,6 +200,8 @@ def markdown_table(out: dict) -> str:
             ('paper set, `integrator: explicit`', f'{out["steps_per_s_explicit"]:,}', f'{out["explicit_substeps"]} sub-steps, true masses'),
             ('physical set (`make demo`)', f'{out["physical_steps_per_s"]:,}',
              f'{out["physical_substeps"]} sub-steps; real-time factor {out["physical_real_time_factor"]}'),
+            ('physical set without the fat volume term', f'{out["physical_no_fat_volume_steps_per_s"]:,}',
+             '`volume_stiffness_fat: 0` (the paper set has none)'),
             ('plain numpy `reference_step`, paper set', f'{out["numpy_steps_per_s"]:,}',
              f'`step()` is {out["speedup_vs_numpy"]}x faster; positions agree to {out["numpy_agreement_m"]:.0e} m after 20 steps')]
     if out.get('pypbd_steps_per_s'):

@@ -65,6 +65,9 @@ class Params:
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
     fv_max_lengthening: float = 1.4       # eccentric plateau of the force-velocity factor (x isometric; Thelen 2003)
     fv_filter_time: float = 0.005         # [s] low-pass time constant of the muscle velocity the factor uses
+    volume_stiffness_fat: float = 0.0     # fat volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k, like volume_stiffness
+                                          # for muscle (physical: 1.0, fat is nearly incompressible; keeps fat cells from
+                                          # inverting; 0 = off: the paper's fat has no volume term; docs/contact.md)
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
@@ -94,7 +97,8 @@ class Params:
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
-                    bone_contact=True, stability_limit=1.4)
+                    bone_contact=True, stability_limit=1.4,
+                    volume_stiffness_fat=1.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -124,6 +128,7 @@ class Params:
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')
         need(self.fv_max_lengthening >= 1, 'fv_max_lengthening must be >= 1')
+        need(self.volume_stiffness_fat >= 0, 'volume_stiffness_fat must be >= 0')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
