@@ -345,11 +345,11 @@ def test_no_free_vertex_deeper_than_1mm_in_a_bone(limb_runs, run):
 def test_inverted_cells_with_contact_are_the_measured_known_ones(limb_runs, default_tm):
     """Measured (docs/contact.md): with contact and the physical set's fat volume term (volume_stiffness_fat 6), no
     fat cell is inverted at any recorded instant of either run; the only inverted cells are muscle cells bound to two
-    segments at once (measured: cell 60 of vastus medialis, 12 of its 22 vertices bound to the shank and 5 to the
+    segments at once (measured: cell 60 of vastus medialis, 13 of its 22 vertices bound to the shank and 5 to the
     thigh, V/V0 -1.3 at 120 deg: the builder's binding across the knee, issue 19 deliverable 1; the volume term
     cannot move bound vertices), at most 1 at the end of either run. Without the fat volume term (measured on the
     same model): active 637, 638, 650, 680 inverted from 1 s on (fat behind and in front of the knee) and 390 in the
-    sole at 0.5 s, passive 653, 680 at 120 deg. If this fails because cell 60 is no longer inverted, tighten it to
+    ankle at 0.5 s, passive 653, 680 at 120 deg. If this fails because cell 60 is no longer inverted, tighten it to
     none and update docs/contact.md."""
     tm = default_tm
     vs = np.asarray(tm.vertex_segment)
