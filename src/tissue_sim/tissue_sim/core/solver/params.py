@@ -66,7 +66,7 @@ class Params:
     fv_max_lengthening: float = 1.4       # eccentric plateau of the force-velocity factor (x isometric; Thelen 2003)
     fv_filter_time: float = 0.005         # [s] low-pass time constant of the muscle velocity the factor uses
     volume_stiffness_fat: float = 0.0     # fat volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k, like volume_stiffness
-                                          # for muscle (physical: 1.0, fat is nearly incompressible; keeps fat cells from
+                                          # for muscle (physical: 20, effective Poisson ratio 0.465: fat is nearly incompressible; keeps fat cells from
                                           # inverting; 0 = off: the paper's fat has no volume term; docs/contact.md)
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
