@@ -114,6 +114,9 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         s = tissue_cdr.decode_state(st.msgs[-1])
         assert s.vertex_positions.shape == (tp.n_vertices, 3) and np.isfinite(s.vertex_positions).all()
         assert s.joint_names == ['knee'] and s.sim_time > 1.0
+        # activations (the state), excitations (the commands: none) and each muscle's force [N], one per muscle
+        assert s.excitations.shape == s.activations.shape == s.muscle_forces.shape == (len(s.muscle_names),)
+        assert np.all(s.excitations == 0) and np.all(np.isfinite(s.muscle_forces))
         node.destroy_node()
     assert sim.returncode == 0, sim.output
 

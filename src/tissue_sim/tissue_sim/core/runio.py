@@ -53,13 +53,15 @@ class Run:
     joint_positions: np.ndarray         # (F, J) [rad]
     joint_velocities: np.ndarray        # (F, J) [rad/s]
     muscle_names: tuple
-    activations: np.ndarray             # (F, M)
+    activations: np.ndarray             # (F, M) activation state
     muscle_lengths: np.ndarray          # (F, M) [m]
     muscle_volumes: np.ndarray          # (F, M) [m^3]
     segment_poses: np.ndarray           # (F, S, 7) x y z qx qy qz qw
     kinetic_energy: np.ndarray          # (F,)
     elastic_energy: np.ndarray          # (F,)
     n_total: int = 0                    # frames in the file (kept or not)
+    excitations: np.ndarray = None      # (F, M) the commands (= activations in recordings made before the field)
+    muscle_forces: np.ndarray = None    # (F, M) [N] (NaN in recordings made before the field)
 
     @property
     def n_frames(self) -> int:
@@ -145,7 +147,7 @@ def load_run(path, stride: int = 1, frames=None, max_frames: int | None = None, 
     path = Path(path)
     files = run_files(path)
     keep = None if frames is None else set(int(f) for f in frames)
-    cols = {k: [] for k in ('idx', 't', 'stamp', 'step', 'X', 'jp', 'jv', 'act', 'ml', 'mv', 'sp', 'ke', 'ee')}
+    cols = {k: [] for k in ('idx', 't', 'stamp', 'step', 'X', 'jp', 'jv', 'act', 'ml', 'mv', 'sp', 'ke', 'ee', 'ex', 'mf')}
     topo = None
     jn = mn = None
     i = -1
@@ -170,7 +172,9 @@ def load_run(path, stride: int = 1, frames=None, max_frames: int | None = None, 
         for k, v in (('idx', i), ('t', s.sim_time), ('stamp', s.stamp_ns), ('step', s.step),
                      ('X', s.vertex_positions), ('jp', s.joint_positions), ('jv', s.joint_velocities),
                      ('act', s.activations), ('ml', s.muscle_lengths), ('mv', s.muscle_volumes),
-                     ('sp', s.segment_poses), ('ke', s.kinetic_energy), ('ee', s.elastic_energy)):
+                     ('sp', s.segment_poses), ('ke', s.kinetic_energy), ('ee', s.elastic_energy),
+                     ('ex', s.excitations),
+                     ('mf', s.muscle_forces if s.muscle_forces.size else np.full(len(s.muscle_names), np.nan, np.float32))):
             cols[k].append(v)
     if topo is None:
         raise _no_topology(path)
@@ -195,7 +199,8 @@ def load_run(path, stride: int = 1, frames=None, max_frames: int | None = None, 
                activations=stack('act', np.float32), muscle_lengths=stack('ml', np.float32),
                muscle_volumes=stack('mv', np.float32),
                segment_poses=stack('sp', np.float64).reshape(F, -1, 7),
-               kinetic_energy=np.array(cols['ke']), elastic_energy=np.array(cols['ee']), n_total=i + 1)
+               kinetic_energy=np.array(cols['ke']), elastic_energy=np.array(cols['ee']), n_total=i + 1,
+               excitations=stack('ex', np.float32), muscle_forces=stack('mf', np.float32))
 
 
 # ----------------------------------------------------------------------------- writing

@@ -40,13 +40,15 @@ class StateFrame:
     joint_positions: np.ndarray         # (J,) float64 [rad]
     joint_velocities: np.ndarray        # (J,) float64 [rad/s]
     muscle_names: list
-    activations: np.ndarray             # (M,) float32
+    activations: np.ndarray             # (M,) float32 activation state
     muscle_lengths: np.ndarray          # (M,) float32 [m]
     muscle_volumes: np.ndarray          # (M,) float32 [m^3]
     segment_poses: np.ndarray           # (S, 7) float64: x y z qx qy qz qw
     vertex_positions: np.ndarray        # (V, 3) float32 [m]
     kinetic_energy: float
     elastic_energy: float
+    excitations: np.ndarray = None      # (M,) float32 the commands (empty in recordings made before the field)
+    muscle_forces: np.ndarray = None    # (M,) float32 [N] (empty in recordings made before the field)
 
 
 # ------------------------------------------------------------------------------------ topology
@@ -147,11 +149,12 @@ def encode_state(*, stamp_ns: int, frame_id: str = 'world', step: int = 0, sim_t
                  joint_names=(), joint_positions=(), joint_velocities=(),
                  muscle_names=(), activations=(), muscle_lengths=(), muscle_volumes=(),
                  segment_poses=(), vertex_positions=(), kinetic_energy: float = 0.0,
-                 elastic_energy: float = 0.0) -> bytes:
+                 elastic_energy: float = 0.0, excitations=None, muscle_forces=None) -> bytes:
     """CDR bytes of a TissueState message (about 1 ms for 8k vertices).
 
     segment_poses: (S, 7) x y z qx qy qz qw; vertex_positions: (V, 3) [m]. Arrays are cast to the
-    message's types (float32 vertices, float64 joints and poses).
+    message's types (float32 vertices, float64 joints and poses). excitations: None = the activations;
+    muscle_forces [N]: None = empty.
     """
     w = CdrWriter()
     w.header(int(stamp_ns), frame_id)
@@ -168,6 +171,8 @@ def encode_state(*, stamp_ns: int, frame_id: str = 'world', step: int = 0, sim_t
     w.array(np.asarray(vertex_positions, np.float32).ravel(), np.float32)
     w.float64(float(kinetic_energy))
     w.float64(float(elastic_energy))
+    w.array(activations if excitations is None else excitations, np.float32)
+    w.array(() if muscle_forces is None else muscle_forces, np.float32)
     return w.bytes()
 
 
@@ -180,15 +185,18 @@ def encode_frame(model, state, observation: dict, activations, stamp_ns: int | N
                  frame_id: str = 'world') -> bytes:
     """THE TissueState of a solver state: ``model`` the TissueModel, ``state`` the solver's state
     (``step``, ``time``, ``x``), ``observation`` = ``solver.observe(sim, state)``, ``activations``
-    (M,) the commanded activations. ``stamp_ns`` defaults to the simulated time."""
+    (M,) the commanded activations (the message's excitations; its activations are the observation's activation
+    state, its muscle_forces the observation's, both falling back to the commands / empty for an observation
+    without them). ``stamp_ns`` defaults to the simulated time."""
     o = observation
     return encode_state(
         stamp_ns=int(round(state.time * 1e9)) if stamp_ns is None else int(stamp_ns), frame_id=frame_id,
         step=state.step, sim_time=state.time, joint_names=model.joint_names,
         joint_positions=o['joint_positions'], joint_velocities=o['joint_velocities'],
-        muscle_names=model.muscle_names, activations=activations, muscle_lengths=o['muscle_lengths'],
+        muscle_names=model.muscle_names, activations=o.get('activations', activations), muscle_lengths=o['muscle_lengths'],
         muscle_volumes=o['muscle_volumes'], segment_poses=o['segment_poses'], vertex_positions=state.x,
-        kinetic_energy=o['kinetic_energy'], elastic_energy=o['elastic_energy'])
+        kinetic_energy=o['kinetic_energy'], elastic_energy=o['elastic_energy'], excitations=activations,
+        muscle_forces=o.get('muscle_forces', ()))
 
 
 def decode_state(data, with_vertices: bool = True) -> StateFrame:
@@ -215,7 +223,11 @@ def decode_state(data, with_vertices: bool = True) -> StateFrame:
         vp = np.zeros((0, 3), np.float32)
     ke = r.float64()
     ee = r.float64()
-    return StateFrame(stamp, frame, step, t, jn, jp, jv, mn, act, ml, mv, sp, vp, ke, ee)
+    if r.remaining >= 4:
+        ex, mf = r.array(np.float32), r.array(np.float32)
+    else:                        # a recording made before the fields: the commands were the activations
+        ex, mf = act.copy(), np.zeros(0, np.float32)
+    return StateFrame(stamp, frame, step, t, jn, jp, jv, mn, act, ml, mv, sp, vp, ke, ee, ex, mf)
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:

@@ -124,6 +124,7 @@ def knee_muscles(tm, tissue_table: dict) -> list:
                 below.add(s)
                 break
             t = int(tm.segment_parent[t])
+    below |= {int(tm.joint_child[k]) for k in range(tm.n_joints) if tm.joint_driver[k] == j}   # coupled to it: the patella
     seg = {n: i for i, n in enumerate(tm.segment_names)}
     out = []
     for lab in tissue_table['labels'].values():
@@ -222,17 +223,9 @@ def _opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: 
 
 # ------------------------------------------------------------------------------------- elastic model
 def _below_knee(sim, j: int) -> np.ndarray:
-    """Indices into att_idx of the bone-attached vertices that the knee moves."""
-    return np.flatnonzero(sim.anc[j][sim.att_seg])
-
-
-def _knee_frame(sim, state, j: int):
-    p = sim.j_parent[j]
-    return state.seg_R[p] @ sim.j_axis[j], state.seg_R[p] @ sim.j_centre[j] + state.seg_t[p]
-
-
-def _torque(x, f, axis, centre) -> float:
-    return float(axis @ np.cross(x - centre, f).sum(0))
+    """Indices into att_idx of the bone-attached vertices that the knee moves (below it, or on a segment
+    coupled to it: the patella)."""
+    return np.flatnonzero(sim.anc[j][sim.att_seg] | np.isin(sim.att_seg, sim.j_child[sim.j_driver == j]))
 
 
 class _Forces:
@@ -262,25 +255,13 @@ class _Forces:
         return f
 
 
-def _active_tension(sim, state, act) -> np.ndarray:
-    """(M,) [N] the active tension of each muscle (physical set; 0 without specific_tension): per slice
-    gap the sum over its cells of T = a k_a n/4 max(l − lam L, 0) (the kernel's formula, docs/solver.md),
-    the median over the muscle's gaps (cells in series carry the same force)."""
-    from tissue_sim.core.solver.measures import cell_axial_lengths
-    tm = sim.tissue
-    alen = np.empty(sim.n_cells)
-    cell_axial_lengths(state.x, sim.off, sim.cv, alen)
-    n = np.diff(sim.off)
-    mus = sim.cell_muscle
-    out = np.zeros(sim.n_muscles)
-    for m in range(sim.n_muscles):
-        c = np.flatnonzero(mus == m)
-        if c.size == 0 or not np.any(sim.k_active[c] > 0):
-            continue
-        T = act[m] * sim.k_active[c] * n[c] / 4.0 * np.maximum(alen[c] - state.lam[m] * sim.rest_length[c], 0.0)
-        gaps, inv = np.unique(tm.cell_slice[c], return_inverse=True)
-        out[m] = float(np.median(np.bincount(inv, weights=T, minlength=gaps.size)))
-    return out
+def _active_tension(sim, state) -> np.ndarray:
+    """(M,) [N] the active tension of each muscle (physical set; 0 without specific_tension): the solver's
+    observed active force (``solver.muscle.muscle_forces``: per slice gap the sum over its cells of
+    T = a' k_a n/4 max(l − lam L, 0), a' the activation x force-velocity x force-length factor, docs/solver.md;
+    the median over the muscle's gaps: cells in series carry the same force)."""
+    from tissue_sim.core.solver.muscle import muscle_forces
+    return muscle_forces(sim, state)['active']
 
 
 def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float, ramp_speed: float,
@@ -299,6 +280,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
     force its own cells put on those bones [N] (magnitude of the net force), their torque [N m] and the
     active tension [N] (physical set); the kinetic energy of the free tissue at the end [J]."""
     from tissue_sim.core import solver
+    from tissue_sim.core.solver.muscle import tension_activation
     j = list(sim.tissue.joint_names).index(KNEE_JOINT)
     state = solver.make_state(sim)
     ctrl = solver.make_control(sim)
@@ -307,6 +289,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
     for km in muscles:
         if km.name in active:
             ctrl.activation[km.index] = 1.0
+    from tissue_sim.core.solver.measures import joint_torques
     forces = _Forces(sim)
     att = sim.att_idx[_below_knee(sim, j)]
     dt = sim.params.dt
@@ -341,18 +324,18 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
             break
         cur = deg
         obs = solver.observe(sim, state)
-        axis, centre = _knee_frame(sim, state, j)
-        x = state.x[att]
         res['torque'].append(float(tau))
-        res['torque_static'].append(_torque(x, forces(state, ctrl.activation)[att], axis, centre))
+        act = tension_activation(sim, state)        # the activation the step scales the tension with
+        # torques by virtual work (measures.joint_torques): the patella's forces act through its coupling
+        res['torque_static'].append(float(joint_torques(sim, state, forces(state, act), att)[j]))
         mf, mt = [], []
         for km in muscles:
-            fm = forces(state, ctrl.activation, km.index)[att]
-            mf.append(float(np.linalg.norm(fm.sum(0))))
-            mt.append(_torque(x, fm, axis, centre))
+            fm = forces(state, act, km.index)
+            mf.append(float(np.linalg.norm(fm[att].sum(0))))
+            mt.append(float(joint_torques(sim, state, fm, att)[j]))
         res['muscle_force'].append(mf)
         res['muscle_torque'].append(mt)
-        ten = _active_tension(sim, state, ctrl.activation)
+        ten = _active_tension(sim, state)
         res['tension'].append([float(ten[km.index]) for km in muscles])
         res['length'].append([float(obs['muscle_lengths'][km.index]) for km in muscles])
         res['kinetic_energy'].append(float(obs['kinetic_energy']))

@@ -40,6 +40,8 @@ class Measurements:
     skin_area: np.ndarray          # (F, Cf) [m^2]
     d_paper: np.ndarray            # (F, Cf) [m]
     d_rotation_free: np.ndarray    # (F, Cf) [m]
+    muscle_forces: np.ndarray = None   # (F, M) [N] reported by the simulator (NaN: not in the recording)
+    excitations: np.ndarray = None     # (F, M) the commanded excitations (= activations without activation dynamics)
 
     @property
     def n_frames(self) -> int:
@@ -122,7 +124,9 @@ def measure(run: runio.Run, frames=None, progress=None) -> Measurements:
         activations=f64(run.activations), muscle_lengths=f64(run.muscle_lengths),
         muscle_volumes=f64(run.muscle_volumes), muscle_volumes_mesh=mvm,
         fat_cells=ctx['fat_ids'], fat_rest_centroid=ctx['fat_centroid'], fat_size=ctx['fat_size'],
-        skin_area_rest=ctx['skin_area_rest'], skin_area=area, d_paper=dp, d_rotation_free=dr)
+        skin_area_rest=ctx['skin_area_rest'], skin_area=area, d_paper=dp, d_rotation_free=dr,
+        muscle_forces=f64(run.muscle_forces) if run.muscle_forces is not None else np.full((F, len(mn)), np.nan),
+        excitations=f64(run.excitations) if run.excitations is not None else f64(run.activations))
 
 
 def rows_for(run: runio.Run, positions, measures: Measurements | None = None):

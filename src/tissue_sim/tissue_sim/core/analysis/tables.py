@@ -76,7 +76,9 @@ def write_tables(m: Measurements, out: Path) -> list[Path]:
         'frame': rep(m.frame_index, M), 'time_s': rep(m.times, M), 'muscle': til(np.array(m.muscle_names, object), F),
         'group': til(np.array(m.muscle_groups, object), F), 'activation': m.activations.ravel(),
         'length_m': m.muscle_lengths.ravel(), 'length_ratio': lr.ravel(), 'volume_m3': m.muscle_volumes.ravel(),
-        'volume_ratio': vr.ravel(), 'volume_mesh_m3': m.muscle_volumes_mesh.ravel()}, {'time_s': '%.6f'})
+        'volume_ratio': vr.ravel(), 'volume_mesh_m3': m.muscle_volumes_mesh.ravel(),
+        'excitation': _or_nan(m.excitations, F, M).ravel(), 'force_n': _or_nan(m.muscle_forces, F, M).ravel()},
+        {'time_s': '%.6f'})
     files += _write(out / 'joints.csv', {
         'frame': rep(m.frame_index, J), 'time_s': rep(m.times, J), 'joint': til(np.array(m.joint_names, object), F),
         'position_rad': m.joint_positions.ravel(), 'position_deg': np.rad2deg(m.joint_positions).ravel(),
@@ -96,6 +98,11 @@ def write_tables(m: Measurements, out: Path) -> list[Path]:
                 cols[f'{k}_{stat}'] = v
     files += _write(out / 'frames.csv', cols, {'time_s': '%.6f'})
     return files
+
+
+def _or_nan(a, F, M):
+    """(F, M) a, or NaN where the measurements have none (a recording made before the field)."""
+    return np.full((F, M), np.nan) if a is None else np.asarray(a, np.float64).reshape(F, M)
 
 
 def _f(x):
@@ -132,7 +139,8 @@ def summary(m: Measurements, run_path=None) -> dict:
                 'length_max_ratio': _f(L.max() / L[0]), 'volume0_m3': _f(Vv[0]),
                 'volume_max_change': _f(np.max(np.abs(Vv / Vv[0] - 1))),
                 'volume_mesh_max_change': _f(np.max(np.abs(Vm / Vm[0] - 1))),
-                'max_activation': _f(m.activations[:, k].max())}
+                'max_activation': _f(m.activations[:, k].max()),
+                'max_force_n': _f(np.max(_or_nan(m.muscle_forces, F, len(m.muscle_names))[:, k])) if F else None}
     if m.fat_cells.size:
         skin = m.has_skin
         a = ar[:, skin]

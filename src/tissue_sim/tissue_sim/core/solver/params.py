@@ -22,7 +22,7 @@ DAMPING_MODES = ('deformation', 'velocity', 'none')
 MASS_MODES = ('uniform', 'density')
 STIFFNESS_MODES = ('given', 'modulus')
 VOLUME_MODES = ('actual', 'rest')
-INTEGRATORS = ('mass_scaled', 'explicit')
+INTEGRATORS = ('mass_scaled', 'explicit', 'implicit')
 
 
 @dataclasses.dataclass
@@ -32,7 +32,9 @@ class Params:
     dt: float = 1e-3                      # [s] step length dT of step() when dt is None
     integrator: str = 'mass_scaled'       # 'mass_scaled': symplectic Euler, one pass per step, a vertex's mass raised to
                                           # h^2 kappa / stability_limit^2 where its cells' summed stiffness kappa needs it;
-                                          # 'explicit': true masses, automatic sub-steps (docs/solver.md)
+                                          # 'explicit': true masses, automatic sub-steps (docs/solver.md);
+                                          # 'implicit': implicit Euler of the free vertices (prefactored; true masses, 1 sub-step)
+    implicit_iterations: int = 1          # local/global iterations per sub-step of the implicit integrator (1: one solve)
     substeps: int = 0                     # sub-steps per step; 0 = automatic (explicit: stability estimate; mass_scaled: 1)
     stability_limit: float = 1.8          # automatic sub-steps keep omega_max * h below this (< 2, symplectic Euler)
     # --- soft tissue -----------------------------------------------------------------------
@@ -65,11 +67,24 @@ class Params:
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
     fv_max_lengthening: float = 1.4       # eccentric plateau of the force-velocity factor (x isometric; Thelen 2003)
     fv_filter_time: float = 0.005         # [s] low-pass time constant of the muscle velocity the factor uses
+    activation_time: float = 0.0          # [s] activation time constant of the first-order excitation -> activation dynamics
+                                          # (Thelen 2003: 0.015; physical: 0.015); 0 = off: the command is the activation (paper)
+    deactivation_time: float = 0.05       # [s] its deactivation time constant (Thelen 2003: 0.050; used when activation_time > 0)
+    force_length: bool = False            # active force-length of the fibres, exp(-(l - 1)^2 / fl_width), multiplying the active
+                                          # tension (Thelen 2003; physical: on; needs specific_tension > 0)
+    passive_force_length: bool = False    # passive fibre force Fmax (exp(k (l - 1) / eps0) - 1) / (exp(k) - 1) for l > 1 along each
+                                          # muscle (Thelen 2003; needs specific_tension > 0; off in both sets, docs/solver.md)
+    fl_width: float = 0.45                # gamma, width of the active force-length curve (Thelen 2003 / OpenSim KshapeActive)
+    fl_passive_shape: float = 5.0         # k_PE, shape of the passive curve (Thelen 2003 / OpenSim KshapePassive)
+    fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
+    rest_fibre_length: float = 1.0        # normalised fibre length l of every muscle in the model's rest pose (l = rest_fibre_length
+                                          # + (L - L_rest) / L_opt: rigid tendon, the fibres take the measured length change)
     volume_stiffness_fat: float = 0.0     # fat volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k, like volume_stiffness
                                           # for muscle (physical: 20, effective Poisson ratio 0.465: fat is nearly incompressible; keeps fat cells from
                                           # inverting; 0 = off: the paper's fat has no volume term; docs/contact.md)
     # --- skeleton --------------------------------------------------------------------------
-    gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
+    gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame, e.g. (0, 0, -9.81) standing; off in both presets (the paper's figures;
+                                          # the isometric validation and the dynamometry it compares with exclude the limb's weight)
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
     attached_mass_to_segment: bool = True # bone-attached vertices' masses join their segment's inertia
     joint_damping: float = 20.0           # [N m s/rad] passive viscous damping of every hinge (implicit)
@@ -97,8 +112,8 @@ class Params:
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
-                    bone_contact=True, stability_limit=1.4,
-                    volume_stiffness_fat=20.0)
+                    bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
+                    force_length=True, volume_stiffness_fat=20.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -128,6 +143,12 @@ class Params:
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')
         need(self.fv_max_lengthening >= 1, 'fv_max_lengthening must be >= 1')
+        need(0 <= self.activation_time <= 1, 'activation_time must be in [0, 1] s')
+        need(0 < self.deactivation_time <= 1, 'deactivation_time must be in (0, 1] s')
+        need(0 < self.fl_width <= 10, 'fl_width must be in (0, 10]')
+        need(0 < self.fl_passive_shape <= 50, 'fl_passive_shape must be in (0, 50]')
+        need(0 < self.fl_passive_strain <= 5, 'fl_passive_strain must be in (0, 5]')
+        need(0.2 <= self.rest_fibre_length <= 2, 'rest_fibre_length must be in [0.2, 2]')
         need(self.volume_stiffness_fat >= 0, 'volume_stiffness_fat must be >= 0')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
@@ -140,6 +161,8 @@ class Params:
         need(self.contact_friction >= 0, 'contact_friction must be >= 0')
         need(2e-4 <= self.contact_grid <= 0.01, 'contact_grid must be in [2e-4, 0.01] m')
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
+        need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
+             'implicit_iterations must be an integer in [1, 20]')
         need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')
         need(self.fixed_root, 'fixed_root False (floating base) is not supported yet')
         return self

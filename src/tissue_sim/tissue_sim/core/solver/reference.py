@@ -12,7 +12,7 @@ import collections
 
 import numpy as np
 
-from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK
+from tissue_sim.core.solver import cells as CK, contact as CT, implicit as IM, muscle as MU, skeleton as SK
 from tissue_sim.core.solver.model import SimModel, State, substeps_for
 
 Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
@@ -103,20 +103,49 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     q_target = sim.j_rest.copy() if joint_target is None else np.asarray(joint_target, np.float64)
     if state.joint_lock_torque is None:
         state.joint_lock_torque = np.zeros(J)
+    if state.activation is None:
+        state.activation = np.zeros(sim.n_muscles)
+    u = a                             # the commands: excitations when activation dynamics is on
+    ch_rest, inv_lopt, fmax, ch_off, ch_idx = MU.muscle_constants(sim)
+    fl_on = p.force_length and p.specific_tension > 0
+    pe_on = p.passive_force_length and p.specific_tension > 0
     for _ in range(n_sub):
         R0, t0 = state.seg_R.copy(), state.seg_t.copy()        # the segment poses at the sub-step's start (stage 4)
+        # 0. activation dynamics (Thelen 2003 eq. 1): da/dt = (u - a) / tau, tau = tau_act (0.5 + 1.5 a) while u > a,
+        # else tau_deact / (0.5 + 1.5 a), tau frozen over the sub-step at the midpoint activation of a predictor
+        # step; activation_time 0: a = u (the paper)
+        if p.activation_time > 0:
+            a0, rising = state.activation.copy(), u > state.activation
+            tau = lambda act: np.where(rising, p.activation_time * (0.5 + 1.5 * act),        # noqa: E731
+                                       p.deactivation_time / (0.5 + 1.5 * act))
+            a1 = a0 + (u - a0) * (1.0 - np.exp(-h / tau(a0)))
+            state.activation[:] = a0 + (u - a0) * (1.0 - np.exp(-h / tau(0.5 * (a0 + a1))))
+        else:
+            state.activation[:] = u
+        a = state.activation
         # 1. muscle tension: contraction state towards 1 - a (1 - min_stretch), the tension's activation x
-        # the force-velocity factor of the last measured muscle velocity, every cell's force
+        # the force-velocity factor of the last measured muscle velocity x the active force-length factor of the
+        # last measured fibre length, every cell's force
         target = 1.0 - a * (1.0 - p.min_stretch)
         shrink = np.maximum(state.lam * p.contraction_rate ** (a * h / p.rate_dt), target)
         state.lam[:] = np.where(state.lam > target, shrink, np.minimum(state.lam / p.relax_rate ** (h / p.rate_dt), target))
         fv_on = p.max_contraction_velocity > 0 and p.specific_tension > 0
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle
         vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
-        act_t = a * np.array([CK.force_velocity(u, p.fv_max_lengthening) for u in vn]) if fv_on else a
+        act_t = a * np.array([CK.force_velocity(w, p.fv_max_lengthening) for w in vn]) if fv_on else a.copy()
+        # (integrator implicit: every force at the inertial prediction y, bone-attached vertices at x + h v)
+        implicit = p.integrator == 'implicit'
+        y = np.where(free[:, None], state.x + h * (1.0 - h * p.velocity_damping) * (state.v + h * sim.gravity),
+                     state.x + h * state.v) if implicit else state.x
+        if fl_on:            # normalised fibre length l = l_rest + (C - C_rest) / L_opt of the attachment chords C
+            chord, _ = chords(sim, y, ch_off, ch_idx)
+            ln = np.where(ch_rest > 0, p.rest_fibre_length + (chord - ch_rest) * inv_lopt, p.rest_fibre_length)
+            act_t = act_t * np.exp(-(ln - 1.0) ** 2 / p.fl_width)
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
-            sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
-        if fv_on:                    # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
+            sim, pad, y, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
+        if pe_on:            # passive fibre force F = Fmax f_PE(l) pulling each muscle's attachments together
+            f += passive_forces(sim, y, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
+        if fv_on:            # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
             mc = sim.cell_muscle >= 0
             length = np.bincount(sim.cell_muscle[mc], (sim.length_weight * state.cell_length)[mc], sim.n_muscles)
             seen = state.muscle_length >= 0
@@ -125,15 +154,30 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.muscle_length[:] = length
         # 2. skeleton: joint torques from the forces on the bone-attached vertices, joint dynamics (a locked
         # hinge is driven to its target, its torque in state.joint_lock_torque), poses
-        SK.skeleton_step(h, state.q, state.qd, f, state.x, sim.skeleton, sim.att_idx, sim.att_seg,
+        SK.skeleton_step(h, state.q, state.qd, f, y, sim.skeleton, sim.att_idx, sim.att_seg,
                          p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
                          np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque)
-        # 3. soft tissue: symplectic Euler for the free vertices, the bone-attached ones follow their segment
-        state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
-        state.x[free] += h * state.v[free]
+        # 3. soft tissue: symplectic Euler for the free vertices (implicit: implicit.py's correction of y, its
+        # local/global iterations from the forces at the last iterate), the bone-attached ones follow their segment
         i, s = sim.att_idx, sim.att_seg
         xa = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[i]) + state.seg_t[s]
-        state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
+        if implicit:
+            x_old, moved = state.x.copy(), np.zeros_like(state.x)
+            moved[i] = xa - y[i]
+            state.x[free] = IM.reference_solve(sim, h, f, y, y, moved)
+            state.x[i] = xa
+            state.v[:] = (state.x - x_old) / h
+            for _ in range(1, p.implicit_iterations):
+                f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
+                    sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
+                if pe_on:
+                    f += passive_forces(sim, state.x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
+                state.x[free] = IM.reference_solve(sim, h, f, state.x, y, np.zeros_like(state.x))
+                state.v[:] = (state.x - x_old) / h
+        else:
+            state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
+            state.x[free] += h * state.v[free]
+            state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
         # 4. bone contact: free vertices closer to a bone than their floor are projected out (Params.bone_contact)
         contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h)
         state.f[:] = f
@@ -141,6 +185,34 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     state.step += 1
     state.time += dt
     return state
+
+
+def chords(sim, x, ch_off, ch_idx):
+    """(M,) [m] each muscle's attachment chord (muscle.chord_lengths: from the centroid of its vertices bound to its
+    proximal bone to that of those bound to its distal bone; 0 without) and (M, 3) its unit direction."""
+    M = sim.n_muscles
+    cent = np.array([x[ch_idx[ch_off[g]:ch_off[g + 1]]].mean(0) if ch_off[g + 1] > ch_off[g] else np.zeros(3)
+                     for g in range(2 * M)]).reshape(M, 2, 3)
+    d = cent[:, 1] - cent[:, 0]
+    L = np.linalg.norm(d, axis=1)
+    return L, np.divide(d, L[:, None], out=np.zeros_like(d), where=L[:, None] > 0)
+
+
+def passive_forces(sim, x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p):
+    """(V, 3) [N] the passive fibre force of every muscle (Thelen 2003 eq. 3, docs/solver.md "Force-length"): l =
+    rest_fibre_length + (C - C_rest) / L_opt of its attachment chord C, F = Fmax (exp(k (l - 1)/eps0) - 1) / (exp(k) - 1)
+    for l > 1 (else 0), F / n along the chord on each of the n proximal attachment vertices, -F / n on each distal one."""
+    L, u = chords(sim, x, ch_off, ch_idx)
+    ln = p.rest_fibre_length + (L - ch_rest) * inv_lopt
+    k, e0 = p.fl_passive_shape, p.fl_passive_strain
+    F = np.where((ch_rest > 0) & (L > 0) & (ln > 1.0), fmax * (np.exp(k * (ln - 1.0) / e0) - 1.0) / (np.exp(k) - 1.0), 0.0)
+    out = np.zeros_like(x)
+    for m in range(sim.n_muscles):
+        if F[m] > 0:
+            a, b = ch_idx[ch_off[2 * m]:ch_off[2 * m + 1]], ch_idx[ch_off[2 * m + 1]:ch_off[2 * m + 2]]
+            out[a] += F[m] / a.size * u[m]
+            out[b] -= F[m] / b.size * u[m]
+    return out
 
 
 def grid_sample(cg, b, P):

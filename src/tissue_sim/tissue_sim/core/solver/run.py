@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from tissue_sim.core.activation import timeline_function
 from tissue_sim.core.solver.measures import cell_axial_lengths, cell_volumes, kinetic_energy, skeleton_energy
 from tissue_sim.core.solver.model import SimModel, State, make_state
+from tissue_sim.core.solver.muscle import muscle_forces
 from tissue_sim.core.solver.step import _run
 
 
@@ -24,7 +25,11 @@ def observe(sim: SimModel, state: State) -> dict:
     torque each joint lock applied in the last sub-step about the joint axis, + in the direction q grows; in
     a static hold it balances the tissue's and gravity's torque: the isometric joint torque is its negative;
     0 where no lock),
-    segment_poses (S, 7) x y z qx qy qz qw (the transform from rest to current pose), time [s], step."""
+    segment_poses (S, 7) x y z qx qy qz qw (the transform from rest to current pose), time [s], step;
+    activations (M,) the activation state (the commands with instant activation, Params.activation_time 0),
+    muscle_forces (M,) [N] each muscle's force, active tension + passive fibre force (muscle_active_forces,
+    muscle_passive_forces; 0 in the paper set: muscle.muscle_forces), fibre_lengths (M,) normalised fibre lengths,
+    passive_energy [J] of the passive fibre force (0 when off)."""
     M = sim.n_muscles
     vol = cell_volumes(sim, state.x)
     alen = np.empty(sim.n_cells)
@@ -34,12 +39,16 @@ def observe(sim: SimModel, state: State) -> dict:
     mv = np.bincount(mus[sel], weights=vol[sel], minlength=M)
     ml = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)
     ke = kinetic_energy(sim, state)
+    mf = muscle_forces(sim, state)
     return dict(time=state.time, skeleton_energy=skeleton_energy(sim, state), step=state.step, joint_positions=state.q.copy(), joint_velocities=state.qd.copy(),
                 joint_lock_torque=(state.joint_lock_torque.copy() if state.joint_lock_torque is not None
                                    else np.zeros(sim.n_joints)),
                 muscle_lengths=ml, muscle_volumes=mv, muscle_stretch=state.lam.copy(), kinetic_energy=ke,
                 elastic_energy=float(state.cell_energy.sum()),
-                segment_poses=np.concatenate([state.seg_t, Rotation.from_matrix(state.seg_R).as_quat()], axis=1))
+                segment_poses=np.concatenate([state.seg_t, Rotation.from_matrix(state.seg_R).as_quat()], axis=1),
+                activations=(state.activation.copy() if state.activation is not None else np.zeros(M)),
+                muscle_forces=mf['total'], muscle_active_forces=mf['active'], muscle_passive_forces=mf['passive'],
+                fibre_lengths=mf['fibre_length'], passive_energy=mf['passive_energy'])
 
 
 

@@ -22,7 +22,8 @@ def _drop_stale_advance_cache() -> None:
     from pathlib import Path
     here = Path(__file__).resolve()
     try:
-        newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py'))
+        newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py',
+                                                                 'muscle.py', 'implicit.py'))
         for f in (here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'):     # advance and _advance
             if f.stat().st_mtime < newest:
                 f.unlink(missing_ok=True)
@@ -32,7 +33,7 @@ def _drop_stale_advance_cache() -> None:
 
 _drop_stale_advance_cache()
 from tissue_sim.core.solver import cells as CK, integration as IK, skeleton as SK  # noqa: E402
-from tissue_sim.core.solver import contact as CT  # noqa: E402
+from tissue_sim.core.solver import contact as CT, implicit as IM, muscle as MU  # noqa: E402
 from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for  # noqa: E402
 
 CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
@@ -44,15 +45,18 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
-                                'muscle_length muscle_velocity joint_lock_torque')   # the State's arrays (xb, vb: back buffers)
-Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0')
+                                'muscle_length muscle_velocity joint_lock_torque activation')   # the State's arrays (xb, vb: back buffers)
+Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
+                                'ch_rest inv_lopt fmax ch_off ch_idx')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
-                                 'vol_gain vmax2 fv_on fv_max fv_alpha')
-Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums')
+                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 '
+                                 'fl_rest')
+Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
+                                 'chord chord_axis')
 
 
 @njit(cache=True)
-def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, contact, info):
+def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, contact, imp, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
     same for every step) and the joint lock (lock (J,) bool, target (J,) [rad]: Control.joint_lock/joint_target),
     in place. Positions and velocities alternate between (x, v) and the back buffers
@@ -62,15 +66,17 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
 
     The arguments come as plain tuples in the order of the named tuples (numba's dispatcher types a plain
     tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here;
-    contact = (the model's contact.ContactGrids, the Workspace's contact.ContactWork)."""
+    contact = (the model's contact.ContactGrids, the Workspace's contact.ContactWork); imp = implicit.Implicit (the
+    implicit integrator's factor and buffers; on = False for the others)."""
     return _advance(n_steps, n_sub, h, acts, lock, target, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue),
                     SK.Skeleton(*sk), Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]),
-                    CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1]), info)
+                    CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1]), IM.Implicit(*imp), info)
 
 
 @njit(cache=True)
-def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, info):
+def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, imp, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
+    a_st = st.activation          # the activation state (the commands are its excitations when tau_act > 0)
     work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
         for m in range(acts.shape[1]):
@@ -87,29 +93,59 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
         act = acts[n if acts.shape[0] > 1 else 0]
         for _ in range(n_sub):
             scratch.q0[:] = q; scratch.qd0[:] = qd; scratch.lam0[:] = lam; scratch.mlen0[:] = mlen; scratch.mvel0[:] = mvel
+            scratch.act0[:] = a_st
+            # 0. activation dynamics: the activation state one sub-step towards the commanded excitation
+            # (tau_act 0: the activation is the command, the paper's instant activation)
+            MU.advance_activation(act, a_st, h, num.tau_act, num.tau_deact)
             # 1. muscle tension: contraction state, the active tension's activation x the force-velocity
-            # factor (muscle velocity from the last evaluation), then every cell's elastic + volume + damping force
-            CK.update_contraction(lam, act, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
-            for m in range(act_t.shape[0]):
-                act_t[m] = act[m] * CK.force_velocity(mvel[m] * tissue.inv_vl0[m], num.fv_max) if num.fv_on else act[m]
-            bad = CK.lane_forces(x, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            # factor (muscle velocity from the last evaluation) x the active force-length factor (the fibre
+            # length of the attachment chord now), then every cell's elastic + volume + damping force; integrator
+            # implicit: all of them at the inertial prediction y = x + h v (+ h^2 g)
+            CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
+            xe = x
+            if imp.on:
+                IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)
+                xe = imp.y
+            if num.fl_on:
+                MU.chord_lengths(xe, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
+            MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.chord, tissue.ch_rest,
+                                     tissue.inv_lopt, num.fl_rest, num.fl_on, num.fl_gamma, act_t)
+            bad = CK.lane_forces(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
+                MU.passive_tension(xe, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
+                                   num.fl_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
             if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
                                    num.fv_alpha, scratch.muscle_sums)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, CAUSE_CELL_FORCE
-                lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0
+                lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0; a_st[:] = scratch.act0
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
-            ok = SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
+            ok = SK.skeleton_step(h, q, qd, f, xe, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
                                   st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
-            fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
-                                st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
+            if imp.on:             # implicit Euler: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
+                fast = IM.integrate(h, x, v, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
+                                    st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
+                for _ in range(1, imp.iters):
+                    if fast or not ok:
+                        break
+                    if CK.lane_forces(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
+                        fast = 1       # (reported as a blow-up: the iterate is not finite)
+                        break
+                    if num.pe_on:
+                        MU.passive_tension(xb, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
+                                           num.fl_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
+                    fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
+            else:
+                fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
+                                    st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
             if not ok or fast:
                 info[0], info[1], info[2] = n, -1, CAUSE_SKELETON if not ok else CAUSE_SPEED
                 q[:] = scratch.q0; qd[:] = scratch.qd0; lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0
+                a_st[:] = scratch.act0
                 SK.forward_kinematics(q, sk, st.seg_R, st.seg_t)
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
@@ -135,6 +171,7 @@ class Workspace:
     def __init__(self, sim: SimModel):
         self.sim = sim
         self._by_h = {}
+        self._imp = {}
         self.no_lock = (np.zeros(sim.n_joints, np.bool_), np.zeros(sim.n_joints))    # (lock, target): no joint locked
         self.contact = CT.work(sim.contact, sim.n_segments)
 
@@ -151,13 +188,20 @@ class Workspace:
         t = self._by_h.get(h)
         if t is None:
             if len(self._by_h) > 8:
-                self._by_h.clear()
+                self._by_h.clear(); self._imp.clear()
             named = self._make(h)
             cells, tissue, sk, num, scratch, (cgrid, cwork) = named
             plain = (tuple(cells), tuple(tissue), tuple(sk), tuple(num), (tuple(scratch.cell_work),) + tuple(scratch)[1:],
-                     (tuple(cgrid), tuple(cwork)))
+                     (tuple(cgrid), tuple(cwork)), tuple(self.implicit(h)))
             t = self._by_h[h] = (named, plain)
         return t
+
+    def implicit(self, h: float):
+        """The implicit integrator's implicit.Implicit for sub-step length h (its factor made once per h)."""
+        imp = self._imp.get(h)
+        if imp is None:
+            imp = self._imp[h] = IM.make(self.sim, h)
+        return imp
 
     def _make(self, h: float):
         sim, p = self.sim, self.sim.params
@@ -167,16 +211,21 @@ class Workspace:
         tissue = Tissue(sim.rest, sim.inv_denominator(h), sim.att_idx, sim.att_seg,
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
-                        np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0))
+                        np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0),
+                        *MU.muscle_constants(sim))       # the force-length's constants (muscle.py)
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
                       h / p.volume_relax_time if p.volume_relax_time > 0 else 0.0, float(p.max_speed) ** 2,
                       p.max_contraction_velocity > 0 and p.specific_tension > 0, float(p.fv_max_lengthening),
-                      h / (p.fv_filter_time + h))
+                      h / (p.fv_filter_time + h),
+                      float(p.activation_time), float(p.deactivation_time), p.force_length and p.specific_tension > 0,
+                      float(p.fl_width), p.passive_force_length and p.specific_tension > 0, float(p.fl_passive_shape),
+                      float(p.fl_passive_strain), float(p.rest_fibre_length))
         M, J = sim.n_muscles, sim.n_joints
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
-                          np.empty(M), np.empty(M), np.empty(M), np.empty(M))
+                          np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M),
+                          np.empty((M, 3)))
         return cells, tissue, sim.skeleton, num, scratch, (sim.contact, self.contact)
 
 
@@ -198,9 +247,11 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
         ws = state.workspace = Workspace(sim)
     if state.joint_lock_torque is None:
         state.joint_lock_torque = np.zeros(sim.n_joints)
+    if state.activation is None:
+        state.activation = np.zeros(sim.n_muscles)
     st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
           state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
-          state.muscle_velocity, state.joint_lock_torque)                     # (the fields of Arrays)
+          state.muscle_velocity, state.joint_lock_torque, state.activation)   # (the fields of Arrays)
     if lock is None:
         lock, target = ws.no_lock
     swaps = advance(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)

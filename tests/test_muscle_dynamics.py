@@ -1,0 +1,210 @@
+"""Activation dynamics and force-length of the physical set (docs/solver.md "Activation dynamics", "Force-length"):
+the first-order response against the analytic solution of Thelen 2003 eq. 1, the curves against Thelen 2003 eqs. 2-3,
+the fast step against the readable reference step, the passive fibre force conservative, each muscle's force observed
+in newtons on the bundled model as the force it delivers to the shank, the paper set unchanged, the TissueState fields."""
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from tissue_sim.core import solver
+from tissue_sim.core.solver import muscle as MU, phantom
+
+
+def _knee(**kw):
+    return solver.compile_model(phantom.knee(n_gaps=12, knee_range_deg=(0.0, 60.0)), solver.Params.physical(**kw))
+
+
+def _rise(t, tau):
+    """Thelen 2003 eq. 1 from a = 0 under u = 1: dt = tau (0.5 + 1.5 a) / (1 - a) da, so t = tau (-1.5 a - 2 ln(1 - a))."""
+    return brentq(lambda a: tau * (-1.5 * a - 2.0 * math.log1p(-a)) - t, 0.0, 1.0 - 1e-15) if t > 0 else 0.0
+
+
+def _fall(t, a0, tau):
+    """Under u = 0: da/dt = -a (0.5 + 1.5 a) / tau, so a / (0.5 + 1.5 a) = a0 / (0.5 + 1.5 a0) exp(-t / (2 tau))."""
+    r = a0 / (0.5 + 1.5 * a0) * math.exp(-t / (2.0 * tau))
+    return 0.5 * r / (1.0 - 1.5 * r)
+
+
+def test_activation_follows_the_first_order_dynamics_of_thelen_2003():
+    sim = _knee()
+    p = sim.params
+    assert (p.activation_time, p.deactivation_time) == (0.015, 0.05)
+    state, ctrl = solver.make_state(sim), solver.make_control(sim)
+    m = solver.muscle_indices(sim, 'hamstrings')[0]
+    ctrl.activation[m] = 1.0
+    ups, downs = [], []
+    for i in range(130):                                         # 130 ms of full excitation
+        solver.step(sim, state, ctrl)
+        ups.append((state.time, state.activation[m]))
+    a_top = state.activation[m]
+    ctrl.activation[m] = 0.0
+    for i in range(200):                                         # then 200 ms of none
+        solver.step(sim, state, ctrl)
+        downs.append((state.time - 0.13, state.activation[m]))
+    err_up = max(abs(a - _rise(t, p.activation_time)) for t, a in ups)
+    err_down = max(abs(a - _fall(t, a_top, p.deactivation_time)) for t, a in downs)
+    assert err_up < 5e-4 and err_down < 5e-4, (err_up, err_down)
+    # the time constants as seen: 63 % of the rise at 15.8 ms (tau_act (0.5 + 1.5 a): 0.5-2 tau_act), the fall
+    # to 1/e of its start much slower (tau_deact / (0.5 + 1.5 a))
+    t63 = next(t for t, a in ups if a >= 1 - math.exp(-1))
+    assert 0.014 < t63 < 0.018
+    t37 = next(t for t, a in downs if a <= a_top * math.exp(-1))
+    assert 0.03 < t37 < 0.1
+    assert ups[-1][1] > 0.99 and 0.0 < downs[-1][1] < 0.05
+    assert solver.observe(sim, state)['activations'][m] == state.activation[m]
+
+
+def test_force_length_curves_are_thelen_2003():
+    gamma, k, e0 = 0.45, 5.0, 0.6
+    assert MU.active_force_length(1.0, gamma) == 1.0
+    half = math.sqrt(gamma * math.log(2.0))                          # exp(-d^2 / gamma) = 1/2
+    assert MU.active_force_length(1.0 + half, gamma) == pytest.approx(0.5, abs=1e-12)
+    assert MU.active_force_length(1.0 - half, gamma) == pytest.approx(0.5, abs=1e-12)
+    assert MU.active_force_length(0.5, gamma) == pytest.approx(math.exp(-0.25 / 0.45), rel=1e-12)
+    assert MU.passive_force_length(1.0, k, e0) == 0.0 and MU.passive_force_length(0.7, k, e0) == 0.0
+    assert MU.passive_force_length(1.0 + e0, k, e0) == pytest.approx(1.0, rel=1e-12)     # Fmax at strain eps0
+    assert MU.passive_force_length(1.3, k, e0) == pytest.approx((math.exp(2.5) - 1) / (math.exp(5) - 1), rel=1e-12)
+    for ln in (1.1, 1.4, 1.7):                                       # the energy's derivative is the force
+        d = 1e-6
+        dE = (MU.passive_energy_density(ln + d, k, e0) - MU.passive_energy_density(ln - d, k, e0)) / (2 * d)
+        assert dE == pytest.approx(MU.passive_force_length(ln, k, e0), rel=1e-6)
+    p = solver.Params.physical()
+    assert (p.fl_width, p.fl_passive_shape, p.fl_passive_strain) == (gamma, k, e0)
+
+
+def test_fast_step_matches_the_reference_step_with_muscle_dynamics():
+    """Activation dynamics, active and passive force-length on (the passive fibre force acting: the fibres start
+    stretched), excitations switched on and off."""
+    sim = _knee(rotation_iterations=50, passive_force_length=True, rest_fibre_length=1.15)
+    fast, ref = solver.make_state(sim), solver.make_state(sim)
+    ctrl = solver.make_control(sim)
+    for i in range(160):
+        ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0 if i < 100 else 0.2
+        solver.step(sim, fast, ctrl)
+        solver.reference_step(sim, ref, ctrl.activation)
+    motion = np.abs(fast.x - sim.rest).max()
+    assert motion > 1e-3 and fast.q[0] > 0.01
+    assert np.abs(fast.x - ref.x).max() <= 1e-9 * motion
+    assert np.allclose(fast.q, ref.q, rtol=1e-9, atol=0)
+    assert np.allclose(fast.activation, ref.activation, rtol=0, atol=1e-14)
+    assert np.allclose(fast.muscle_length, ref.muscle_length, rtol=1e-12, atol=0)
+    obs = solver.observe(sim, fast)
+    assert np.all(obs['muscle_passive_forces'] > 0)                   # both columns stretched beyond optimal
+    assert 0.2 < obs['activations'][0] < 0.5                          # falling from ~1 towards 0.2
+
+
+def test_passive_fibre_force_is_the_gradient_of_its_energy():
+    """The passive fibre force is conservative: its virtual work over a small knee rotation is minus the change of the
+    reported passive energy (so a passive run does not gain energy from it); it acts on bone-attached vertices only,
+    with zero net force."""
+    sim = _knee(passive_force_length=True, rest_fibre_length=1.2)
+    ch_rest, inv_lopt, fmax, ch_off, ch_idx = MU.muscle_constants(sim)
+    p = sim.params
+    state = solver.make_state(sim)
+
+    def at(deg):
+        solver.set_joint_positions(sim, state, [math.radians(deg)])
+        f = np.zeros_like(state.x)
+        L, u, F = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3)), np.zeros(sim.n_muscles)
+        e = MU.passive_tension(state.x, f, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p.rest_fibre_length,
+                               p.fl_passive_shape, p.fl_passive_strain, L, u, F)
+        assert e == pytest.approx(solver.observe(sim, state)['passive_energy'], rel=1e-12)
+        return state.x.copy(), f, e, F
+
+    for deg in (5.0, 25.0, 45.0):
+        d = 1e-3
+        x0, f, e, F = at(deg)
+        assert np.all(F > 0) and np.abs(f.sum(0)).max() < 1e-9 * F.max()
+        assert np.all(f[sim.inv_mass > 0] == 0)                           # only on bone-attached vertices
+        xp, _, ep, _ = at(deg + d)
+        xm, _, em, _ = at(deg - d)
+        work = float(np.sum(f * (xp - xm)))
+        assert work == pytest.approx(-(ep - em), rel=1e-5)
+        assert abs(ep - em) > 1e-6 * e
+
+
+def test_observed_force_is_the_force_delivered_to_the_shank(default_tm):
+    """Bundled model, physical set, knee held at 0 deg, the hamstrings excited: each hamstring's observed force [N]
+    is the force its cells put on the bones below the knee (the validation's 'delivered force', docs/validation.md)
+    within 10 %, and of the order of its Fmax."""
+    from tissue_sim.core import validation as V
+    sim = solver.compile_model(default_tm, solver.Params.physical())
+    state, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.joint_lock[:] = True
+    ham = solver.muscle_indices(sim, 'hamstrings')
+    ctrl.activation[ham] = 1.0
+    solver.step(sim, state, ctrl, n_steps=300)
+    obs = solver.observe(sim, state)
+    j = list(sim.tissue.joint_names).index(V.KNEE_JOINT)
+    att = sim.att_idx[V._below_knee(sim, j)]
+    forces = V._Forces(sim)
+    act = MU.tension_activation(sim, state)
+    for name in ('biceps_femoris_long_head', 'semitendinosus'):
+        m = list(sim.tissue.muscle_names).index(name)
+        delivered = np.linalg.norm(forces(state, act, m)[att].sum(0))
+        assert obs['muscle_forces'][m] == pytest.approx(delivered, rel=0.1), name
+        assert 0.4 < obs['muscle_forces'][m] / default_tm.muscle_max_force[m] < 1.3, name
+    assert obs['activations'][ham].min() > 0.99
+    others = np.setdiff1d(np.arange(sim.n_muscles), ham)
+    assert np.all(obs['muscle_forces'][others] == 0)                  # not excited, passive force-length off
+
+
+def test_the_paper_set_keeps_instant_activation_and_has_no_tension():
+    p = solver.Params.paper()
+    assert p.activation_time == 0 and not p.force_length and not p.passive_force_length
+    sim = solver.compile_model(phantom.knee(n_gaps=12, knee_range_deg=(0.0, 60.0)), p)
+    state, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[0] = 0.7
+    solver.step(sim, state, ctrl)
+    assert state.activation[0] == 0.7                                  # the command, at once
+    obs = solver.observe(sim, state)
+    assert np.all(obs['muscle_forces'] == 0) and obs['passive_energy'] == 0
+    copy = state.copy()
+    assert copy.activation is not state.activation and np.array_equal(copy.activation, state.activation)
+    solver.reset(sim, state)
+    assert np.all(state.activation == 0)
+
+
+def test_muscle_parameters_are_validated():
+    for bad in (dict(activation_time=-0.01), dict(deactivation_time=0.0), dict(fl_width=0.0),
+                dict(fl_passive_strain=-1.0), dict(rest_fibre_length=5.0)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            solver.Params.physical(**bad)
+    with pytest.raises(ValueError, match='force_length'):
+        solver.Params.from_dict({'preset': 'physical', 'force_length': 'yes'})
+
+
+def test_tissue_state_carries_excitations_and_forces():
+    from tissue_sim.core import tissue_cdr
+    base = dict(stamp_ns=5, step=3, sim_time=0.003, joint_names=['knee'], joint_positions=[0.1], joint_velocities=[0.0],
+                muscle_names=['a', 'b'], activations=[0.25, 0.0], muscle_lengths=[0.3, 0.2], muscle_volumes=[1e-4, 2e-4],
+                segment_poses=np.zeros((1, 7)), vertex_positions=np.zeros((2, 3)))
+    s = tissue_cdr.decode_state(tissue_cdr.encode_state(**base, excitations=[1.0, 0.0], muscle_forces=[812.5, 0.0]))
+    assert np.allclose(s.activations, [0.25, 0.0]) and np.allclose(s.excitations, [1.0, 0.0])
+    assert np.allclose(s.muscle_forces, [812.5, 0.0])
+    assert tissue_cdr.decode_state(tissue_cdr.encode_state_obj(s)).muscle_forces.tolist() == [812.5, 0.0]
+    # a message without the two fields (recorded before them): the commands were the activations, no forces
+    old = tissue_cdr.encode_state(**base)[:-16]       # without the excitations (length + 2 float32) and empty forces
+    s0 = tissue_cdr.decode_state(old)
+    assert np.allclose(s0.excitations, [0.25, 0.0]) and s0.muscle_forces.size == 0
+
+
+def test_a_recorded_run_tabulates_each_muscles_force_and_excitation(tmp_path):
+    """tissue-sim simulate -> run.mcap -> analyze: muscles.csv has the excitation (the command) and force_n, the
+    force observe() gives for the same headless run (float32 in the message), the activation its dynamic state."""
+    import csv
+
+    from tissue_sim.cli import main
+    assert main(['simulate', 'phantom:knee', '--duration', '0.1', '--activate', 'hamstring=1', '--params', 'physical',
+                 '-o', str(tmp_path / 'run.mcap')]) == 0
+    assert main(['analyze', str(tmp_path / 'run.mcap'), '-q', '--no-plots', '-o', str(tmp_path / 'an')]) == 0
+    rows = [r for r in csv.DictReader(open(tmp_path / 'an' / 'muscles.csv')) if r['muscle'] == 'hamstring']
+    last = rows[-1]
+    sim = solver.compile_model(phantom.knee(n_gaps=12), solver.Params.physical())      # what phantom:knee loads
+    *_, (t, obs) = solver.simulate(sim, 0.1, {'hamstring': 1.0}, every=100, output='obs')
+    assert float(last['time_s']) == pytest.approx(t)
+    assert float(last['excitation']) == 1.0 and float(rows[0]['activation']) == 0.0
+    assert float(last['activation']) == pytest.approx(obs['activations'][0], rel=1e-6) and 0.9 < obs['activations'][0] < 1
+    assert float(last['force_n']) == pytest.approx(obs['muscle_forces'][0], rel=1e-5) and obs['muscle_forces'][0] > 50
