@@ -152,6 +152,9 @@ def main():
     phys, r_phys = solver_rate(solver.Params.physical(), 100)
     print(f'numba solver, physical params (make demo)    : {r_phys:9.0f} steps/s  ({phys.n_substeps} sub-steps per '
           f'step; real-time factor {r_phys * phys.params.dt:.2f})')
+    _, r_phys_nofat = solver_rate(solver.Params.physical(volume_stiffness_fat=0.0), 100)
+    print(f'numba solver, physical params, no fat volume : {r_phys_nofat:9.0f} steps/s  (volume_stiffness_fat 0: the '
+          f'fat volume term costs {100 * (1 - r_phys / r_phys_nofat):.1f} %)')
     isim, r_imp = solver_rate(solver.Params.physical(integrator='implicit', substeps=1), 100)
     ifac = implicit_factor(isim)
     print(f'numba solver, physical params, implicit      : {r_imp:9.0f} steps/s  (1 sub-step of 1 ms, one solve: '
@@ -183,6 +186,7 @@ def main():
                real_time_factor=round(r_chunk * p.dt, 2), steps_per_s_explicit=round(r_explicit),
                explicit_substeps=xsim.n_substeps, physical_steps_per_s=round(r_phys),
                physical_substeps=phys.n_substeps, physical_real_time_factor=round(r_phys * phys.params.dt, 2),
+               physical_no_fat_volume_steps_per_s=round(r_phys_nofat),
                numpy_steps_per_s=round(r_numpy, 1), speedup_vs_numpy=round(r_step / r_numpy, 1), numpy_agreement_m=agree,
                target_steps_per_s=10000, target_met=bool(r_chunk >= 10000), steps_per_s_chunked_wall=round(r_chunk_wall),
                physical_implicit_steps_per_s=round(r_imp), physical_implicit2_steps_per_s=round(r_imp2),
@@ -246,6 +250,8 @@ def markdown_table(out: dict) -> str:
             ('paper set, `integrator: explicit`', f'{out["steps_per_s_explicit"]:,}', f'{out["explicit_substeps"]} sub-steps, true masses'),
             ('physical set (`make demo`)', f'{out["physical_steps_per_s"]:,}',
              f'{out["physical_substeps"]} sub-steps; real-time factor {out["physical_real_time_factor"]}'),
+            ('physical set without the fat volume term', f'{out["physical_no_fat_volume_steps_per_s"]:,}',
+             '`volume_stiffness_fat: 0` (the paper set has none)'),
             ('physical set, `integrator: implicit`', f'{out["physical_implicit_steps_per_s"]:,}',
              f'1 sub-step, one solve ({out["implicit_factor"]["entries"]:,} factor entries); {out["implicit_speedup"]}x the row above'),
             ('physical set, implicit, 2 iterations', f'{out["physical_implicit2_steps_per_s"]:,}', ''),

@@ -41,6 +41,22 @@ def test_fast_step_matches_the_reference_step_on_the_knee_phantom():
     _assert_same(sim, fast, ref, 1e-9)
 
 
+
+def test_fast_step_matches_the_reference_step_with_the_fat_volume_term():
+    """volume_stiffness_fat > 0 (the physical set's fat volume term, here on the paper set): fat cells get a volume
+    stiffness, their groups leave the kernel's plain (fat-only) version, and the trajectory, energies and pressures
+    (the integral term on too) are the reference's."""
+    from tissue_sim.core.model import TISSUE_FAT
+    tm = phantom.knee(n_gaps=12, knee_range_deg=(0.0, 60.0), fat_sectors=8)
+    params = solver.Params.paper(rotation_iterations=50, volume_relax_time=0.005, volume_stiffness_fat=1.0)
+    sim, fast, ref = _both(tm, params, 300)
+    fat = np.asarray(tm.cell_tissue) == TISSUE_FAT
+    assert fat.any() and np.all(sim.k_volume[fat] > 0)
+    assert np.any(ref.pressure[fat] != 0)                      # the fat cells' volume term acted
+    assert np.all(solver.compile_model(tm, solver.Params.paper()).k_volume[fat] == 0)    # off in the paper set
+    assert fast.q[0] > 0.05                                    # the knee swung (0.11 rad: the fat layer resists)
+    _assert_same(sim, fast, ref, 1e-9)
+
 def test_fast_step_matches_the_reference_step_with_sub_steps_and_another_dt():
     """The explicit integrator (true masses, several sub-steps per step) and a step length other than params.dt
     (its own sub-step count), gravity and velocity damping on."""

@@ -229,8 +229,9 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     """The layout lane_forces reads (numpy, at compile time). Returns a CellLayout (groups, ids, rings,
     ring_idx, ring_X0, par, lane_muscle, lane_of):
 
-    - groups (G, 4) int64: per cell size n (ascending): n, positions L, first cell block, first ring block
-      (a group has L cell blocks and L + 1 ring blocks);
+    - groups (G, 5) int64: per cell size n (ascending): n, positions L, first cell block, first ring block
+      (a group has L cell blocks and L + 1 ring blocks), the kernel version it runs: 0 general, 1 no muscle,
+      volume or tension (plain fat), 2 no muscle or tension but a volume term (fat with its volume term);
     - ids (Bc, BLK) int32: the cell of each lane of each cell block (-1: a dummy position);
     - rings (Br, 4) int64 per ring block: real slots, slots (even), first slot row r0, real lanes (a prefix);
     - ring_idx (R, BLK) uint32: 3 x the vertex of slot s of each lane at row r0 + s (its offset in the flat
@@ -302,7 +303,9 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
         for lane, cells in enumerate(lanes):
             seq[lane, :len(cells)] = cells
         cs = np.concatenate(mine)
-        plain = bool(np.all(np.asarray(cell_muscle)[cs] < 0) and np.all(rows[3, cs] == 0) and np.all(rows[1, cs] == 0))
+        plain = bool(np.all(np.asarray(cell_muscle)[cs] < 0) and np.all(rows[1, cs] == 0))
+        if plain and np.any(rows[3, cs] != 0):
+            plain = 2          # no muscle or tension but a volume term (fat with volume_stiffness_fat > 0)
         groups.append((int(n), L, len(cell_blocks), len(ring_blocks), int(plain)))
         cell_blocks += [seq[:, j] for j in range(L)]
         for j in range(L + 1):
@@ -489,7 +492,8 @@ def lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
     xf, vf, ff = x.reshape(-1), v.reshape(-1), f.reshape(-1)
     bad = -1
     for gi in range(groups.shape[0]):
-        n, L, b0, q0, plain = groups[gi, 0], groups[gi, 1], groups[gi, 2], groups[gi, 3], groups[gi, 4] != 0
+        n, L, b0, q0, plain = groups[gi, 0], groups[gi, 1], groups[gi, 2], groups[gi, 3], groups[gi, 4] == 1
+        fatvol = groups[gi, 4] == 2
         m_real, m, r0 = rings[q0, 0], rings[q0, 1], rings[q0, 2]
         w[W_H * BLK:N_W * BLK] = 0.0        # no cell below the first ring
         _ring_moments(rs0, gv0, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], m, m_real, xf, vf, ring_idx[r0:r0 + m])
@@ -507,6 +511,10 @@ def lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
                 _combine(w, rb, rt, pb, n, lq, lp, at)
                 if plain:       # no muscle, volume or tension in the group: a version compiled without them
                     _cell_algebra(w, pb, n, volume_actual, vol_gain, True)
+                    _rotations(w, iters)
+                    _force_maps(w, pb, n, True)
+                elif fatvol:    # no muscle or tension, a volume term: compiled without the muscle parts
+                    _cell_algebra(w, pb, n, volume_actual, vol_gain, True, True)
                     _rotations(w, iters)
                     _force_maps(w, pb, n, True)
                 else:
@@ -732,11 +740,13 @@ def _times_rest_map(m00, m01, m02, m10, m11, m12, m20, m21, m22, la, sl, fx, fy,
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def _cell_algebra(w, pb, n, volume_actual, vol_gain, plain):
+def _cell_algebra(w, pb, n, volume_actual, vol_gain, plain, fatvol=None):
     """Per lane (vectorised): the rest shape F, B = A F for the rotation, the volume term
     (force map P, energy, pressure), tr Y and the rigid velocity (vbar, w) of the damping. plain: None,
     or True for a group without muscle cells, volume or tension (pack_cells' flag): numba then compiles a
-    version in which F = I and the volume term are constants, and LLVM drops the dead parts."""
+    version in which F = I and the volume term are constants, and LLVM drops the dead parts. fatvol: None, or
+    True with plain True for a group without muscle or tension but with a volume term (fat cells with
+    volume_stiffness_fat > 0): F = I, the volume term kept."""
     inv_n = 1.0 / n
     # the cross-section factor first, in a short loop of its own (a chain of two square roots and a
     # division: short loops let the processor overlap the chains of several lanes)
@@ -775,7 +785,7 @@ def _cell_algebra(w, pb, n, volume_actual, vol_gain, plain):
         # g = -kvol (det D - 1) + the integral pressure; cof(D) Qinv = det(Qinv) cof(A) and
         # det D = det A det Qinv (Qinv symmetric), so D itself is never formed
         kv = pb[P_KVOL * BLK + c]
-        vol = kv > 0.0 if plain is None else False
+        vol = kv > 0.0 if plain is None or fatvol is not None else False
         c00 = a11 * a22 - a12 * a21; c01 = a12 * a20 - a10 * a22; c02 = a10 * a21 - a11 * a20
         c10 = a02 * a21 - a01 * a22; c11 = a00 * a22 - a02 * a20; c12 = a01 * a20 - a00 * a21
         c20 = a01 * a12 - a02 * a11; c21 = a02 * a10 - a00 * a12; c22 = a00 * a11 - a01 * a10

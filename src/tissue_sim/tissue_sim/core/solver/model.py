@@ -232,12 +232,13 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     damp_b = 2.0 * p.damping_ratio * np.sqrt((k + k_active) * mcell) if p.damping == 'deformation' else np.zeros(C)
     vel_damp = p.velocity_damping
     # volume penalty on the best-fit affine map D = A Qinv: kvol = volume_stiffness * k / sum_i |Qinv X0_i|^2
-    # (its stiffness at rest is then volume_stiffness * k), muscle cells only
+    # (its stiffness at rest is then volume_stiffness * k); fat cells the same with volume_stiffness_fat
     k_volume = np.zeros(C)
-    if p.volume_stiffness > 0:
+    vol_rel = np.where(muscle, p.volume_stiffness, p.volume_stiffness_fat)       # relative volume stiffness per cell
+    if np.any(vol_rel > 0):
         g = np.einsum('kij,kj->ki', Qinv[cell_of_k], X0)
         g2 = np.bincount(cell_of_k, weights=np.sum(g * g, axis=1), minlength=C)
-        k_volume = np.where(muscle & ~flat, p.volume_stiffness * (k + k_active) / np.maximum(g2, 1e-300), 0.0)
+        k_volume = np.where(~flat, vol_rel * (k + k_active) / np.maximum(g2, 1e-300), 0.0)
     # muscle length weights: cells of a muscle in the same slice gap share one gap length
     lw = np.zeros(C)
     for m in range(tm.n_muscles):
@@ -291,7 +292,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
             seg_mass[s], seg_com[s], seg_I[s] = mt, com, I
     inv_mass = np.where(vs >= 0, 0.0, 1.0 / mass)
     # summed stiffness and damping of each vertex's cells (the mass_scaled integrator's masses)
-    kcell = (k + k_active) * (1.0 + np.where(k_volume > 0, p.volume_stiffness, 0.0))
+    kcell = (k + k_active) * (1.0 + np.where(k_volume > 0, vol_rel, 0.0))
     kappa = np.zeros(V)
     np.add.at(kappa, cv, np.repeat(kcell, sizes))
     bsum = np.zeros(V)

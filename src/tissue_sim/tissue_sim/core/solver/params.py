@@ -79,6 +79,9 @@ class Params:
     fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
     rest_fibre_length: float = 1.0        # normalised fibre length l of every muscle in the model's rest pose (l = rest_fibre_length
                                           # + (L - L_rest) / L_opt: rigid tendon, the fibres take the measured length change)
+    volume_stiffness_fat: float = 0.0     # fat volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k, like volume_stiffness
+                                          # for muscle (physical: 20, effective Poisson ratio 0.465: fat is nearly incompressible; keeps fat cells from
+                                          # inverting; 0 = off: the paper's fat has no volume term; docs/contact.md)
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame, e.g. (0, 0, -9.81) standing; off in both presets (the paper's figures;
                                           # the isometric validation and the dynamometry it compares with exclude the limb's weight)
@@ -110,7 +113,7 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True)
+                    force_length=True, volume_stiffness_fat=20.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -146,6 +149,7 @@ class Params:
         need(0 < self.fl_passive_shape <= 50, 'fl_passive_shape must be in (0, 50]')
         need(0 < self.fl_passive_strain <= 5, 'fl_passive_strain must be in (0, 5]')
         need(0.2 <= self.rest_fibre_length <= 2, 'rest_fibre_length must be in [0.2, 2]')
+        need(self.volume_stiffness_fat >= 0, 'volume_stiffness_fat must be >= 0')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
