@@ -201,12 +201,16 @@ class TissueModel(TissueTopology):
     joint_range: np.ndarray             # (J, 2) float64 [rad]
     joint_rest: np.ndarray              # (J,) float64 [rad] coordinate of the rest pose
     slice_z: np.ndarray                 # (Z,) float64 [m] height of each slice used
+    muscle_rest_fibre_length: np.ndarray = None   # (M,) float64 normalised fibre length in the rest pose (tissue table's
+                                                  # rest_fibre_length); None / absent from a file: 1.0 each
 
     # ---------------------------------------------------------------------------- validation
     def validate(self) -> 'TissueModel':
         """Check shapes, index ranges and finiteness; raise ModelError naming the first problem."""
         V, C = self.n_vertices, self.n_cells
         M, S, J, B = self.n_muscles, self.n_segments, self.n_joints, len(self.bone_names)
+        if self.muscle_rest_fibre_length is None:
+            object.__setattr__(self, 'muscle_rest_fibre_length', np.ones(M))
 
         def need(cond, msg):
             if not cond:
@@ -253,6 +257,8 @@ class TissueModel(TissueTopology):
         need(len(self.muscle_groups) == M and self.muscle_max_force.shape == (M,) and self.muscle_fibre_length.shape == (M,),
              'muscle arrays must be (M,)')
         need(len(set(self.muscle_names)) == M, 'muscle names must be unique')
+        need(np.shape(self.muscle_rest_fibre_length) == (M,) and np.all(np.isfinite(self.muscle_rest_fibre_length))
+             and np.all(np.asarray(self.muscle_rest_fibre_length) > 0), 'muscle_rest_fibre_length must be (M,) and > 0')
         need(self.bone_segment.shape == (B,) and self.bone_vertex_offsets.shape == (B + 1,)
              and self.bone_triangle_offsets.shape == (B + 1,), 'bone arrays inconsistent')
         need(self.segment_parent.shape == (S,) and self.segment_mass.shape == (S,) and self.segment_com.shape == (S, 3)
@@ -355,6 +361,8 @@ class TissueModel(TissueTopology):
             if f.name in ('name', 'meta'):
                 continue
             if f.name not in arrays:
+                if f.default is None:          # an optional array (a file written before it existed): its default
+                    continue
                 raise ModelError(f'{path}: missing array {f.name!r}')
             a = arrays[f.name]
             if f.type == 'tuple':

@@ -75,8 +75,9 @@ class Params:
     fl_width: float = 0.45                # gamma, width of the active force-length curve (Thelen 2003 / OpenSim KshapeActive)
     fl_passive_shape: float = 5.0         # k_PE, shape of the passive curve (Thelen 2003 / OpenSim KshapePassive)
     fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
-    rest_fibre_length: float = 1.0        # normalised fibre length l of every muscle in the model's rest pose (l = rest_fibre_length
-                                          # + (L - L_rest) / L_opt: rigid tendon, the fibres take the measured length change)
+    rest_fibre_length: float = 0.0        # > 0: override, the normalised fibre length l of every muscle in the model's rest pose;
+                                          # 0 = each muscle's own (the tissue table's rest_fibre_length, from the source model;
+                                          # 1.0 without one). l = l_rest + (C - C_rest) / L_opt: rigid tendon (docs/solver.md)
     # --- skeleton --------------------------------------------------------------------------
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
@@ -142,7 +143,8 @@ class Params:
         need(0 < self.fl_width <= 10, 'fl_width must be in (0, 10]')
         need(0 < self.fl_passive_shape <= 50, 'fl_passive_shape must be in (0, 50]')
         need(0 < self.fl_passive_strain <= 5, 'fl_passive_strain must be in (0, 5]')
-        need(0.2 <= self.rest_fibre_length <= 2, 'rest_fibre_length must be in [0.2, 2]')
+        need(self.rest_fibre_length == 0 or 0.2 <= self.rest_fibre_length <= 2,
+             'rest_fibre_length must be 0 (each muscle\'s own) or in [0.2, 2]')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
