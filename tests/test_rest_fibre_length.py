@@ -73,10 +73,11 @@ def test_bundled_table_and_model_carry_the_rest_fibre_lengths(default_tm):
         assert default_tm.muscle_rest_fibre_length[m] == table[name]['rest_fibre_length'], name
     # the source model's knee flexors start short of their optimal length at full extension
     assert default_tm.muscle_rest_fibre_length[default_tm.muscle_index('semimembranosus')] < 0.8
-    sim = solver.compile_model(default_tm, solver.Params.physical())
+    sim = solver.compile_model(default_tm, solver.Params.physical(rest_fibre_length=0.0))     # each muscle's own
     assert np.array_equal(MU.rest_fibre_lengths(sim), default_tm.muscle_rest_fibre_length)
     assert np.allclose(solver.observe(sim, solver.make_state(sim))['fibre_lengths'], default_tm.muscle_rest_fibre_length)
-    over = solver.compile_model(default_tm, solver.Params.physical(rest_fibre_length=1.0))   # the override
+    assert solver.Params().rest_fibre_length == 0.0
+    over = solver.compile_model(default_tm, solver.Params.physical())     # the physical set's override: 1.0
     assert np.all(MU.rest_fibre_lengths(over) == 1.0)
 
 

@@ -108,7 +108,7 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True)
+                    force_length=True, rest_fibre_length=1.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -118,6 +118,9 @@ class Params:
         # and ankle fat cells at V/V0 0.56..5, omega h 2.04 at 1.4: divergence at step ~440 with or without
         # force-velocity); at 5 the ankle stays within -6..+2 deg. (tests/test_solver_default_model.py::
         # test_physical_without_force_velocity_is_stable)
+        # rest_fibre_length 1.0 (every fibre at its optimum at rest), not 0 (each muscle's source-model value): with
+        # those the fully active hamstrings' isometric torque moved further from OpenSim's (`tissue-sim validate
+        # --angles 0,30,60,90,120 --settle 0.5`: RMS 32 -> 41 N m, peak 77 -> 56 N m; docs/solver.md "Force-length")
         base.update(kw)
         return cls(**base).validate()
 
