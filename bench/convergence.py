@@ -2,7 +2,7 @@
 """Mesh convergence of the knee motion: the demo's experiment (physical set, the hamstrings fully active
 from t = 0) on the bundled limb built 1x, 3x and 6x finer (`build-model --refine R`), one integrator.
 
-    . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--integrator NAME] [--substeps matched|set|N]
+    . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--integrator NAME] [--substeps unscaled|set|matched|N]
                                               [--duration 0.3] [--out DIR] [--quick]
 
 For each refinement: vertices, cells, sub-steps per 1-ms step, steps per CPU second (one thread, the
@@ -11,15 +11,15 @@ differences between successive refinements (max and RMS over the run, degrees): 
 shows them shrinking. Writes DIR/convergence.json and DIR/convergence.png (knee angle vs time per
 refinement); default DIR bench/out/. Last line: one JSON object.
 
---integrator: default 'implicit' where core/solver has it (issue 23), else 'explicit' (true masses,
-automatic stable sub-steps: the present scheme converged in time). The physical set's own 'mass_scaled'
-at 4 sub-steps adds mass where a vertex's cells are too stiff for the step (h^2 kappa / limit^2); on
-the default model that slows the knee (92.4 deg at 0.4 s against 104.9 deg with 16 or more sub-steps or
-'explicit'), and the added mass grows with refinement at a fixed step (cells stiffer and lighter), so
-at the set's own step it converges to a heavier limb, not to the physics. --substeps: 'set' = the
-parameter set's own (physical: 4; with explicit: automatic); 'matched' = the set's own x omega_max(R) /
-omega_max(1) (the same omega_max h as the default model); an integer N = N for every model. --quick:
-1x and 2x, 0.3 s (for `make bench`).
+--integrator: default 'implicit' where core/solver has it (issue 23), else the physical set's own
+'mass_scaled'. --substeps: 'unscaled' (default with mass_scaled) = the fewest sub-steps at which the
+mass scaling adds less than 0.1 % of the tissue's mass, i.e. the present scheme converged in time (on
+the default model it agrees with 'explicit' to 0.05 deg); 'set' = the parameter set's own (physical: 4;
+with explicit: automatic); 'matched' = the set's own x omega_max(R) / omega_max(1); an integer N = N for
+every model. The mass scaling adds mass where a vertex's cells are too stiff for the sub-step
+(h^2 kappa / limit^2): at the physical set's 4 sub-steps that is +207 % of the free tissue's mass on the
+default model and grows with refinement (cells stiffer and lighter): +2,285 % at 3x, +9,024 % at 6x;
+each run reports its added mass. --quick: 1x and 2x, 0.3 s (for `make bench`).
 """
 from __future__ import annotations
 
@@ -43,10 +43,67 @@ from tissue_sim.core import solver  # noqa: E402
 from tissue_sim.core.solver import params as P  # noqa: E402
 
 SAMPLE_EVERY = 10          # steps between knee samples (10 ms at the physical set's 1-ms step)
+UNSCALED_TOL = 1e-3        # --substeps unscaled: mass_scaled adds less than this share of the true mass
 
 
 def default_integrator() -> str:
-    return 'implicit' if 'implicit' in P.INTEGRATORS else 'explicit'
+    return 'implicit' if 'implicit' in P.INTEGRATORS else 'mass_scaled'
+
+
+def added_mass_share(sim, n_sub) -> float:
+    """Mass the mass_scaled integrator adds at n_sub sub-steps per step, as a share of the free vertices' true
+    mass (SimModel.inv_denominator); 0 for the other integrators."""
+    if sim.params.integrator != 'mass_scaled':
+        return 0.0
+    free = np.asarray(sim.inv_mass) > 0
+    den = 1.0 / np.asarray(sim.inv_denominator(sim.params.dt / n_sub))[free]
+    return float(den.sum() / np.asarray(sim.mass)[free].sum() - 1.0)
+
+
+def unscaled_substeps(sim, tol=UNSCALED_TOL) -> int:
+    """The fewest sub-steps at which mass_scaled adds less than ``tol`` of the true mass (the scheme then
+    integrates the true masses: the time-converged reference of the present scheme)."""
+    n = max(1, int(sim.omega_max * sim.params.dt / sim.params.stability_limit))
+    while added_mass_share(sim, n) >= tol:
+        n += 1
+    return n
+
+
+def cell_moments(tm):
+    """(volume (C,) [m^3], J (C,) [m^2]: sum over a cell's vertices of |X_i - centroid|^2) at rest."""
+    from tissue_sim.core.builder.quality import cell_volumes
+    off, cv = np.asarray(tm.cell_offsets, np.int64), np.asarray(tm.cell_vertices, np.int64)
+    X = np.asarray(tm.rest_positions, np.float64)
+    sizes = np.diff(off)
+    J = np.zeros(len(sizes))
+    for n in np.unique(sizes):
+        cells = np.flatnonzero(sizes == n)
+        P = X[cv[off[cells][:, None] + np.arange(n)[None, :]]]
+        J[cells] = ((P - P.mean(axis=1, keepdims=True)) ** 2).sum(axis=(1, 2))
+    return np.abs(cell_volumes(tm)), J
+
+
+def moment_ratio(tm, params):
+    """Per tissue (muscle, fat): sum over cells of k J / sum of E V, for the 'modulus' stiffness of
+    core/solver/model.py (k = E cbrt(V) 4 / n x cell_k_scale): the shape-matching energy of a uniform strain
+    over the continuum's (1/2 E eps^2 V, up to a constant). A mesh-independent stiffness keeps it constant."""
+    V, J = cell_moments(tm)
+    n = np.diff(np.asarray(tm.cell_offsets))
+    mus = np.asarray(tm.cell_tissue) == 1
+    E = np.where(mus, params.youngs_muscle, params.youngs_fat)
+    k = E * np.cbrt(V) * 4.0 / n * np.asarray(tm.cell_k_scale)
+    return {t: float((k * J)[sel].sum() / (E * V)[sel].sum()) for t, sel in (('muscle', mus), ('fat', ~mus))}
+
+
+def with_moment_stiffness(tm, params, c):
+    """The model with cell_k_scale set so that every cell's k J = c[tissue] E V (the experiment of
+    --stiffness moment: the same stiffness per volume on every mesh; c from the default model)."""
+    import dataclasses as dc
+    V, J = cell_moments(tm)
+    n = np.diff(np.asarray(tm.cell_offsets))
+    mus = np.asarray(tm.cell_tissue) == 1
+    want = np.where(mus, c['muscle'], c['fat']) * V / J            # k / E wanted
+    return dc.replace(tm, cell_k_scale=want / (np.cbrt(V) * 4.0 / n))
 
 
 def run_one(tm, params, duration, label):
@@ -72,13 +129,14 @@ def run_one(tm, params, duration, label):
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     done = (len(t) - 1) * SAMPLE_EVERY if diverged is None else diverged['step']
     out = dict(label=label, vertices=int(tm.n_vertices), cells=int(tm.n_cells), integrator=params.integrator,
-               substeps=int(sim.n_substeps), omega_max_dt=round(float(sim.omega_max * params.dt), 2),
+               substeps=int(sim.n_substeps), added_mass_percent=round(100 * added_mass_share(sim, sim.n_substeps), 3), omega_max_dt=round(float(sim.omega_max * params.dt), 2),
                steps=int(done), steps_requested=n, cpu_s=round(cpu, 2), wall_s=round(wall, 2),
                steps_per_cpu_s=round(done / max(cpu, 1e-9), 1), t=t, knee_deg=[round(v, 4) for v in q],
                diverged=diverged)
     fin = f'{q[-1]:.1f} deg at {t[-1]:.2f} s' if q else '-'
     print(f'{label}: {out["vertices"]:,} vertices, {out["cells"]:,} cells, {params.integrator} x{out["substeps"]} '
-          f'(omega_max dT {out["omega_max_dt"]}): {out["steps_per_cpu_s"]:.0f} steps/CPU s, knee {fin}'
+          f'(omega_max dT {out["omega_max_dt"]}, added mass {out["added_mass_percent"]} %): '
+          f'{out["steps_per_cpu_s"]:.1f} steps/CPU s, knee {fin}'
           + (f'; DIVERGED at step {diverged["step"]} ({diverged["cause"]})' if diverged else ''), flush=True)
     return out, sim
 
@@ -114,8 +172,8 @@ def plot(runs, path, title):
 
 
 def markdown(out) -> str:
-    rows = ['| model | vertices | cells | integrator, sub-steps | steps/CPU s | knee at end | diff. to next finer: max / RMS [deg] |',
-            '|---|---|---|---|---|---|---|']
+    rows = ['| model | vertices | cells | integrator, sub-steps | added mass | steps/CPU s | knee at end | diff. to next finer: max / RMS [deg] |',
+            '|---|---|---|---|---|---|---|---|']
     for i, r in enumerate(out['runs']):
         d = out['differences'][i] if i < len(out['differences']) else None
         end = f'{r["knee_deg"][-1]:.1f} deg at {r["t"][-1]:.2f} s' if r['knee_deg'] else '-'
@@ -123,7 +181,7 @@ def markdown(out) -> str:
             end += f', diverged at step {r["diverged"]["step"]}'
         dd = f'{d["max_deg"]} / {d["rms_deg"]}' if d else '-'
         rows.append(f'| {r["label"]} | {r["vertices"]:,} | {r["cells"]:,} | {r["integrator"]} x{r["substeps"]} | '
-                    f'{r["steps_per_cpu_s"]:,.0f} | {end} | {dd} |')
+                    f'{r["added_mass_percent"]:g} % | {r["steps_per_cpu_s"]:,.1f} | {end} | {dd} |')
     return '\n'.join(rows)
 
 
@@ -133,9 +191,13 @@ def main():
     ap.add_argument('--integrator', default=None, choices=P.INTEGRATORS,
                     help=f'time integrator (default {default_integrator()}, the fastest stable one here)')
     ap.add_argument('--substeps', default=None,
-                    help="'set' (the parameter set's own; default), 'matched' (omega_max h of the default model) or an integer")
+                    help="'unscaled' (mass_scaled adding < 0.1 %% of the mass: time-converged; default with mass_scaled), "
+                         "'set' (the parameter set's own; default otherwise), 'matched' (omega_max h of the default model) or an integer")
     ap.add_argument('--duration', type=float, default=0.3, help='simulated seconds (default 0.3: the knee flexes to ~60 deg)')
     ap.add_argument('--out', default=str(ROOT / 'bench' / 'out'), help='folder for convergence.json and .png')
+    ap.add_argument('--stiffness', choices=('as-is', 'moment'), default='as-is',
+                    help="'as-is': the models' own stiffness (default); 'moment' (an experiment): each cell's passive "
+                         "stiffness set so that k J = c E V with c of the default model (mesh-independent)")
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
     a = ap.parse_args()
     if a.quick:
@@ -149,23 +211,31 @@ def main():
     if not (0 < a.duration <= 10):
         sys.exit('error: --duration must be in (0, 10] s')
     integ = a.integrator or default_integrator()
-    mode = a.substeps or 'set'
-    if mode not in ('set', 'matched') and not (mode.isdigit() and int(mode) >= 1):
-        sys.exit(f"error: --substeps {mode!r}: expected set, matched or an integer >= 1")
-    if mode == 'matched' and integ == 'explicit':
-        sys.exit('error: --substeps matched is for mass_scaled (explicit takes its stable sub-steps itself: set)')
+    mode = a.substeps or ('unscaled' if integ == 'mass_scaled' else 'set')
+    if mode not in ('set', 'matched', 'unscaled') and not (mode.isdigit() and int(mode) >= 1):
+        sys.exit(f"error: --substeps {mode!r}: expected set, matched, unscaled or an integer >= 1")
+    if mode in ('matched', 'unscaled') and integ != 'mass_scaled':
+        sys.exit(f'error: --substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
     from tissue_sim.core.builder import default_model
     base = P.Params.physical(integrator=integ)
     if integ == 'explicit' and mode == 'set':
         base = dataclasses.replace(base, substeps=0).validate()      # true masses: automatic sub-steps (stability)
     runs, omega1 = [], None
+    c_ref = moment_ratio(default_model(), base)
     for R in refs:
         t0 = time.perf_counter()
         tm = default_model(refine=R)
-        print(f'refine {R:g}: model ready in {time.perf_counter() - t0:.1f} s', flush=True)
+        ratio = moment_ratio(tm, base)
+        if a.stiffness == 'moment':
+            tm = with_moment_stiffness(tm, base, c_ref)
+        print(f'refine {R:g}: model ready in {time.perf_counter() - t0:.1f} s; passive stiffness sum kJ / sum EV: muscle '
+              f'{ratio["muscle"]:.2f}, fat {ratio["fat"]:.2f} (default model {c_ref["muscle"]:.2f}, {c_ref["fat"]:.2f})'
+              + ('; set to the default model\'s per cell (--stiffness moment)' if a.stiffness == 'moment' else ''), flush=True)
         params = base
         if mode.isdigit():
             params = dataclasses.replace(base, substeps=int(mode)).validate()
+        elif mode == 'unscaled':
+            params = dataclasses.replace(base, substeps=unscaled_substeps(solver.compile_model(tm, base))).validate()
         elif mode == 'matched':
             if omega1 is None:
                 omega1 = solver.compile_model(default_model(), base).omega_max
@@ -174,6 +244,7 @@ def main():
             params = dataclasses.replace(base, substeps=int(math.ceil(sub * w / omega1 - 1e-9))).validate()
         r, _ = run_one(tm, params, a.duration, f'{R:g}x')
         r['refine'] = R
+        r['stiffness_moment_ratio'] = {k: round(v, 3) for k, v in ratio.items()}
         runs.append(r)
     diffs = [differences(runs[i], runs[i + 1]) for i in range(len(runs) - 1)]
     cpu = 'unknown'
@@ -184,7 +255,7 @@ def main():
         pass
     out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
                          '--activate hamstrings=1)', 'integrator': integ, 'substeps_mode': mode,
-           'duration_s': a.duration, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
+           'duration_s': a.duration, 'stiffness': a.stiffness, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
     shrink = [d['max_deg'] for d in diffs if d]
     out['differences_shrink'] = bool(len(shrink) >= 2 and all(b < a_ for a_, b in zip(shrink, shrink[1:])))
@@ -192,7 +263,8 @@ def main():
     od.mkdir(parents=True, exist_ok=True)
     (od / 'convergence.json').write_text(json.dumps(out, indent=1))
     try:
-        plot(runs, od / 'convergence.png', f'knee flexion, hamstrings fully active; {integ}, sub-steps {mode}')
+        plot(runs, od / 'convergence.png', f'knee flexion, hamstrings fully active; {integ}, sub-steps {mode}'
+             + ('; stiffness per volume as the default model' if a.stiffness == 'moment' else ''))
     except Exception as e:  # report, do not hide
         print(f'plot not written ({type(e).__name__}: {e})')
     print()

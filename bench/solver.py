@@ -2,7 +2,12 @@
 same step in plain numpy (solver.reference_step) and with pypbd's shape matching (PositionBasedDynamics) on the
 same cells.
 
-    .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3]
+    .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3] [--fine FILE.npz]
+
+The physical set runs with its mass_scaled integrator (4 sub-steps) and, beside it, with the implicit integrator (one
+sub-step of 1 ms; docs/solver.md "Implicit integrator"). --fine: the same two on a finer model (e.g. from
+`tissue-sim build-model --slices 140 --muscle-rays 24 --fat-rays 36 --allow-broken-muscles`), with the factor's size
+and the process's peak memory.
 
 Model: tissue_sim.core.builder.default_model() (the bundled anatomy); if that is not available,
 the builder's synthetic paper-sized limb phantom (tests/phantoms.py). Prints the figures as lines, then as a
@@ -110,6 +115,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--model', help='a model .npz (default: the bundled anatomy)')
     ap.add_argument('--seconds', type=float, default=3.0, help='measuring time per figure [s]')
+    ap.add_argument('--fine', help='also a finer model .npz: physical set, mass_scaled beside implicit')
     args = ap.parse_args()
     tm, source = load_model(args.model)
     print(f'model: {source}: {tm.n_vertices} vertices, {tm.n_cells} cells '
@@ -120,10 +126,10 @@ def main():
     out = {'model': source, 'vertices': tm.n_vertices, 'cells': tm.n_cells, **cpu}
     ham = [m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]
 
-    def solver_rate(params, chunk):
-        sim = solver.compile_model(tm, params)
+    def solver_rate(params, chunk, model=tm):
+        sim = solver.compile_model(model, params)
         st, ctrl = solver.make_state(sim), solver.make_control(sim)
-        ctrl.activation[ham] = 1.0
+        ctrl.activation[[m for m, g in enumerate(model.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0
         if chunk == 1:
             r = rate(lambda: solver.step(sim, st, ctrl), args.seconds)
         else:
@@ -146,6 +152,12 @@ def main():
     phys, r_phys = solver_rate(solver.Params.physical(), 100)
     print(f'numba solver, physical params (make demo)    : {r_phys:9.0f} steps/s  ({phys.n_substeps} sub-steps per '
           f'step; real-time factor {r_phys * phys.params.dt:.2f})')
+    isim, r_imp = solver_rate(solver.Params.physical(integrator='implicit', substeps=1), 100)
+    ifac = implicit_factor(isim)
+    print(f'numba solver, physical params, implicit      : {r_imp:9.0f} steps/s  (1 sub-step of 1 ms, one solve: '
+          f'{r_imp / r_phys:.2f}x the mass_scaled row; factor {ifac["unknowns"]} unknowns, {ifac["entries"]:,} entries)')
+    _, r_imp2 = solver_rate(solver.Params.physical(integrator='implicit', substeps=1, implicit_iterations=2), 100)
+    print(f'numba solver, physical params, implicit x2   : {r_imp2:9.0f} steps/s  (2 local/global iterations)')
     # plain numpy: reference_step, the same physics and integrator as the paper-set step (exact rotations by SVD)
     st_np, st_nb = solver.make_state(sim), solver.make_state(sim)
     ctrl = solver.make_control(sim)
@@ -173,7 +185,11 @@ def main():
                physical_substeps=phys.n_substeps, physical_real_time_factor=round(r_phys * phys.params.dt, 2),
                numpy_steps_per_s=round(r_numpy, 1), speedup_vs_numpy=round(r_step / r_numpy, 1), numpy_agreement_m=agree,
                target_steps_per_s=10000, target_met=bool(r_chunk >= 10000), steps_per_s_chunked_wall=round(r_chunk_wall),
+               physical_implicit_steps_per_s=round(r_imp), physical_implicit2_steps_per_s=round(r_imp2),
+               implicit_speedup=round(r_imp / r_phys, 2), implicit_factor=ifac,
                cpu_load_1min=round(os.getloadavg()[0], 2), timing='per CPU second of this process, one thread')
+    if args.fine:
+        out['fine'] = fine_model(args.fine, solver_rate)
     if r_pbd:
         out.update(pypbd_steps_per_s=round(r_pbd, 1), speedup_vs_pypbd=round(r_chunk / r_pbd, 2),
                    speedup_vs_pypbd_per_pass=round(passes / r_pbd, 2), pypbd_target_met=bool(r_chunk >= 4 * r_pbd))
@@ -187,6 +203,40 @@ def main():
     print(json.dumps(out))
 
 
+def implicit_factor(sim):
+    """The implicit integrator's factor at params.dt: unknowns (free vertices + cells), entries, bytes, build time."""
+    from tissue_sim.core.solver import implicit as IM
+    t0 = time.perf_counter()
+    imp = IM.make(sim, sim.params.dt)
+    return {'unknowns': int(imp.z.shape[0]), 'entries': int(imp.n_lnz), 'bytes': int(imp.Lx.nbytes + imp.Lj.nbytes +
+            imp.Lp.nbytes + imp.dinv.nbytes), 'build_s': round(time.perf_counter() - t0, 3)}
+
+
+def fine_model(path, solver_rate):
+    """A finer model: the physical set with mass_scaled (4 sub-steps) and implicit (1 and 2 iterations)."""
+    import resource
+    from tissue_sim.core.model import TissueModel
+    tm = TissueModel.load(path)
+    res = {'model': str(path), 'vertices': tm.n_vertices, 'cells': tm.n_cells}
+    print(f'fine model {path}: {tm.n_vertices} vertices, {tm.n_cells} cells')
+    for name, kw in (('mass_scaled', {}), ('implicit', dict(integrator='implicit', substeps=1)),
+                     ('implicit x2', dict(integrator='implicit', substeps=1, implicit_iterations=2))):
+        try:
+            sim, r = solver_rate(solver.Params.physical(**kw), 20, tm)
+            res[name] = round(r, 1)
+            extra = ''
+            if kw:
+                res['implicit_factor'] = implicit_factor(sim)
+                extra = f'; factor {res["implicit_factor"]["entries"]:,} entries, {res["implicit_factor"]["bytes"] / 1e6:.1f} MB'
+            print(f'fine model, physical params, {name:12s}: {r:9.1f} steps/s ({sim.n_substeps} sub-step(s){extra})')
+        except solver.DivergenceError as e:
+            res[name] = f'diverged: {e}'
+            print(f'fine model, physical params, {name:12s}: {e}')
+    res['peak_rss_mb'] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    print(f'peak resident memory of this process: {res["peak_rss_mb"]} MB')
+    return res
+
+
 def markdown_table(out: dict) -> str:
     """The figures as the markdown table of docs/solver.md (steps per CPU second, one thread)."""
     rt = out['real_time_factor']
@@ -196,6 +246,9 @@ def markdown_table(out: dict) -> str:
             ('paper set, `integrator: explicit`', f'{out["steps_per_s_explicit"]:,}', f'{out["explicit_substeps"]} sub-steps, true masses'),
             ('physical set (`make demo`)', f'{out["physical_steps_per_s"]:,}',
              f'{out["physical_substeps"]} sub-steps; real-time factor {out["physical_real_time_factor"]}'),
+            ('physical set, `integrator: implicit`', f'{out["physical_implicit_steps_per_s"]:,}',
+             f'1 sub-step, one solve ({out["implicit_factor"]["entries"]:,} factor entries); {out["implicit_speedup"]}x the row above'),
+            ('physical set, implicit, 2 iterations', f'{out["physical_implicit2_steps_per_s"]:,}', ''),
             ('plain numpy `reference_step`, paper set', f'{out["numpy_steps_per_s"]:,}',
              f'`step()` is {out["speedup_vs_numpy"]}x faster; positions agree to {out["numpy_agreement_m"]:.0e} m after 20 steps')]
     if out.get('pypbd_steps_per_s'):
@@ -203,6 +256,12 @@ def markdown_table(out: dict) -> str:
                      f'the chunked paper set is {out["speedup_vs_pypbd"]}x faster'))
     head = (f'{out["vertices"]:,} vertices, {out["cells"]} cells; {out["cpu_model"]} (`{out["llvm_cpu"]}`, '
             f'{out["lanes_per_block"]} lanes per block); load average {out["cpu_load_1min"]}')
+    fine = out.get('fine')
+    if fine:
+        for name in ('mass_scaled', 'implicit', 'implicit x2'):
+            r = fine.get(name)
+            rows.append((f'finer model ({fine["vertices"]:,} vertices), physical set, {name}',
+                         f'{r:,}' if isinstance(r, float) else 'diverged', '' if isinstance(r, float) else r))
     lines = [head, '', '| run | steps/s | |', '|---|---|---|'] + [f'| {a} | {b} | {c} |' for a, b, c in rows]
     return '\n'.join(lines)
 

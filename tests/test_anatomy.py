@@ -339,3 +339,7 @@ def test_regenerates(tmp_path, data):
     assert yaml.safe_load((tmp_path / 'joints.yaml').read_text()) == data['joints']
     t_new = yaml.safe_load((tmp_path / 'tissues.yaml').read_text())['labels']
     assert {k: v['name'] for k, v in t_new.items()} == {k: v['name'] for k, v in data['labels'].items()}
+    # segments of the bones and of the muscles' ends (the patella's own segment: tools/anatomy/patella.py)
+    ends = lambda labels: {k: (v.get('segment'), *(v[e]['segment'] for e in ('origin', 'insertion') if e in v))  # noqa: E731
+                           for k, v in labels.items()}
+    assert ends(t_new) == ends(data['labels'])

@@ -154,3 +154,19 @@ def test_hamstring_end_rings_fully_bound_to_origin_and_insertion(built):
         assert np.all(tm.vertex_segment[top] == tm.segment_names.index(origin)), name
         assert np.all(tm.vertex_segment[bot] == tm.segment_names.index(insertion)), name
         assert tm.meta['anchors'][name] == {'origin': [origin, len(top)], 'insertion': [insertion, len(bot)]}
+
+
+def test_nothing_bound_across_the_knee_behind_it(built):
+    """Issue 19.1 on the bundled limb, geometrically: a vertex bound to the shank above the knee centre can
+    only be one of the quadriceps' insertion rings beside the patella (in front of the femur, ≥ 30 mm anterior
+    of the knee centre), never the back-of-knee vertices that the hamstrings, the short head and sartorius
+    share with vastus medialis (they swung through the femur in flexion and dragged the passive hamstrings);
+    and nothing bound to the thigh lies lower than the femoral condyles (25 mm below the knee centre)."""
+    tm, _ = built
+    j = list(tm.joint_names).index('knee_r')
+    d = tm.rest_positions - tm.joint_centre[j]
+    shank, thigh = tm.segment_names.index('shank'), tm.segment_names.index('thigh')
+    up = np.flatnonzero((tm.vertex_segment == shank) & (d[:, 2] > 0))
+    assert np.all(d[up, 0] > 0.03), np.round(d[up][d[up, 0] <= 0.03] * 1e3)
+    low = np.flatnonzero(tm.vertex_segment == thigh)
+    assert d[low, 2].min() > -0.025, d[low, 2].min()

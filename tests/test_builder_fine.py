@@ -148,6 +148,7 @@ def test_finer_with_fragments_as_breaks_is_the_old_error():
 
 @needs_anatomy
 @pytest.mark.slow
+@pytest.mark.timeout(900)          # a 125,000-vertex build: ~30 s of CPU, minutes of wall on a loaded machine
 def test_six_times_finer_limb(base):
     lab, tis = builder.default_inputs()
     tm, rep = builder.build_model(lab, tis, refine=6)

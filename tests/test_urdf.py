@@ -35,7 +35,8 @@ def test_committed_description_is_the_generated_one(tm, tmp_path):
 def _urdf_fk(text: str, q: dict) -> dict:
     """World pose (R, p) of every link, from the URDF text by the URDF specification: a joint's
     origin (xyz, rpy = fixed-axis roll-pitch-yaw) places the child frame in the parent's, then a
-    revolute joint rotates the child about `axis` (child frame) by its position."""
+    revolute joint rotates the child about `axis` (child frame) by its position, a prismatic joint
+    translates it along `axis` by its position."""
     root = ET.fromstring(text)
     joints = {j.find('child').get('link'): j for j in root.findall('joint')}
     pose = {'world': (np.eye(3), np.zeros(3))}
@@ -50,11 +51,15 @@ def _urdf_fk(text: str, q: dict) -> dict:
         r, p_, y = (float(v) for v in o.get('rpy').split())
         Ro = Rotation.from_euler('z', y).as_matrix() @ Rotation.from_euler('y', p_).as_matrix() @ \
             Rotation.from_euler('x', r).as_matrix()
-        Rj = np.eye(3)
-        if j.get('type') == 'revolute':
+        Rj, tj = np.eye(3), np.zeros(3)
+        if j.get('type') in ('revolute', 'prismatic'):
             axis = np.array([float(v) for v in j.find('axis').get('xyz').split()])
-            Rj = Rotation.from_rotvec(q[j.get('name')] * axis / np.linalg.norm(axis)).as_matrix()
-        pose[link] = (Rp @ Ro @ Rj, pp + Rp @ xyz)
+            axis = axis / np.linalg.norm(axis)
+            if j.get('type') == 'revolute':
+                Rj = Rotation.from_rotvec(q[j.get('name')] * axis).as_matrix()
+            else:
+                tj = q[j.get('name')] * axis
+        pose[link] = (Rp @ Ro @ Rj, pp + Rp @ (xyz + Ro @ tj))
         return pose[link]
     for link in root.findall('link'):
         get(link.get('name'))
@@ -69,7 +74,8 @@ def test_urdf_kinematics_equal_the_solver_segment_poses(tm, knee_deg):
     q[tm.joint_names.index('knee_r')] = math.radians(knee_deg)
     solver.set_joint_positions(sim, state, q)
     R_sim, p_sim = urdf.link_poses(tm, state.seg_R, state.seg_t)
-    fk = _urdf_fk(urdf.robot_description(tm), dict(zip(tm.joint_names, q)))
+    names, pos, _ = urdf.joint_states(sim, state.q, state.qd)      # what /joint_states carries
+    fk = _urdf_fk(urdf.robot_description(tm), dict(zip(names, pos)))
     for s, seg in enumerate(tm.segment_names):
         R, p = fk[seg]
         np.testing.assert_allclose(R, R_sim[s], atol=1e-7, err_msg=seg)
@@ -80,25 +86,32 @@ def test_urdf_kinematics_equal_the_solver_segment_poses(tm, knee_deg):
     s = int(tm.bone_segment[tm.bone_names.index('tibia')])
     R, p = fk[tm.segment_names[s]]
     np.testing.assert_allclose(R @ v_link + p, state.seg_R[s] @ v_rest + state.seg_t[s], atol=1e-7)
-    if knee_deg > 0:   # flexion moves the shank behind and up relative to extension
+    if knee_deg > 0:   # flexion moves the shank behind and up relative to extension, and the patella
         assert not np.allclose(fk['shank'][0], np.eye(3))
+        assert not np.allclose(fk['patella'][0], np.eye(3))
+    # the coupled patella: three translations and a rotation, all named in /joint_states
+    assert names == ['knee_r', 'ankle_r', 'patellofemoral_r_tx', 'patellofemoral_r_ty', 'patellofemoral_r_tz',
+                     'patellofemoral_r']
 
 
 def test_tf_tree_composes_to_the_link_poses(tm):
     sim = solver.compile_model(tm, solver.Params.physical())
     state = solver.make_state(sim)
-    solver.set_joint_positions(sim, state, np.array([math.radians(60.0), 0.0]))
+    q = np.zeros(tm.n_joints)
+    q[tm.joint_names.index('knee_r')] = math.radians(60.0)
+    solver.set_joint_positions(sim, state, q)
     R_sim, p_sim = urdf.link_poses(tm, state.seg_R, state.seg_t)
     world = {'world': (np.eye(3), np.zeros(3))}
     tfs = urdf.tf_transforms(tm, state.seg_R, state.seg_t)
-    assert [(a, b) for a, b, _, _ in tfs] == [('world', 'thigh'), ('thigh', 'shank'), ('shank', 'foot')]
+    assert [(a, b) for a, b, _, _ in tfs] == [('world', 'thigh'), ('thigh', 'shank'), ('shank', 'foot'),
+                                              ('thigh', 'patella')]
     for parent, child, t, quat in tfs:
         Rp, pp = world[parent]
         world[child] = (Rp @ Rotation.from_quat(quat).as_matrix(), pp + Rp @ t)
     for s, seg in enumerate(tm.segment_names):
         np.testing.assert_allclose(world[seg][0], R_sim[s], atol=1e-9)
         np.testing.assert_allclose(world[seg][1], p_sim[s], atol=1e-9)
-    assert [urdf.is_static(tm, s) for s in range(3)] == [True, False, False]   # thigh root, knee, free ankle
+    assert [urdf.is_static(tm, s) for s in range(4)] == [True, False, False, False]   # thigh root, knee, ankle, patella
     assert urdf.is_static(tm, 0, fixed_root=False) is False
 
 

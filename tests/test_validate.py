@@ -139,14 +139,15 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     rest, so the deformation damping puts no force on them) and the lock's torque is minus the static torque
     of the cells the validation reports (per-muscle forces); putting the joint back after each step
     (set_joint_positions) is not a hold: the attached vertices carry the within-step motion."""
+    from tissue_sim.core.solver.measures import joint_torques        # (virtual work: the patella's coupling too)
+    from tissue_sim.core.solver.muscle import tension_activation
     sim = solver.compile_model(default_tm, solver.Params.physical())       # (settles within 0.6 s)
     j = list(default_tm.joint_names).index(V.KNEE_JOINT)
     att = sim.att_idx[V._below_knee(sim, j)]
     state, ctrl = solver.make_state(sim), solver.make_control(sim)
     ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
     _locked_hold(sim, state, ctrl, j, 600)
-    axis, centre = V._knee_frame(sim, state, j)
-    static_tau = V._torque(state.x[att], V._Forces(sim)(state, ctrl.activation)[att], axis, centre)
+    static_tau = float(joint_torques(sim, state, V._Forces(sim)(state, tension_activation(sim, state)), att)[j])
     assert state.q[j] == math.radians(10.0) and state.qd[j] == 0.0
     shank = sim.att_idx[sim.att_seg == sim.j_child[j]]     # (the foot below, on its free ankle, may still creep:
     assert float(np.abs(state.v[shank]).max()) < 1e-9       # the physical set's joint damping 5 N m s/rad)

@@ -28,6 +28,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import muscles as MU  # noqa: E402
 import osim  # noqa: E402
+import patella as PAT  # noqa: E402
 import raster  # noqa: E402
 import skin  # noqa: E402
 import fibres  # noqa: E402
@@ -45,7 +46,7 @@ SHAPE_BOUNDS = (0.4, 2.5)  # redistributed area stays within these multiples of 
 MIN_AREA_MM2 = 12.0        # smallest cross-section of a muscle in a slice its belly crosses
 BONES = [  # label, name, OpenSim body, meshes, segment
     (1, 'femur', 'femur_r', ('femur_r',), 'thigh'),
-    (2, 'patella', 'patella_r', ('r_patella',), 'shank'),
+    (2, 'patella', 'patella_r', ('r_patella',), 'patella'),  # its own segment on a coupled joint (patella.py)
     (3, 'tibia', 'tibia_r', ('tibia_r',), 'shank'),
     (4, 'fibula', 'tibia_r', ('fibula_r',), 'shank'),
     (5, 'talus', 'talus_r', ('talus_rv',), 'foot'),
@@ -53,7 +54,7 @@ BONES = [  # label, name, OpenSim body, meshes, segment
 ]
 # OpenSim body of a muscle's origin/insertion -> segment of joints.yaml. The pelvis is above the stack and
 # the hip is fixed (joints.yaml), so pelvic origins attach to the root segment, which stands for it.
-BODY_SEGMENT = {'pelvis': 'thigh', 'femur_r': 'thigh', 'patella_r': 'shank', 'tibia_r': 'shank',
+BODY_SEGMENT = {'pelvis': 'thigh', 'femur_r': 'thigh', 'patella_r': 'patella', 'tibia_r': 'shank',
                 'talus_r': 'foot', 'calcn_r': 'foot', 'toes_r': 'foot'}
 MUSCLE_LABEL0 = 11
 FAT_LABEL = 40
@@ -150,6 +151,26 @@ def slice_targets(table, s_mm, dz, knee_z, ankle_z):
         for kk in np.nonzero(area[m])[0]:
             seeds[m][kk] = [path_point_at(p, s_mm[kk])[:2] for p in t['paths']]
     return area, seeds
+
+
+def origin_along_bone(table, seeds, lab, s_mm, R0, A0):
+    """In place: above the first point of its OpenSim path, a muscle of MU.ORIGIN_ALONG_BONE keeps the
+    origin point's (R, A) offset from its bone's section centroid (the fleshy origin follows the bone)."""
+    for m, t in enumerate(table):
+        bone = MU.ORIGIN_ALONG_BONE.get(t['name'])
+        if bone is None:
+            continue
+        cen = {}
+        for k, s in enumerate(s_mm):
+            ij = np.argwhere(lab[..., k] == bone)
+            if len(ij):
+                cen[k] = ij.mean(0) + (R0, A0)
+        o = t['paths'][0][0]                          # origin point (RAS mm)
+        ko = min(cen, key=lambda k: abs(s_mm[k] - o[2]))
+        off = o[:2] - cen[ko]
+        for k in range(len(s_mm)):
+            if seeds[m][k] and s_mm[k] > o[2] and k in cen:
+                seeds[m][k] = [cen[k] + off for _ in t['paths']]
 
 
 def skin_slice(q, tri_all, reg, s_mm, grid):
@@ -458,6 +479,7 @@ def build(out_dir: Path, verbose=True):
     # muscles
     table = fibres.add_rest_fibre_lengths(muscle_table(model), p2s / 'Model_Pose2Sim_muscles_flex.osim')
     area, seeds = slice_targets(table, s_mm, SLICE_MM, knee_m[2] * 1000, ankle_m[2] * 1000)
+    origin_along_bone(table, seeds, lab, s_mm, R0, A0)
     skins = leg_masks(q, tri_body, reg, s_mm, grid, lab)
     # girth: MakeHuman's mean body is slimmer than the Rajagopal (Handsfield 2014) muscle volumes need;
     # scale thigh and shank across their axis so the muscles fit inside a nominal fat layer.
@@ -581,7 +603,7 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
             'volume_in_stack_cm3': round(float((counts[lbl] - tendon_vox[m]) * vox / 1000.0), 1),
             'opensim_parts': list(t['parts']),
             'origin': {'segment': BODY_SEGMENT[t['origin_body']], 'body': t['origin_body']},
-            'insertion': {'segment': BODY_SEGMENT[t['insertion_body']], 'body': t['insertion_body']},
+            'insertion': PAT.insertion(t['name'], {'segment': BODY_SEGMENT[t['insertion_body']], 'body': t['insertion_body']}),
         }
         if m in tendon_slices:  # output slices run upwards: original slice k is K - 1 - k
             ks = [lab.shape[2] - 1 - k for k in tendon_slices[m]]
@@ -672,9 +694,9 @@ def write_joints(out_dir, model, knee_m, ankle_m):
                    'range -60..60 deg there), positive = dorsiflexion as OpenSim ankle_angle_r; limit '
                    '-50 (plantarflexion) .. +20 deg (dorsiflexion), the normal active range of motion of '
                    'the AAOS (1965) Joint motion: method of measuring and recording; subtalar and MTP '
-                   'joints fixed at 0 (one foot segment)'),
+                   'joints fixed at 0 (one foot segment); ' + PAT.SOURCE),
         'body_mass': round(mass_total, 3),
-        'segments': out,
+        'segments': out + [PAT.segment(model)],
         'joints': [
             {'name': 'hip_r', 'type': 'fixed', 'parent': None, 'child': 'thigh', 'centre': [0.0, 0.0, 0.0]},
             {'name': 'knee_r', 'type': 'hinge', 'parent': 'thigh', 'child': 'shank',
@@ -685,6 +707,7 @@ def write_joints(out_dir, model, knee_m, ankle_m):
              'axis': [round(float(v), 6) for v in ank_axis], 'centre': [round(float(v), 5) for v in ankle_m],
              'range_deg': list(ANKLE_RANGE_DEG), 'rest_deg': 0.0,
              'opensim_range_deg': [round(float(ank_rng[0]), 2), round(float(ank_rng[1]), 2)]},
+            PAT.joint(model['path']),
         ],
     }
     with open(out_dir / 'joints.yaml', 'w') as fh:

@@ -36,7 +36,7 @@ MUSCLES = [
     ('adductor_magnus_ischiocondylar', ('addmagIsch',), 'adductors', (0.15, 0.85)),
     ('gracilis', ('grac',), 'adductors', (0.10, 0.80)),
     ('biceps_femoris_long_head', ('bflh',), 'hamstrings', (0.18, 0.88)),
-    ('biceps_femoris_short_head', ('bfsh',), 'hamstrings', (0.40, 0.93)),
+    ('biceps_femoris_short_head', ('bfsh',), 'hamstrings', (0.47, 0.93)),
     ('semimembranosus', ('semimem',), 'hamstrings', (0.35, 0.95)),
     ('semitendinosus', ('semiten',), 'hamstrings', (0.15, 0.72)),
     ('gastrocnemius_medialis', ('gasmed',), 'triceps_surae', (0.97, 1.55)),
@@ -93,3 +93,15 @@ TENDON_RADIUS_MM = 5.0    # disc of ~0.8 cm^2 (larger than real hamstring tendon
                           # model builder's 12-ray polygon and 10 mm^2 component threshold keep it)
 TENDON_ATTACH_MM = 25.0   # length over which the tendon lies on its bone at the insertion
 TENDON_SNAP_MM = 15.0     # from this far above the insertion point the tendon is moved onto the bone
+
+# Muscles whose fleshy origin runs up along a bone above the first point of their OpenSim path (a path
+# has one origin point; the fibres arise from a line).  name -> bone label.  Above the path's origin
+# point the partition seed keeps the origin point's offset from that bone's section centroid, so the
+# belly follows the bone, instead of the path's first segment extended upwards.  The biceps femoris
+# short head arises from the lateral lip of the linea aspera, on the back of the femur, up almost to
+# the gluteal tuberosity (Gray's Anatomy, 41st ed., ch. 80); its first path segment runs forwards as it
+# rises (origin 5 mm in front of its tibial end), and extended 50 mm above the origin it put the
+# belly's top slices in front of the femur (centroids 38-41 mm anterior of the femur's).  Its belly
+# starts at the middle of the femur (0.47: the linea aspera's middle third; from 0.40 the partition
+# still put the three highest, smallest sections, 12-190 mm^2, in front of the femur).
+ORIGIN_ALONG_BONE = {'biceps_femoris_short_head': 1}

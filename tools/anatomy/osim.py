@@ -39,7 +39,9 @@ def _function_value(fn, q):
     if tag == 'LinearFunction':
         a, b = (float(v) for v in fn.find('coefficients').text.split())
         return a * q + b
-    if tag in ('SimmSpline', 'NaturalCubicSpline'):
+    if tag == 'SimmSpline':
+        return float(simm_spline(_vec(fn, 'x'), _vec(fn, 'y'), q))
+    if tag == 'NaturalCubicSpline':
         x = _vec(fn, 'x')
         y = _vec(fn, 'y')
         return float(CubicSpline(x, y, bc_type='natural')(q))
@@ -47,6 +49,57 @@ def _function_value(fn, q):
         inner = [c for c in fn.find('function')][0]
         return float(fn.find('scale').text) * _function_value(inner, q)
     raise ValueError(f'unsupported OpenSim function {tag}')
+
+
+def simm_spline(x, y, q):
+    """OpenSim's SimmSpline at q: the cubic spline of Forsythe, Malcolm & Moler (Computer Methods for
+    Mathematical Computations, 1977, routine SPLINE), whose end conditions match the third derivative of
+    the cubic through the first (last) four points; beyond the end knots a straight line with the end
+    slope (as OpenSim's SimmSpline::calcValue)."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    n = len(x)
+    if n < 2:
+        return float(y[0])
+    if n == 2:
+        return float(y[0] + (y[1] - y[0]) / (x[1] - x[0]) * (q - x[0]))
+    nm1 = n - 1
+    b, c, d = np.zeros(n), np.zeros(n), np.zeros(n)
+    d[0] = x[1] - x[0]
+    c[1] = (y[1] - y[0]) / d[0]
+    for i in range(1, nm1):
+        d[i] = x[i + 1] - x[i]
+        b[i] = 2.0 * (d[i - 1] + d[i])
+        c[i + 1] = (y[i + 1] - y[i]) / d[i]
+        c[i] = c[i + 1] - c[i]
+    b[0], b[nm1] = -d[0], -d[n - 2]
+    c[0] = c[nm1] = 0.0
+    if n > 3:
+        c[0] = c[2] / (x[3] - x[1]) - c[1] / (x[2] - x[0])
+        c[nm1] = c[n - 2] / (x[nm1] - x[n - 3]) - c[n - 3] / (x[n - 2] - x[n - 4])
+        c[0] = c[0] * d[0] * d[0] / (x[3] - x[0])
+        c[nm1] = -c[nm1] * d[n - 2] * d[n - 2] / (x[nm1] - x[n - 4])
+    for i in range(1, n):
+        t = d[i - 1] / b[i - 1]
+        b[i] -= t * d[i - 1]
+        c[i] -= t * c[i - 1]
+    c[nm1] /= b[nm1]
+    for i in range(n - 2, -1, -1):
+        c[i] = (c[i] - d[i] * c[i + 1]) / b[i]
+    b[nm1] = (y[nm1] - y[n - 2]) / d[n - 2] + d[n - 2] * (c[n - 2] + 2.0 * c[nm1])
+    for i in range(nm1):
+        b[i] = (y[i + 1] - y[i]) / d[i] - d[i] * (c[i + 1] + 2.0 * c[i])
+        d[i] = (c[i + 1] - c[i]) / d[i]
+        c[i] = 3.0 * c[i]
+    c[nm1] = 3.0 * c[nm1]
+    d[nm1] = d[n - 2]
+    if q < x[0]:
+        return float(y[0] + (q - x[0]) * b[0])
+    if q > x[nm1]:
+        return float(y[nm1] + (q - x[nm1]) * b[nm1])
+    k = int(np.clip(np.searchsorted(x, q, side='right') - 1, 0, nm1 - 1))
+    dx = q - x[k]
+    return float(y[k] + dx * (b[k] + dx * (c[k] + dx * d[k])))
 
 
 def _rot(axis, angle):
@@ -177,4 +230,4 @@ def load(path, coords=None):
             'pennation_angle': float(m.find('pennation_angle_at_optimal').text),
             'wraps': wraps,
         }
-    return {'bodies': bodies, 'joints': joints, 'muscles': muscles}
+    return {'bodies': bodies, 'joints': joints, 'muscles': muscles, 'path': str(path)}

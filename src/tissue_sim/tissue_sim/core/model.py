@@ -32,8 +32,14 @@ Skeleton (a tree; nothing may assume a single joint)
 * Segments: ``segment_parent[s]`` (-1 for the root), mass [kg], centre of mass [m, model frame at
   rest], inertia tensor about the COM [kg m^2, model frame axes at rest].
 * Joints: one per non-root segment, joining ``joint_parent`` to ``joint_child``; ``joint_type``
-  JOINT_FIXED or JOINT_HINGE; hinge axis (unit, model frame at rest; positive rotation about it is
-  the positive joint coordinate, e.g. knee flexion), centre [m], range [rad], rest coordinate.
+  JOINT_FIXED, JOINT_HINGE or JOINT_COUPLED; hinge axis (unit, model frame at rest; positive rotation
+  about it is the positive joint coordinate, e.g. knee flexion), centre [m], range [rad], rest coordinate.
+* A coupled joint (e.g. the patellofemoral joint) has no degree of freedom of its own: its child's
+  pose relative to its parent is a function of its driver hinge's coordinate (``joint_driver[j]``), a
+  table ``coupling_table[coupling_offsets[j]:coupling_offsets[j + 1]]`` of rows (driver coordinate
+  [rad], angle [rad], dx, dy, dz [m]) interpolated by a cubic spline: a rest point p of the child goes
+  to Rot(axis, angle) (p - centre) + centre + d in its parent's frame (axis and centre: the joint's).
+  Its coordinate (q) is the angle; its range is the table's angle range.
 * The pose of a segment is a rigid transform applied to *rest* coordinates: a point p_rest on the
   segment is at ``R_s @ p_rest + t_s``; at rest every segment has R = I, t = 0.
 
@@ -58,6 +64,7 @@ TISSUE_FAT = 2
 
 JOINT_FIXED = 0
 JOINT_HINGE = 1
+JOINT_COUPLED = 2       # pose a function of another joint's coordinate (joint_driver, coupling_table)
 
 # vertex_flags bits
 VF_MUSCLE = 1       # used by at least one muscle cell
@@ -201,8 +208,22 @@ class TissueModel(TissueTopology):
     joint_range: np.ndarray             # (J, 2) float64 [rad]
     joint_rest: np.ndarray              # (J,) float64 [rad] coordinate of the rest pose
     slice_z: np.ndarray                 # (Z,) float64 [m] height of each slice used
+    # coupled joints (JOINT_COUPLED); None = none (defaults filled in): see the module docstring
+    joint_driver: np.ndarray = None     # (J,) int32 driving hinge of a coupled joint, -1 otherwise
+    coupling_offsets: np.ndarray = None     # (J+1,) int64 rows of each joint in coupling_table
+    coupling_table: np.ndarray = None   # (N, 5) float64 rows (driver [rad], angle [rad], dx, dy, dz [m])
+
     muscle_rest_fibre_length: np.ndarray = None   # (M,) float64 normalised fibre length in the rest pose (tissue table's
                                                   # rest_fibre_length); None / absent from a file: 1.0 each
+
+    def __post_init__(self):
+        J = len(self.joint_names)
+        for name, default in (('joint_driver', lambda: np.full(J, -1, np.int32)),
+                              ('coupling_offsets', lambda: np.zeros(J + 1, np.int64)),
+                              ('coupling_table', lambda: np.zeros((0, 5)))):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, default())
+        super().__post_init__()
 
     # ---------------------------------------------------------------------------- validation
     def validate(self) -> 'TissueModel':
@@ -291,6 +312,25 @@ class TissueModel(TissueTopology):
         for j in range(J):
             need(self.segment_parent[self.joint_child[j]] == self.joint_parent[j],
                  f'joint {self.joint_names[j]!r}: parent/child do not match segment_parent')
+        need(np.all(np.isin(self.joint_type, (JOINT_FIXED, JOINT_HINGE, JOINT_COUPLED))), 'joint_type must be 0, 1 or 2')
+        need(self.joint_driver.shape == (J,) and self.coupling_offsets.shape == (J + 1,)
+             and self.coupling_table.ndim == 2 and self.coupling_table.shape[1] == 5
+             and self.coupling_offsets[0] == 0 and self.coupling_offsets[-1] == len(self.coupling_table)
+             and np.all(np.diff(self.coupling_offsets) >= 0), 'coupling arrays inconsistent')
+        need(np.all(np.isfinite(self.coupling_table)), 'coupling_table has non-finite values')
+        for j in range(J):
+            rows = self.coupling_table[self.coupling_offsets[j]:self.coupling_offsets[j + 1]]
+            if self.joint_type[j] == JOINT_COUPLED:
+                d = int(self.joint_driver[j])
+                need(0 <= d < J and self.joint_type[d] == JOINT_HINGE,
+                     f'coupled joint {self.joint_names[j]!r}: its driver must be a hinge')
+                need(len(rows) >= 4 and np.all(np.diff(rows[:, 0]) > 0),
+                     f'coupled joint {self.joint_names[j]!r}: needs >= 4 table rows in increasing driver coordinate')
+                need(not np.any(self.segment_parent == self.joint_child[j]),
+                     f'coupled joint {self.joint_names[j]!r}: its child segment must be a leaf of the skeleton')
+            else:
+                need(self.joint_driver[j] == -1 and len(rows) == 0,
+                     f'joint {self.joint_names[j]!r}: only a coupled joint has a driver and a table')
         return self
 
     # ---------------------------------------------------------------------------- file I/O
@@ -355,13 +395,16 @@ class TissueModel(TissueTopology):
         index_fields = {'vertex_segment', 'vertex_flags', 'cell_offsets', 'cell_vertices', 'cell_tissue', 'cell_muscle',
                         'cell_slice', 'skin_quads', 'skin_quad_cell', 'surface_triangles', 'surface_group',
                         'bone_segment', 'bone_vertex_offsets', 'bone_triangle_offsets', 'bone_triangles',
-                        'segment_parent', 'joint_type', 'joint_parent', 'joint_child'}
+                        'segment_parent', 'joint_type', 'joint_parent', 'joint_child', 'joint_driver',
+                        'coupling_offsets'}
+        optional = {'joint_driver', 'coupling_offsets', 'coupling_table',      # a model without coupled joints
+                    'muscle_rest_fibre_length'}                             # a file written before the field: 1.0
         kw = {}
         for f in dataclasses.fields(cls):
             if f.name in ('name', 'meta'):
                 continue
             if f.name not in arrays:
-                if f.default is None:          # an optional array (a file written before it existed): its default
+                if f.name in optional:
                     continue
                 raise ModelError(f'{path}: missing array {f.name!r}')
             a = arrays[f.name]

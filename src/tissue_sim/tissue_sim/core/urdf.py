@@ -7,6 +7,13 @@ bundled limb) and the model frame's axes in the rest pose. A hinge is a URDF ``r
 the model's axis through that centre, so the URDF's forward kinematics from ``/joint_states`` equal
 the solver's segment poses (tests/test_urdf.py checks it with an independent URDF library).
 
+A coupled joint (the patellofemoral joint: the patella's pose a spline of the knee angle) is a chain
+of three prismatic joints ``<joint>_tx``, ``_ty``, ``_tz`` along the model axes (massless links
+``<joint>_tx`` ... between them) and a revolute joint ``<joint>`` about its axis: exact for any table
+(a URDF ``mimic`` is linear, and the patella's path is not). ``/joint_states`` carries their values
+(:func:`joint_states`); the simulator's own TF publishes the patella directly under the thigh (the
+same pose).
+
 Bone meshes are written as binary STL, in their link's frame, and referenced by
 ``package://<package>/<mesh_dir>/<bone>.stl``. Inertial elements carry each segment's mass, centre of
 mass and inertia about the centre of mass (model axes), from the model's joints file.
@@ -94,12 +101,65 @@ def robot_description(tm, package: str = 'tissue_sim', mesh_dir: str = 'meshes',
                     f'    <axis xyz="{_fmt(axis)}"/>',
                     f'    <limit lower="{lo:.9g}" upper="{hi:.9g}" effort="1000" velocity="20"/>',
                     '  </joint>']
+        elif tm.joint_type[j] == M.JOINT_COUPLED:
+            rows = coupling_rows(tm, j)
+            pad = 0.1 * np.ptp(rows, axis=0) + 1e-4          # limits: the table's range + 10 % (spline, end stop)
+            lo_c, hi_c = rows.min(0) - pad, rows.max(0) + pad
+            prev = pname
+            for ch, ax in ((1, 'x'), (2, 'y'), (3, 'z')):
+                link = f'{jname}_t{ax}'
+                unit = np.eye(3)[ch - 1]
+                out += [f'  <link name={quoteattr(link)}/>',
+                        f'  <joint name={quoteattr(link)} type="prismatic">',
+                        f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(link)}/>',
+                        f'    {_origin(xyz if ch == 1 else (0.0, 0.0, 0.0))}',
+                        f'    <axis xyz="{_fmt(unit)}"/>',
+                        f'    <limit lower="{lo_c[ch]:.9g}" upper="{hi_c[ch]:.9g}" effort="1000" velocity="1"/>',
+                        '  </joint>']
+                prev = link
+            out += [f'  <joint name={quoteattr(jname)} type="revolute">',
+                    f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(seg)}/>',
+                    f'    {_origin((0.0, 0.0, 0.0))}',
+                    f'    <axis xyz="{_fmt(tm.joint_axis[j])}"/>',
+                    f'    <limit lower="{lo_c[0]:.9g}" upper="{hi_c[0]:.9g}" effort="1000" velocity="20"/>',
+                    '  </joint>']
         else:
             out += [f'  <joint name={quoteattr(jname)} type="fixed">',
                     f'    <parent link={quoteattr(pname)}/>', f'    <child link={quoteattr(seg)}/>',
                     f'    {_origin(xyz)}', '  </joint>']
     out.append('</robot>')
     return '\n'.join(out) + '\n'
+
+
+def coupling_rows(tm, j: int) -> np.ndarray:
+    """(K, 4) the table of coupled joint j without its driver column: angle [rad], dx, dy, dz [m]."""
+    return np.asarray(tm.coupling_table[tm.coupling_offsets[j]:tm.coupling_offsets[j + 1], 1:5], float)
+
+
+def joint_states(sim, q, qd) -> tuple[list, list, list]:
+    """(names, positions, velocities) of the URDF's movable joints for solver coordinates q, qd: a hinge
+    is itself; a coupled joint is its three translations (``<joint>_tx/_ty/_tz`` [m, m/s], the spline at
+    its driver's coordinate) and its angle (``<joint>``). sim: the compiled model (its coupling splines)."""
+    from tissue_sim.core.solver.skeleton import coupled_eval
+    tm = sim.tissue
+    names, pos, vel = [], [], []
+    ev = np.empty((4, 3))
+    for j, name in enumerate(tm.joint_names):
+        if tm.joint_type[j] == M.JOINT_COUPLED:
+            d = int(tm.joint_driver[j])
+            coupled_eval(j, float(q[d]), sim.skeleton, ev)
+            for ch, ax in ((1, 'x'), (2, 'y'), (3, 'z')):
+                names.append(f'{name}_t{ax}')
+                pos.append(float(ev[ch, 0]))
+                vel.append(float(ev[ch, 1] * qd[d]))
+            names.append(name)
+            pos.append(float(ev[0, 0]))
+            vel.append(float(ev[0, 1] * qd[d]))
+        else:
+            names.append(name)
+            pos.append(float(q[j]))
+            vel.append(float(qd[j]))
+    return names, pos, vel
 
 
 def bone_meshes_in_link_frames(tm) -> dict:

@@ -124,6 +124,7 @@ def knee_muscles(tm, tissue_table: dict) -> list:
                 below.add(s)
                 break
             t = int(tm.segment_parent[t])
+    below |= {int(tm.joint_child[k]) for k in range(tm.n_joints) if tm.joint_driver[k] == j}   # coupled to it: the patella
     seg = {n: i for i, n in enumerate(tm.segment_names)}
     out = []
     for lab in tissue_table['labels'].values():
@@ -222,17 +223,9 @@ def _opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: 
 
 # ------------------------------------------------------------------------------------- elastic model
 def _below_knee(sim, j: int) -> np.ndarray:
-    """Indices into att_idx of the bone-attached vertices that the knee moves."""
-    return np.flatnonzero(sim.anc[j][sim.att_seg])
-
-
-def _knee_frame(sim, state, j: int):
-    p = sim.j_parent[j]
-    return state.seg_R[p] @ sim.j_axis[j], state.seg_R[p] @ sim.j_centre[j] + state.seg_t[p]
-
-
-def _torque(x, f, axis, centre) -> float:
-    return float(axis @ np.cross(x - centre, f).sum(0))
+    """Indices into att_idx of the bone-attached vertices that the knee moves (below it, or on a segment
+    coupled to it: the patella)."""
+    return np.flatnonzero(sim.anc[j][sim.att_seg] | np.isin(sim.att_seg, sim.j_child[sim.j_driver == j]))
 
 
 class _Forces:
@@ -296,6 +289,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
     for km in muscles:
         if km.name in active:
             ctrl.activation[km.index] = 1.0
+    from tissue_sim.core.solver.measures import joint_torques
     forces = _Forces(sim)
     att = sim.att_idx[_below_knee(sim, j)]
     dt = sim.params.dt
@@ -330,16 +324,15 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
             break
         cur = deg
         obs = solver.observe(sim, state)
-        axis, centre = _knee_frame(sim, state, j)
-        x = state.x[att]
         res['torque'].append(float(tau))
         act = tension_activation(sim, state)        # the activation the step scales the tension with
-        res['torque_static'].append(_torque(x, forces(state, act)[att], axis, centre))
+        # torques by virtual work (measures.joint_torques): the patella's forces act through its coupling
+        res['torque_static'].append(float(joint_torques(sim, state, forces(state, act), att)[j]))
         mf, mt = [], []
         for km in muscles:
-            fm = forces(state, act, km.index)[att]
-            mf.append(float(np.linalg.norm(fm.sum(0))))
-            mt.append(_torque(x, fm, axis, centre))
+            fm = forces(state, act, km.index)
+            mf.append(float(np.linalg.norm(fm[att].sum(0))))
+            mt.append(float(joint_torques(sim, state, fm, att)[j]))
         res['muscle_force'].append(mf)
         res['muscle_torque'].append(mt)
         ten = _active_tension(sim, state)

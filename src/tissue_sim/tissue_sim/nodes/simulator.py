@@ -7,7 +7,7 @@ segments' frames, sim time), /diagnostics (1 Hz); once (transient-local): /tissu
 /robot_description (the URDF of the model the node runs, tissue_sim.core.urdf). Subscribes to
 /tissue/activation. Services ~/reset (std_srvs/Trigger) and ~/pause (std_srvs/SetBool, true = pause).
 
-TF frames are the model's segment names (thigh, shank, foot for the bundled limb) under the root
+TF frames are the model's segment names (thigh, shank, foot, patella for the bundled limb) under the root
 frame ``world`` (the model frame, the hip joint centre of the bundled limb at its origin); a segment's
 frame is its URDF link frame, so robot_state_publisher fed the same /robot_description and
 /joint_states gives the same tree (then run the simulator with ``publish_tf: false``).
@@ -251,9 +251,7 @@ class Simulator(Node):
         js = self.JointState()
         js.header.stamp = clock.clock
         js.header.frame_id = self.frame_id
-        js.name = list(self.tm.joint_names)
-        js.position = [float(v) for v in obs['joint_positions']]
-        js.velocity = [float(v) for v in obs['joint_velocities']]
+        js.name, js.position, js.velocity = urdf.joint_states(self.sim, obs['joint_positions'], obs['joint_velocities'])
         self.pub_joints.publish(js)
         if self.pub_tf is not None and self.tf_moving:
             self.pub_tf.publish(self.tf_message(stamp, self.tf_moving))

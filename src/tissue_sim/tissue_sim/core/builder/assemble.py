@@ -757,6 +757,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         joint_names=skel['joint_names'], joint_type=skel['joint_type'], joint_parent=skel['joint_parent'],
         joint_child=skel['joint_child'], joint_axis=skel['joint_axis'], joint_centre=skel['joint_centre'],
         joint_range=skel['joint_range'], joint_rest=skel['joint_rest'],
+        joint_driver=skel['joint_driver'], coupling_offsets=skel['coupling_offsets'],
+        coupling_table=skel['coupling_table'],
         slice_z=slice_z,
         meta={'builder': 'tissue_sim.core.builder', 'source': vol.source, 'tissue_table': table['source'],
               'joints_source': skel.get('source', ''), 'root_joint': skel.get('root_joint'),

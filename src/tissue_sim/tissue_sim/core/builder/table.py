@@ -164,6 +164,28 @@ def load_tissue_table(src) -> dict:
     return {'name': tname, 'base': base, 'source': where, 'labels': labels, 'skeleton': skel}
 
 
+def _coupling(j: dict, w: str):
+    """(axis, angle range [rad], table rows (K, 5) in SI: driver [rad], angle [rad], dx, dy, dz [m]) of a
+    coupled joint entry (docs/FORMATS.md): ``driver``, ``axis``, ``table_columns`` [driver_deg, angle_deg,
+    dx, dy, dz] and ``table`` (rows in increasing driver angle)."""
+    if not isinstance(j.get('driver'), str):
+        raise UserError(f'{w}: a coupled joint needs "driver" (the name of the hinge that drives it)')
+    ax = _vec(j.get('axis'), 3, f'{w} axis')
+    if np.linalg.norm(ax) < 1e-9:
+        raise UserError(f'{w}: axis must be non-zero')
+    cols = j.get('table_columns', ['driver_deg', 'angle_deg', 'dx', 'dy', 'dz'])
+    if list(cols) != ['driver_deg', 'angle_deg', 'dx', 'dy', 'dz']:
+        raise UserError(f'{w}: table_columns must be [driver_deg, angle_deg, dx, dy, dz], got {cols!r}')
+    tab = j.get('table')
+    if not isinstance(tab, list) or len(tab) < 4:
+        raise UserError(f'{w}: a coupled joint needs a "table" of at least 4 rows [driver_deg, angle_deg, dx, dy, dz]')
+    rows = np.array([_vec(r, 5, f'{w} table row {i}') for i, r in enumerate(tab)])
+    if np.any(np.diff(rows[:, 0]) <= 0):
+        raise UserError(f'{w}: table rows must be in strictly increasing driver angle')
+    rows[:, :2] = np.radians(rows[:, :2])
+    return ax / np.linalg.norm(ax), np.array([rows[:, 1].min(), rows[:, 1].max()]), rows
+
+
 def load_joints(src) -> dict:
     """Parse the joints file (path or dict) into skeleton arrays (model frame, SI, radians)."""
     if isinstance(src, dict):
@@ -216,14 +238,15 @@ def load_joints(src) -> dict:
     if not isinstance(joints, list):
         raise UserError(f'{where}: "joints" must be a list')
     jn, jt, jp, jc, ja, jctr, jr, jrest = [], [], [], [], [], [], [], []
+    couplings = {}                                   # joint index -> (driver name, table rows)
     root_joint = None
     for i, j in enumerate(joints):
         if not isinstance(j, dict) or not isinstance(j.get('name'), str):
             raise UserError(f'{where}: joint #{i} needs a "name"')
         w = f'{where}: joint {j["name"]!r}'
         typ = j.get('type', 'hinge')
-        if typ not in ('hinge', 'fixed'):
-            raise UserError(f'{w}: type must be hinge or fixed, got {typ!r}')
+        if typ not in ('hinge', 'fixed', 'coupled'):
+            raise UserError(f'{w}: type must be hinge, fixed or coupled, got {typ!r}')
         if j.get('parent') is None and j.get('child') in names and parent[names.index(j['child'])] == -1:
             # the root segment's attachment to the world (e.g. a fixed hip): not a model joint
             if typ != 'fixed':
@@ -245,10 +268,13 @@ def load_joints(src) -> dict:
             rng = _vec(j.get('range_deg', [-180, 180]), 2, f'{w} range_deg')
             if rng[0] > rng[1]:
                 raise UserError(f'{w}: range_deg lower > upper')
+        elif typ == 'coupled':
+            ax, rng, rows = _coupling(j, w)
+            couplings[len(jn)] = (j.get('driver'), rows)
         else:
             ax, rng = np.array([0.0, 0.0, 1.0]), np.zeros(2)
         rest = _num(j.get('rest_deg', 0.0), f'{w} rest_deg')
-        jn.append(j['name']); jt.append(1 if typ == 'hinge' else 0); jp.append(p); jc.append(c)
+        jn.append(j['name']); jt.append({'fixed': 0, 'hinge': 1, 'coupled': 2}[typ]); jp.append(p); jc.append(c)
         ja.append(ax); jctr.append(ctr); jr.append(np.radians(rng)); jrest.append(math.radians(rest))
     children = sorted(jc)
     nonroot = sorted(int(i) for i in np.nonzero(parent >= 0)[0])
@@ -256,7 +282,21 @@ def load_joints(src) -> dict:
         missing = [names[i] for i in nonroot if i not in jc]
         raise UserError(f'{where}: every non-root segment needs exactly one joint (missing or duplicate: {missing or "duplicate"})')
     J = len(jn)
+    driver = np.full(J, -1, np.int32)
+    coff, ctab = [0], []
+    for k in range(J):
+        if k in couplings:
+            dname, rows = couplings[k]
+            if dname not in jn or jt[jn.index(dname)] != 1:
+                raise UserError(f'{where}: joint {jn[k]!r}: driver {dname!r} is not a hinge joint of the file')
+            if any(parent[s] == jc[k] for s in range(len(names))):
+                raise UserError(f'{where}: joint {jn[k]!r}: the child of a coupled joint must be a leaf segment')
+            driver[k] = jn.index(dname)
+            ctab.append(rows)
+        coff.append(coff[-1] + (len(couplings[k][1]) if k in couplings else 0))
     return {
+        'joint_driver': driver, 'coupling_offsets': np.array(coff, np.int64),
+        'coupling_table': np.concatenate(ctab) if ctab else np.zeros((0, 5)),
         'source': str(data.get('source', '')), 'root_joint': root_joint,
         'segment_names': tuple(names), 'segment_parent': parent, 'segment_mass': mass,
         'segment_com': com, 'segment_inertia': inertia,

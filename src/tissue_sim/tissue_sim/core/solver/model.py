@@ -86,6 +86,10 @@ class SimModel:
     j_range: np.ndarray
     anc: np.ndarray                 # (J, S) bool: joint j moves segment s
     gravity: np.ndarray             # (3,)
+    j_driver: np.ndarray            # (J,) int32 driving hinge of a coupled joint, -1 otherwise
+    cp_off: np.ndarray              # (J+1,) int64 each coupled joint's knots in cp_x
+    cp_x: np.ndarray                # (N,) [rad] knots (driver coordinate)
+    cp_c: np.ndarray                # (N, 4, 4) cubic coefficients per knot interval and channel (coupling_spline)
     skeleton: SK.Skeleton           # the skeleton arrays above (seg_* ... gravity) as the skeleton kernels read them
     cell_blocks: CK.CellLayout      # the cells again, as the cell kernel reads them: rings, chains, SIMD lanes (pack_cells)
     contact: CT.ContactGrids        # bone contact: a signed-distance grid per segment with bones, each free vertex's floor
@@ -95,7 +99,7 @@ class SimModel:
         """(V,) [1/kg] factor of h f in the velocity update for sub-step length h: 1/m (explicit) or
         1/max(m_i, h^2 kappa_i / stability_limit^2, (h^2 kappa_i + 2 h b_i) / 3.8) (mass_scaled, b_i the vertex's
         summed damping coefficient); 0 for bone-attached vertices."""
-        if self.params.integrator == 'explicit':
+        if self.params.integrator in ('explicit', 'implicit'):
             return self.inv_mass
         # selective mass scaling: a vertex whose cells' summed stiffness would exceed the explicit
         # limit at this h gets the mass that puts it at stability_limit (Gershgorin bound on omega h)
@@ -309,6 +313,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_type=_frozen(tm.joint_type, np.uint8), j_axis=_frozen(tm.joint_axis, np.float64),
         j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
+        **coupling_spline(tm),
         skeleton=None,
         cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv))
     sim_kw['contact'] = CT.build(tm, p, rest, vs)          # bone signed-distance grids (stage 4; none when off)
@@ -318,6 +323,26 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     w = estimate_omega_max(sim)
     n_sub = p.substeps or substeps_for(p, w, c_max, p.dt)
     return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w))
+
+
+def coupling_spline(tm: TissueModel) -> dict:
+    """The coupled joints' tables as the skeleton kernel reads them (j_driver, cp_off, cp_x, cp_c): per
+    coupled joint a cubic spline (scipy CubicSpline, not-a-knot ends) through the rows of its table, in
+    the driver's coordinate, channels angle, dx, dy, dz; cp_c[i, ch] = coefficients of 1, t, t^2, t^3 on
+    the interval from knot i (t = coordinate - knot)."""
+    from scipy.interpolate import CubicSpline
+    J = tm.n_joints
+    off = np.asarray(tm.coupling_offsets, np.int64)
+    tab = np.asarray(tm.coupling_table, np.float64)
+    cp_c = np.zeros((len(tab), 4, 4))
+    for j in range(J):
+        rows = tab[off[j]:off[j + 1]]
+        if len(rows) == 0:
+            continue
+        cs = CubicSpline(rows[:, 0], rows[:, 1:5], axis=0)
+        cp_c[off[j]:off[j + 1] - 1] = np.transpose(cs.c[::-1], (1, 2, 0))     # (4, K-1, 4) -> (K-1, ch, power)
+    return dict(j_driver=_frozen(tm.joint_driver, np.int32), cp_off=_frozen(off), cp_x=_frozen(tab[:, 0].copy()),
+                cp_c=_frozen(cp_c))
 
 
 def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarray, sizes: np.ndarray) -> np.ndarray:
@@ -372,7 +397,7 @@ def substeps_for(p: Params, omega: float, c: float, dt: float) -> int:
     (the scaled masses keep omega h below stability_limit); else the explicit stability estimate."""
     if p.substeps:
         return p.substeps
-    if p.integrator == 'mass_scaled':
+    if p.integrator in ('mass_scaled', 'implicit'):
         return 1
     return stable_substeps(omega, c, dt, p.stability_limit)
 
@@ -430,6 +455,7 @@ def make_state(sim: SimModel) -> State:
                muscle_velocity=np.zeros(max(sim.n_muscles, 0)), joint_lock_torque=np.zeros(J),
                activation=np.zeros(max(sim.n_muscles, 0)),
                x_back=np.empty((V, 3)), v_back=np.empty((V, 3)))
+    SK.coupled_coordinates(st.q, st.qd, sim.skeleton)
     return st
 
 
@@ -447,12 +473,14 @@ def reset(sim: SimModel, state: State) -> State:
 
 def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
     """Pose the skeleton at joint coordinates q [rad] (and velocities qd), moving bone-attached
-    vertices with their segments; free vertices stay where they are. Returns state."""
+    vertices with their segments; free vertices stay where they are. A coupled joint's entry is
+    replaced by its driver's spline value (it has no freedom). Returns state."""
     q = np.asarray(q, np.float64)
     if q.shape != (sim.n_joints,) or not np.all(np.isfinite(q)):
         raise ValueError(f'q must be {sim.n_joints} finite joint coordinates')
     state.q[:] = q
     state.qd[:] = 0.0 if qd is None else qd
+    SK.coupled_coordinates(state.q, state.qd, sim.skeleton)     # a coupled joint follows its driver
     SK.forward_kinematics(state.q, sim.skeleton, state.seg_R, state.seg_t)
     a, s = sim.att_idx, sim.att_seg
     state.x[a] = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[a]) + state.seg_t[s]

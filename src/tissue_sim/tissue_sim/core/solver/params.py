@@ -22,7 +22,7 @@ DAMPING_MODES = ('deformation', 'velocity', 'none')
 MASS_MODES = ('uniform', 'density')
 STIFFNESS_MODES = ('given', 'modulus')
 VOLUME_MODES = ('actual', 'rest')
-INTEGRATORS = ('mass_scaled', 'explicit')
+INTEGRATORS = ('mass_scaled', 'explicit', 'implicit')
 
 
 @dataclasses.dataclass
@@ -32,7 +32,9 @@ class Params:
     dt: float = 1e-3                      # [s] step length dT of step() when dt is None
     integrator: str = 'mass_scaled'       # 'mass_scaled': symplectic Euler, one pass per step, a vertex's mass raised to
                                           # h^2 kappa / stability_limit^2 where its cells' summed stiffness kappa needs it;
-                                          # 'explicit': true masses, automatic sub-steps (docs/solver.md)
+                                          # 'explicit': true masses, automatic sub-steps (docs/solver.md);
+                                          # 'implicit': implicit Euler of the free vertices (prefactored; true masses, 1 sub-step)
+    implicit_iterations: int = 1          # local/global iterations per sub-step of the implicit integrator (1: one solve)
     substeps: int = 0                     # sub-steps per step; 0 = automatic (explicit: stability estimate; mass_scaled: 1)
     stability_limit: float = 1.8          # automatic sub-steps keep omega_max * h below this (< 2, symplectic Euler)
     # --- soft tissue -----------------------------------------------------------------------
@@ -79,7 +81,8 @@ class Params:
                                           # 0 = each muscle's own (the tissue table's rest_fibre_length, from the source model;
                                           # 1.0 without one). l = l_rest + (C - C_rest) / L_opt: rigid tendon (docs/solver.md)
     # --- skeleton --------------------------------------------------------------------------
-    gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame (physical: (0, 0, -9.81)); off in the paper's figures
+    gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame, e.g. (0, 0, -9.81) standing; off in both presets (the paper's figures;
+                                          # the isometric validation and the dynamometry it compares with exclude the limb's weight)
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
     attached_mass_to_segment: bool = True # bone-attached vertices' masses join their segment's inertia
     joint_damping: float = 20.0           # [N m s/rad] passive viscous damping of every hinge (implicit)
@@ -159,6 +162,8 @@ class Params:
         need(self.contact_friction >= 0, 'contact_friction must be >= 0')
         need(2e-4 <= self.contact_grid <= 0.01, 'contact_grid must be in [2e-4, 0.01] m')
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
+        need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
+             'implicit_iterations must be an integer in [1, 20]')
         need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')
         need(self.fixed_root, 'fixed_root False (floating base) is not supported yet')
         return self

@@ -12,7 +12,7 @@ import collections
 
 import numpy as np
 
-from tissue_sim.core.solver import cells as CK, contact as CT, muscle as MU, skeleton as SK
+from tissue_sim.core.solver import cells as CK, contact as CT, implicit as IM, muscle as MU, skeleton as SK
 from tissue_sim.core.solver.model import SimModel, State, substeps_for
 
 Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
@@ -133,15 +133,19 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle
         vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
         act_t = a * np.array([CK.force_velocity(w, p.fv_max_lengthening) for w in vn]) if fv_on else a.copy()
+        # (integrator implicit: every force at the inertial prediction y, bone-attached vertices at x + h v)
+        implicit = p.integrator == 'implicit'
+        y = np.where(free[:, None], state.x + h * (1.0 - h * p.velocity_damping) * (state.v + h * sim.gravity),
+                     state.x + h * state.v) if implicit else state.x
         if fl_on:            # normalised fibre length l = l_rest + (C - C_rest) / L_opt of the attachment chords C
-            chord, _ = chords(sim, state.x, ch_off, ch_idx)
+            chord, _ = chords(sim, y, ch_off, ch_idx)
             l0 = MU.rest_fibre_lengths(sim)
             ln = np.where(ch_rest > 0, l0 + (chord - ch_rest) * inv_lopt, l0)
             act_t = act_t * np.exp(-(ln - 1.0) ** 2 / p.fl_width)
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
-            sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
+            sim, pad, y, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
         if pe_on:            # passive fibre force F = Fmax f_PE(l) pulling each muscle's attachments together
-            f += passive_forces(sim, state.x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
+            f += passive_forces(sim, y, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
         if fv_on:            # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
             mc = sim.cell_muscle >= 0
             length = np.bincount(sim.cell_muscle[mc], (sim.length_weight * state.cell_length)[mc], sim.n_muscles)
@@ -151,15 +155,30 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.muscle_length[:] = length
         # 2. skeleton: joint torques from the forces on the bone-attached vertices, joint dynamics (a locked
         # hinge is driven to its target, its torque in state.joint_lock_torque), poses
-        SK.skeleton_step(h, state.q, state.qd, f, state.x, sim.skeleton, sim.att_idx, sim.att_seg,
+        SK.skeleton_step(h, state.q, state.qd, f, y, sim.skeleton, sim.att_idx, sim.att_seg,
                          p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
                          np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque)
-        # 3. soft tissue: symplectic Euler for the free vertices, the bone-attached ones follow their segment
-        state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
-        state.x[free] += h * state.v[free]
+        # 3. soft tissue: symplectic Euler for the free vertices (implicit: implicit.py's correction of y, its
+        # local/global iterations from the forces at the last iterate), the bone-attached ones follow their segment
         i, s = sim.att_idx, sim.att_seg
         xa = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[i]) + state.seg_t[s]
-        state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
+        if implicit:
+            x_old, moved = state.x.copy(), np.zeros_like(state.x)
+            moved[i] = xa - y[i]
+            state.x[free] = IM.reference_solve(sim, h, f, y, y, moved)
+            state.x[i] = xa
+            state.v[:] = (state.x - x_old) / h
+            for _ in range(1, p.implicit_iterations):
+                f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
+                    sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
+                if pe_on:
+                    f += passive_forces(sim, state.x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
+                state.x[free] = IM.reference_solve(sim, h, f, state.x, y, np.zeros_like(state.x))
+                state.v[:] = (state.x - x_old) / h
+        else:
+            state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
+            state.x[free] += h * state.v[free]
+            state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
         # 4. bone contact: free vertices closer to a bone than their floor are projected out (Params.bone_contact)
         contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h)
         state.f[:] = f

@@ -1,5 +1,10 @@
-"""The skeleton: a tree of rigid segments with hinge or fixed joints (fixed root), joint-space dynamics
-(docs/solver.md "Skeleton"). numba; the model's skeleton arrays come as one ``Skeleton`` named tuple."""
+"""The skeleton: a tree of rigid segments with hinge, fixed or coupled joints (fixed root), joint-space
+dynamics (docs/solver.md "Skeleton"). numba; the model's skeleton arrays come as one ``Skeleton`` named tuple.
+
+A coupled joint (the patellofemoral joint) has no degree of freedom: its child (a leaf segment) is posed
+relative to its parent by a cubic spline of its driver hinge's coordinate (``coupled_eval``); its
+coordinate q is the spline's angle. Its segment's inertia, gravity and tissue forces enter the driver's
+equation through the coupling Jacobian (virtual work), see ``skeleton_step``."""
 from __future__ import annotations
 
 import collections
@@ -9,7 +14,57 @@ import numpy as np
 from numba import njit
 
 Skeleton = collections.namedtuple('Skeleton', 'seg_order seg_parent seg_joint seg_mass seg_com seg_inertia j_parent '
-                                  'j_child j_type j_axis j_centre j_rest j_range anc gravity')
+                                  'j_child j_type j_axis j_centre j_rest j_range anc gravity j_driver cp_off cp_x cp_c')
+# j_driver (J,) int32: driving hinge of a coupled joint (-1 otherwise); cp_off (J+1,) int64: its knots in cp_x;
+# cp_x (N,) driver coordinates of the knots [rad]; cp_c (N, 4, 4): per knot interval, per channel (angle [rad],
+# dx, dy, dz [m]) the cubic's coefficients of 1, t, t^2, t^3 with t = coordinate - knot (a joint's last row unused)
+
+HINGE = 1
+COUPLED = 2
+
+
+@njit(cache=True)
+def coupled_eval(j, th, sk, out):
+    """Coupled joint j at driver coordinate th: out[ch, 0..2] = value, first and second derivative in th of
+    the channels (angle [rad], dx, dy, dz [m]); beyond the table a straight line with the end slope."""
+    o0, o1 = sk.cp_off[j], sk.cp_off[j + 1]
+    x = sk.cp_x
+    ext = 0.0
+    if th < x[o0]:
+        k, t = o0, 0.0
+        ext = th - x[o0]
+    elif th > x[o1 - 1]:
+        k = o1 - 2
+        t = x[o1 - 1] - x[k]
+        ext = th - x[o1 - 1]
+    else:
+        k = o0
+        while k < o1 - 2 and th >= x[k + 1]:
+            k += 1
+        t = th - x[k]
+    for ch in range(4):
+        c0, c1, c2, c3 = sk.cp_c[k, ch, 0], sk.cp_c[k, ch, 1], sk.cp_c[k, ch, 2], sk.cp_c[k, ch, 3]
+        v = c0 + t * (c1 + t * (c2 + t * c3))
+        d1 = c1 + t * (2.0 * c2 + 3.0 * t * c3)
+        d2 = 2.0 * c2 + 6.0 * t * c3
+        if ext != 0.0:
+            v += d1 * ext
+            d2 = 0.0
+        out[ch, 0] = v
+        out[ch, 1] = d1
+        out[ch, 2] = d2
+
+
+@njit(cache=True)
+def coupled_coordinates(q, qd, sk):
+    """Set each coupled joint's coordinate (its angle) and velocity from its driver's."""
+    ev = np.empty((4, 3))
+    for j in range(q.shape[0]):
+        if sk.j_type[j] == COUPLED:
+            d = sk.j_driver[j]
+            coupled_eval(j, q[d], sk, ev)
+            q[j] = ev[0, 0]
+            qd[j] = ev[0, 1] * qd[d]
 
 
 @njit(cache=True)
@@ -30,17 +85,24 @@ def forward_kinematics(q, sk, seg_R, seg_t):
     through its rest centre, then the parent's pose applies. sk.seg_order lists parents first."""
     seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest = sk.seg_order, sk.seg_joint, sk.j_parent, sk.j_axis, sk.j_centre, sk.j_rest
     Rj = np.empty((3, 3))
+    ev = np.empty((4, 3))
     for s in seg_order:
         j = seg_joint[s]
         if j < 0:
             continue
         p = j_parent[j]
-        axis_angle_mat(j_axis[j], q[j] - j_rest[j], Rj)
+        ox = oy = oz = 0.0
+        if sk.j_type[j] == COUPLED:       # coupled: angle and offset d from the driver's coordinate
+            coupled_eval(j, q[sk.j_driver[j]], sk, ev)
+            axis_angle_mat(j_axis[j], ev[0, 0], Rj)
+            ox, oy, oz = ev[1, 0], ev[2, 0], ev[3, 0]
+        else:
+            axis_angle_mat(j_axis[j], q[j] - j_rest[j], Rj)
         cx, cy, cz = j_centre[j, 0], j_centre[j, 1], j_centre[j, 2]
-        # local transform: x -> Rj (x - c) + c ; world: R_p (Rj (x - c) + c) + t_p
-        lx = cx - (Rj[0, 0] * cx + Rj[0, 1] * cy + Rj[0, 2] * cz)
-        ly = cy - (Rj[1, 0] * cx + Rj[1, 1] * cy + Rj[1, 2] * cz)
-        lz = cz - (Rj[2, 0] * cx + Rj[2, 1] * cy + Rj[2, 2] * cz)
+        # local transform: x -> Rj (x - c) + c + o ; world: R_p (Rj (x - c) + c + o) + t_p
+        lx = cx + ox - (Rj[0, 0] * cx + Rj[0, 1] * cy + Rj[0, 2] * cz)
+        ly = cy + oy - (Rj[1, 0] * cx + Rj[1, 1] * cy + Rj[1, 2] * cz)
+        lz = cz + oz - (Rj[2, 0] * cx + Rj[2, 1] * cy + Rj[2, 2] * cz)
         for r in range(3):
             for c in range(3):
                 seg_R[s, r, c] = seg_R[p, r, 0] * Rj[0, c] + seg_R[p, r, 1] * Rj[1, c] + seg_R[p, r, 2] * Rj[2, c]
@@ -57,7 +119,7 @@ def _cross(a, b, out):
 @njit(cache=True)
 def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work,
                   lock, target, lock_tau):
-    """One step of the skeleton (a tree of rigid segments, hinge or fixed joints, fixed root).
+    """One step of the skeleton (a tree of rigid segments, hinge, fixed or coupled joints, fixed root).
 
     tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
     tissue's reaction on the bone). Joint-space mass matrix M from segment masses/inertias by
@@ -70,9 +132,13 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
     with qd = 0); the other joints move under the lock's reaction. lock_tau[j] [N m] is the torque the lock
     applies about the joint axis (positive about +axis, the direction q grows): tau_lock = M_j. qdd - rhs_j,
     i.e. in a static hold minus the tissue's torque plus the gravity torque on the segments below. 0 for a
-    joint not locked. work: (J, 8 + J) scratch."""
+    joint not locked. work: (J, 8 + J) scratch.
+
+    A coupled joint (docs/solver.md "Coupled joints") has no equation of its own: its child's tissue wrench,
+    Newton-Euler wrench (inertia, gravity) and mass enter its driver's row through the coupling Jacobian;
+    after the step its coordinate follows the driver's (coupled_coordinates)."""
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_inertia, j_parent, j_child, j_type, j_axis, j_centre, \
-        j_rest, j_range, anc, gravity = sk
+        j_rest, j_range, anc, gravity, j_driver, cp_off, cp_x, cp_c = sk
     S = seg_mass.shape[0]
     J = q.shape[0]
     # world axes and centres of the joints, world COM and inertia of the segments (current pose)
@@ -96,6 +162,23 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
                     for l in range(3):
                         acc += seg_R[s, r, k] * seg_inertia[s, k, l] * seg_R[s, c, l]
                 Iw[s, r, c] = acc
+    # coupled joints at the current pose: per unit driver velocity the child's angular velocity W = A phi'
+    # and the velocity of a point x, W x (x - P) + D (A: world axis, P: world position of the moved centre,
+    # D = R_p d'); second derivatives A phi'' and R_p d'' for the velocity-product accelerations
+    cw = np.zeros((J, 15))
+    ev = np.empty((4, 3))
+    for j in range(J):
+        if j_type[j] != COUPLED:
+            continue
+        p = j_parent[j]
+        coupled_eval(j, q[j_driver[j]], sk, ev)
+        for r in range(3):
+            cw[j, r] = a[j, r] * ev[0, 1]
+            cw[j, 3 + r] = (seg_R[p, r, 0] * (j_centre[j, 0] + ev[1, 0]) + seg_R[p, r, 1] * (j_centre[j, 1] + ev[2, 0])
+                            + seg_R[p, r, 2] * (j_centre[j, 2] + ev[3, 0]) + seg_t[p, r])
+            cw[j, 6 + r] = seg_R[p, r, 0] * ev[1, 1] + seg_R[p, r, 1] * ev[2, 1] + seg_R[p, r, 2] * ev[3, 1]
+            cw[j, 9 + r] = a[j, r] * ev[0, 2]
+            cw[j, 12 + r] = seg_R[p, r, 0] * ev[1, 2] + seg_R[p, r, 1] * ev[2, 2] + seg_R[p, r, 2] * ev[3, 2]
     # tissue wrench per segment (force, moment about the world origin), summed up the tree
     Fs = np.zeros((S, 3))
     Ns = np.zeros((S, 3))
@@ -131,6 +214,35 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
                 acom[s, r] = -gravity[r]
             continue
         p = j_parent[j]
+        if j_type[j] == COUPLED:
+            # w = w_p + W qd, alpha = alpha_p + w_p x W qd + A phi'' qd^2; COM: the parent's material point there,
+            # + 2 w_p x v_rel + a_rel (v_rel = (W x r + D) qd, a_rel = (A phi'' x r + W x (W x r) + R_p d'') qd^2)
+            th = qd[j_driver[j]]
+            for r in range(3):
+                tmp[r] = cw[j, r] * th                                # W qd
+                w[s, r] = w[p, r] + tmp[r]
+            _cross(w[p], tmp, tmp2)
+            for r in range(3):
+                al[s, r] = al[p, r] + tmp2[r] + cw[j, 9 + r] * th * th
+                d[r] = com[s, r] - com[p, r]
+            _cross(al[p], d, tmp); _cross(w[p], d, tmp2)
+            for r in range(3):
+                acc_p[r] = acom[p, r] + tmp[r]
+            _cross(w[p], tmp2, tmp)
+            for r in range(3):
+                acc_p[r] += tmp[r]
+                d[r] = com[s, r] - cw[j, 3 + r]                       # r = com - P
+            _cross(cw[j, 0:3], d, tmp)                                # W x r
+            for r in range(3):
+                vk[r] = (tmp[r] + cw[j, 6 + r]) * th                  # v_rel
+            _cross(w[p], vk, tmp2)
+            for r in range(3):
+                acc_p[r] += 2.0 * tmp2[r]
+            _cross(cw[j, 0:3], tmp, tmp2)                             # W x (W x r)
+            _cross(cw[j, 9:12], d, tmp)                               # A phi'' x r
+            for r in range(3):
+                acom[s, r] = acc_p[r] + (tmp[r] + tmp2[r] + cw[j, 12 + r]) * th * th
+            continue
         wq = qd[j] if j_type[j] == 1 else 0.0
         for r in range(3):
             w[s, r] = w[p, r] + a[j, r] * wq
@@ -204,6 +316,42 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
                     for r in range(3):
                         acc += a[j, r] * (Iw[s, r, 0] * a[k, 0] + Iw[s, r, 1] * a[k, 1] + Iw[s, r, 2] * a[k, 2])
             M[j, k] = acc
+    # coupled joints: the child's tissue wrench, inertia and gravity on the driver d by virtual work:
+    # tau_d += W . (N - P x F) + D . F (tissue), bias likewise; M: the coupling column J_d += (W x (com - P) + D, W)
+    for j in range(J):
+        if j_type[j] != COUPLED:
+            continue
+        c = j_child[j]
+        dr = j_driver[j]
+        tau = 0.0
+        bias = 0.0
+        _cross(cw[j, 3:6], Fs[c], tmp)
+        _cross(cw[j, 3:6], Fb[c], tmp2)
+        for r in range(3):
+            tau += cw[j, r] * (Ns[c, r] - tmp[r]) + cw[j, 6 + r] * Fs[c, r]
+            bias += cw[j, r] * (Nb[c, r] - tmp2[r]) + cw[j, 6 + r] * Fb[c, r]
+        rhs[dr] += tau - bias
+        for r in range(3):
+            d[r] = com[c, r] - cw[j, 3 + r]
+        _cross(cw[j, 0:3], d, tmp)
+        for r in range(3):
+            tmp[r] += cw[j, 6 + r]                                    # V: velocity of the COM per unit qd_d
+            Iwv[r] = Iw[c, r, 0] * cw[j, 0] + Iw[c, r, 1] * cw[j, 1] + Iw[c, r, 2] * cw[j, 2]   # I W
+        acc = 0.0
+        for r in range(3):
+            acc += seg_mass[c] * tmp[r] * tmp[r] + cw[j, r] * Iwv[r]
+        M[dr, dr] += acc
+        for k in range(J):                                            # cross terms with the hinges that move c
+            if not anc[k, c]:
+                continue
+            for r in range(3):
+                d[r] = com[c, r] - pj[k, r]
+            _cross(a[k], d, vk)
+            acc = 0.0
+            for r in range(3):
+                acc += seg_mass[c] * tmp[r] * vk[r] + Iwv[r] * a[k, r]
+            M[dr, k] += acc
+            M[k, dr] += acc
     # --- joint lock (begin): save the locked rows (the lock torque is M_j. qdd - rhs_j), prescribe their qdd
     n_lock = 0
     for j in range(J):
@@ -290,5 +438,6 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
                 lock_tau[j] = acc
                 q[j] = target[j]
     # --- joint lock (end)
+    coupled_coordinates(q, qd, sk)
     forward_kinematics(q, sk, seg_R, seg_t)
     return True

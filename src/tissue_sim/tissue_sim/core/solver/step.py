@@ -23,7 +23,7 @@ def _drop_stale_advance_cache() -> None:
     here = Path(__file__).resolve()
     try:
         newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py',
-                                                                 'muscle.py'))
+                                                                 'muscle.py', 'implicit.py'))
         for f in (here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'):     # advance and _advance
             if f.stat().st_mtime < newest:
                 f.unlink(missing_ok=True)
@@ -33,8 +33,7 @@ def _drop_stale_advance_cache() -> None:
 
 _drop_stale_advance_cache()
 from tissue_sim.core.solver import cells as CK, integration as IK, skeleton as SK  # noqa: E402
-from tissue_sim.core.solver import contact as CT  # noqa: E402
-from tissue_sim.core.solver import muscle as MU  # noqa: E402
+from tissue_sim.core.solver import contact as CT, implicit as IM, muscle as MU  # noqa: E402
 from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for  # noqa: E402
 
 CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
@@ -56,7 +55,7 @@ Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mle
 
 
 @njit(cache=True)
-def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, contact, info):
+def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, contact, imp, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
     same for every step) and the joint lock (lock (J,) bool, target (J,) [rad]: Control.joint_lock/joint_target),
     in place. Positions and velocities alternate between (x, v) and the back buffers
@@ -66,14 +65,15 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
 
     The arguments come as plain tuples in the order of the named tuples (numba's dispatcher types a plain
     tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here;
-    contact = (the model's contact.ContactGrids, the Workspace's contact.ContactWork)."""
+    contact = (the model's contact.ContactGrids, the Workspace's contact.ContactWork); imp = implicit.Implicit (the
+    implicit integrator's factor and buffers; on = False for the others)."""
     return _advance(n_steps, n_sub, h, acts, lock, target, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue),
                     SK.Skeleton(*sk), Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]),
-                    CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1]), info)
+                    CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1]), IM.Implicit(*imp), info)
 
 
 @njit(cache=True)
-def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, info):
+def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, imp, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
     a_st = st.activation          # the activation state (the commands are its excitations when tau_act > 0)
     work, act_t = scratch.cell_work, scratch.act_t
@@ -98,15 +98,20 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             MU.advance_activation(act, a_st, h, num.tau_act, num.tau_deact)
             # 1. muscle tension: contraction state, the active tension's activation x the force-velocity
             # factor (muscle velocity from the last evaluation) x the active force-length factor (the fibre
-            # length of the attachment chord now), then every cell's elastic + volume + damping force
+            # length of the attachment chord now), then every cell's elastic + volume + damping force; integrator
+            # implicit: all of them at the inertial prediction y = x + h v (+ h^2 g)
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
+            xe = x
+            if imp.on:
+                IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)
+                xe = imp.y
             if num.fl_on:
-                MU.chord_lengths(x, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
+                MU.chord_lengths(xe, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.chord, tissue.ch_rest,
                                      tissue.inv_lopt, tissue.l_rest, num.fl_on, num.fl_gamma, act_t)
-            bad = CK.lane_forces(x, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            bad = CK.lane_forces(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
             if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
-                MU.passive_tension(x, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
+                MU.passive_tension(xe, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
                                    tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
             if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
@@ -117,11 +122,25 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
             # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
-            ok = SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
+            ok = SK.skeleton_step(h, q, qd, f, xe, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
                                   st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
-            fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
-                                st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
+            if imp.on:             # implicit Euler: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
+                fast = IM.integrate(h, x, v, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
+                                    st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
+                for _ in range(1, imp.iters):
+                    if fast or not ok:
+                        break
+                    if CK.lane_forces(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
+                        fast = 1       # (reported as a blow-up: the iterate is not finite)
+                        break
+                    if num.pe_on:
+                        MU.passive_tension(xb, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
+                                           tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
+                    fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
+            else:
+                fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
+                                    st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
             if not ok or fast:
                 info[0], info[1], info[2] = n, -1, CAUSE_SKELETON if not ok else CAUSE_SPEED
                 q[:] = scratch.q0; qd[:] = scratch.qd0; lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0
@@ -151,6 +170,7 @@ class Workspace:
     def __init__(self, sim: SimModel):
         self.sim = sim
         self._by_h = {}
+        self._imp = {}
         self.no_lock = (np.zeros(sim.n_joints, np.bool_), np.zeros(sim.n_joints))    # (lock, target): no joint locked
         self.contact = CT.work(sim.contact, sim.n_segments)
 
@@ -167,13 +187,20 @@ class Workspace:
         t = self._by_h.get(h)
         if t is None:
             if len(self._by_h) > 8:
-                self._by_h.clear()
+                self._by_h.clear(); self._imp.clear()
             named = self._make(h)
             cells, tissue, sk, num, scratch, (cgrid, cwork) = named
             plain = (tuple(cells), tuple(tissue), tuple(sk), tuple(num), (tuple(scratch.cell_work),) + tuple(scratch)[1:],
-                     (tuple(cgrid), tuple(cwork)))
+                     (tuple(cgrid), tuple(cwork)), tuple(self.implicit(h)))
             t = self._by_h[h] = (named, plain)
         return t
+
+    def implicit(self, h: float):
+        """The implicit integrator's implicit.Implicit for sub-step length h (its factor made once per h)."""
+        imp = self._imp.get(h)
+        if imp is None:
+            imp = self._imp[h] = IM.make(self.sim, h)
+        return imp
 
     def _make(self, h: float):
         sim, p = self.sim, self.sim.params

@@ -1,0 +1,250 @@
+"""Implicit Euler of the free soft-tissue vertices (``integrator: implicit``; docs/solver.md "Implicit integrator").
+
+Projective-dynamics / quasi-Newton form. With y = x + h v + h^2 g the inertial prediction (bone-attached vertices
+continued with their velocity, ya = xa + h va), one step solves backward Euler's M (x1 - y) / h^2 = f(x1, (x1 - x) / h) approximately by
+
+    A w = f(y, v) - Lhat_fa (xa1 - ya),    x1_free = y + w,    v1 = (x1 - x) / h,
+
+A = M/h^2 + Lhat_ff, Lhat = sum over cells of (k_c + k_active,c)(1 + volume term) + b_c/h times the cell's centring
+operator (I - 1 1^T / n) (the Hessian of the shape-matching energy with the cell's rotation held fixed, plus the
+deformation damping's over h; the same for x, y and z), the bone-attached vertices predicted as ya = xa + h va and
+xa1 - ya their motion beyond that (the skeleton's step, between the force evaluation and the solve).
+A is constant per model and h: factored once (scipy's SuperLU, no pivoting: A is SPD). ``implicit_iterations`` > 1
+repeats the correction from the last iterate (residual f(x1, v1) - M (x1 - y)/h^2): local/global iterations.
+
+The system is solved in its star form: one extra unknown per cell (the cell's centroid displacement u_c) with
+energy sum_c keff_c sum_i |u_i - u_c|^2, whose Schur complement on the vertices is exactly Lhat. Its factor is
+~4x sparser than A's (bundled model: 39k entries against 174k; a 26k-vertex model 434k), the bone-attached
+vertices' motion enters the cells' rows (keff_c sum of their displacements), and the triangular solves, the
+right-hand side and the update run in numba inside the compiled step (``integrate``, ``correct``).
+
+``system_matrix`` (plain scipy, the vertices' matrix with the cells' blocks written out) and ``reference_solve``
+are the readable definition (reference.reference_step uses them; tests/test_solver_implicit.py compares).
+"""
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+from numba import njit
+
+from tissue_sim.core.solver import integration as IK
+
+Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
+                                  'n_lnz')
+Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
+iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
+(V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
+(elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
+weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
+star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative)."""
+
+
+def cell_weights(sim, h: float) -> np.ndarray:
+    """(C,) [N/m] keff_c = (k + k_active)(1 + volume_stiffness where the cell has a volume term) + damp_b / h: the
+    stiffness of each cell's centring operator in A (the bound the mass_scaled integrator budgets with, plus the
+    deformation damping's implicit share)."""
+    p = sim.params
+    vol = np.where(sim.k_volume > 0, p.volume_stiffness, 0.0)
+    return (sim.k + sim.k_active) * (1.0 + vol) + sim.damp_b / h
+
+
+def system_matrix(sim, h: float):
+    """(A, Lf, free): A = M/h^2 + Lhat over the free vertices (scipy CSC, n_free x n_free; the cells' dense blocks
+    keff_c (I - 1 1^T/n) written out), Lhat's free rows (CSR, n_free x V: the bones' motion enters through its
+    attached columns) and the free mask (V,)."""
+    keff = cell_weights(sim, h)
+    sizes = np.diff(sim.off)
+    rows, cols, vals = [], [], []
+    for c in range(sim.n_cells):
+        ids = sim.cv[sim.off[c]:sim.off[c + 1]]
+        n = sizes[c]
+        rows.append(np.repeat(ids, n))
+        cols.append(np.tile(ids, n))
+        vals.append((keff[c] * (np.eye(n) - 1.0 / n)).ravel())
+    V = sim.n_vertices
+    L = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(V, V))
+    free = sim.inv_mass > 0
+    A = (L[free][:, free] + sp.diags(sim.mass[free] / h ** 2)).tocsc()
+    return A, L[free].tocsr(), free
+
+
+def reference_solve(sim, h: float, f, x_iter, y, xa_moved):
+    """The implicit correction of reference.reference_step: w solving A w = f_free - M/h^2 (x_iter - y)_free
+    - Lhat_fa (xa_moved) with scipy's sparse direct solve (xa_moved (V, 3): the bone-attached vertices' motion not
+    yet in x_iter, zero elsewhere). Returns the new free positions (n_free, 3)."""
+    A, Lfa, free = _system_cached(sim, h)
+    m = sim.mass[free][:, None] / h ** 2
+    r = f[free] - m * (x_iter[free] - y[free]) - Lfa @ xa_moved
+    return x_iter[free] + sla.spsolve(A, r).reshape(-1, 3) if r.size else x_iter[free]
+
+
+_CACHE = {}
+
+
+def _system_cached(sim, h):
+    key = (id(sim), h)
+    hit = _CACHE.get(key)
+    if hit is None or hit[0] is not sim:
+        if len(_CACHE) > 4:
+            _CACHE.clear()
+        hit = _CACHE[key] = (sim, system_matrix(sim, h))
+    return hit[1]
+
+
+def star_system(sim, h: float):
+    """A in its star form over the unknowns (free vertices, cells): the vertices' diagonal m/h^2 + sum keff_c over
+    their cells, the cells' n_c keff_c, -keff_c between a cell and each of its free vertices. Returns (CSC matrix,
+    free vertex ids, keff)."""
+    keff = cell_weights(sim, h)
+    V, C = sim.n_vertices, sim.n_cells
+    sizes = np.diff(sim.off)
+    cell = np.repeat(np.arange(C), sizes)
+    free = np.flatnonzero(sim.inv_mass > 0)
+    nf = free.size
+    fidx = np.full(V, -1)
+    fidx[free] = np.arange(nf)
+    fv = fidx[sim.cv]
+    ok = fv >= 0
+    kv = keff[cell][ok]
+    diag = np.concatenate([sim.mass[free] / h ** 2 + np.bincount(fv[ok], kv, nf), keff * sizes])
+    r = np.concatenate([fv[ok], nf + cell[ok]])
+    c = np.concatenate([nf + cell[ok], fv[ok]])
+    A = sp.csc_matrix((np.concatenate([-kv, -kv]), (r, c)), shape=(nf + C, nf + C)) + sp.diags(diag)
+    return A.tocsc(), free, keff
+
+
+def make(sim, h: float) -> Implicit:
+    """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators)."""
+    V = sim.n_vertices
+    if sim.params.integrator != 'implicit':
+        e_i, e_f = np.zeros(0, np.int32), np.zeros(0)
+        return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, np.zeros(1, np.int64),
+                        e_i, np.zeros(1, np.int64), e_i, e_f, e_f, np.zeros((0, 3)), 0)
+    A, free, keff = star_system(sim, h)
+    nf, n = free.size, A.shape[0]
+    lu = sla.splu(A, permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        raise RuntimeError('implicit integrator: SuperLU pivoted the SPD system (perm_r != perm_c)')
+    Lf = sp.csr_matrix(lu.L)
+    d = lu.U.diagonal()
+    if not np.all(d > 0):
+        raise RuntimeError('implicit integrator: the system matrix is not positive definite')
+    U_expected = sp.diags(d) @ Lf.T
+    if abs(lu.U - U_expected).max() > 1e-9 * abs(d).max():
+        raise RuntimeError('implicit integrator: the factor is not symmetric (U != D L^T)')
+    Ls = sp.tril(Lf, k=-1).tocsr()
+    Ls.sort_indices()
+    # row p of the factor is unknown perm_c[p] of A (Pr A Pc = L U, perm_r == perm_c)
+    unk = np.argsort(lu.perm_c)                     # unknown of each row
+    row_v = np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
+    row_c = np.where(unk >= nf, unk - nf, -1).astype(np.int32)
+    # the bone-attached vertices of each cell row (their motion enters that row: keff_c sum of displacements)
+    att = sim.inv_mass <= 0
+    ptr = np.zeros(n + 1, np.int64)
+    idx = []
+    for p in range(n):
+        c = row_c[p]
+        if c >= 0:
+            ids = sim.cv[sim.off[c]:sim.off[c + 1]]
+            idx.append(ids[att[ids]])
+            ptr[p + 1] = ptr[p] + idx[-1].size
+        else:
+            ptr[p + 1] = ptr[p]
+    idx = np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32)
+    mh2 = np.where(sim.inv_mass > 0, sim.mass / h ** 2, 0.0)
+    return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
+                    np.ascontiguousarray(keff), ptr, idx, Ls.indptr.astype(np.int64), Ls.indices.astype(np.int32),
+                    Ls.data.copy(), 1.0 / d, np.zeros((n, 3)), int(Ls.nnz + n))
+
+
+@njit(cache=True, fastmath={'contract'})
+def predict(h, x, v, y, mh2, gravity, vel_damp):
+    """y = x + h (1 - h c_v)(v + h g) for the free vertices (mh2 > 0), y = x + h v for the bone-attached ones (their
+    segment's motion continued): the positions the step's forces are evaluated at (the same free positions
+    integration.integrate writes with a zero force). The bones must be predicted too: with them where they are, tissue
+    moving with a bone would lie h v ahead of it and pull it on (a negative damping k h: the knee diverged in 24 steps)."""
+    damp = 1.0 - h * vel_damp
+    for i in range(x.shape[0]):
+        if mh2[i] > 0.0:
+            for a in range(3):
+                y[i, a] = x[i, a] + h * ((v[i, a] + h * gravity[a]) * damp)
+        else:
+            y[i, 0] = x[i, 0] + h * v[i, 0]; y[i, 1] = x[i, 1] + h * v[i, 1]; y[i, 2] = x[i, 2] + h * v[i, 2]
+
+
+@njit(cache=True, fastmath={'contract'})
+def _solve(imp, f, xk, y, first):
+    """xk_free += w, A w = the right-hand side (f - M (xk - y)/h^2 on the vertices' rows; on the cells' rows in the
+    first iteration the bones' motion beyond the prediction, keff_c sum (xk_a - y_a)): L z' = rhs (the rhs formed row
+    by row as the forward pass reaches it), z' D^-1, L^T w = z' D^-1 (each w_p final when the backward pass leaves
+    row p: the update is made there)."""
+    z, Lp, Lj, Lx, dinv = imp.z, imp.Lp, imp.Lj, imp.Lx, imp.dinv
+    row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
+    n = z.shape[0]
+    for p in range(n):
+        i = row_v[p]
+        if i >= 0:
+            m = mh2[i]
+            s0 = f[i, 0] - m * (xk[i, 0] - y[i, 0])
+            s1 = f[i, 1] - m * (xk[i, 1] - y[i, 1])
+            s2 = f[i, 2] - m * (xk[i, 2] - y[i, 2])
+        else:
+            s0 = s1 = s2 = 0.0
+            if first:
+                for q in range(att_ptr[p], att_ptr[p + 1]):
+                    a = att_idx[q]
+                    s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
+                k = keff[row_c[p]]
+                s0 *= k; s1 *= k; s2 *= k
+        for q in range(Lp[p], Lp[p + 1]):
+            j = Lj[q]
+            l = Lx[q]
+            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+    for p in range(n):
+        d = dinv[p]
+        z[p, 0] *= d; z[p, 1] *= d; z[p, 2] *= d
+    for p in range(n - 1, -1, -1):
+        w0, w1, w2 = z[p, 0], z[p, 1], z[p, 2]
+        for q in range(Lp[p], Lp[p + 1]):
+            j = Lj[q]
+            l = Lx[q]
+            z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
+        i = row_v[p]
+        if i >= 0:
+            xk[i, 0] += w0; xk[i, 1] += w1; xk[i, 2] += w2
+
+
+@njit(cache=True, fastmath={'contract'})
+def _velocities(h, x, xn, vn, mh2, vmax2):
+    nfast = 0
+    ih = 1.0 / h
+    for i in range(x.shape[0]):
+        if mh2[i] > 0.0:
+            a = (xn[i, 0] - x[i, 0]) * ih
+            b = (xn[i, 1] - x[i, 1]) * ih
+            c = (xn[i, 2] - x[i, 2]) * ih
+            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
+            nfast += 0 if a * a + b * b + c * c <= vmax2 else 1          # (NaN counts)
+    return nfast
+
+
+@njit(cache=True)
+def integrate(h, x, v, f, xn, vn, imp, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp, vmax2):
+    """Stage 3 with the implicit integrator, first iteration: f = the forces at imp.y (predict); the bone-attached
+    vertices take their segment's new pose (integration.integrate), the free ones x1 = y + A^-1 (f - Lhat_fa
+    (xa1 - ya)), v1 = (x1 - x)/h. Reads x, v, writes xn, vn; returns how many vertices are too fast or not finite."""
+    nfast = IK.integrate(h, x, v, f, imp.zero_inv, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp,
+                         vmax2)
+    _solve(imp, f, xn, imp.y, True)
+    return nfast + _velocities(h, x, xn, vn, imp.mh2, vmax2)
+
+
+@njit(cache=True)
+def correct(h, x, f, xn, vn, imp, vmax2):
+    """A further local/global iteration: f = the forces at (xn, vn); xn_free += A^-1 (f - M (xn - y)/h^2)."""
+    _solve(imp, f, xn, imp.y, False)
+    return _velocities(h, x, xn, vn, imp.mh2, vmax2)

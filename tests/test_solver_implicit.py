@@ -1,0 +1,154 @@
+"""The implicit integrator (integrator: implicit; core/solver/implicit.py, docs/solver.md "Implicit integrator"):
+its compiled step against the readable one (reference.reference_step: exact rotations, scipy's sparse solve of the
+written-out system), its star-form factor against that system, stability at the parameter set's own step where
+the explicit schemes diverge, and a passive run that does not gain energy."""
+import numpy as np
+import pytest
+import scipy.sparse.linalg as sla
+
+from tissue_sim.core import solver
+from tissue_sim.core.solver import implicit as IM, phantom
+
+
+def _implicit(preset='physical', **kw):
+    return getattr(solver.Params, preset)(integrator='implicit', substeps=1, **kw)
+
+
+def _run(sim, n_steps, state=None, ref=None, group='hamstrings'):
+    st = state or solver.make_state(sim)
+    ctrl = solver.make_control(sim)
+    ctrl.activation[solver.muscle_indices(sim, group)] = 1.0
+    for _ in range(n_steps):
+        solver.step(sim, st, ctrl)
+        if ref is not None:
+            solver.reference_step(sim, ref, ctrl.activation)
+    return st
+
+
+def test_the_star_form_factor_solves_the_written_out_system(default_tm):
+    """One unknown per cell (its centroid) instead of the cells' dense blocks: the same solution (the Schur
+    complement is the vertices' matrix), the bones' motion entering through the cells' rows."""
+    sim = solver.compile_model(default_tm, _implicit())
+    h = sim.params.dt
+    imp = IM.make(sim, h)
+    A, Lf, free = IM.system_matrix(sim, h)
+    rng = np.random.default_rng(0)
+    f = rng.standard_normal((sim.n_vertices, 3))
+    y = sim.rest + 1e-3 * rng.standard_normal(sim.rest.shape)
+    xk = y.copy()
+    xk[~free] += 1e-3 * rng.standard_normal((int(np.sum(~free)), 3))      # the bones moved beyond the prediction
+    moved = np.where(free[:, None], 0.0, xk - y)
+    IM._solve(imp, f, xk, y, True)
+    w = sla.spsolve(A, f[free] - Lf @ moved)
+    assert np.abs(w).max() > 0
+    assert np.abs((xk - y)[free] - w).max() <= 1e-9 * np.abs(w).max()
+    assert np.array_equal(xk[~free] - y[~free], moved[~free])           # the bones are not touched
+    assert imp.n_lnz < A.nnz                  # sparser than the vertices' matrix itself (39k against 108k entries)
+
+
+@pytest.mark.parametrize('iterations', [1, 2])
+def test_fast_step_matches_the_reference_step_on_the_knee_phantom(iterations):
+    tm = phantom.knee(n_gaps=12, knee_range_deg=(0.0, 60.0))
+    sim = solver.compile_model(tm, _implicit('paper', rotation_iterations=50, implicit_iterations=iterations,
+                                             gravity=(0.0, 0.0, -9.81), velocity_damping=0.5))
+    fast, ref = solver.make_state(sim), solver.make_state(sim)
+    _run(sim, 150, fast, ref)
+    motion = np.abs(fast.x - sim.rest).max()
+    assert fast.q[0] > 0.1 and motion > 1e-2
+    assert np.abs(fast.x - ref.x).max() <= 1e-9 * motion
+    assert np.abs(fast.v - ref.v).max() <= 1e-9 * np.abs(ref.v).max()
+    assert np.allclose(fast.q, ref.q, rtol=1e-9, atol=1e-12)
+
+
+def test_fast_step_matches_the_reference_step_on_the_default_model(default_tm):
+    """The physical set (force-velocity, bone contact) with the implicit integrator, 20 steps of 1 ms."""
+    sim = solver.compile_model(default_tm, _implicit(rotation_iterations=50))
+    fast, ref = solver.make_state(sim), solver.make_state(sim)
+    _run(sim, 20, fast, ref)
+    motion = np.abs(fast.x - sim.rest).max()
+    assert motion > 1e-3
+    assert np.abs(fast.x - ref.x).max() <= 1e-8 * motion
+    assert np.allclose(fast.q, ref.q, rtol=1e-8, atol=1e-12)
+    assert np.allclose(fast.muscle_velocity, ref.muscle_velocity, rtol=0, atol=1e-8 * np.abs(ref.muscle_velocity).max())
+
+
+@pytest.mark.parametrize('stiffness', [1.0, 16.0])
+def test_one_pass_per_step_follows_the_sub_stepped_explicit_motion(stiffness):
+    """Knee phantom, paper set (x16: stiff cells, explicit needs 5 sub-steps): one implicit pass per step of 1 ms
+    follows explicit at true masses within 3 % of the motion (measured 0.7 deg of 56, 0.9 deg of 54)."""
+    tm = phantom.knee(n_gaps=8)
+    q = {}
+    for name in ('explicit', 'implicit'):
+        sim = solver.compile_model(tm, solver.Params.paper(integrator=name, k_fat=5e5 * stiffness,
+                                                           k_muscle=1e6 * stiffness))
+        assert (sim.n_substeps == 1) == (name == 'implicit')
+        q[name] = np.array([o['joint_positions'][0] for _, o in solver.simulate(
+            sim, 0.12, {'hamstrings': [(0.0, 1.0)]}, every=20, output='obs')])
+    assert q['explicit'][-1] > np.radians(40)
+    assert np.abs(q['implicit'] - q['explicit']).max() < 0.03 * q['explicit'][-1]
+
+
+def test_stable_at_one_ms_with_one_sub_step_where_the_explicit_schemes_diverge(default_tm):
+    """The physical set at its own step (1 ms), one sub-step: mass_scaled and explicit diverge (they need 4 and
+    ~40 sub-steps; mass_scaled at one sub-step when the knee reaches its stop, measured at step 887); implicit flexes
+    the knee to its 120-deg stop and holds it there."""
+    for integrator in ('mass_scaled', 'explicit'):
+        sim = solver.compile_model(default_tm, solver.Params.physical(integrator=integrator, substeps=1))
+        with pytest.raises(solver.DivergenceError):
+            _run(sim, 1500)
+    sim = solver.compile_model(default_tm, _implicit())
+    st = _run(sim, 1500)
+    assert np.degrees(st.q[0]) == pytest.approx(120.0, abs=1.0)
+    assert np.all(np.isfinite(st.x)) and np.abs(st.v).max() < 5.0
+
+
+def test_a_passive_run_does_not_gain_energy(default_tm):
+    """No activation, the free tissue released from a random deformation (0.5 mm per vertex): the total energy
+    (tissue kinetic + elastic + skeleton) never rises, in every 10-step window (implicit Euler only takes energy out;
+    bone contact off: its projection is a separate stage)."""
+    sim = solver.compile_model(default_tm, _implicit(bone_contact=False))
+    st = solver.make_state(sim)
+    free = sim.inv_mass > 0
+    st.x[free] += 5e-4 * np.random.default_rng(1).standard_normal((int(free.sum()), 3))
+    ctrl = solver.make_control(sim)
+    energies = []
+    for _ in range(50):
+        solver.step(sim, st, ctrl, n_steps=10)
+        energies.append(solver.kinetic_energy(sim, st) + float(st.cell_energy.sum()) + solver.skeleton_energy(sim, st))
+    e = np.array(energies)
+    assert e[0] > 0
+    assert np.all(np.diff(e) <= 1e-9 * e[0])
+    assert e[-1] < 0.5 * e[0]
+
+
+def test_bad_implicit_iterations_are_refused():
+    for bad in (0, 21, 1.5):
+        with pytest.raises(ValueError, match='implicit_iterations'):
+            solver.Params.paper(integrator='implicit', implicit_iterations=bad)
+
+
+@pytest.mark.slow
+def test_a_fine_model_is_stable_at_one_ms():
+    """~26k vertices (the builder at 140 slices, 24 muscle and 36 fat rays), physical set, full hamstring activation,
+    1 ms, one sub-step, two local/global iterations: 0.4 s without divergence, the knee flexing (with one iteration a
+    thin semitendinosus tendon cell inverts at ~0.1 s, docs/solver.md)."""
+    from tissue_sim.core.builder import default_model
+    tm = default_model(slices=140, muscle_rays=24, fat_rays=36, allow_broken=True)
+    assert tm.n_vertices >= 25000
+    sim = solver.compile_model(tm, _implicit(implicit_iterations=2))
+    st = _run(sim, 400)
+    assert np.degrees(st.q[0]) > 20.0
+    assert np.all(np.isfinite(st.x))
+
+
+@pytest.mark.slow
+def test_the_demo_motion_agrees_with_mass_scaled(default_tm):
+    """The demo's motion (physical set, hamstrings ramped 0 -> 1 over 8 s, 10 s): the implicit knee trajectory within
+    1 deg of mass_scaled's (measured 0.46 deg at worst, t = 3.1 s; both at the 120-deg stop from 8 s)."""
+    q = {}
+    for name, params in (('mass_scaled', solver.Params.physical()), ('implicit', _implicit())):
+        sim = solver.compile_model(default_tm, params)
+        q[name] = np.degrees([o['joint_positions'][0] for _, o in solver.simulate(
+            sim, 10.0, {'hamstrings': [(0.0, 0.0), (8.0, 1.0)]}, every=50, output='obs')])
+    assert q['mass_scaled'][-1] == pytest.approx(120.0, abs=1.0)
+    assert np.abs(q['implicit'] - q['mass_scaled']).max() < 1.0
