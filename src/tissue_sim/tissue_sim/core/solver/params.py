@@ -123,7 +123,7 @@ class Params:
         # test_physical_without_force_velocity_is_stable)
         # rest_fibre_length 1.0 (every fibre at its optimum at rest), not 0 (each muscle's source-model value): with
         # those the fully active hamstrings' isometric torque moved further from OpenSim's (`tissue-sim validate
-        # --angles 0,30,60,90,120 --settle 0.5`: RMS 32 -> 41 N m, peak 77 -> 56 N m; docs/solver.md "Force-length")
+        # --angles 0,30,60,90,120 --settle 0.5`: RMS 29 -> 37 N m, peak 83 -> 63 N m; docs/solver.md "Force-length")
         base.update(kw)
         return cls(**base).validate()
 
