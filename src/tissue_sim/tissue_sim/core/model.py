@@ -220,7 +220,8 @@ class TissueModel(TissueTopology):
         J = len(self.joint_names)
         for name, default in (('joint_driver', lambda: np.full(J, -1, np.int32)),
                               ('coupling_offsets', lambda: np.zeros(J + 1, np.int64)),
-                              ('coupling_table', lambda: np.zeros((0, 5)))):
+                              ('coupling_table', lambda: np.zeros((0, 5))),
+                              ('muscle_rest_fibre_length', lambda: np.ones(len(self.muscle_names)))):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, default())
         super().__post_init__()
@@ -230,8 +231,6 @@ class TissueModel(TissueTopology):
         """Check shapes, index ranges and finiteness; raise ModelError naming the first problem."""
         V, C = self.n_vertices, self.n_cells
         M, S, J, B = self.n_muscles, self.n_segments, self.n_joints, len(self.bone_names)
-        if self.muscle_rest_fibre_length is None:
-            object.__setattr__(self, 'muscle_rest_fibre_length', np.ones(M))
 
         def need(cond, msg):
             if not cond:
