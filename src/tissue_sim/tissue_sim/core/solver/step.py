@@ -47,10 +47,9 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
                                 'muscle_length muscle_velocity joint_lock_torque activation')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
-                                'ch_rest inv_lopt fmax ch_off ch_idx')
+                                'ch_rest inv_lopt fmax ch_off ch_idx l_rest')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
-                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 '
-                                 'fl_rest')
+                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
                                  'chord chord_axis')
 
@@ -109,11 +108,11 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             if num.fl_on:
                 MU.chord_lengths(xe, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.chord, tissue.ch_rest,
-                                     tissue.inv_lopt, num.fl_rest, num.fl_on, num.fl_gamma, act_t)
+                                     tissue.inv_lopt, tissue.l_rest, num.fl_on, num.fl_gamma, act_t)
             bad = CK.lane_forces(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
             if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
                 MU.passive_tension(xe, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
-                                   num.fl_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
+                                   tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
             if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
                                    num.fv_alpha, scratch.muscle_sums)
@@ -137,7 +136,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                         break
                     if num.pe_on:
                         MU.passive_tension(xb, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
-                                           num.fl_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
+                                           tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
                     fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
             else:
                 fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
@@ -212,7 +211,8 @@ class Workspace:
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
                         np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0),
-                        *MU.muscle_constants(sim))       # the force-length's constants (muscle.py)
+                        *MU.muscle_constants(sim),       # the force-length's constants (muscle.py)
+                        MU.rest_fibre_lengths(sim))
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
@@ -221,7 +221,7 @@ class Workspace:
                       h / (p.fv_filter_time + h),
                       float(p.activation_time), float(p.deactivation_time), p.force_length and p.specific_tension > 0,
                       float(p.fl_width), p.passive_force_length and p.specific_tension > 0, float(p.fl_passive_shape),
-                      float(p.fl_passive_strain), float(p.rest_fibre_length))
+                      float(p.fl_passive_strain))
         M, J = sim.n_muscles, sim.n_joints
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M),
