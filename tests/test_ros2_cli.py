@@ -118,7 +118,7 @@ def test_ros2_launch_demo_moves_the_knee_and_one_sigint_stops_all(tmp_path):
                        'the launched activation profile to flex the knee beyond 20 degrees')
             # the pip set-up has no robot_state_publisher: the simulator publishes TF and the description
             spin_until(lambda: tf and desc, node, 20, '/tf and /robot_description')
-            assert {t.child_frame_id for t in tf[-1].transforms} == {'shank', 'foot'}     # the knee and the ankle move
+            assert {t.child_frame_id for t in tf[-1].transforms} == {'shank', 'foot', 'patella'}     # the knee, the ankle and the patella (coupled to the knee) move
             assert '<robot name="lower_limb_r">' in desc[0].data
             os.killpg(launch.popen.pid, signal.SIGINT)          # one Ctrl-C
             rc = launch.popen.wait(30)

@@ -102,11 +102,12 @@ def test_default_model_full_hamstring_contraction_is_stable_and_keeps_volume(def
 @pytest.mark.slow
 def test_paper_parameters_flex_the_bundled_knee_only_a_little(default_sim, hamstring_run):
     """Measured, documented limitation of the paper's parameter set on this anatomy (docs/solver.md):
-    the knee flexes (positive angles) but stays below 15 deg, swinging. If this fails because the
-    knee now flexes further, update docs/solver.md and this bound."""
+    the knee flexes (positive angles) but stays below 25 deg, swinging (measured 16.8 deg at most, 9.4 at
+    3 s, with the moving patella). If this fails because the knee now flexes further, update docs/solver.md
+    and this bound."""
     j, q, vol = hamstring_run
     assert q.max() > math.radians(2)
-    assert q.max() < math.radians(15)
+    assert q.max() < math.radians(25)
 
 
 @pytest.mark.slow

@@ -43,11 +43,12 @@ star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
-    """(C,) [N/m] keff_c = (k + k_active)(1 + volume_stiffness where the cell has a volume term) + damp_b / h: the
+    """(C,) [N/m] keff_c = (k + k_active)(1 + volume_stiffness, or volume_stiffness_fat for a fat cell, where the cell has a volume term) + damp_b / h: the
     stiffness of each cell's centring operator in A (the bound the mass_scaled integrator budgets with, plus the
     deformation damping's implicit share)."""
     p = sim.params
-    vol = np.where(sim.k_volume > 0, p.volume_stiffness, 0.0)
+    rel = np.where(sim.cell_muscle >= 0, p.volume_stiffness, p.volume_stiffness_fat)    # (model.py: muscle / fat cells)
+    vol = np.where(sim.k_volume > 0, rel, 0.0)
     return (sim.k + sim.k_active) * (1.0 + vol) + sim.damp_b / h
 
 
