@@ -136,14 +136,16 @@ def test_heel_raise(physical_sim):
 @pytest.mark.slow
 def test_ankle_pump(physical_sim):
     """Tibialis anterior, then the triceps surae, twice: the ankle dorsiflexes (measured +20.0 deg,
-    the stop) then plantarflexes (measured -38.3 deg), and dorsiflexes again in the second cycle."""
+    the stop) then plantarflexes (measured -23.5 deg with each muscle's source-model rest fibre length: the
+    gastrocnemii start far on the descending limb; -38.3 with every fibre at its optimum), and dorsiflexes
+    again in the second cycle."""
     run = _run(physical_sim, 'ankle_pump')
     a = run[0][:, _joint(physical_sim, 'ankle_r')]
     F = len(a)
     first, second = a[: F // 2], a[F // 2:]
-    assert first.max() >= 12.0 and first.min() <= -25.0, (first.max(), first.min())
+    assert first.max() >= 12.0 and first.min() <= -18.0, (first.max(), first.min())
     assert int(np.argmax(first)) < int(np.argmin(first))          # dorsiflexion first
-    assert second.max() >= 5.0 and second.min() <= -25.0, (second.max(), second.min())
+    assert second.max() >= 5.0 and second.min() <= -18.0, (second.max(), second.min())
     _check(physical_sim, 'ankle_pump', run, ANKLE_BOUND)
 
 

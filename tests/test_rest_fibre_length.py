@@ -77,7 +77,8 @@ def test_bundled_table_and_model_carry_the_rest_fibre_lengths(default_tm):
     assert np.array_equal(MU.rest_fibre_lengths(sim), default_tm.muscle_rest_fibre_length)
     assert np.allclose(solver.observe(sim, solver.make_state(sim))['fibre_lengths'], default_tm.muscle_rest_fibre_length)
     assert solver.Params().rest_fibre_length == 0.0
-    over = solver.compile_model(default_tm, solver.Params.physical())     # the physical set's override: 1.0
+    assert solver.Params.physical().rest_fibre_length == 0.0                # the physical set: each muscle's own
+    over = solver.compile_model(default_tm, solver.Params.physical(rest_fibre_length=1.0))     # an override
     assert np.all(MU.rest_fibre_lengths(over) == 1.0)
 
 

@@ -114,7 +114,7 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, rest_fibre_length=1.0, volume_stiffness_fat=20.0)
+                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -124,9 +124,12 @@ class Params:
         # and ankle fat cells at V/V0 0.56..5, omega h 2.04 at 1.4: divergence at step ~440 with or without
         # force-velocity); at 5 the ankle stays within -6..+2 deg. (tests/test_solver_default_model.py::
         # test_physical_without_force_velocity_is_stable)
-        # rest_fibre_length 1.0 (every fibre at its optimum at rest), not 0 (each muscle's source-model value): with
-        # those the fully active hamstrings' isometric torque moved further from OpenSim's (`tissue-sim validate
-        # --angles 0,30,60,90,120 --settle 0.5`: RMS 29 -> 37 N m, peak 83 -> 63 N m; docs/solver.md "Force-length")
+        # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
+        # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
+        # falls as the knee flexes, and full co-contraction at 30 deg gave 0.8 N m/rad, below the passive knee's 2.6
+        # (`tissue-sim stiffness --levels 0,1 --settle 0.15 --free 0.3`); with their own values 75 N m/rad. The price:
+        # the fully active hamstrings' isometric torque is further from OpenSim's (`tissue-sim validate --angles
+        # 0,30,60,90,120 --settle 0.5`: RMS 29 -> 37 N m, peak 83 -> 63 N m; docs/solver.md "Force-length")
         base.update(kw)
         return cls(**base).validate()
 
