@@ -202,12 +202,12 @@ def main():
     a = ap.parse_args()
     if a.quick:
         a.refine, a.duration = '1,2', 0.3
+    from tissue_sim.core.builder import parse_refinements
     try:
-        refs = [float(x) for x in a.refine.split(',')]
-        if not refs or any(not (math.isfinite(r) and r >= 1) for r in refs):
-            raise ValueError
-    except ValueError:
-        sys.exit(f'error: --refine {a.refine!r}: expected numbers >= 1 separated by commas')
+        refs = parse_refinements(a.refine)
+    except ValueError as e:
+        print(f'error: {e}', file=sys.stderr)
+        sys.exit(2)
     if not (0 < a.duration <= 10):
         sys.exit('error: --duration must be in (0, 10] s')
     integ = a.integrator or default_integrator()

@@ -110,12 +110,12 @@ def main():
     a = ap.parse_args()
     if a.quick:
         a.refine, a.ros = '1,2', 0.0
+    from tissue_sim.core.builder import parse_refinements
     try:
-        refs = [float(v) for v in a.refine.split(',')]
-        if not refs or any(not (math.isfinite(r) and r >= 1) for r in refs):
-            raise ValueError
-    except ValueError:
-        sys.exit(f'error: --refine {a.refine!r}: expected numbers >= 1 separated by commas')
+        refs = parse_refinements(a.refine)
+    except ValueError as e:
+        print(f'error: {e}', file=sys.stderr)
+        sys.exit(2)
     from tissue_sim.core.builder import default_model
     rows = []
     for R in refs:

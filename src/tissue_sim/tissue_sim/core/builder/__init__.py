@@ -122,3 +122,16 @@ def default_model(refresh: bool = False, **settings):
     except OSError:
         pass
     return tm
+
+
+def parse_refinements(text: str) -> list[float]:
+    """'1,3,6' -> [1.0, 3.0, 6.0]: refinements of the bundled limb (``refine`` >= 1) for the benchmarks;
+    ValueError naming the text otherwise."""
+    import math
+    try:
+        refs = [float(v) for v in text.split(',')]
+    except ValueError:
+        refs = []
+    if not refs or any(not (math.isfinite(r) and r >= 1) for r in refs):
+        raise ValueError(f'--refine {text!r}: expected numbers >= 1 separated by commas')
+    return refs
