@@ -402,6 +402,31 @@ def test_a_stop_during_start_up_is_a_stop_not_a_traceback(capsys):
         a_real_failure()
 
 
+def test_a_burst_of_sigints_is_one_clean_stop(tmp_path, bundled_names_knee):
+    """`ros2 launch` forwards a Ctrl-C to its nodes while the terminal's (or a killpg's) reaches them too,
+    and users press it twice: six SIGINTs 10 ms apart end a running simulator and a running recorder
+    cleanly (exit code 0, no traceback), and the recorder's MCAP file is finished (an independent reader
+    finds its summary). Before ros.common.ignore_further_interrupts a later SIGINT, raised as a
+    KeyboardInterrupt after main returned, made Python kill itself with SIGINT: the simulator exited with
+    -2 (seen once in the launch test under load, every time with this burst)."""
+    from mcap.reader import make_reader
+    out = tmp_path / 'burst.mcap'
+    for exe, args, ready in (('simulator', sim_args(bundled_names_knee, '-p', 'publish_markers:=false'),
+                              'simulator ready'),
+                             ('recorder', ('-o', out), 'recorder: writing')):
+        with isolated_domain() as dom, run_executable(exe, *args, env=dom.env) as node:
+            node.wait_for_output(ready, timeout=120)
+            time.sleep(0.5)
+            for _ in range(6):
+                node.popen.send_signal(signal.SIGINT)
+                time.sleep(0.01)
+            rc = node.popen.wait(30)
+        assert rc == 0, f'{exe}: exit {rc}\n{node.output}'
+        assert 'Traceback' not in node.output, node.output
+    with open(out, 'rb') as f:
+        assert make_reader(f).get_summary() is not None
+
+
 def test_activation_defaults_drive_the_hamstrings_of_the_model_the_simulator_runs(bundled_names_knee):
     """`activation --profile ramp` (no muscles given) and `activation` (no arguments) contract the
     hamstrings of the running model, whatever their names: the knee flexes, no message is rejected."""

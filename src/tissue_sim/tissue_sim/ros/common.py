@@ -168,10 +168,22 @@ def _is_rcl_error(e) -> bool:
     return isinstance(e, RCLError)
 
 
+def ignore_further_interrupts() -> None:
+    """A stop is under way: later SIGINTs are ignored. `ros2 launch` forwards a Ctrl-C to its processes
+    while the terminal's (or a killpg's) reaches them too, and a user presses it twice: rclpy chains each
+    SIGINT to Python's KeyboardInterrupt, which would cut ``on_shutdown`` short (a recorder's file left
+    unfinished) or, raised after main returns, make Python kill itself with SIGINT (exit code -2, which
+    launch reports as a crash). SIGTERM and SIGKILL still end a shutdown that hangs."""
+    import signal
+    import threading
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def spin(node, on_shutdown=None, run=None) -> int:
     """Run the node (``run()``, default rclpy.spin(node)) until SIGINT/SIGTERM (rclpy's handlers),
     shutdown or the node's own end (SystemExit); always run ``on_shutdown``, destroy the node and
-    shut rclpy down."""
+    shut rclpy down (further SIGINTs ignored from then on: :func:`ignore_further_interrupts`)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
     rc = 0
@@ -183,6 +195,7 @@ def spin(node, on_shutdown=None, run=None) -> int:
         if rclpy.ok() or not _is_rcl_error(e):
             raise
     finally:
+        ignore_further_interrupts()
         try:
             if on_shutdown is not None:
                 on_shutdown()
@@ -207,6 +220,7 @@ def main_wrapper(fn):
         try:
             return fn(*args, **kw) or 0
         except KeyboardInterrupt:
+            ignore_further_interrupts()
             print('stopped', file=sys.stderr)
             return 0
         except Exception as e:
