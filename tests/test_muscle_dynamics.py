@@ -96,33 +96,59 @@ def test_fast_step_matches_the_reference_step_with_muscle_dynamics():
 
 
 def test_passive_fibre_force_is_the_gradient_of_its_energy():
-    """The passive fibre force is conservative: its virtual work over a small knee rotation is minus the change of the
-    reported passive energy (so a passive run does not gain energy from it); it acts on bone-attached vertices only,
-    with zero net force."""
+    """The passive fibre force acts as joint torques tau = -F cos(a) dL_MT/dq along each muscle's path and is
+    conservative: its virtual work over a small knee rotation is minus the change of the reported passive energy (so a
+    passive run does not gain energy from it). On the knee phantom (paths L = length -+ arm q, no tendon, no pennation)
+    the torque is the analytic F_ham arm - F_quad arm."""
     sim = _knee(passive_force_length=True, rest_fibre_length=1.2)
-    ch_rest, inv_lopt, fmax, ch_off, ch_idx = MU.muscle_constants(sim)
     p = sim.params
     state = solver.make_state(sim)
+    fmax = MU.muscle_constants(sim)[0]
+    length, arm = 0.3, 0.04
 
     def at(deg):
         solver.set_joint_positions(sim, state, [math.radians(deg)])
-        f = np.zeros_like(state.x)
-        L, u, F = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3)), np.zeros(sim.n_muscles)
-        e = MU.passive_tension(state.x, f, ch_off, ch_idx, ch_rest, inv_lopt, fmax, MU.rest_fibre_lengths(sim),
-                               p.fl_passive_shape, p.fl_passive_strain, L, u, F)
+        tau, F, e = MU.passive_state(sim, state.q)
         assert e == pytest.approx(solver.observe(sim, state)['passive_energy'], rel=1e-12)
-        return state.x.copy(), f, e, F
+        return tau, F, e
 
     for deg in (5.0, 25.0, 45.0):
         d = 1e-3
-        x0, f, e, F = at(deg)
-        assert np.all(F > 0) and np.abs(f.sum(0)).max() < 1e-9 * F.max()
-        assert np.all(f[sim.inv_mass > 0] == 0)                           # only on bone-attached vertices
-        xp, _, ep, _ = at(deg + d)
-        xm, _, em, _ = at(deg - d)
-        work = float(np.sum(f * (xp - xm)))
-        assert work == pytest.approx(-(ep - em), rel=1e-5)
+        tau, F, e = at(deg)
+        q = math.radians(deg)
+        ln = np.array([1.2 - arm * q / length, 1.2 + arm * q / length])     # the override 1.2 at rest, then the paths
+        want = fmax * np.array([MU.passive_force_length(v, p.fl_passive_shape, p.fl_passive_strain) for v in ln])
+        assert np.allclose(F, want, rtol=1e-12) and np.all(F > 0)
+        assert tau[0] == pytest.approx((F[0] - F[1]) * arm, rel=1e-12)
+        _, _, ep = at(deg + d)
+        _, _, em = at(deg - d)
+        assert tau[0] * math.radians(2 * d) == pytest.approx(-(ep - em), rel=1e-5)
         assert abs(ep - em) > 1e-6 * e
+
+
+@pytest.mark.parametrize('curve', ['thelen', 'degroote'])
+def test_passive_torques_on_the_bundled_paths(default_tm, curve):
+    """Bundled limb, every source-model path: the compiled passive torques (knee and ankle: the gastrocnemii cross both)
+    equal the readable reference's (reference.passive_joint_torques) and are minus the gradient of the passive energy
+    in both joint coordinates (central differences, 1e-5); the curves' energies are their forces' integrals."""
+    from tissue_sim.core.solver import reference
+    sim = solver.compile_model(default_tm, solver.Params.physical(passive_force_length=True, fl_passive_curve=curve))
+    names = list(default_tm.joint_names)
+    k, a = names.index('knee_r'), names.index('ankle_r')
+    for knee, ankle in ((0.0, 0.0), (35.0, -20.0), (80.0, 10.0), (115.0, -40.0)):
+        q = np.array(sim.j_rest, float)
+        q[k], q[a] = math.radians(knee), math.radians(ankle)
+        tau, F, e = MU.passive_state(sim, q)
+        assert np.allclose(tau, reference.passive_joint_torques(sim, q), rtol=1e-10, atol=1e-9)
+        for j in (k, a):
+            d = np.zeros_like(q)
+            d[j] = 1e-6
+            ep, em = MU.passive_state(sim, q + d)[2], MU.passive_state(sim, q - d)[2]
+            assert tau[j] == pytest.approx(-(ep - em) / 2e-6, rel=1e-5, abs=1e-6), (knee, ankle, j)
+    for ln in (0.5, 1.1, 1.4, 1.7):
+        c = MU.PASSIVE_CURVES.index(curve)
+        dE = (MU.passive_energy_curve(ln + 1e-6, 4.0, 0.7, c) - MU.passive_energy_curve(ln - 1e-6, 4.0, 0.7, c)) / 2e-6
+        assert dE == pytest.approx(MU.passive_force_length_curve(ln, 4.0, 0.7, c), rel=1e-6, abs=1e-9)
 
 
 def test_observed_force_is_the_force_delivered_to_the_shank(default_tm):

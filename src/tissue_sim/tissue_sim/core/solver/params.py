@@ -77,9 +77,12 @@ class Params:
     fl_width: float = 0.45                # gamma, width of the active force-length curve (Thelen 2003 / OpenSim KshapeActive)
     fl_passive_shape: float = 5.0         # k_PE, shape of the passive curve (Thelen 2003 / OpenSim KshapePassive)
     fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
+    fl_passive_curve: str = 'thelen'      # passive curve: 'thelen' (Thelen 2003 eq. 3, 0 below l = 1) or 'degroote' (De Groote et
+                                          # al. 2016, the source model's DeGrooteFregly2016Muscle; k_PE 4, eps0 0.6/0.7 there)
     rest_fibre_length: float = 0.0        # > 0: override, the normalised fibre length l of every muscle in the model's rest pose;
                                           # 0 = each muscle's own (the tissue table's rest_fibre_length, from the source model;
-                                          # 1.0 without one). l = l_rest + (C - C_rest) / L_opt: rigid tendon (docs/solver.md)
+                                          # 1.0 without one). A muscle with a source-model path: its path's fibre length shifted
+                                          # to the override (rigid tendon, docs/solver.md "Force-length")
     volume_stiffness_fat: float = 0.0     # fat volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k, like volume_stiffness
                                           # for muscle (physical: 20, effective Poisson ratio 0.465: fat is nearly incompressible; keeps fat cells from
                                           # inverting; 0 = off: the paper's fat has no volume term; docs/contact.md)
@@ -155,6 +158,7 @@ class Params:
         need(0 < self.fl_width <= 10, 'fl_width must be in (0, 10]')
         need(0 < self.fl_passive_shape <= 50, 'fl_passive_shape must be in (0, 50]')
         need(0 < self.fl_passive_strain <= 5, 'fl_passive_strain must be in (0, 5]')
+        need(self.fl_passive_curve in ('thelen', 'degroote'), "fl_passive_curve must be 'thelen' or 'degroote'")
         need(self.rest_fibre_length == 0 or 0.2 <= self.rest_fibre_length <= 2,
              'rest_fibre_length must be 0 (each muscle\'s own) or in [0.2, 2]')
         need(self.volume_stiffness_fat >= 0, 'volume_stiffness_fat must be >= 0')
