@@ -70,8 +70,10 @@ def test_force_length_curves_are_thelen_2003():
         d = 1e-6
         dE = (MU.passive_energy_density(ln + d, k, e0) - MU.passive_energy_density(ln - d, k, e0)) / (2 * d)
         assert dE == pytest.approx(MU.passive_force_length(ln, k, e0), rel=1e-6)
-    p = solver.Params.physical()
-    assert (p.fl_width, p.fl_passive_shape, p.fl_passive_strain) == (gamma, k, e0)
+    assert (solver.Params().fl_width, solver.Params().fl_passive_shape, solver.Params().fl_passive_strain) == (gamma, k, e0)
+    p = solver.Params.physical()        # the passive strain calibrated against Riener & Edrich 1999 (docs/solver.md)
+    assert (p.fl_width, p.fl_passive_shape, p.fl_passive_strain, p.fl_passive_curve) == (gamma, k, 2.0, 'thelen')
+    assert p.passive_force_length and not solver.Params.paper().passive_force_length
 
 
 def test_fast_step_matches_the_reference_step_with_muscle_dynamics():
@@ -174,7 +176,10 @@ def test_observed_force_is_the_force_delivered_to_the_shank(default_tm):
         assert 0.4 < obs['muscle_forces'][m] / default_tm.muscle_max_force[m] < 1.3, name
     assert obs['activations'][ham].min() > 0.99
     others = np.setdiff1d(np.arange(sim.n_muscles), ham)
-    assert np.all(obs['muscle_forces'][others] == 0)                  # not excited, passive force-length off
+    assert np.all(obs['muscle_active_forces'][others] == 0)           # not excited: their force is the passive fibres'
+    assert np.array_equal(obs['muscle_forces'][others], obs['muscle_passive_forces'][others])
+    soleus = list(sim.tissue.muscle_names).index('soleus')            # stretched at ankle 0 on its source path (l 1.74)
+    assert obs['muscle_passive_forces'][soleus] > 0
 
 
 def test_the_paper_set_keeps_instant_activation_and_has_no_tension():

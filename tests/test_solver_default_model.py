@@ -113,11 +113,30 @@ def test_paper_parameters_flex_the_bundled_knee_only_a_little(default_sim, hamst
 @pytest.mark.slow
 @pytest.mark.parametrize('preset', ['paper', 'physical'])
 def test_default_model_stays_at_rest(default_tm, preset):
-    sim = solver.compile_model(default_tm, getattr(solver.Params, preset)())
+    """Without activation the bundled limb stays exactly at rest (the physical set without its passive fibre force:
+    the tissue's rest pose is its equilibrium)."""
+    params = solver.Params.paper() if preset == 'paper' else solver.Params.physical(passive_force_length=False)
+    sim = solver.compile_model(default_tm, params)
     st = solver.make_state(sim)
     for t, st in solver.simulate(sim, 5.0 if preset == 'paper' else 2.0, None, every=5000, state=st):
         pass
     assert np.abs(st.x - sim.rest).max() < 1e-9 and np.abs(st.q).max() < 1e-9
+
+
+@pytest.mark.slow
+def test_physical_limb_settles_at_its_passive_equilibrium(default_tm):
+    """Physical set, no activation: the passive fibre force (the shank muscles stretched at ankle 0 on the source
+    model's paths) plantarflexes the free ankle to where it balances the tissue (measured -34.0, -35.9, -36.0 deg at 1,
+    2, 3 s: the relaxed foot's plantarflexed rest; Riener & Edrich 1999's passive ankle moment crosses zero near 18 deg
+    of plantarflexion); the knee flexes a little, pulled by the stretched gastrocnemii (1.5, 2.0, 2.3 deg); the kinetic
+    energy falls to 1e-5 J."""
+    sim = solver.compile_model(default_tm, solver.Params.physical())
+    names = list(default_tm.joint_names)
+    for t, o in solver.simulate(sim, 2.0, None, every=4000, output='obs'):
+        pass
+    ankle, knee = np.degrees(o['joint_positions'][names.index('ankle_r')]), np.degrees(o['joint_positions'][names.index('knee_r')])
+    assert -40.0 < ankle < -30.0 and 0.0 <= knee < 3.5, (ankle, knee)
+    assert o['kinetic_energy'] < 1e-3 and o['passive_energy'] > 0
 
 
 def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim):

@@ -102,8 +102,8 @@ def _run_passive(args, con, out, V, progress):
     con.print(t)
     con.print('RMS vs Riener & Edrich: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_riener_edrich_Nm'].items())
               + ' N m; vs OpenSim: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_opensim_Nm'].items()) + ' N m')
-    con.print('ankle at knee 0, fibres only [N m] (+ dorsiflexing): ' + '; '.join(
-        f'{a:g}°: ' + ' / '.join(f'{d["ankle_fibres_Nm"][i]:.0f}' for d in res['variants'].values())
+    con.print('ankle at knee 0, fibres only [N m] (+ dorsiflexing), ours / ' + ' / '.join(res['variants']) + ': ' + '; '.join(
+        f'{a:g}°: {res["ankle"]["fibres_Nm"][i]:.1f} / ' + ' / '.join(f'{d["ankle_fibres_Nm"][i]:.0f}' for d in res['variants'].values())
         + f' (OpenSim {res["ankle"]["opensim_Nm"][i]:.0f}, R&E {res["ankle"]["riener_edrich_Nm"][i]:.1f})'
         for i, a in enumerate(res['ankle']['angles_deg'])))
     if res['diverged']:

@@ -725,6 +725,7 @@ def run_passive_validation(params: str = 'physical', angles_deg=None, settle: fl
            'total_Nm': list(total), 'fibres_Nm': list(own), 'tissue_Nm': list(tissue), 'variants': variants,
            'opensim': ref, 'riener_edrich_Nm': list(re), 'diverged': run['diverged'],
            'ankle': {'angles_deg': list(ANKLE_ANGLES), 'opensim_Nm': ank['ankle_Nm'],
+                     'fibres_Nm': list(fibres(None, [0.0] * len(ANKLE_ANGLES), ANKLE_ANGLES, ja)),
                      'riener_edrich_Nm': list(riener_edrich_ankle(np.asarray(ANKLE_ANGLES)))}}
     for key, v in [('ours', total)] + [(k, np.asarray(d['total_Nm'])) for k, d in variants.items()]:
         out.setdefault('rms_vs_riener_edrich_Nm', {})[key] = float(np.sqrt(np.mean((v - re) ** 2)))
@@ -764,6 +765,8 @@ def plot_passive(res: dict, path) -> None:
     ax.set_xlabel('knee flexion [deg]'); ax.set_ylabel('passive knee moment [N m] (+ flexing)')
     ax.legend(fontsize=7); ax.set_title('passive knee moment, hip 0, ankle 0')
     b = res['ankle']
+    bx.plot(b['angles_deg'], b['fibres_Nm'], 'o-', label=f'ours, fibres ({res["passive_curve"]["curve"]}, eps0 '
+            f'{res["passive_curve"]["eps0"]:g})')
     for n, d in res['variants'].items():
         bx.plot(b['angles_deg'], d['ankle_fibres_Nm'], '--', label=f'ours, fibres {n}')
     bx.plot(b['angles_deg'], b['opensim_Nm'], 's-', color='k', label='OpenSim, passive on')

@@ -73,7 +73,8 @@ class Params:
     force_length: bool = False            # active force-length of the fibres, exp(-(l - 1)^2 / fl_width), multiplying the active
                                           # tension (Thelen 2003; physical: on; needs specific_tension > 0)
     passive_force_length: bool = False    # passive fibre force Fmax (exp(k (l - 1) / eps0) - 1) / (exp(k) - 1) for l > 1 along each
-                                          # muscle (Thelen 2003; needs specific_tension > 0; off in both sets, docs/solver.md)
+                                          # muscle's source-model path, as joint torques (Thelen 2003; needs specific_tension > 0;
+                                          # physical: on with fl_passive_strain 2.0, a calibration; docs/solver.md)
     fl_width: float = 0.45                # gamma, width of the active force-length curve (Thelen 2003 / OpenSim KshapeActive)
     fl_passive_shape: float = 5.0         # k_PE, shape of the passive curve (Thelen 2003 / OpenSim KshapePassive)
     fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
@@ -117,7 +118,8 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0)
+                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0,
+                    passive_force_length=True, fl_passive_strain=2.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -133,6 +135,12 @@ class Params:
         # (`tissue-sim stiffness --levels 0,1 --settle 0.15 --free 0.3`); with their own values 75 N m/rad. The price:
         # the fully active hamstrings' isometric torque is further from OpenSim's (`tissue-sim validate --angles
         # 0,30,60,90,120 --settle 0.5`: RMS 29 -> 37 N m, peak 83 -> 63 N m; docs/solver.md "Force-length")
+        # passive_force_length on with eps0 2.0, a calibration (Thelen's 0.6 is the uncalibrated value): on the source
+        # model's wrapped paths the shank muscles sit at l = 1.42-1.85 with the ankle at 0, and with eps0 0.6 the
+        # passive fibres put -1,251 N m on the ankle there and 66 N m on the knee at 15 deg (OpenSim's own De Groote-Fregly
+        # curve: -501 and 56); Riener & Edrich 1999's passive knee moment (hip 0, ankle 0) is matched with eps0 1.5-2.0
+        # (whole model, `tissue-sim validate --passive`: RMS 4.6 N m against 5.7 with the fibres off and 47.8 with
+        # eps0 0.6), and their ankle fit best with 2.0 (docs/solver.md "Force-length")
         base.update(kw)
         return cls(**base).validate()
 
