@@ -143,8 +143,8 @@ def test_physical_limb_settles_at_its_passive_equilibrium(default_tm):
 def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim):
     """Hill force-velocity (physical set: v_max 10 rest lengths/s): under a step of full hamstring
     activation the knee flexes more slowly than without it (a shortening muscle pulls less) and reaches
-    the same end stop; the muscle velocity the factor uses follows the rate of the observed muscle
-    lengths; with it off none is computed."""
+    the same end stop (then held at 112.9 deg, both, by the quadriceps' passive fibres); the muscle velocity the
+    factor uses follows the rate of the observed muscle lengths; with it off none is computed."""
     off = solver.compile_model(default_tm, solver.Params.physical(max_contraction_velocity=0.0))
     j = _knee(physical_sim)
     ham = solver.muscle_indices(physical_sim, 'hamstrings')
@@ -159,19 +159,21 @@ def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim)
             q.append(o['joint_positions'][j]); L.append(o['muscle_lengths'][ham]); v.append(st.muscle_velocity[ham])
         res[name] = np.array(q), np.array(L), np.array(v)
     (q_on, L_on, v_on), (q_off, _, v_off) = res['on'], res['off']
-    k = 14                                       # t = 0.30 s, the knee swinging (measured 38.5 vs 43.5 deg with each muscle's
+    k = 14                                       # t = 0.30 s, the knee swinging (measured 38.0 vs 42.8 deg with each muscle's
     assert q_on[k] < q_off[k] - math.radians(3)  # source-model rest fibre length; 77 vs 94 with every fibre at its optimum)
     hi = physical_sim.j_range[j][1]
-    assert abs(q_on[-1] - hi) < math.radians(1.5) and abs(q_off[-1] - hi) < math.radians(1.5)
+    assert abs(q_on.max() - hi) < math.radians(1.5) and abs(q_off.max() - hi) < math.radians(1.5)
+    assert abs(q_on[-1] - q_off[-1]) < math.radians(1.0) and q_on[-1] > hi - math.radians(10)
     fd = (L_on[k + 1] - L_on[k - 1]) / 0.04      # [m/s] central difference of the observed lengths
-    assert np.all(v_on[k] < 0.0) and v_on[k].min() < -0.2      # shortening (the short head slowest)
+    assert np.all(v_on[k] < 0.0) and v_on[k].min() < -0.15     # shortening (measured -0.17..-0.20 m/s, the short head slowest)
     assert np.allclose(v_on[k], fd, rtol=0.2, atol=0.01), (v_on[k], fd)
     assert np.all(v_off == 0.0)
 
 
 def test_physical_without_force_velocity_is_stable(default_tm):
     """Params.physical(max_contraction_velocity=0): a step of full hamstring activation flexes the knee to
-    its stop and holds it for 1.2 s without divergence, the free foot within 15 deg of neutral (the old
+    its stop without divergence (then held at 113.0 deg by the quadriceps' passive fibres), the free foot between its
+    passive rest and neutral (measured -32.0..-2.9 deg: the passive fibres plantarflex it, test above; the old
     set: DivergenceError at step 140, semitendinosus cells near the knee deformed beyond the mass scaling's
     budget; with only that fixed, the foot whipped on to -22 deg when the knee hit its stop at ~0.4 s and
     the cells at the ankle blew up)."""
@@ -186,9 +188,10 @@ def test_physical_without_force_velocity_is_stable(default_tm):
         vmax = max(vmax, float(np.linalg.norm(st.v, axis=1).max()))
     q = np.array(q)
     lo, hi = sim.j_range[j]
-    assert abs(q[-1, j] - hi) < math.radians(1.5) and q[:, j].max() < hi + math.radians(2.0)
-    assert np.abs(q[:, a]).max() < math.radians(15), np.degrees(q[:, a])      # measured -6..+2 deg
-    assert vmax < 25.0, vmax                     # m/s (measured 14.4; max_speed 50)
+    assert abs(q[:, j].max() - hi) < math.radians(1.5) and q[:, j].max() < hi + math.radians(2.0)
+    assert q[-1, j] > hi - math.radians(10)
+    assert math.radians(-40) < q[:, a].min() and q[:, a].max() < math.radians(5), np.degrees(q[:, a])
+    assert vmax < 25.0, vmax                     # m/s (measured 5.4; max_speed 50)
 
 
 def _energy_run(sim, activation, duration):
