@@ -137,7 +137,7 @@ def test_per_muscle_forces_add_up_to_the_tissue_force(default_tm):
 def test_held_knee_does_not_move_its_bones(default_tm):
     """The hold: with the solver's joint lock the bones below the knee stay still (bone-attached vertices at
     rest, so the deformation damping puts no force on them) and the lock's torque is minus the static torque
-    of the cells the validation reports (per-muscle forces); putting the joint back after each step
+    of the cells the validation reports (per-muscle forces) and of the passive fibres (joint torques); putting the joint back after each step
     (set_joint_positions) is not a hold: the attached vertices carry the within-step motion."""
     from tissue_sim.core.solver.measures import joint_torques        # (virtual work: the patella's coupling too)
     from tissue_sim.core.solver.muscle import tension_activation
@@ -151,7 +151,9 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     assert state.q[j] == math.radians(10.0) and state.qd[j] == 0.0
     shank = sim.att_idx[sim.att_seg == sim.j_child[j]]     # (the foot below, on its free ankle, may still creep:
     assert float(np.abs(state.v[shank]).max()) < 1e-9       # the physical set's joint damping 5 N m s/rad)
-    assert abs(static_tau) > 5.0 and -state.joint_lock_torque[j] == pytest.approx(static_tau, rel=0.01)
+    from tissue_sim.core.solver.muscle import passive_state        # + the passive fibres' joint torque (physical set)
+    fibres = float(passive_state(sim, state.q)[0][j])
+    assert abs(static_tau) > 5.0 and -state.joint_lock_torque[j] == pytest.approx(static_tau + fibres, rel=0.01)
     # the old way: step freely, then put the joint back
     plain, ctrl2 = solver.make_state(sim), solver.make_control(sim)
     ctrl2.activation[:] = ctrl.activation
