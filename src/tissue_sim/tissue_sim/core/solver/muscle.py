@@ -1,6 +1,7 @@
 """Hill-type muscle properties of the physical set beyond force-velocity (docs/solver.md "Activation dynamics",
-"Force-length"): excitation -> activation dynamics, the fibres' active and passive force-length curves, the passive
-fibre tension on the cells, and each muscle's force [N] (observe()'s muscle_forces).
+"Force-length"): excitation -> activation dynamics, the fibres' active and passive force-length curves, the fibre
+lengths of the source model's muscle paths, the passive fibre force as joint torques, and each muscle's force [N]
+(observe()'s muscle_forces).
 
 Sources (the numbers are Params fields):
 * activation dynamics: Thelen 2003 eq. 1 (after Winters 1995), as OpenSim's Thelen2003Muscle computes it:
@@ -8,18 +9,17 @@ Sources (the numbers are Params fields):
   tau_act 15 ms, tau_deact 50 ms (Thelen 2003; OpenSim Thelen2003Muscle's activation_time_constant 0.015,
   deactivation_time_constant 0.050).
 * active force-length: Thelen 2003 eq. 2, f_L = exp(-(l - 1)^2 / gamma), gamma = 0.45 (KshapeActive).
-* passive force-length: Thelen 2003 eq. 3, f_PE = (exp(k_PE (l - 1) / eps0) - 1) / (exp(k_PE) - 1) for l > 1, 0 below
-  (the clamp OpenSim's Thelen2003Muscle::calcfpe applies), k_PE = 5 (KshapePassive), eps0 = 0.6 (FmaxMuscleStrain:
-  the fibre strain at which the passive force reaches Fmax).
-l is the normalised fibre length (observe()'s fibre_lengths): l = l_rest + (C - C_rest) / L_opt, C the muscle's
-attachment chord (chord_lengths: the distance between the centroids of its vertices bound to its proximal and to its
-distal bone, a function of the joint angles only), C_rest its rest value, L_opt the anatomy's optimal fibre length,
-l_rest its normalised fibre length in the model's rest pose (rest_fibre_lengths: the tissue table's rest_fibre_length,
-from the source model; Params.rest_fibre_length > 0 overrides it for every muscle): a rigid tendon (as the source model's DeGrooteFregly2016 muscles,
-ignore_tendon_compliance), so the fibres take the whole change of the origin-insertion distance. Not the muscle length the
-solver measures along its cells (muscle_lengths): held isometric at the knee, the active hamstrings' cell chains
-straighten and shorten by 23-56 mm (semimembranosus: l 0.53 at 0 deg), which is the tissue's deformation, not the
-fibres' operating point.
+* passive force-length (fl_passive_curve): Thelen 2003 eq. 3, f_PE = (exp(k_PE (l - 1) / eps0) - 1) / (exp(k_PE) - 1)
+  for l > 1, 0 below (the clamp OpenSim's Thelen2003Muscle::calcfpe applies), k_PE = 5 (KshapePassive), eps0 = 0.6
+  (FmaxMuscleStrain: the fibre strain at which the passive force reaches Fmax; the physical set: 2.0, a calibration,
+  docs/solver.md); or De Groote et al. 2016 (the source model's DeGrooteFregly2016Muscle).
+l is the normalised fibre length (observe()'s fibre_lengths), per muscle part the rigid-tendon fibre length of its
+source-model path, sqrt((L_MT - L_TS)^2 + (L_opt sin a_opt)^2) / L_opt, L_MT(q) the tissue model's path polynomial of
+the joint coordinates (muscle_paths.yaml, fitted by tools/anatomy/paths.py to OpenSim's wrapped paths), a muscle's the
+Fmax-weighted mean of its parts' (a muscle without a path: its rest_fibre_lengths). The passive force acts as joint
+torques -F cos(a) dL_MT/dq (conservative: minus the gradient of its energy). Not the muscle length the solver
+measures along its cells (muscle_lengths): held isometric at the knee, the active hamstrings' cell chains straighten
+and shorten by 23-56 mm, which is the tissue's deformation, not the fibres' operating point.
 """
 from __future__ import annotations
 
