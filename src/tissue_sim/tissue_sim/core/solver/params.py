@@ -127,14 +127,15 @@ class Params:
         # hamstring contraction without force-velocity diverged at step 140). joint_damping 5 N m s/rad, not 1:
         # when the knee reaches its stop the light free foot whipped on (ankle -4 -> -22 deg in 20 ms, the soleus
         # and ankle fat cells at V/V0 0.56..5, omega h 2.04 at 1.4: divergence at step ~440 with or without
-        # force-velocity); at 5 the ankle stays within -6..+2 deg. (tests/test_solver_default_model.py::
+        # force-velocity); at 5 the ankle stays within -6..+2 deg (-32..-3 with the passive fibre force, which
+        # plantarflexes the relaxed foot). (tests/test_solver_default_model.py::
         # test_physical_without_force_velocity_is_stable)
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
-        # falls as the knee flexes, and full co-contraction at 30 deg gave 0.8 N m/rad, below the passive knee's 2.6
-        # (`tissue-sim stiffness --levels 0,1 --settle 0.15 --free 0.3`); with their own values 75 N m/rad. The price:
-        # the fully active hamstrings' isometric torque is further from OpenSim's (`tissue-sim validate --angles
-        # 0,30,60,90,120 --settle 0.5`: RMS 29 -> 37 N m, peak 83 -> 63 N m; docs/solver.md "Force-length")
+        # falls as the knee flexes, and full co-contraction at 30 deg gives 18.4 N m/rad against the passive knee's 8.8
+        # (`tissue-sim stiffness --levels 0,1 --settle 0.15 --free 0.3`); with their own values 76.4 against 3.2. The price:
+        # the fully active hamstrings' isometric torque is further below OpenSim's (`tissue-sim validate`: RMS 37.1 N m
+        # at 0/30/60/90/120 deg, peak 62.7 N m at 20 deg; docs/solver.md "Force-length")
         # passive_force_length on with eps0 2.0, a calibration (Thelen's 0.6 is the uncalibrated value): on the source
         # model's wrapped paths the shank muscles sit at l = 1.42-1.85 with the ankle at 0, and with eps0 0.6 the
         # passive fibres put -1,251 N m on the ankle there and 66 N m on the knee at 15 deg (OpenSim's own De Groote-Fregly
