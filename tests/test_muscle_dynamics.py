@@ -239,3 +239,27 @@ def test_a_recorded_run_tabulates_each_muscles_force_and_excitation(tmp_path):
     assert float(last['excitation']) == 1.0 and float(rows[0]['activation']) == 0.0
     assert float(last['activation']) == pytest.approx(obs['activations'][0], rel=1e-6) and 0.9 < obs['activations'][0] < 1
     assert float(last['force_n']) == pytest.approx(obs['muscle_forces'][0], rel=1e-5) and obs['muscle_forces'][0] > 50
+
+
+def test_muscle_paths_file_is_checked_and_mapped_onto_the_joints():
+    """The muscle paths (docs/FORMATS.md): parts map onto the model's joints (one monomial table for all parts, the
+    Fmax shares of a merged muscle summing to 1, the fibre height L_opt sin a); bad entries are one UserError naming
+    the muscle."""
+    from tissue_sim.core.builder.table import load_muscle_paths, path_arrays
+    from tissue_sim.errors import UserError
+    part = dict(max_isometric_force=300.0, optimal_fibre_length=0.1, tendon_slack_length=0.2,
+                pennation_at_optimal_rad=0.3, joints=['ankle_r'], powers=[[0], [1]], coefficients_m=[0.3, -0.04])
+    two = dict(part, max_isometric_force=100.0, joints=['knee_r', 'ankle_r'], powers=[[0, 0], [1, 1]],
+               coefficients_m=[0.31, 0.01])
+    paths = load_muscle_paths({'muscles': {'soleus': [part, two]}}, ['knee_r', 'ankle_r'], {'soleus', 'tib'}, 'x')
+    pm, pdata, powers, coef = path_arrays(paths, ['tib', 'soleus'], 2)
+    assert pm.tolist() == [1, 1] and np.allclose(pdata[:, 0], [0.75, 0.25])
+    assert np.allclose(pdata[0, 1:], [0.1, 0.2, 0.1 * math.sin(0.3)])
+    assert powers.tolist() == [[0, 0], [0, 1], [1, 1]]
+    assert np.allclose(coef, [[0.3, -0.04, 0.0], [0.31, 0.0, 0.01]])
+    for bad, msg in ((dict(part, joints=['hip_r']), 'needs joints'), (dict(part, powers=[[0]]), 'one row'),
+                     (dict(part, optimal_fibre_length=-1.0), 'lengths > 0')):
+        with pytest.raises(UserError, match=msg):
+            load_muscle_paths({'muscles': {'soleus': [bad]}}, ['knee_r', 'ankle_r'], {'soleus'}, 'x')
+    with pytest.raises(UserError, match="'calf' is not a muscle"):
+        load_muscle_paths({'muscles': {'calf': [part]}}, ['knee_r', 'ankle_r'], {'soleus'}, 'x')
