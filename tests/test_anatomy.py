@@ -337,6 +337,13 @@ def test_regenerates(tmp_path, data):
     diff = (new != data['lab']).mean()
     assert diff <= 0.005, f'{diff:.4%} of voxels differ (documented tolerance 0.5 %)'
     assert yaml.safe_load((tmp_path / 'joints.yaml').read_text()) == data['joints']
+    paths = {n: yaml.safe_load(p.read_text())['muscles'] for n, p in (('new', tmp_path / 'muscle_paths.yaml'),
+                                                                      ('old', ROOT / 'src' / 'tissue_sim' / 'tissue_sim' /
+                                                                       'data' / 'lower_limb' / 'muscle_paths.yaml'))}
+    assert paths['new'].keys() == paths['old'].keys()
+    for name, parts in paths['old'].items():
+        for a, b in zip(parts, paths['new'][name]):
+            assert a['powers'] == b['powers'] and np.allclose(a['coefficients_m'], b['coefficients_m'], rtol=1e-6, atol=1e-9)
     t_new = yaml.safe_load((tmp_path / 'tissues.yaml').read_text())['labels']
     assert {k: v['name'] for k, v in t_new.items()} == {k: v['name'] for k, v in data['labels'].items()}
     # segments of the bones and of the muscles' ends (the patella's own segment: tools/anatomy/patella.py)

@@ -90,8 +90,9 @@ def _joint(sim, name):
 
 @pytest.mark.slow
 def test_knee_flexion(physical_sim):
-    """Hamstrings ramped to 1 over 1 s: the knee flexes to its 120-deg stop (measured 120.0 deg from
-    1.1 s; hamstrings 9.5 %, any muscle 9.8 %: the passive triceps surae bent round the knee)."""
+    """Hamstrings ramped to 1 over 1 s: the knee flexes to its 120-deg stop (measured 120.0 deg at 1.3 s, 113.5 at
+    the end: the stretched quadriceps' passive fibre force pulls it back a little; hamstrings 3.7 %, any muscle 9.8 %:
+    the passive triceps surae bent round the knee)."""
     run = _run(physical_sim, 'knee_flexion')
     k = run[0][:, _joint(physical_sim, 'knee_r')]
     assert k[-1] >= 110.0, k[-1]
@@ -100,8 +101,8 @@ def test_knee_flexion(physical_sim):
 
 @pytest.mark.slow
 def test_knee_extension(physical_sim):
-    """Hamstrings flex the knee (measured 69.7 deg at 1.0 s), then the quadriceps extend it to its
-    0-deg stop (measured 0.0 deg from 1.4 s): >= 40 deg of flexion, then >= 35 deg of extension,
+    """Hamstrings flex the knee (measured 67.1 deg at 1.0 s), then the quadriceps extend it to its
+    0-deg stop (measured 0.0 deg at the end): >= 40 deg of flexion, then >= 35 deg of extension,
     ending within 10 deg of straight."""
     run = _run(physical_sim, 'knee_extension')
     k = run[0][:, _joint(physical_sim, 'knee_r')]
@@ -113,8 +114,8 @@ def test_knee_extension(physical_sim):
 
 @pytest.mark.slow
 def test_kick(physical_sim):
-    """Wind-up flexion (measured 87.6 deg), then a fast extension back to straight (measured 1.9 deg
-    at 1.6 s, the 0-deg stop reached within ~0.3 s of the quadriceps' onset)."""
+    """Wind-up flexion (measured 78.3 deg at 0.8 s), then a fast extension back to straight (measured 0.0 deg
+    at the end)."""
     run = _run(physical_sim, 'kick')
     k = run[0][:, _joint(physical_sim, 'knee_r')]
     peak = int(np.argmax(k))
@@ -125,27 +126,28 @@ def test_kick(physical_sim):
 
 @pytest.mark.slow
 def test_heel_raise(physical_sim):
-    """Triceps surae ramped to 0.5: the ankle plantarflexes (measured -42.3 deg at 1.5 s; the knee
-    flexes 7.5 deg, the gastrocnemii crossing it)."""
+    """Triceps surae ramped to 0.5: the ankle plantarflexes (measured -40.7 deg at 1.5 s, beyond the relaxed foot's
+    passive equilibrium, -36 deg (test_solver_default_model.py); the knee flexes 9.5 deg, the gastrocnemii crossing it)."""
     run = _run(physical_sim, 'heel_raise')
     a = run[0][:, _joint(physical_sim, 'ankle_r')]
-    assert a[-1] <= -25.0 and a.max() < 1.0, (a[-1], a.max())
+    assert a[-1] <= -35.0 and a.max() < 1.0, (a[-1], a.max())
     _check(physical_sim, 'heel_raise', run, ANKLE_BOUND)
 
 
 @pytest.mark.slow
 def test_ankle_pump(physical_sim):
-    """Tibialis anterior, then the triceps surae, twice: the ankle dorsiflexes (measured +20.0 deg,
-    the stop) then plantarflexes (measured -23.5 deg with each muscle's source-model rest fibre length: the
-    gastrocnemii start far on the descending limb; -38.3 with every fibre at its optimum), and dorsiflexes
-    again in the second cycle."""
+    """Tibialis anterior, then the triceps surae, twice. With the passive fibre force (physical set) the relaxed foot
+    hangs plantarflexed (-36 deg at rest) and the tibialis anterior at 0.5 is weak (~150 N, ~6 N m: the source model has it at
+    l = 1.42 at ankle 0, 1.6 plantarflexed, far on the descending limb): it holds the foot at -15 deg in the first
+    cycle (measured), the triceps plantarflex it to -39.2 deg, the second tibialis phase dorsiflexes it by 13.8 deg
+    (to -25.4), the triceps again to -39.9. (Without the passive fibre force: +20.0 deg, the stop, then -23.5.)"""
     run = _run(physical_sim, 'ankle_pump')
     a = run[0][:, _joint(physical_sim, 'ankle_r')]
     F = len(a)
     first, second = a[: F // 2], a[F // 2:]
-    assert first.max() >= 12.0 and first.min() <= -18.0, (first.max(), first.min())
-    assert int(np.argmax(first)) < int(np.argmin(first))          # dorsiflexion first
-    assert second.max() >= 5.0 and second.min() <= -18.0, (second.max(), second.min())
+    assert first.min() <= -30.0 and second.min() <= -30.0, (first.min(), second.min())
+    assert second.max() - first.min() >= 10.0, (second.max(), first.min())     # the second dorsiflexion
+    assert int(np.argmax(second)) < int(np.argmin(second))                      # dorsiflexion first
     _check(physical_sim, 'ankle_pump', run, ANKLE_BOUND)
 
 

@@ -70,8 +70,10 @@ def test_force_length_curves_are_thelen_2003():
         d = 1e-6
         dE = (MU.passive_energy_density(ln + d, k, e0) - MU.passive_energy_density(ln - d, k, e0)) / (2 * d)
         assert dE == pytest.approx(MU.passive_force_length(ln, k, e0), rel=1e-6)
-    p = solver.Params.physical()
-    assert (p.fl_width, p.fl_passive_shape, p.fl_passive_strain) == (gamma, k, e0)
+    assert (solver.Params().fl_width, solver.Params().fl_passive_shape, solver.Params().fl_passive_strain) == (gamma, k, e0)
+    p = solver.Params.physical()        # the passive strain calibrated against Riener & Edrich 1999 (docs/solver.md)
+    assert (p.fl_width, p.fl_passive_shape, p.fl_passive_strain, p.fl_passive_curve) == (gamma, k, 2.0, 'thelen')
+    assert p.passive_force_length and not solver.Params.paper().passive_force_length
 
 
 def test_fast_step_matches_the_reference_step_with_muscle_dynamics():
@@ -96,33 +98,59 @@ def test_fast_step_matches_the_reference_step_with_muscle_dynamics():
 
 
 def test_passive_fibre_force_is_the_gradient_of_its_energy():
-    """The passive fibre force is conservative: its virtual work over a small knee rotation is minus the change of the
-    reported passive energy (so a passive run does not gain energy from it); it acts on bone-attached vertices only,
-    with zero net force."""
+    """The passive fibre force acts as joint torques tau = -F cos(a) dL_MT/dq along each muscle's path and is
+    conservative: its virtual work over a small knee rotation is minus the change of the reported passive energy (so a
+    passive run does not gain energy from it). On the knee phantom (paths L = length -+ arm q, no tendon, no pennation)
+    the torque is the analytic F_ham arm - F_quad arm."""
     sim = _knee(passive_force_length=True, rest_fibre_length=1.2)
-    ch_rest, inv_lopt, fmax, ch_off, ch_idx = MU.muscle_constants(sim)
     p = sim.params
     state = solver.make_state(sim)
+    fmax = MU.muscle_constants(sim)[0]
+    length, arm = 0.3, 0.04
 
     def at(deg):
         solver.set_joint_positions(sim, state, [math.radians(deg)])
-        f = np.zeros_like(state.x)
-        L, u, F = np.zeros(sim.n_muscles), np.zeros((sim.n_muscles, 3)), np.zeros(sim.n_muscles)
-        e = MU.passive_tension(state.x, f, ch_off, ch_idx, ch_rest, inv_lopt, fmax, MU.rest_fibre_lengths(sim),
-                               p.fl_passive_shape, p.fl_passive_strain, L, u, F)
+        tau, F, e = MU.passive_state(sim, state.q)
         assert e == pytest.approx(solver.observe(sim, state)['passive_energy'], rel=1e-12)
-        return state.x.copy(), f, e, F
+        return tau, F, e
 
     for deg in (5.0, 25.0, 45.0):
         d = 1e-3
-        x0, f, e, F = at(deg)
-        assert np.all(F > 0) and np.abs(f.sum(0)).max() < 1e-9 * F.max()
-        assert np.all(f[sim.inv_mass > 0] == 0)                           # only on bone-attached vertices
-        xp, _, ep, _ = at(deg + d)
-        xm, _, em, _ = at(deg - d)
-        work = float(np.sum(f * (xp - xm)))
-        assert work == pytest.approx(-(ep - em), rel=1e-5)
+        tau, F, e = at(deg)
+        q = math.radians(deg)
+        ln = np.array([1.2 - arm * q / length, 1.2 + arm * q / length])     # the override 1.2 at rest, then the paths
+        want = fmax * np.array([MU.passive_force_length(v, p.fl_passive_shape, p.fl_passive_strain) for v in ln])
+        assert np.allclose(F, want, rtol=1e-12) and np.all(F > 0)
+        assert tau[0] == pytest.approx((F[0] - F[1]) * arm, rel=1e-12)
+        _, _, ep = at(deg + d)
+        _, _, em = at(deg - d)
+        assert tau[0] * math.radians(2 * d) == pytest.approx(-(ep - em), rel=1e-5)
         assert abs(ep - em) > 1e-6 * e
+
+
+@pytest.mark.parametrize('curve', ['thelen', 'degroote'])
+def test_passive_torques_on_the_bundled_paths(default_tm, curve):
+    """Bundled limb, every source-model path: the compiled passive torques (knee and ankle: the gastrocnemii cross both)
+    equal the readable reference's (reference.passive_joint_torques) and are minus the gradient of the passive energy
+    in both joint coordinates (central differences, 1e-5); the curves' energies are their forces' integrals."""
+    from tissue_sim.core.solver import reference
+    sim = solver.compile_model(default_tm, solver.Params.physical(passive_force_length=True, fl_passive_curve=curve))
+    names = list(default_tm.joint_names)
+    k, a = names.index('knee_r'), names.index('ankle_r')
+    for knee, ankle in ((0.0, 0.0), (35.0, -20.0), (80.0, 10.0), (115.0, -40.0)):
+        q = np.array(sim.j_rest, float)
+        q[k], q[a] = math.radians(knee), math.radians(ankle)
+        tau, F, e = MU.passive_state(sim, q)
+        assert np.allclose(tau, reference.passive_joint_torques(sim, q), rtol=1e-10, atol=1e-9)
+        for j in (k, a):
+            d = np.zeros_like(q)
+            d[j] = 1e-6
+            ep, em = MU.passive_state(sim, q + d)[2], MU.passive_state(sim, q - d)[2]
+            assert tau[j] == pytest.approx(-(ep - em) / 2e-6, rel=1e-5, abs=1e-6), (knee, ankle, j)
+    for ln in (0.5, 1.1, 1.4, 1.7):
+        c = MU.PASSIVE_CURVES.index(curve)
+        dE = (MU.passive_energy_curve(ln + 1e-6, 4.0, 0.7, c) - MU.passive_energy_curve(ln - 1e-6, 4.0, 0.7, c)) / 2e-6
+        assert dE == pytest.approx(MU.passive_force_length_curve(ln, 4.0, 0.7, c), rel=1e-6, abs=1e-9)
 
 
 def test_observed_force_is_the_force_delivered_to_the_shank(default_tm):
@@ -148,7 +176,10 @@ def test_observed_force_is_the_force_delivered_to_the_shank(default_tm):
         assert 0.4 < obs['muscle_forces'][m] / default_tm.muscle_max_force[m] < 1.3, name
     assert obs['activations'][ham].min() > 0.99
     others = np.setdiff1d(np.arange(sim.n_muscles), ham)
-    assert np.all(obs['muscle_forces'][others] == 0)                  # not excited, passive force-length off
+    assert np.all(obs['muscle_active_forces'][others] == 0)           # not excited: their force is the passive fibres'
+    assert np.array_equal(obs['muscle_forces'][others], obs['muscle_passive_forces'][others])
+    soleus = list(sim.tissue.muscle_names).index('soleus')            # stretched at ankle 0 on its source path (l 1.74)
+    assert obs['muscle_passive_forces'][soleus] > 0
 
 
 def test_the_paper_set_keeps_instant_activation_and_has_no_tension():
@@ -208,3 +239,27 @@ def test_a_recorded_run_tabulates_each_muscles_force_and_excitation(tmp_path):
     assert float(last['excitation']) == 1.0 and float(rows[0]['activation']) == 0.0
     assert float(last['activation']) == pytest.approx(obs['activations'][0], rel=1e-6) and 0.9 < obs['activations'][0] < 1
     assert float(last['force_n']) == pytest.approx(obs['muscle_forces'][0], rel=1e-5) and obs['muscle_forces'][0] > 50
+
+
+def test_muscle_paths_file_is_checked_and_mapped_onto_the_joints():
+    """The muscle paths (docs/FORMATS.md): parts map onto the model's joints (one monomial table for all parts, the
+    Fmax shares of a merged muscle summing to 1, the fibre height L_opt sin a); bad entries are one UserError naming
+    the muscle."""
+    from tissue_sim.core.builder.table import load_muscle_paths, path_arrays
+    from tissue_sim.errors import UserError
+    part = dict(max_isometric_force=300.0, optimal_fibre_length=0.1, tendon_slack_length=0.2,
+                pennation_at_optimal_rad=0.3, joints=['ankle_r'], powers=[[0], [1]], coefficients_m=[0.3, -0.04])
+    two = dict(part, max_isometric_force=100.0, joints=['knee_r', 'ankle_r'], powers=[[0, 0], [1, 1]],
+               coefficients_m=[0.31, 0.01])
+    paths = load_muscle_paths({'muscles': {'soleus': [part, two]}}, ['knee_r', 'ankle_r'], {'soleus', 'tib'}, 'x')
+    pm, pdata, powers, coef = path_arrays(paths, ['tib', 'soleus'], 2)
+    assert pm.tolist() == [1, 1] and np.allclose(pdata[:, 0], [0.75, 0.25])
+    assert np.allclose(pdata[0, 1:], [0.1, 0.2, 0.1 * math.sin(0.3)])
+    assert powers.tolist() == [[0, 0], [0, 1], [1, 1]]
+    assert np.allclose(coef, [[0.3, -0.04, 0.0], [0.31, 0.0, 0.01]])
+    for bad, msg in ((dict(part, joints=['hip_r']), 'needs joints'), (dict(part, powers=[[0]]), 'one row'),
+                     (dict(part, optimal_fibre_length=-1.0), 'lengths > 0')):
+        with pytest.raises(UserError, match=msg):
+            load_muscle_paths({'muscles': {'soleus': [bad]}}, ['knee_r', 'ankle_r'], {'soleus'}, 'x')
+    with pytest.raises(UserError, match="'calf' is not a muscle"):
+        load_muscle_paths({'muscles': {'calf': [part]}}, ['knee_r', 'ankle_r'], {'soleus'}, 'x')

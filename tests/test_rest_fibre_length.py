@@ -75,7 +75,10 @@ def test_bundled_table_and_model_carry_the_rest_fibre_lengths(default_tm):
     assert default_tm.muscle_rest_fibre_length[default_tm.muscle_index('semimembranosus')] < 0.8
     sim = solver.compile_model(default_tm, solver.Params.physical(rest_fibre_length=0.0))     # each muscle's own
     assert np.array_equal(MU.rest_fibre_lengths(sim), default_tm.muscle_rest_fibre_length)
-    assert np.allclose(solver.observe(sim, solver.make_state(sim))['fibre_lengths'], default_tm.muscle_rest_fibre_length)
+    # the observed fibre length comes from the muscle paths (muscle_paths.yaml, the same source-model paths fitted by
+    # polynomials): at rest it is the table's to the fit error and the table's rounding (measured max 0.0045)
+    assert np.allclose(solver.observe(sim, solver.make_state(sim))['fibre_lengths'], default_tm.muscle_rest_fibre_length,
+                       rtol=0, atol=6e-3)
     assert solver.Params().rest_fibre_length == 0.0
     assert solver.Params.physical().rest_fibre_length == 0.0                # the physical set: each muscle's own
     over = solver.compile_model(default_tm, solver.Params.physical(rest_fibre_length=1.0))     # an override

@@ -76,7 +76,7 @@ def test_default_model_anchors_the_hamstrings(default_tm):
 @pytest.mark.slow
 def test_physical_hamstring_contraction_flexes_knee_to_limit(physical_sim, physical_hamstring_run):
     """The issue's criterion, physical parameter set: >= 60 deg, reaches the 120-deg limit, the end
-    stop holds, no divergence. Volumes: within 14 % here (measured 13.3 % at worst: semitendinosus at
+    stop holds, no divergence; the stretched quadriceps' passive fibre force then holds it a little below the stop. Volumes: within 14 % here (measured 13.3 % at worst: semitendinosus at
     the onset, t = 0.2 s, its thin tendon cells near the knee strongly deformed (docs/builder.md,
     connected muscles; 10.2 % before the bone contact and the free ankle, 13.6 % after them, 13.3 % with
     the physical set's stability_limit 1.4 / joint_damping 5); 7.0 % at the end; the 2 % of the issue
@@ -84,8 +84,9 @@ def test_physical_hamstring_contraction_flexes_knee_to_limit(physical_sim, physi
     j, q, vol = physical_hamstring_run
     lo, hi = physical_sim.j_range[j]
     assert q.max() - q[0] >= math.radians(60)
-    assert q[-1] >= hi - math.radians(2)                 # reached the range limit ...
+    assert q.max() >= hi - math.radians(2)               # reached the range limit ...
     assert q.max() <= hi + math.radians(1)               # ... and the end stop holds
+    assert q[-1] >= hi - math.radians(10)                # (measured 114.1 deg at 3 s: the quadriceps' passive fibres)
     assert np.abs(vol - 1).max() < 0.14
 
 
@@ -113,18 +114,37 @@ def test_paper_parameters_flex_the_bundled_knee_only_a_little(default_sim, hamst
 @pytest.mark.slow
 @pytest.mark.parametrize('preset', ['paper', 'physical'])
 def test_default_model_stays_at_rest(default_tm, preset):
-    sim = solver.compile_model(default_tm, getattr(solver.Params, preset)())
+    """Without activation the bundled limb stays exactly at rest (the physical set without its passive fibre force:
+    the tissue's rest pose is its equilibrium)."""
+    params = solver.Params.paper() if preset == 'paper' else solver.Params.physical(passive_force_length=False)
+    sim = solver.compile_model(default_tm, params)
     st = solver.make_state(sim)
     for t, st in solver.simulate(sim, 5.0 if preset == 'paper' else 2.0, None, every=5000, state=st):
         pass
     assert np.abs(st.x - sim.rest).max() < 1e-9 and np.abs(st.q).max() < 1e-9
 
 
+@pytest.mark.slow
+def test_physical_limb_settles_at_its_passive_equilibrium(default_tm):
+    """Physical set, no activation: the passive fibre force (the shank muscles stretched at ankle 0 on the source
+    model's paths) plantarflexes the free ankle to where it balances the tissue (measured -34.0, -35.9, -36.0 deg at 1,
+    2, 3 s: the relaxed foot's plantarflexed rest; Riener & Edrich 1999's passive ankle moment crosses zero near 18 deg
+    of plantarflexion); the knee flexes a little, pulled by the stretched gastrocnemii (1.5, 2.0, 2.3 deg); the kinetic
+    energy falls to 1e-5 J."""
+    sim = solver.compile_model(default_tm, solver.Params.physical())
+    names = list(default_tm.joint_names)
+    for t, o in solver.simulate(sim, 2.0, None, every=4000, output='obs'):
+        pass
+    ankle, knee = np.degrees(o['joint_positions'][names.index('ankle_r')]), np.degrees(o['joint_positions'][names.index('knee_r')])
+    assert -40.0 < ankle < -30.0 and 0.0 <= knee < 3.5, (ankle, knee)
+    assert o['kinetic_energy'] < 1e-3 and o['passive_energy'] > 0
+
+
 def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim):
     """Hill force-velocity (physical set: v_max 10 rest lengths/s): under a step of full hamstring
     activation the knee flexes more slowly than without it (a shortening muscle pulls less) and reaches
-    the same end stop; the muscle velocity the factor uses follows the rate of the observed muscle
-    lengths; with it off none is computed."""
+    the same end stop (then held at 112.9 deg, both, by the quadriceps' passive fibres); the muscle velocity the
+    factor uses follows the rate of the observed muscle lengths; with it off none is computed."""
     off = solver.compile_model(default_tm, solver.Params.physical(max_contraction_velocity=0.0))
     j = _knee(physical_sim)
     ham = solver.muscle_indices(physical_sim, 'hamstrings')
@@ -139,19 +159,21 @@ def test_force_velocity_slows_a_concentric_contraction(default_tm, physical_sim)
             q.append(o['joint_positions'][j]); L.append(o['muscle_lengths'][ham]); v.append(st.muscle_velocity[ham])
         res[name] = np.array(q), np.array(L), np.array(v)
     (q_on, L_on, v_on), (q_off, _, v_off) = res['on'], res['off']
-    k = 14                                       # t = 0.30 s, the knee swinging (measured 38.5 vs 43.5 deg with each muscle's
+    k = 14                                       # t = 0.30 s, the knee swinging (measured 38.0 vs 42.8 deg with each muscle's
     assert q_on[k] < q_off[k] - math.radians(3)  # source-model rest fibre length; 77 vs 94 with every fibre at its optimum)
     hi = physical_sim.j_range[j][1]
-    assert abs(q_on[-1] - hi) < math.radians(1.5) and abs(q_off[-1] - hi) < math.radians(1.5)
+    assert abs(q_on.max() - hi) < math.radians(1.5) and abs(q_off.max() - hi) < math.radians(1.5)
+    assert abs(q_on[-1] - q_off[-1]) < math.radians(1.0) and q_on[-1] > hi - math.radians(10)
     fd = (L_on[k + 1] - L_on[k - 1]) / 0.04      # [m/s] central difference of the observed lengths
-    assert np.all(v_on[k] < 0.0) and v_on[k].min() < -0.2      # shortening (the short head slowest)
+    assert np.all(v_on[k] < 0.0) and v_on[k].min() < -0.15     # shortening (measured -0.17..-0.20 m/s, the short head slowest)
     assert np.allclose(v_on[k], fd, rtol=0.2, atol=0.01), (v_on[k], fd)
     assert np.all(v_off == 0.0)
 
 
 def test_physical_without_force_velocity_is_stable(default_tm):
     """Params.physical(max_contraction_velocity=0): a step of full hamstring activation flexes the knee to
-    its stop and holds it for 1.2 s without divergence, the free foot within 15 deg of neutral (the old
+    its stop without divergence (then held at 113.0 deg by the quadriceps' passive fibres), the free foot between its
+    passive rest and neutral (measured -32.0..-2.9 deg: the passive fibres plantarflex it, test above; the old
     set: DivergenceError at step 140, semitendinosus cells near the knee deformed beyond the mass scaling's
     budget; with only that fixed, the foot whipped on to -22 deg when the knee hit its stop at ~0.4 s and
     the cells at the ankle blew up)."""
@@ -166,9 +188,10 @@ def test_physical_without_force_velocity_is_stable(default_tm):
         vmax = max(vmax, float(np.linalg.norm(st.v, axis=1).max()))
     q = np.array(q)
     lo, hi = sim.j_range[j]
-    assert abs(q[-1, j] - hi) < math.radians(1.5) and q[:, j].max() < hi + math.radians(2.0)
-    assert np.abs(q[:, a]).max() < math.radians(15), np.degrees(q[:, a])      # measured -6..+2 deg
-    assert vmax < 25.0, vmax                     # m/s (measured 14.4; max_speed 50)
+    assert abs(q[:, j].max() - hi) < math.radians(1.5) and q[:, j].max() < hi + math.radians(2.0)
+    assert q[-1, j] > hi - math.radians(10)
+    assert math.radians(-40) < q[:, a].min() and q[:, a].max() < math.radians(5), np.degrees(q[:, a])
+    assert vmax < 25.0, vmax                     # m/s (measured 5.4; max_speed 50)
 
 
 def _energy_run(sim, activation, duration):

@@ -91,7 +91,7 @@ def test_one_pass_per_step_follows_the_sub_stepped_explicit_motion(stiffness):
 def test_stable_at_one_ms_with_one_sub_step_where_the_explicit_schemes_diverge(default_tm):
     """The physical set at its own step (1 ms), one sub-step: mass_scaled and explicit diverge (they need 4 and
     ~40 sub-steps; mass_scaled at one sub-step when the knee reaches its stop, measured at step 887); implicit flexes
-    the knee to its 120-deg stop and holds it there. (Every fibre at its optimum at rest, rest_fibre_length 1.0, for
+    the knee towards its 120-deg stop. (Every fibre at its optimum at rest, rest_fibre_length 1.0, for
     all three: the stronger drive; with the source-model operating points mass_scaled at one sub-step survives this run.)"""
     for integrator in ('mass_scaled', 'explicit'):
         sim = solver.compile_model(default_tm, solver.Params.physical(integrator=integrator, substeps=1, rest_fibre_length=1.0))
@@ -99,13 +99,15 @@ def test_stable_at_one_ms_with_one_sub_step_where_the_explicit_schemes_diverge(d
             _run(sim, 1500)
     sim = solver.compile_model(default_tm, _implicit(rest_fibre_length=1.0))
     st = _run(sim, 1500)
-    assert np.degrees(st.q[0]) == pytest.approx(120.0, abs=1.0)
+    # (measured 111.1 deg at 1.5 s: the quadriceps stretched past their optimum resist with their passive fibre force,
+    # the physical set's; 120.0, the stop, without it)
+    assert 105.0 <= np.degrees(st.q[0]) <= 121.0, np.degrees(st.q[0])
     assert np.all(np.isfinite(st.x)) and np.abs(st.v).max() < 5.0
 
 
 def test_a_passive_run_does_not_gain_energy(default_tm):
     """No activation, the free tissue released from a random deformation (0.5 mm per vertex): the total energy
-    (tissue kinetic + elastic + skeleton) never rises, in every 10-step window (implicit Euler only takes energy out;
+    (tissue kinetic + elastic + skeleton + the passive fibres') never rises, in every 10-step window (implicit Euler only takes energy out;
     bone contact off: its projection is a separate stage)."""
     sim = solver.compile_model(default_tm, _implicit(bone_contact=False))
     st = solver.make_state(sim)
@@ -115,7 +117,8 @@ def test_a_passive_run_does_not_gain_energy(default_tm):
     energies = []
     for _ in range(50):
         solver.step(sim, st, ctrl, n_steps=10)
-        energies.append(solver.kinetic_energy(sim, st) + float(st.cell_energy.sum()) + solver.skeleton_energy(sim, st))
+        energies.append(solver.kinetic_energy(sim, st) + float(st.cell_energy.sum()) + solver.skeleton_energy(sim, st)
+                        + solver.observe(sim, st)['passive_energy'])
     e = np.array(energies)
     assert e[0] > 0
     assert np.all(np.diff(e) <= 1e-9 * e[0])

@@ -24,6 +24,10 @@ def add_arguments(p):
                    help='speed at which the held knee moves from one angle to the next [deg/s] (default %(default)s)')
     p.add_argument('--osim', metavar='FILE.osim', help='source OpenSim model (default: pose2sim 0.10.49\'s '
                    'Model_Pose2Sim_muscles_flex.osim)')
+    p.add_argument('--passive', action='store_true',
+                   help='instead: the passive knee moment (tissue + passive fibre force, no activation) held at each angle '
+                        '(default 0:120:15, settle 0.5 s) against the source model with passive fibre force on and '
+                        'Riener & Edrich 1999; writes passive_<params>.json and .png')
     p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
     p.add_argument('--quiet', action='store_true', help='print only the targets')
 
@@ -49,6 +53,8 @@ def run(args) -> int:
             con.print(f'  holding the knee: {kind} ...')
             last[0] = kind
 
+    if args.passive:
+        return _run_passive(args, con, out, V, progress)
     try:
         res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, progress=progress)
     except V.ValidationError as e:
@@ -65,6 +71,45 @@ def run(args) -> int:
     con.print(f'wrote {jpath} and {ppath} ({res["wall_s"]} s)')
     failed = [k for k, v in res['targets'].items() if v['pass'] is False]
     return 1 if (args.strict and failed) else 0
+
+
+def _run_passive(args, con, out, V, progress):
+    angles = None if args.angles == '0:120:10' else V.parse_angles(args.angles)
+    settle = 0.5 if args.settle == 1.0 else args.settle
+    t0 = time.perf_counter()
+    try:
+        res = V.run_passive_validation(args.params, angles, settle, args.ramp_speed, osim_path=args.osim,
+                                       progress=progress)
+    except V.ValidationError as e:
+        raise UserError(str(e)) from None
+    res['wall_s'] = round(time.perf_counter() - t0, 1)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        jpath, ppath = out / f'passive_{args.params}.json', out / f'passive_{args.params}.png'
+        jpath.write_text(json.dumps(V.jsonable(res), indent=1))
+        V.plot_passive(res, ppath)
+    except OSError as e:
+        raise UserError(f'{out}: cannot write ({e})') from None
+    from rich.table import Table
+    pc = res['passive_curve']
+    t = Table(title=f'passive knee moment [N m] (+ flexing), hip 0, ankle 0, params {res["params"]} (passive fibres '
+                    + (f'on: {pc["curve"]}, k {pc["k"]:g}, eps0 {pc["eps0"]:g})' if res['passive_force_length'] else 'off)'))
+    header, rows = V.passive_rows(res)
+    for c in header:
+        t.add_column(c, justify='right')
+    for r in rows:
+        t.add_row(*r)
+    con.print(t)
+    con.print('RMS vs Riener & Edrich: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_riener_edrich_Nm'].items())
+              + ' N m; vs OpenSim: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_opensim_Nm'].items()) + ' N m')
+    con.print('ankle at knee 0, fibres only [N m] (+ dorsiflexing), ours / ' + ' / '.join(res['variants']) + ': ' + '; '.join(
+        f'{a:g}°: {res["ankle"]["fibres_Nm"][i]:.1f} / ' + ' / '.join(f'{d["ankle_fibres_Nm"][i]:.0f}' for d in res['variants'].values())
+        + f' (OpenSim {res["ankle"]["opensim_Nm"][i]:.0f}, R&E {res["ankle"]["riener_edrich_Nm"][i]:.1f})'
+        for i, a in enumerate(res['ankle']['angles_deg'])))
+    if res['diverged']:
+        con.print(f'[red]the sweep diverged: {res["diverged"]}[/]')
+    con.print(f'wrote {jpath} and {ppath} ({res["wall_s"]} s)')
+    return 0
 
 
 def _print(con, res, quiet):

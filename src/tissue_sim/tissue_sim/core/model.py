@@ -215,13 +215,25 @@ class TissueModel(TissueTopology):
 
     muscle_rest_fibre_length: np.ndarray = None   # (M,) float64 normalised fibre length in the rest pose (tissue table's
                                                   # rest_fibre_length); None / absent from a file: 1.0 each
+    # muscle paths (the tissue table's muscle_paths file; docs/solver.md "Force-length"); None / absent: none (P = 0).
+    # Per OpenSim muscle part p: the musculotendon length L_MT = sum_t path_coef[p, t] prod_j q_j^path_powers[t, j]
+    # [m] of the joint coordinates q [rad]
+    path_muscle: np.ndarray = None      # (P,) int32 the muscle of each part
+    path_data: np.ndarray = None        # (P, 4) float64 Fmax share (of its muscle's), L_opt [m], tendon slack [m],
+                                        # fibre height L_opt sin(pennation at L_opt) [m]
+    path_powers: np.ndarray = None      # (T, J) int32 exponents of each monomial
+    path_coef: np.ndarray = None        # (P, T) float64 [m] coefficients
 
     def __post_init__(self):
         J = len(self.joint_names)
         for name, default in (('joint_driver', lambda: np.full(J, -1, np.int32)),
                               ('coupling_offsets', lambda: np.zeros(J + 1, np.int64)),
                               ('coupling_table', lambda: np.zeros((0, 5))),
-                              ('muscle_rest_fibre_length', lambda: np.ones(len(self.muscle_names)))):
+                              ('muscle_rest_fibre_length', lambda: np.ones(len(self.muscle_names))),
+                              ('path_muscle', lambda: np.zeros(0, np.int32)), ('path_data', lambda: np.zeros((0, 4))),
+                              ('path_powers', lambda: np.zeros((0, J), np.int32)),
+                              ('path_coef', lambda: np.zeros((len(self.path_muscle) if self.path_muscle is not None
+                                                              else 0, 0)))):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, default())
         super().__post_init__()
@@ -279,6 +291,12 @@ class TissueModel(TissueTopology):
         need(len(set(self.muscle_names)) == M, 'muscle names must be unique')
         need(np.shape(self.muscle_rest_fibre_length) == (M,) and np.all(np.isfinite(self.muscle_rest_fibre_length))
              and np.all(np.asarray(self.muscle_rest_fibre_length) > 0), 'muscle_rest_fibre_length must be (M,) and > 0')
+        P, T = len(self.path_muscle), len(self.path_powers)
+        need(self.path_data.shape == (P, 4) and self.path_powers.shape == (T, J) and self.path_coef.shape == (P, T)
+             and np.all((self.path_muscle >= 0) & (self.path_muscle < M)) and np.all(self.path_powers >= 0)
+             and np.all(np.isfinite(self.path_data)) and np.all(np.isfinite(self.path_coef))
+             and np.all(self.path_data[:, :2] > 0), 'muscle path arrays inconsistent (path_muscle (P,), path_data (P, 4) '
+             'with Fmax share and L_opt > 0, path_powers (T, J), path_coef (P, T))')
         need(self.bone_segment.shape == (B,) and self.bone_vertex_offsets.shape == (B + 1,)
              and self.bone_triangle_offsets.shape == (B + 1,), 'bone arrays inconsistent')
         need(self.segment_parent.shape == (S,) and self.segment_mass.shape == (S,) and self.segment_com.shape == (S, 3)
@@ -395,9 +413,10 @@ class TissueModel(TissueTopology):
                         'cell_slice', 'skin_quads', 'skin_quad_cell', 'surface_triangles', 'surface_group',
                         'bone_segment', 'bone_vertex_offsets', 'bone_triangle_offsets', 'bone_triangles',
                         'segment_parent', 'joint_type', 'joint_parent', 'joint_child', 'joint_driver',
-                        'coupling_offsets'}
+                        'coupling_offsets', 'path_muscle', 'path_powers'}
         optional = {'joint_driver', 'coupling_offsets', 'coupling_table',      # a model without coupled joints
-                    'muscle_rest_fibre_length'}                             # a file written before the field: 1.0
+                    'muscle_rest_fibre_length',                             # a file written before the field: 1.0
+                    'path_muscle', 'path_data', 'path_powers', 'path_coef'}  # no muscle paths
         kw = {}
         for f in dataclasses.fields(cls):
             if f.name in ('name', 'meta'):

@@ -589,3 +589,191 @@ def plot(res: dict, path) -> None:
     plt.close(fig)
     from PIL import Image           # (matplotlib's own dependency) a 256-colour PNG: a quarter of the size
     Image.open(buf).convert('RGB').quantize(256).save(path, format='png', optimize=True)
+
+
+# ------------------------------------------------------------------------------------- passive knee moment
+ANKLE_JOINT, OSIM_ANKLE = 'ankle_r', 'ankle_angle_r'
+PASSIVE_ANGLES = tuple(float(a) for a in range(0, 121, 15))
+ANKLE_ANGLES = (-40.0, -30.0, -20.0, -10.0, 0.0, 10.0, 20.0)
+
+
+def riener_edrich_knee(knee_deg, ankle_deg=0.0, hip_deg=0.0):
+    """Passive knee moment [N m] (positive flexing; knee flexion, ankle dorsiflexion, hip flexion positive [deg]) of
+    Riener & Edrich 1999 (J Biomech 32:539-544), their double-exponential fit to ten subjects:
+    M = exp(1.800 - 0.0460 A - 0.0352 K + 0.0217 H) - exp(-3.971 - 0.0004 A + 0.0495 K - 0.0128 H) - 4.820
+    + exp(2.220 - 0.150 K). The last term (the extension limit) with 0.150 per degree, not the 1.50 one secondary
+    source prints: 1.50 would make it vanish within 2 deg of full extension (a step, not an elastic limit); both give
+    10.4 N m at 0 deg."""
+    k, a, h = np.asarray(knee_deg, float), float(ankle_deg), float(hip_deg)
+    return (np.exp(1.800 - 0.0460 * a - 0.0352 * k + 0.0217 * h) - np.exp(-3.971 - 0.0004 * a + 0.0495 * k - 0.0128 * h)
+            - 4.820 + np.exp(2.220 - 0.150 * k))
+
+
+def riener_edrich_ankle(ankle_deg, knee_deg=0.0):
+    """Passive ankle moment [N m] of Riener & Edrich 1999 in this project's convention (ankle dorsiflexion positive,
+    moment positive dorsiflexing), from their ankle fit M = exp(2.1016 - 0.0843 A - 0.0176 K) - exp(-7.9763 + 0.1949 A
+    + 0.0008 K) - 1.792 in their angle A, read as plantarflexion-positive with the moment plantarflexing-positive:
+    their knee formula's ankle term (exp(... - 0.0460 A ...), the gastrocnemii's flexing moment) falls as A grows, so
+    A grows as the gastrocnemii slacken, i.e. with plantarflexion. The coefficients are quoted as this project has
+    them, not re-checked against the paper's text in this version (docs/solver.md "Force-length"): a secondary
+    comparison; the physical set's choice rests on the knee."""
+    a, k = -np.asarray(ankle_deg, float), float(knee_deg)
+    return -(np.exp(2.1016 - 0.0843 * a - 0.0176 * k) - np.exp(-7.9763 + 0.1949 * a + 0.0008 * k) - 1.792)
+
+
+def opensim_passive_moments(osim_path, knee_deg, ankle_deg) -> dict:
+    """The source model with every right-leg muscle's passive fibre force switched on (DeGrooteFregly2016Muscle
+    ignore_passive_fiber_force false; its own curve and strains: 0.7 or 0.6 at Fmax), zero activation, fibres
+    equilibrated, every other coordinate 0: per pose (knee_deg[i], ankle_deg[i]) the knee and ankle moments [N m]
+    sum over the muscles of tendon force x computeMomentArm (positive: flexing the knee, dorsiflexing the ankle)."""
+    with _environment_kept():
+        try:
+            osim = _import_opensim()
+        except ImportError:
+            raise ValidationError('the OpenSim reference needs the opensim package (pip install --no-deps -r '
+                                  'requirements/validation.txt)') from None
+        osim.Logger.setLevelString('warn')
+        model = osim.Model(str(osim_path))
+        mus = model.getMuscles()
+        right = [i for i in range(mus.getSize()) if mus.get(i).getName().endswith(OSIM_SIDE)]
+        for i in right:
+            osim.DeGrooteFregly2016Muscle.safeDownCast(mus.get(i)).set_ignore_passive_fiber_force(False)
+        state = model.initSystem()
+        cs = model.getCoordinateSet()
+        for c in cs:
+            if not c.get_locked():
+                c.setValue(state, 0.0, False)
+        knee, ankle = cs.get(OSIM_COORDINATE), cs.get(OSIM_ANKLE)
+        out = {'version': osim.__version__, 'knee_Nm': [], 'ankle_Nm': []}
+        for kd, ad in zip(knee_deg, ankle_deg):
+            knee.setValue(state, math.radians(kd), False)
+            ankle.setValue(state, math.radians(ad), False)
+            model.assemble(state)
+            for i in range(mus.getSize()):
+                mus.get(i).setActivation(state, 0.0)
+            model.equilibrateMuscles(state)
+            model.realizeDynamics(state)
+            tk = ta = 0.0
+            for i in right:
+                mu = mus.get(i)
+                F = mu.getTendonForce(state)
+                if F != 0.0:
+                    tk += F * mu.computeMomentArm(state, knee)
+                    ta += F * mu.computeMomentArm(state, ankle)
+            out['knee_Nm'].append(float(tk))
+            out['ankle_Nm'].append(float(ta))
+    return out
+
+
+PASSIVE_VARIANTS = {'thelen (k 5, eps0 0.6)': dict(fl_passive_curve='thelen', fl_passive_shape=5.0, fl_passive_strain=0.6),
+                    'degroote (k 4, eps0 0.7)': dict(fl_passive_curve='degroote', fl_passive_shape=4.0,
+                                                     fl_passive_strain=0.7)}
+
+
+def run_passive_validation(params: str = 'physical', angles_deg=None, settle: float = 0.5, ramp_speed: float = 200.0,
+                           osim_path=None, model=None, progress=None) -> dict:
+    """The passive knee moment of the whole model (tissue + passive fibre force; no activation, knee held by the joint
+    lock at each angle, ankle at 0, hip 0 as the bundled limb has it) against the source model with its passive
+    fibre force on (opensim_passive_moments) and against Riener & Edrich 1999 (riener_edrich_knee). Measured: the
+    total moment = minus the lock's torque (hold_sweep); the passive fibres' part = muscle.passive_state at the angle
+    (it depends on the joint angles only), the tissue's part = the rest. The other passive curves
+    (PASSIVE_VARIANTS) are reported as tissue + their fibre moment. Also the ankle at knee 0: the fibres' moment
+    against OpenSim's (the tissue's ankle moment is not measured here)."""
+    from tissue_sim.core import solver
+    from tissue_sim.core.builder import default_model
+    from tissue_sim.core.solver.muscle import passive_state
+    if params not in ('physical', 'paper'):
+        raise ValidationError(f'--params {params!r}: expected physical or paper')
+    if not (settle > 0 and math.isfinite(settle)):
+        raise ValidationError(f'--settle {settle}: must be a positive number of seconds')
+    angles = list(angles_deg) if angles_deg is not None else list(PASSIVE_ANGLES)
+    osim_path = Path(osim_path) if osim_path else source_model_path()
+    if not osim_path.is_file():
+        raise ValidationError(f'source model not found: {osim_path}')
+    tm = model if model is not None else default_model()
+    base = getattr(solver.Params, params)()
+    sim = solver.compile_model(tm, base)
+    j, ja = list(tm.joint_names).index(KNEE_JOINT), list(tm.joint_names).index(ANKLE_JOINT)
+    run = hold_sweep(sim, [], angles, [], settle, ramp_speed, progress=(lambda d: progress('passive', d)) if progress else None)
+    total = np.asarray(run['torque'], float)
+
+    def fibres(p, knee, ankle, joint):
+        s = sim if p is None else solver.compile_model(tm, dataclasses.replace(base, **p))
+        out = []
+        for kd, ad in zip(knee, ankle):
+            q = np.array(s.j_rest, float)
+            q[j], q[ja] = math.radians(kd), math.radians(ad)
+            out.append(float(passive_state(s, q)[0][joint]) if s.params.passive_force_length
+                       and s.params.specific_tension > 0 else 0.0)
+        return np.array(out)
+
+    own = fibres(None, angles, [0.0] * len(angles), j)
+    tissue = total - own
+    variants = {}
+    on = dict(passive_force_length=True)
+    for name, kw in PASSIVE_VARIANTS.items():
+        variants[name] = {'fibres_Nm': list(fibres({**on, **kw}, angles, [0.0] * len(angles), j)),
+                          'ankle_fibres_Nm': list(fibres({**on, **kw}, [0.0] * len(ANKLE_ANGLES), ANKLE_ANGLES, ja))}
+        variants[name]['total_Nm'] = list(tissue + np.asarray(variants[name]['fibres_Nm']))
+    ref = opensim_passive_moments(osim_path, angles, [0.0] * len(angles))
+    ank = opensim_passive_moments(osim_path, [0.0] * len(ANKLE_ANGLES), ANKLE_ANGLES)
+    re = riener_edrich_knee(np.asarray(angles))
+    out = {'params': params, 'angles_deg': angles, 'settle_s': settle, 'model': tm.name,
+           'passive_force_length': bool(sim.params.passive_force_length),
+           'passive_curve': dict(curve=sim.params.fl_passive_curve, k=sim.params.fl_passive_shape,
+                                 eps0=sim.params.fl_passive_strain),
+           'total_Nm': list(total), 'fibres_Nm': list(own), 'tissue_Nm': list(tissue), 'variants': variants,
+           'opensim': ref, 'riener_edrich_Nm': list(re), 'diverged': run['diverged'],
+           'ankle': {'angles_deg': list(ANKLE_ANGLES), 'opensim_Nm': ank['ankle_Nm'],
+                     'fibres_Nm': list(fibres(None, [0.0] * len(ANKLE_ANGLES), ANKLE_ANGLES, ja)),
+                     'riener_edrich_Nm': list(riener_edrich_ankle(np.asarray(ANKLE_ANGLES)))}}
+    for key, v in [('ours', total)] + [(k, np.asarray(d['total_Nm'])) for k, d in variants.items()]:
+        out.setdefault('rms_vs_riener_edrich_Nm', {})[key] = float(np.sqrt(np.mean((v - re) ** 2)))
+        out.setdefault('rms_vs_opensim_Nm', {})[key] = float(np.sqrt(np.mean((v - np.asarray(ref['knee_Nm'])) ** 2)))
+    return out
+
+
+def passive_rows(res: dict) -> tuple:
+    """(header, rows) of the printed passive-moment table."""
+    names = list(res['variants'])
+    header = ['knee °', 'ours total', 'tissue', 'fibres'] + [f'total {n.split()[0]}' for n in names] + \
+             ['OpenSim (passive on)', 'Riener & Edrich']
+    rows = []
+    for i, a in enumerate(res['angles_deg']):
+        rows.append([f'{a:g}', f'{res["total_Nm"][i]:.1f}', f'{res["tissue_Nm"][i]:.1f}', f'{res["fibres_Nm"][i]:.1f}']
+                    + [f'{res["variants"][n]["total_Nm"][i]:.1f}' for n in names]
+                    + [f'{res["opensim"]["knee_Nm"][i]:.1f}', f'{res["riener_edrich_Nm"][i]:.1f}'])
+    return header, rows
+
+
+def plot_passive(res: dict, path) -> None:
+    """The passive knee moment against the angle: ours (total, tissue, each curve's total), OpenSim, Riener & Edrich;
+    and the ankle fibres' moment at knee 0 against OpenSim's."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    a = res['angles_deg']
+    ax.plot(a, res['total_Nm'], 'o-', label=f'ours, total ({res["passive_curve"]["curve"]}'
+            + ('' if res['passive_force_length'] else ', fibres off') + ')')
+    ax.plot(a, res['tissue_Nm'], 'x:', label='ours, tissue only')
+    for n, d in res['variants'].items():
+        ax.plot(a, d['total_Nm'], '--', label=f'ours, tissue + fibres {n}')
+    ax.plot(a, res['opensim']['knee_Nm'], 's-', color='k', label='OpenSim source model, passive on (DeGroote-Fregly)')
+    ax.plot(a, res['riener_edrich_Nm'], 'd-', color='tab:red', label='Riener & Edrich 1999')
+    ax.axhline(0, color='0.7', lw=0.5)
+    ax.set_xlabel('knee flexion [deg]'); ax.set_ylabel('passive knee moment [N m] (+ flexing)')
+    ax.legend(fontsize=7); ax.set_title('passive knee moment, hip 0, ankle 0')
+    b = res['ankle']
+    bx.plot(b['angles_deg'], b['fibres_Nm'], 'o-', label=f'ours, fibres ({res["passive_curve"]["curve"]}, eps0 '
+            f'{res["passive_curve"]["eps0"]:g})')
+    for n, d in res['variants'].items():
+        bx.plot(b['angles_deg'], d['ankle_fibres_Nm'], '--', label=f'ours, fibres {n}')
+    bx.plot(b['angles_deg'], b['opensim_Nm'], 's-', color='k', label='OpenSim, passive on')
+    bx.plot(b['angles_deg'], b['riener_edrich_Nm'], 'd-', color='tab:red', label='Riener & Edrich 1999 (ankle fit)')
+    bx.set_ylim(-150.0, 100.0)                      # (the uncalibrated curves leave it: thousands of N m)
+    bx.set_xlabel('ankle dorsiflexion [deg]'); bx.set_ylabel('passive ankle moment [N m] (+ dorsiflexing)')
+    bx.legend(fontsize=7); bx.set_title('passive fibres at the ankle, knee 0')
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

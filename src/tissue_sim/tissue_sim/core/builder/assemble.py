@@ -20,6 +20,7 @@ from tissue_sim.core import model as M
 from tissue_sim.core import geometry
 from . import contours as CT
 from . import slices as S
+from . import table as TB
 from .io import LabelVolume, voxel_to_model
 from .rays import polygon_area
 from .sharing import share_groups
@@ -750,6 +751,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         muscle_names=tuple(muscle_names), muscle_groups=tuple(muscle_groups),
         muscle_max_force=np.array(mforce, np.float64), muscle_fibre_length=np.array(mfibre, np.float64),
         muscle_rest_fibre_length=np.array(mrest, np.float64),
+        **dict(zip(('path_muscle', 'path_data', 'path_powers', 'path_coef'),
+                   TB.path_arrays(table.get('muscle_paths', {}), muscle_names, len(skel['joint_names'])))),
         bone_names=bnames, bone_segment=bseg, bone_vertex_offsets=bvo, bone_vertices=bverts,
         bone_triangle_offsets=bto, bone_triangles=btris,
         segment_names=skel['segment_names'], segment_parent=skel['segment_parent'],

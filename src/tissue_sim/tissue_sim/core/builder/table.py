@@ -161,7 +161,74 @@ def load_tissue_table(src) -> dict:
                 raise UserError(f'{where}: label {lab} ({e["name"]}): {end} segment {e[end]!r} is not in the joints file '
                                 f'(has {", ".join(skel["segment_names"])})')
     tname = _text(data, 'name', where) or 'model'
-    return {'name': tname, 'base': base, 'source': where, 'labels': labels, 'skeleton': skel}
+    mp = data.get('muscle_paths')
+    if mp is not None and not isinstance(mp, dict):
+        if base is None:
+            raise UserError(f'{where}: "muscle_paths" must be an inline mapping when the table is a dict')
+        mp = _read_yaml(base / str(mp), 'muscle paths')
+    paths = load_muscle_paths(mp, skel['joint_names'], {e['name'] for e in labels.values() if e['tissue'] == 'muscle'},
+                              f'{where} muscle_paths') if mp is not None else {}
+    return {'name': tname, 'base': base, 'source': where, 'labels': labels, 'skeleton': skel, 'muscle_paths': paths}
+
+
+def load_muscle_paths(data, joint_names, muscles, where) -> dict:
+    """{muscle: [part dicts]} of a muscle paths file (tools/anatomy/paths.py writes the bundled one; docs/FORMATS.md):
+    per muscle a list of parts, each with max_isometric_force [N], optimal_fibre_length [m], tendon_slack_length [m],
+    pennation_at_optimal_rad, joints (names of the joints file), powers (one row of exponents per monomial, one per
+    joint) and coefficients_m (one per row): L_MT = sum_t c_t prod_j q_j^e_tj."""
+    if not isinstance(data, dict) or not isinstance(data.get('muscles'), dict):
+        raise UserError(f'{where}: needs a "muscles" mapping')
+    out = {}
+    for name, parts in data['muscles'].items():
+        w = f'{where}: muscle {name!r}'
+        if name not in muscles:
+            raise UserError(f'{w} is not a muscle of the table')
+        if not isinstance(parts, list) or not parts:
+            raise UserError(f'{w}: needs a list of parts')
+        res = []
+        for i, e in enumerate(parts):
+            wp = f'{w} part {i}'
+            try:
+                js = [joint_names.index(j) for j in e['joints']]
+                pw = [[int(k) for k in row] for row in e['powers']]
+                c = [float(v) for v in e['coefficients_m']]
+                num = [float(e[k]) for k in ('max_isometric_force', 'optimal_fibre_length', 'tendon_slack_length',
+                                             'pennation_at_optimal_rad')]
+            except (KeyError, TypeError, ValueError) as err:
+                raise UserError(f'{wp}: needs joints (of the joints file), powers, coefficients_m, max_isometric_force, '
+                                f'optimal_fibre_length, tendon_slack_length, pennation_at_optimal_rad ({err!r})') from None
+            if len(pw) != len(c) or any(len(r) != len(js) or min(r, default=0) < 0 for r in pw):
+                raise UserError(f'{wp}: powers must be one row of {len(js)} exponents >= 0 per coefficient')
+            if not all(math.isfinite(v) for v in c + num) or num[0] <= 0 or num[1] <= 0 or not 0 <= num[3] < math.pi / 2:
+                raise UserError(f'{wp}: numbers must be finite, forces and lengths > 0, the pennation in [0, pi/2)')
+            res.append({'joints': js, 'powers': pw, 'coef': c, 'fmax': num[0], 'lopt': num[1], 'lts': num[2],
+                        'pennation': num[3]})
+        out[name] = res
+    return out
+
+
+def path_arrays(paths: dict, muscle_names, n_joints: int):
+    """(path_muscle (P,), path_data (P, 4), path_powers (T, J), path_coef (P, T)) of the TissueModel from
+    load_muscle_paths' dict (the muscles of the model only; T: every monomial of any part)."""
+    rows, parts = {}, []
+    for m, name in enumerate(muscle_names):
+        ps = paths.get(name, [])
+        total = sum(p['fmax'] for p in ps)
+        for p in ps:
+            terms = {}
+            for e, c in zip(p['powers'], p['coef']):
+                full = [0] * n_joints
+                for j, k in zip(p['joints'], e):
+                    full[j] = k
+                t = rows.setdefault(tuple(full), len(rows))
+                terms[t] = terms.get(t, 0.0) + c
+            parts.append((m, [p['fmax'] / total, p['lopt'], p['lts'], p['lopt'] * math.sin(p['pennation'])], terms))
+    coef = np.zeros((len(parts), len(rows)))
+    for i, (_, _, terms) in enumerate(parts):
+        for t, c in terms.items():
+            coef[i, t] = c
+    return (np.array([p[0] for p in parts], np.int32), np.array([p[1] for p in parts], np.float64).reshape(-1, 4),
+            np.array(list(rows), np.int32).reshape(-1, n_joints), coef)
 
 
 def _coupling(j: dict, w: str):

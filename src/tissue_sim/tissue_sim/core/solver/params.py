@@ -73,13 +73,17 @@ class Params:
     force_length: bool = False            # active force-length of the fibres, exp(-(l - 1)^2 / fl_width), multiplying the active
                                           # tension (Thelen 2003; physical: on; needs specific_tension > 0)
     passive_force_length: bool = False    # passive fibre force Fmax (exp(k (l - 1) / eps0) - 1) / (exp(k) - 1) for l > 1 along each
-                                          # muscle (Thelen 2003; needs specific_tension > 0; off in both sets, docs/solver.md)
+                                          # muscle's source-model path, as joint torques (Thelen 2003; needs specific_tension > 0;
+                                          # physical: on with fl_passive_strain 2.0, a calibration; docs/solver.md)
     fl_width: float = 0.45                # gamma, width of the active force-length curve (Thelen 2003 / OpenSim KshapeActive)
     fl_passive_shape: float = 5.0         # k_PE, shape of the passive curve (Thelen 2003 / OpenSim KshapePassive)
     fl_passive_strain: float = 0.6        # eps0, fibre strain at which the passive force reaches Fmax (Thelen 2003, young adults)
+    fl_passive_curve: str = 'thelen'      # passive curve: 'thelen' (Thelen 2003 eq. 3, 0 below l = 1) or 'degroote' (De Groote et
+                                          # al. 2016, the source model's DeGrooteFregly2016Muscle; k_PE 4, eps0 0.6/0.7 there)
     rest_fibre_length: float = 0.0        # > 0: override, the normalised fibre length l of every muscle in the model's rest pose;
                                           # 0 = each muscle's own (the tissue table's rest_fibre_length, from the source model;
-                                          # 1.0 without one). l = l_rest + (C - C_rest) / L_opt: rigid tendon (docs/solver.md)
+                                          # 1.0 without one). A muscle with a source-model path: its path's fibre length shifted
+                                          # to the override (rigid tendon, docs/solver.md "Force-length")
     volume_stiffness_fat: float = 0.0     # fat volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k, like volume_stiffness
                                           # for muscle (physical: 20, effective Poisson ratio 0.465: fat is nearly incompressible; keeps fat cells from
                                           # inverting; 0 = off: the paper's fat has no volume term; docs/contact.md)
@@ -114,7 +118,8 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0)
+                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0,
+                    passive_force_length=True, fl_passive_strain=2.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -122,14 +127,21 @@ class Params:
         # hamstring contraction without force-velocity diverged at step 140). joint_damping 5 N m s/rad, not 1:
         # when the knee reaches its stop the light free foot whipped on (ankle -4 -> -22 deg in 20 ms, the soleus
         # and ankle fat cells at V/V0 0.56..5, omega h 2.04 at 1.4: divergence at step ~440 with or without
-        # force-velocity); at 5 the ankle stays within -6..+2 deg. (tests/test_solver_default_model.py::
+        # force-velocity); at 5 the ankle stays within -6..+2 deg (-32..-3 with the passive fibre force, which
+        # plantarflexes the relaxed foot). (tests/test_solver_default_model.py::
         # test_physical_without_force_velocity_is_stable)
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
-        # falls as the knee flexes, and full co-contraction at 30 deg gave 0.8 N m/rad, below the passive knee's 2.6
-        # (`tissue-sim stiffness --levels 0,1 --settle 0.15 --free 0.3`); with their own values 75 N m/rad. The price:
-        # the fully active hamstrings' isometric torque is further from OpenSim's (`tissue-sim validate --angles
-        # 0,30,60,90,120 --settle 0.5`: RMS 29 -> 37 N m, peak 83 -> 63 N m; docs/solver.md "Force-length")
+        # falls as the knee flexes, and full co-contraction at 30 deg gives 18.4 N m/rad against the passive knee's 8.8
+        # (`tissue-sim stiffness --levels 0,1 --settle 0.15 --free 0.3`); with their own values 76.4 against 3.2. The price:
+        # the fully active hamstrings' isometric torque is further below OpenSim's (`tissue-sim validate`: RMS 37.1 N m
+        # at 0/30/60/90/120 deg, peak 62.7 N m at 20 deg; docs/solver.md "Force-length")
+        # passive_force_length on with eps0 2.0, a calibration (Thelen's 0.6 is the uncalibrated value): on the source
+        # model's wrapped paths the shank muscles sit at l = 1.42-1.85 with the ankle at 0, and with eps0 0.6 the
+        # passive fibres put -1,251 N m on the ankle there and 66 N m on the knee at 15 deg (OpenSim's own De Groote-Fregly
+        # curve: -501 and 56); Riener & Edrich 1999's passive knee moment (hip 0, ankle 0) is matched with eps0 1.5-2.0
+        # (whole model, `tissue-sim validate --passive`: RMS 4.6 N m against 5.7 with the fibres off and 47.8 with
+        # eps0 0.6), and their ankle fit best with 2.0 (docs/solver.md "Force-length")
         base.update(kw)
         return cls(**base).validate()
 
@@ -155,6 +167,7 @@ class Params:
         need(0 < self.fl_width <= 10, 'fl_width must be in (0, 10]')
         need(0 < self.fl_passive_shape <= 50, 'fl_passive_shape must be in (0, 50]')
         need(0 < self.fl_passive_strain <= 5, 'fl_passive_strain must be in (0, 5]')
+        need(self.fl_passive_curve in ('thelen', 'degroote'), "fl_passive_curve must be 'thelen' or 'degroote'")
         need(self.rest_fibre_length == 0 or 0.2 <= self.rest_fibre_length <= 2,
              'rest_fibre_length must be 0 (each muscle\'s own) or in [0.2, 2]')
         need(self.volume_stiffness_fat >= 0, 'volume_stiffness_fat must be >= 0')

@@ -15,7 +15,7 @@ from tissue_sim.core.model import JOINT_HINGE, TISSUE_FAT, TISSUE_MUSCLE, VF_FAT
 
 
 def _model(name, rest, vseg, flags, cells, tissue, muscle, fibre, cslice, muscles, groups, slice_z,
-           n_seg=2, knee_range=(0.0, np.radians(120.0)), seg=None):
+           n_seg=2, knee_range=(0.0, np.radians(120.0)), seg=None, paths=None):
     off = np.concatenate([[0], np.cumsum([len(c) for c in cells])]).astype(np.int64)
     cv = np.concatenate(cells).astype(np.int32)
     C = len(cells)
@@ -47,7 +47,7 @@ def _model(name, rest, vseg, flags, cells, tissue, muscle, fibre, cslice, muscle
         muscle_fibre_length=np.full(M, np.nan), bone_names=(), bone_segment=np.zeros(0, np.int32),
         bone_vertex_offsets=np.zeros(1, np.int64), bone_vertices=np.zeros((0, 3)),
         bone_triangle_offsets=np.zeros(1, np.int64), bone_triangles=np.zeros((0, 3), np.int32),
-        slice_z=np.asarray(slice_z, float), meta={'phantom': name}, **seg).validate()
+        slice_z=np.asarray(slice_z, float), meta={'phantom': name}, **(paths or {}), **seg).validate()
 
 
 def one_cell(n_ring: int = 4, size: float = 0.02, tissue: int = TISSUE_MUSCLE) -> TissueModel:
@@ -109,8 +109,13 @@ def knee(n_gaps: int = 6, n_ring: int = 6, radius: float = 0.015, length: float 
                 lo, hi = rings[g], rings[g + 1]
                 cells.append([lo[0][a], lo[0][b], lo[1][b], lo[1][a], hi[0][a], hi[0][b], hi[1][b], hi[1][a]])
                 tissue.append(TISSUE_FAT); muscle.append(-1); fibre.append([0, 0, 1]); cslice.append(g)
+    # muscle paths (docs/solver.md "Force-length"): the hamstring and the quadriceps each one part, the column's length
+    # changing at its constant moment arm, L = length -+ arm q (rigid tendon of zero slack, no pennation, L_opt = length)
+    qa = arm if quad_arm is None else quad_arm
+    paths = dict(path_muscle=np.array([0, 1], np.int32), path_data=np.array([[1.0, length, 0.0, 0.0]] * 2),
+                 path_powers=np.array([[0], [1]], np.int32), path_coef=np.array([[length, -arm], [length, qa]]))
     return _model('knee', np.array(rest), vseg, flags, cells, tissue, muscle, fibre, cslice, names, groups, z,
-                  knee_range=tuple(np.radians(knee_range_deg)))
+                  knee_range=tuple(np.radians(knee_range_deg)), paths=paths)
 
 
 def chain(n_links: int = 2, length: float = 0.4, mass: float = 3.0, fixed_last: bool = False) -> TissueModel:

@@ -106,7 +106,6 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     if state.activation is None:
         state.activation = np.zeros(sim.n_muscles)
     u = a                             # the commands: excitations when activation dynamics is on
-    ch_rest, inv_lopt, fmax, ch_off, ch_idx = MU.muscle_constants(sim)
     fl_on = p.force_length and p.specific_tension > 0
     pe_on = p.passive_force_length and p.specific_tension > 0
     for _ in range(n_sub):
@@ -137,15 +136,12 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         implicit = p.integrator == 'implicit'
         y = np.where(free[:, None], state.x + h * (1.0 - h * p.velocity_damping) * (state.v + h * sim.gravity),
                      state.x + h * state.v) if implicit else state.x
-        if fl_on:            # normalised fibre length l = l_rest + (C - C_rest) / L_opt of the attachment chords C
-            chord, _ = chords(sim, y, ch_off, ch_idx)
-            l0 = MU.rest_fibre_lengths(sim)
-            ln = np.where(ch_rest > 0, l0 + (chord - ch_rest) * inv_lopt, l0)
-            act_t = act_t * np.exp(-(ln - 1.0) ** 2 / p.fl_width)
+        if fl_on:            # normalised fibre length l of each muscle's source-model path at the joint coordinates
+            act_t = act_t * np.exp(-(path_fibres(sim, state.q)[0] - 1.0) ** 2 / p.fl_width)
+        # the passive fibre force as joint torques (minus the gradient of its energy in the joint coordinates)
+        tau_pe = passive_joint_torques(sim, state.q) if pe_on else np.zeros(J)
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
             sim, pad, y, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
-        if pe_on:            # passive fibre force F = Fmax f_PE(l) pulling each muscle's attachments together
-            f += passive_forces(sim, y, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
         if fv_on:            # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
             mc = sim.cell_muscle >= 0
             length = np.bincount(sim.cell_muscle[mc], (sim.length_weight * state.cell_length)[mc], sim.n_muscles)
@@ -153,11 +149,11 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.muscle_velocity[seen] += h / (p.fv_filter_time + h) * (
                 (length - state.muscle_length)[seen] / h - state.muscle_velocity[seen])
             state.muscle_length[:] = length
-        # 2. skeleton: joint torques from the forces on the bone-attached vertices, joint dynamics (a locked
+        # 2. skeleton: joint torques from the forces on the bone-attached vertices and tau_pe, joint dynamics (a locked
         # hinge is driven to its target, its torque in state.joint_lock_torque), poses
         SK.skeleton_step(h, state.q, state.qd, f, y, sim.skeleton, sim.att_idx, sim.att_seg,
                          p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
-                         np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque)
+                         np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque, tau_pe)
         # 3. soft tissue: symplectic Euler for the free vertices (implicit: implicit.py's correction of y, its
         # local/global iterations from the forces at the last iterate), the bone-attached ones follow their segment
         i, s = sim.att_idx, sim.att_seg
@@ -171,8 +167,6 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             for _ in range(1, p.implicit_iterations):
                 f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
                     sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
-                if pe_on:
-                    f += passive_forces(sim, state.x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p)
                 state.x[free] = IM.reference_solve(sim, h, f, state.x, y, np.zeros_like(state.x))
                 state.v[:] = (state.x - x_old) / h
         else:
@@ -188,32 +182,43 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
     return state
 
 
-def chords(sim, x, ch_off, ch_idx):
-    """(M,) [m] each muscle's attachment chord (muscle.chord_lengths: from the centroid of its vertices bound to its
-    proximal bone to that of those bound to its distal bone; 0 without) and (M, 3) its unit direction."""
-    M = sim.n_muscles
-    cent = np.array([x[ch_idx[ch_off[g]:ch_off[g + 1]]].mean(0) if ch_off[g + 1] > ch_off[g] else np.zeros(3)
-                     for g in range(2 * M)]).reshape(M, 2, 3)
-    d = cent[:, 1] - cent[:, 0]
-    L = np.linalg.norm(d, axis=1)
-    return L, np.divide(d, L[:, None], out=np.zeros_like(d), where=L[:, None] > 0)
+def path_fibres(sim, q):
+    """The source-model paths at joint coordinates q (docs/solver.md "Force-length"): per muscle part its musculotendon
+    length L (P,) = coef . prod_j q_j^powers [m], dL/dq (P, J), the fibre's length along the tendon d = max(L - L_TS, 0)
+    and its length lf = sqrt(d^2 + (L_opt sin a)^2) [m], the normalised fibre length lp = lf / L_opt (+ the override's
+    shift); per muscle ln (M,): the Fmax-weighted mean of its parts' lp (rest_fibre_lengths without a path).
+    Returns ln, lp, L, dL, d, lf."""
+    pm, pdata, powers, coef, shift, l0 = MU.path_constants(sim)
+    q = np.asarray(q, np.float64)
+    qe = q[None, :] ** powers                                              # (T, J); 0^0 = 1
+    L = coef @ qe.prod(1)
+    dmono = np.stack([powers[:, j] * q[j] ** np.maximum(powers[:, j] - 1, 0) * np.delete(qe, j, axis=1).prod(1)
+                      for j in range(q.size)], 1) if q.size else np.zeros((powers.shape[0], 0))
+    dL = coef @ dmono
+    d = np.maximum(L - pdata[:, 2], 0.0)
+    lf = np.sqrt(d ** 2 + pdata[:, 3] ** 2)
+    lp = lf / pdata[:, 1] + shift[pm]
+    has = np.isin(np.arange(sim.n_muscles), pm)
+    ln = np.where(has, np.bincount(pm, pdata[:, 0] * lp, sim.n_muscles), l0)
+    return ln, lp, L, dL, d, lf
 
 
-def passive_forces(sim, x, ch_off, ch_idx, ch_rest, inv_lopt, fmax, p):
-    """(V, 3) [N] the passive fibre force of every muscle (Thelen 2003 eq. 3, docs/solver.md "Force-length"): l =
-    rest fibre length (muscle.rest_fibre_lengths) + (C - C_rest) / L_opt of its attachment chord C, F = Fmax (exp(k (l - 1)/eps0) - 1) / (exp(k) - 1)
-    for l > 1 (else 0), F / n along the chord on each of the n proximal attachment vertices, -F / n on each distal one."""
-    L, u = chords(sim, x, ch_off, ch_idx)
-    ln = MU.rest_fibre_lengths(sim) + (L - ch_rest) * inv_lopt
+def passive_joint_torques(sim, q):
+    """(J,) [N m] the passive fibre force as joint torques: per part F = Fmax share f_PE(lp) (Params.fl_passive_curve:
+    Thelen 2003 eq. 3, 0 for lp <= 1; or De Groote et al. 2016, 0 below 0.2), along the tendon F d / lf, torque
+    -F d / lf dL/dq."""
+    p = sim.params
+    pm, pdata = MU.path_constants(sim)[:2]
+    fmax = MU.muscle_constants(sim)[0]
+    ln, lp, L, dL, d, lf = path_fibres(sim, q)
     k, e0 = p.fl_passive_shape, p.fl_passive_strain
-    F = np.where((ch_rest > 0) & (L > 0) & (ln > 1.0), fmax * (np.exp(k * (ln - 1.0) / e0) - 1.0) / (np.exp(k) - 1.0), 0.0)
-    out = np.zeros_like(x)
-    for m in range(sim.n_muscles):
-        if F[m] > 0:
-            a, b = ch_idx[ch_off[2 * m]:ch_off[2 * m + 1]], ch_idx[ch_off[2 * m + 1]:ch_off[2 * m + 2]]
-            out[a] += F[m] / a.size * u[m]
-            out[b] -= F[m] / b.size * u[m]
-    return out
+    if p.fl_passive_curve == 'thelen':
+        f = np.where(lp > 1.0, (np.exp(k * (lp - 1.0) / e0) - 1.0) / (np.exp(k) - 1.0), 0.0)
+    else:
+        o = np.exp(k * (MU.DGF_MIN_LENGTH - 1.0) / e0)
+        f = np.where(lp > MU.DGF_MIN_LENGTH, (np.exp(k * (lp - 1.0) / e0) - o) / (np.exp(k) - o), 0.0)
+    Ft = fmax[pm] * pdata[:, 0] * f * np.divide(d, lf, out=np.zeros_like(d), where=lf > 0)
+    return -(Ft @ dL)
 
 
 def grid_sample(cg, b, P):

@@ -118,11 +118,12 @@ def _cross(a, b, out):
 
 @njit(cache=True)
 def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work,
-                  lock, target, lock_tau):
+                  lock, target, lock_tau, tau_ext):
     """One step of the skeleton (a tree of rigid segments, hinge, fixed or coupled joints, fixed root).
 
     tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
-    tissue's reaction on the bone). Joint-space mass matrix M from segment masses/inertias by
+    tissue's reaction on the bone), plus tau_ext[j] [N m] (J,): torques given in joint space (the passive fibre force,
+    muscle.passive_torques; a coupled joint's entry is not used). Joint-space mass matrix M from segment masses/inertias by
     Jacobians; bias (Coriolis, centrifugal, gravity) by recursive Newton-Euler with qdd = 0;
     range limits as an implicit stiff, critically damped end stop (no jolt). Symplectic Euler:
     qd += h qdd, q += h qd; then forward kinematics. Returns False if qdd is not finite.
@@ -300,7 +301,7 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
         for r in range(3):
             tau += a[j, r] * (Ns[c, r] - tmp[r])
             bias += a[j, r] * (Nb[c, r] - tmp2[r])
-        rhs[j] = tau - bias - joint_damping * qd[j]       # viscous joint damping, implicit (M += h c below)
+        rhs[j] = tau + tau_ext[j] - bias - joint_damping * qd[j]   # viscous joint damping, implicit (M += h c below)
         for k in range(J):
             acc = 0.0
             for s in range(S):

@@ -47,11 +47,11 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
                                 'muscle_length muscle_velocity joint_lock_torque activation')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
-                                'ch_rest inv_lopt fmax ch_off ch_idx l_rest')
+                                'fmax path_muscle path_data path_powers path_coef path_shift l_rest')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
-                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0')
+                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 pe_curve')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
-                                 'chord chord_axis')
+                                 'fibre path_mono path_dmono path_len path_dlen part_l tau_pe')
 
 
 @njit(cache=True)
@@ -98,21 +98,25 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             MU.advance_activation(act, a_st, h, num.tau_act, num.tau_deact)
             # 1. muscle tension: contraction state, the active tension's activation x the force-velocity
             # factor (muscle velocity from the last evaluation) x the active force-length factor (the fibre
-            # length of the attachment chord now), then every cell's elastic + volume + damping force; integrator
+            # length of the source-model path at the joint coordinates now), the passive fibre force as joint torques
+            # (conservative, muscle.py), then every cell's elastic + volume + damping force; integrator
             # implicit: all of them at the inertial prediction y = x + h v (+ h^2 g)
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             xe = x
             if imp.on:
                 IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)
                 xe = imp.y
-            if num.fl_on:
-                MU.chord_lengths(xe, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
-            MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.chord, tissue.ch_rest,
-                                     tissue.inv_lopt, tissue.l_rest, num.fl_on, num.fl_gamma, act_t)
+            if num.fl_on or num.pe_on:
+                MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
+                                 tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
+                                 scratch.path_dlen, scratch.part_l, scratch.fibre)
+                if num.pe_on:
+                    MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
+                                       scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
+                                       scratch.tau_pe, scratch.passive)
+            MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
+                                     num.fl_gamma, act_t)
             bad = CK.lane_forces(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
-            if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
-                MU.passive_tension(xe, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
-                                   tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
             if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
                                    num.fv_alpha, scratch.muscle_sums)
@@ -121,9 +125,9 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0; a_st[:] = scratch.act0
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
-            # 2. skeleton: joint torques from the forces on bone-attached vertices, joint dynamics
+            # 2. skeleton: joint torques from the forces on bone-attached vertices and the passive fibre force, joint dynamics
             ok = SK.skeleton_step(h, q, qd, f, xe, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
-                                  st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque)
+                                  st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque, scratch.tau_pe)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
             if imp.on:             # implicit Euler: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
                 fast = IM.integrate(h, x, v, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
@@ -134,9 +138,6 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                     if CK.lane_forces(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
-                    if num.pe_on:
-                        MU.passive_tension(xb, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
-                                           tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
                     fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
             else:
                 fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
@@ -211,8 +212,7 @@ class Workspace:
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
                         np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0),
-                        *MU.muscle_constants(sim),       # the force-length's constants (muscle.py)
-                        MU.rest_fibre_lengths(sim))
+                        MU.muscle_constants(sim)[0], *MU.path_constants(sim))   # the force-length's constants (muscle.py)
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
@@ -221,11 +221,12 @@ class Workspace:
                       h / (p.fv_filter_time + h),
                       float(p.activation_time), float(p.deactivation_time), p.force_length and p.specific_tension > 0,
                       float(p.fl_width), p.passive_force_length and p.specific_tension > 0, float(p.fl_passive_shape),
-                      float(p.fl_passive_strain))
+                      float(p.fl_passive_strain), MU.PASSIVE_CURVES.index(p.fl_passive_curve))
         M, J = sim.n_muscles, sim.n_joints
+        pw = MU.PathWork(M, sim.tissue.path_muscle.size, sim.tissue.path_powers.shape)
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
-                          np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M),
-                          np.empty((M, 3)))
+                          np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.zeros(M),
+                          MU.fibre_state(sim, sim.j_rest)[0].copy(), pw[0], pw[1], pw[2], pw[3], pw[4], np.zeros(J))
         return cells, tissue, sim.skeleton, num, scratch, (sim.contact, self.contact)
 
 
