@@ -100,8 +100,11 @@ def _run_passive(args, con, out, V, progress):
     for r in rows:
         t.add_row(*r)
     con.print(t)
-    con.print('RMS vs Riener & Edrich: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_riener_edrich_Nm'].items())
-              + ' N m; vs OpenSim: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_opensim_Nm'].items()) + ' N m')
+    if not res['rms_vs_opensim_Nm']:
+        con.print('[yellow]the paper set is dimensionless: its moments are not newton metres, the comparison is n/a[/]')
+    else:
+        con.print('RMS vs Riener & Edrich: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_riener_edrich_Nm'].items())
+                  + ' N m; vs OpenSim: ' + ', '.join(f'{k} {v:.1f}' for k, v in res['rms_vs_opensim_Nm'].items()) + ' N m')
     con.print('ankle at knee 0, fibres only [N m] (+ dorsiflexing), ours / ' + ' / '.join(res['variants']) + ': ' + '; '.join(
         f'{a:g}°: {res["ankle"]["fibres_Nm"][i]:.1f} / ' + ' / '.join(f'{d["ankle_fibres_Nm"][i]:.0f}' for d in res['variants'].values())
         + f' (OpenSim {res["ankle"]["opensim_Nm"][i]:.0f}, R&E {res["ankle"]["riener_edrich_Nm"][i]:.1f})'

@@ -727,6 +727,9 @@ def run_passive_validation(params: str = 'physical', angles_deg=None, settle: fl
            'ankle': {'angles_deg': list(ANKLE_ANGLES), 'opensim_Nm': ank['ankle_Nm'],
                      'fibres_Nm': list(fibres(None, [0.0] * len(ANKLE_ANGLES), ANKLE_ANGLES, ja)),
                      'riener_edrich_Nm': list(riener_edrich_ankle(np.asarray(ANKLE_ANGLES)))}}
+    out['rms_vs_riener_edrich_Nm'], out['rms_vs_opensim_Nm'] = {}, {}
+    if params == 'paper':             # dimensionless (Table 2: unit masses, k = 1e6): not comparable in N m
+        return out
     for key, v in [('ours', total)] + [(k, np.asarray(d['total_Nm'])) for k, d in variants.items()]:
         out.setdefault('rms_vs_riener_edrich_Nm', {})[key] = float(np.sqrt(np.mean((v - re) ** 2)))
         out.setdefault('rms_vs_opensim_Nm', {})[key] = float(np.sqrt(np.mean((v - np.asarray(ref['knee_Nm'])) ** 2)))
