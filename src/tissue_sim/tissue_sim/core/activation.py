@@ -278,12 +278,12 @@ class Motion(NamedTuple):
     muscles: dict
 
 
-def _alternate(first: str, second: str, level: float, period: float, cycles: int, on: float, edge: float) -> dict:
+def _alternate(first: str, second: str, levels: tuple, period: float, cycles: int, on: float, edge: float) -> dict:
     """Knots of two selectors that take turns: ``first`` from the start of each period, ``second``
-    from its middle, each at ``level`` for ``on`` s with ``edge``-s linear rises and falls."""
+    from its middle, at ``levels`` (first's, second's) for ``on`` s with ``edge``-s linear rises and falls."""
     out = {first: [(0.0, 0.0)], second: [(0.0, 0.0)]}
     for c in range(cycles):
-        for sel, t0 in ((first, c * period), (second, c * period + period / 2)):
+        for sel, t0, level in ((first, c * period, levels[0]), (second, c * period + period / 2, levels[1])):
             out[sel] += [(t0, 0.0), (t0 + edge, level), (t0 + edge + on, level), (t0 + 2 * edge + on, 0.0)]
     return out
 
@@ -312,9 +312,9 @@ MOTIONS = {
         'ankle plantarflexes', 'ankle_r', 1.5,
         {'triceps_surae': [(0.0, 0.0), (0.5, 0.5)]}),
     'ankle_pump': Motion(
-        'an ankle pump: tibialis anterior (0.5) dorsiflexes the ankle, then the triceps surae (0.5) '
-        'plantarflex it, alternating (0.6 s each, a 1.5-s period, two cycles)', 'ankle_r', 3.0,
-        _alternate('tibialis_anterior', 'triceps_surae', 0.5, 1.5, 2, 0.5, 0.05)),
+        'an ankle pump: tibialis anterior (0.8) dorsiflexes the ankle, then the triceps surae (0.5) '
+        'plantarflex it, alternating (0.7 s each, a 1.5-s period, two cycles)', 'ankle_r', 3.0,
+        _alternate('tibialis_anterior', 'triceps_surae', (0.8, 0.5), 1.5, 2, 0.6, 0.05)),
 }
 PROFILES = SHAPES + tuple(MOTIONS)
 
