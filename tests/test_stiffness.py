@@ -43,3 +43,15 @@ def test_co_contraction_stiffens_the_knee_without_moving_it(tmp_path):
     assert abs(full['torque_nm'] - res['passive_torque_nm']) < 5.0
     assert full['free_drift_max_deg'] < 5.0
     assert full['hamstrings_only']['free_drift_max_deg'] > 20.0
+
+
+def test_published_passive_stiffness_is_the_slope_of_riener_and_edrich():
+    """The relaxed-knee reference the command prints beside level 0: the central difference of Riener & Edrich 1999's
+    passive moment equals the formula's analytic derivative (hip and ankle 0), 5.4 N m/rad at 30 deg."""
+    import math
+    from tissue_sim.core.stiffness import published_passive_stiffness
+    for k in (15.0, 30.0, 60.0, 90.0):
+        dm = (-0.0352 * math.exp(1.800 - 0.0352 * k) - 0.0495 * math.exp(-3.971 + 0.0495 * k)
+              - 0.150 * math.exp(2.220 - 0.150 * k))                         # N m per degree
+        assert published_passive_stiffness(k, 0.5) == pytest.approx(-dm * 180.0 / math.pi, rel=2e-3)
+    assert published_passive_stiffness(30.0, 2.0) == pytest.approx(5.4, abs=0.05)

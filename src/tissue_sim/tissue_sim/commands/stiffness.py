@@ -112,3 +112,7 @@ def _print(con, res):
                   f'{h["stiffness_nm_per_rad"]:.1f}' if 'stiffness_nm_per_rad' in h else '-',
                   f'{h["free_drift_max_deg"]:.1f}' if 'free_drift_max_deg' in h else '-')
     con.print(t)
+    k = res.get('published_passive_stiffness_nm_per_rad')
+    if k is not None:
+        con.print(f'relaxed knee at {res["angle_deg"]:g} deg, Riener & Edrich 1999 (all passive structures, hip and ankle 0): '
+                  f'k = {k:.1f} N m/rad (level 0 above)')

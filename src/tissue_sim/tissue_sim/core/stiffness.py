@@ -178,11 +178,21 @@ def measure(sim, levels=(0.0, 0.25, 0.5, 1.0), angle_deg: float = 30.0, delta_de
     return {'joint': KNEE, 'angle_deg': angle_deg, 'delta_deg': delta_deg, 'settle_s': settle, 'ramp_s': ramp,
             'free_seconds': free_seconds, 'params': sim.params.preset, 'model': sim.tissue.name,
             'passive_torque_nm': tau_p, 'levels': rows,
+            'published_passive_stiffness_nm_per_rad': published_passive_stiffness(angle_deg, delta_deg),
             'definitions': {
                 'torque_nm': 'isometric knee torque at the angle, positive = flexing (minus the joint lock torque)',
                 'stiffness_nm_per_rad': '-(torque at angle+delta - torque at angle-delta) / (2 delta)',
                 'free_drift_max_deg': 'largest |knee angle - angle| within free_seconds after the lock is released, '
                                       'the activation kept'}}
+
+
+def published_passive_stiffness(angle_deg: float, delta_deg: float) -> float:
+    """The relaxed knee's flexion stiffness [N m/rad] at angle_deg (hip and ankle 0) from Riener & Edrich 1999's passive
+    moment (validation.riener_edrich_knee; all passive structures of ten subjects), by the same central difference
+    over +-delta_deg as the simulated one: the reference for level 0."""
+    from tissue_sim.core.validation import riener_edrich_knee
+    m = riener_edrich_knee([angle_deg + delta_deg, angle_deg - delta_deg])
+    return float(-(m[0] - m[1]) / math.radians(2.0 * delta_deg))
 
 
 def plot(res: dict, path) -> None:
@@ -196,6 +206,9 @@ def plot(res: dict, path) -> None:
     fig, axs = plt.subplots(1, 2, figsize=(10, 3.8), dpi=110)
     axs[0].plot(a, [r['stiffness_nm_per_rad'] for r in rows], 'o-', lw=2, label='co-contraction (quadriceps balancing)')
     axs[1].plot(a, [r['free_drift_max_deg'] for r in rows], 'o-', lw=2, label='co-contraction')
+    if res.get('published_passive_stiffness_nm_per_rad') is not None:
+        axs[0].plot([0.0], [res['published_passive_stiffness_nm_per_rad']], 'k*', ms=10,
+                    label='relaxed knee, Riener & Edrich 1999')
     if single:
         axs[0].plot([s[0] for s in single], [s[1]['stiffness_nm_per_rad'] for s in single], 's--', label='hamstrings alone')
         axs[1].plot([s[0] for s in single], [s[1]['free_drift_max_deg'] for s in single], 's--', label='hamstrings alone')
