@@ -97,6 +97,9 @@ class Params:
     contact_margin: float = 5e-4          # [m] distance from a bone's surface a free vertex is projected back to
     contact_friction: float = 0.0         # Coulomb coefficient of the tissue-bone contact (0: frictionless sliding)
     contact_grid: float = 1.5e-3          # [m] spacing of the bones' signed-distance grids
+    fold_contact: str = ''                # hinges (comma-separated names or name starts) whose flexion-side soft tissue keeps to its side
+                                          # of the plane bisecting the two segments (thigh/calf tissue in the popliteal fold; '' off, the paper)
+    fold_reach: float = 0.15              # [m] free vertices within this distance of the hinge along the segments' axis take part
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
@@ -114,7 +117,7 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0)
+                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, fold_contact='knee')
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -168,6 +171,7 @@ class Params:
         need(0 <= self.contact_margin <= 0.01, 'contact_margin must be in [0, 0.01] m')
         need(self.contact_friction >= 0, 'contact_friction must be >= 0')
         need(2e-4 <= self.contact_grid <= 0.01, 'contact_grid must be in [2e-4, 0.01] m')
+        need(0 < self.fold_reach <= 1, 'fold_reach must be in (0, 1] m')
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')

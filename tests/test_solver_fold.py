@@ -1,0 +1,104 @@
+"""The fold contact (core/solver/contact.py fold_contact, reference.fold_stage; docs/contact.md "Tissue-tissue
+contact in the fold"): flexion-side soft tissue keeps to its side of the knee's bisector plane and of its own
+segment's plane through the axis."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tissue_sim.core import solver
+from tissue_sim.core.solver import contact as C, phantom, reference, skeleton as SK
+
+from test_solver_contact import _knee_with_bones
+
+
+def _flexed(sim, deg):
+    """Segment poses (R, t) of sim at knee flexion deg."""
+    q = sim.j_rest.copy()
+    q[0] = math.radians(deg)
+    R, t = np.tile(np.eye(3), (sim.n_segments, 1, 1)), np.zeros((sim.n_segments, 3))
+    SK.forward_kinematics(q, sim.skeleton, R, t)
+    return R, t
+
+
+def test_fold_vertices_are_the_flexion_side_within_reach():
+    """On the knee phantom (hamstring column 4 cm behind the hinge, quadriceps 4 cm in front, flexion moves the shank
+    backwards): the fold vertices are the hamstring column's free vertices (the quadriceps' are on the extension
+    side), side +1 at or above the axis, n0 = +z (towards the thigh), e = -x (flexion side); the paper set has none."""
+    tm = phantom.knee(n_gaps=12)
+    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee'))
+    cg = sim.contact
+    assert np.allclose(cg.f_geo[0, 3:6], [0, 0, 1]) and np.allclose(cg.f_geo[0, 6:], [-1, 0, 0])
+    X = tm.rest_positions[cg.f_idx]
+    free_ham = np.flatnonzero((tm.vertex_segment < 0) & (tm.rest_positions[:, 0] < 0))
+    assert sorted(cg.f_idx.tolist()) == free_ham.tolist()
+    assert np.array_equal(cg.f_side, np.where(X[:, 2] >= 0, 1.0, -1.0))
+    assert cg.f_seg.tolist() == [[0, 1]]
+    assert solver.compile_model(tm, solver.Params.paper()).contact.f_idx.size == 0
+    assert solver.compile_model(tm, solver.Params.paper(fold_contact='ankle')).contact.f_idx.size == 0
+
+
+def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity():
+    """The stage itself, compiled and reference, on hand-placed vertices with the knee held at 90 deg (the plane at
+    45 deg, static: the poses at the sub-step's start are the same): a proximal vertex below the plane moves straight
+    up the thigh onto it (x and y kept), a distal one above it moves down the shank (along +x in the world at 90 deg)
+    onto it, a proximal one pushed to the front of the axis is put back behind it; inward velocities are removed,
+    outward ones kept, and no kinetic energy is added; both implementations agree to rounding."""
+    tm = phantom.knee(n_gaps=12)
+    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', contact_margin=0.0))
+    cg = sim.contact
+    R, t = _flexed(sim, 90.0)
+    prox = cg.f_idx[cg.f_side > 0][:3]
+    dist = cg.f_idx[cg.f_side < 0][0]
+    x = sim.rest.copy()
+    v = np.zeros_like(x)
+    # every other fold vertex where it satisfies both constraints: proximal ones up the thigh, distal ones behind the
+    # shank (at 90 deg the shank's flexion side e faces up, the plane is z = -x)
+    x[cg.f_idx[cg.f_side > 0], 2] = 0.2
+    x[cg.f_idx[cg.f_side < 0]] = [-0.2, 0.0, 0.05]
+    x[prox[0]] = [-0.04, 0.0, 0.01]         # proximal, 30 mm below the plane z = -x (thigh fixed: world = thigh frame)
+    v[prox[0]] = [0.0, 0.0, -1.0]           # moving away from the plane's proximal side: inward
+    x[prox[1]] = [-0.03, 0.01, 0.05]        # proximal, above the plane, moving outward: untouched
+    v[prox[1]] = [0.0, 0.0, 0.5]
+    x[prox[2]] = [0.01, 0.0, 0.05]          # proximal, above the plane but in front of the axis
+    x[dist] = [-0.01, 0.0, 0.03]            # distal, 20 mm above the plane: moves along the shank's -axis = world -x
+    v[dist] = [0.3, 0.0, 0.0]               # towards the thigh's side: its normal part goes
+    xr, vr = x.copy(), v.copy()
+    ke0 = 0.5 * np.sum(v * v)
+    work = C.work(cg, sim.n_segments)
+    work.R0[:], work.t0[:] = R, t
+    hits = C.fold_contact(1e-3, x, v, R, t, cg, work)
+    reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3)
+    assert hits == 3
+    assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
+    assert np.allclose(x[prox[0]], [-0.04, 0.0, 0.04]) and np.allclose(v[prox[0]], [0.5, 0, -0.5])
+    assert np.allclose(x[prox[1]], [-0.03, 0.01, 0.05]) and np.allclose(v[prox[1]], [0, 0, 0.5])
+    assert np.allclose(x[prox[2]], [0.0, 0.0, 0.05])
+    assert np.allclose(x[dist], [-0.03, 0.0, 0.03]) and np.allclose(v[dist], [0.15, 0, -0.15])
+    assert 0.5 * np.sum(v * v) <= ke0
+
+
+def test_fast_step_matches_the_reference_step_with_the_fold():
+    """step() and reference_step with bone contact and the fold on give the same trajectory on the knee phantom with
+    bones (full hamstring activation, the knee flexes to about 1 rad, the fold engages: the run differs from one
+    without it), to the tolerances of test_solver_contact's comparison (positions 1e-8 of the motion, velocities
+    1e-6 of the largest)."""
+    tm = _knee_with_bones()
+    kw = dict(rotation_iterations=50, bone_contact=True)
+    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', **kw))
+    off = solver.compile_model(tm, solver.Params.paper(**kw))
+    fast, ref, plain = solver.make_state(sim), solver.make_state(sim), solver.make_state(off)
+    ctrl = solver.make_control(sim)
+    ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+    for _ in range(300):
+        solver.step(sim, fast, ctrl)
+        solver.reference_step(sim, ref, ctrl.activation)
+        solver.step(off, plain, ctrl)
+    assert fast.q[0] > 0.5
+    motion = np.abs(fast.x - sim.rest).max()
+    assert np.abs(fast.x - ref.x).max() <= 1e-8 * motion
+    assert np.abs(fast.v - ref.v).max() <= 1e-6 * np.abs(ref.v).max()
+    assert np.allclose(fast.q, ref.q, rtol=1e-8, atol=1e-10)
+    assert np.abs(fast.x - plain.x).max() > 1e-3
