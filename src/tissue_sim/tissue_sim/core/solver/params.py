@@ -117,7 +117,7 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, fold_contact='knee')
+                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
