@@ -1,0 +1,87 @@
+"""Fold-contact benchmark (docs/contact.md "Tissue-tissue contact in the fold"), bundled model: solver steps/s with no
+contact, bone contact, and bone + fold contact in the same run (paper and physical sets), and with --hold the passive
+hamstrings held at 0/30/60/90/120 deg (physical set, fold off and on): their length change, semitendinosus's summed
+cell lengths, free vertices > 1 mm inside a bone and inverted cells.
+
+    .venv/bin/python bench/fold.py [--seconds 6] [--hold]
+
+Steps/s as bench/contact.py (per CPU second, one thread, full hamstring activation, windows interleaved).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import contact as B  # noqa: E402  (bench/contact.py: sets one thread, the import path)
+
+import numpy as np  # noqa: E402
+
+from tissue_sim.core import solver  # noqa: E402
+from tissue_sim.core.solver import contact  # noqa: E402
+
+HAM = ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus', 'semitendinosus')
+
+
+def chain_length(tm, x, m):
+    """Sum over muscle m's cells of the distance between their two ring centroids [m]."""
+    tot = 0.0
+    for c in np.flatnonzero(tm.cell_muscle == m):
+        cv = tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]]
+        h = len(cv) // 2
+        tot += np.linalg.norm(x[cv[h:]].mean(0) - x[cv[:h]].mean(0))
+    return tot
+
+
+def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120)):
+    sim = solver.compile_model(tm, solver.Params.physical(fold_contact=fold))
+    names = list(tm.muscle_names)
+    mi = [names.index(n) for n in HAM]
+    j = list(tm.joint_names).index('knee_r')
+    st, ctl = solver.make_state(sim), solver.make_control(sim)
+    ctl.joint_lock[:] = True
+    ctl.joint_target[:] = st.q
+    print(f'fold_contact={fold!r} ({len(sim.contact.f_idx)} fold vertices): length change [mm] of '
+          + ', '.join(HAM) + '; semitendinosus cells summed [mm]')
+    cur, dt, L0 = 0.0, sim.params.dt, None
+    for deg in angles:
+        n = int(math.ceil(abs(deg - cur) / 200 / dt))
+        for i in range(n):
+            ctl.joint_target[j] = math.radians(cur + (deg - cur) * (i + 1) / n)
+            solver.step(sim, st, ctl)
+        ctl.joint_target[j] = math.radians(deg)
+        solver.step(sim, st, ctl, n_steps=int(settle / dt))
+        cur = deg
+        L = solver.observe(sim, st)['muscle_lengths'][mi]
+        L0 = L.copy() if L0 is None else L0
+        pen = contact.mesh_penetration(sim, st)
+        bad, r, _ = contact.inverted_cells(sim, st.x)
+        print(f'  {deg:4d} deg ' + ' '.join(f'{1e3 * (a - b):+7.1f}' for a, b in zip(L, L0))
+              + f'   {1e3 * chain_length(tm, st.x, mi[3]):6.1f}   >1 mm inside a bone: {sum(v[1] for v in pen.values())}'
+              f'   inverted cells: {len(bad)}', flush=True)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--seconds', type=float, default=6.0, help='measuring time per configuration [s]')
+    ap.add_argument('--hold', action='store_true', help='also the passive hold, fold off and on')
+    a = ap.parse_args()
+    from tissue_sim.core.builder import default_model
+    tm = default_model()
+    print(f'{"set":10s} {"no contact":>11s} {"bone":>9s} {"bone+fold":>10s} {"cost both":>10s} {"fold":>6s}   (steps/s per CPU s)')
+    for preset in ('paper', 'physical'):
+        P = getattr(solver.Params, preset)
+        sims = [solver.compile_model(tm, P(bone_contact=False)), solver.compile_model(tm, P(bone_contact=True)),
+                solver.compile_model(tm, P(bone_contact=True, fold_contact='knee'))]
+        best, _ = B.steps_per_s(sims, a.seconds)
+        print(f'{preset:10s} {best[0]:11.0f} {best[1]:9.0f} {best[2]:10.0f} {100 * (1 - best[2] / best[0]):9.1f}% '
+              f'{100 * (1 - best[2] / best[1]):5.1f}%', flush=True)
+    if a.hold:
+        for fold in ('', 'knee'):
+            hold(tm, fold)
+
+
+if __name__ == '__main__':
+    main()
