@@ -40,14 +40,16 @@ def test_fold_vertices_are_the_flexion_side_within_reach():
     assert solver.compile_model(tm, solver.Params.paper(fold_contact='ankle')).contact.f_idx.size == 0
 
 
-def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity():
+@pytest.mark.parametrize('plane', [True, False])
+def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity(plane):
     """The stage itself, compiled and reference, on hand-placed vertices with the knee held at 90 deg (the plane at
     45 deg, static: the poses at the sub-step's start are the same): a proximal vertex below the plane moves straight
     up the thigh onto it (x and y kept), a distal one above it moves down the shank (along +x in the world at 90 deg)
     onto it, a proximal one pushed to the front of the axis is put back behind it; inward velocities are removed,
-    outward ones kept, and no kinetic energy is added; both implementations agree to rounding."""
+    outward ones kept, and no kinetic energy is added; both implementations agree to rounding. With fold_plane
+    False only the one in front of the axis moves."""
     tm = phantom.knee(n_gaps=12)
-    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', contact_margin=0.0))
+    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', contact_margin=0.0, fold_plane=plane))
     cg = sim.contact
     R, t = _flexed(sim, 90.0)
     prox = cg.f_idx[cg.f_side > 0][:3]
@@ -65,14 +67,19 @@ def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity(
     x[prox[2]] = [0.01, 0.0, 0.05]          # proximal, above the plane but in front of the axis
     x[dist] = [-0.01, 0.0, 0.03]            # distal, 20 mm above the plane: moves along the shank's -axis = world -x
     v[dist] = [0.3, 0.0, 0.0]               # towards the thigh's side: its normal part goes
-    xr, vr = x.copy(), v.copy()
+    xr, vr, x0 = x.copy(), v.copy(), x.copy()
     ke0 = 0.5 * np.sum(v * v)
     work = C.work(cg, sim.n_segments)
     work.R0[:], work.t0[:] = R, t
     hits = C.fold_contact(1e-3, x, v, R, t, cg, work)
     reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3)
-    assert hits == 3
     assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
+    assert np.allclose(x[prox[2]], [0.0, 0.0, 0.05])
+    if not plane:
+        assert hits == 1
+        assert np.array_equal(np.delete(x, prox[2], 0), np.delete(x0, prox[2], 0))
+        return
+    assert hits == 3
     assert np.allclose(x[prox[0]], [-0.04, 0.0, 0.04]) and np.allclose(v[prox[0]], [0.5, 0, -0.5])
     assert np.allclose(x[prox[1]], [-0.03, 0.01, 0.05]) and np.allclose(v[prox[1]], [0, 0, 0.5])
     assert np.allclose(x[prox[2]], [0.0, 0.0, 0.05])
@@ -102,3 +109,21 @@ def test_fast_step_matches_the_reference_step_with_the_fold():
     assert np.abs(fast.v - ref.v).max() <= 1e-6 * np.abs(ref.v).max()
     assert np.allclose(fast.q, ref.q, rtol=1e-8, atol=1e-10)
     assert np.abs(fast.x - plain.x).max() > 1e-3
+
+
+@pytest.mark.parametrize('activation', [1.0, 0.0])
+def test_the_fold_never_gains_energy(default_tm, activation):
+    """The bundled model, physical set with the fold on: the energy criterion of
+    test_solver_default_model.test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest (hamstrings
+    fully active for 0.5 s, then constant; 5 s): no 0.5-s window's largest total energy above the previous one's or
+    the first settled one's by more than 1 % of the peak kinetic energy, and the last 0.5 s below 5 % of it."""
+    from test_solver_default_model import _energy_run
+    sim = solver.compile_model(default_tm, solver.Params.physical(fold_contact='knee'))
+    t, e, ke = _energy_run(sim, activation, 5.0)
+    w = 50
+    settled = np.flatnonzero(t >= 1.0)[0]
+    wins = e[settled:settled + (len(e) - settled) // w * w].reshape(-1, w).max(axis=1)
+    tol = 0.01 * ke.max()
+    assert np.all(np.diff(wins) <= tol), np.diff(wins).max()
+    assert wins.max() <= wins[0] + tol
+    assert ke[-w:].max() < 0.05 * ke.max(), (ke[-w:].max(), ke.max())

@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 ContactGrids = collections.namedtuple('ContactGrids', 'g_seg g_origin g_inv_h g_dims g_off g_phi c_dims c_off c_min '
-                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor')
+                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane')
 """Constants (SimModel.contact, read-only): per grid b (B grids, one per segment with bones) its segment
 g_seg (B,) int32, origin (B, 3) [m], 1/spacing g_inv_h (B,), dims (B, 3) int64, values g_phi[g_off[b]:g_off[b+1]]
 (float32, C order, negative inside); the broad phase's block minima c_min[c_off[b]:...] over blocks of BLOCK^3
@@ -31,7 +31,8 @@ The fold contact (``fold_contact``, docs/contact.md "Tissue-tissue contact in th
 its (parent, child) segments f_seg (K, 2) int32, f_geo (K, 9) = rest joint centre c0, unit proximal direction n0
 (perpendicular to the axis, away from the child), unit flexion direction e (where the child's distal end moves in
 flexion), rest frame; its vertices f_idx[f_off[k]:f_off[k+1]] (int32), their side f_side (+1 proximal, -1 distal)
-and lowest allowed signed distance to the bisector plane f_floor [m]."""
+and lowest allowed signed distance to the bisector plane f_floor [m] and to their segment's plane through the axis
+normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_plane; off: only the flexion side)."""
 ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, F, 3) (rest-frame point where a vertex was last tested) and slack (B, F) (0: test it);
@@ -464,7 +465,7 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
             s = cg.f_side[ii]
             phi = s * (nx * (x[i, 0] - cx) + ny * (x[i, 1] - cy) + nz * (x[i, 2] - cz))
             lim = cg.f_floor[ii]
-            if phi >= lim:
+            if phi >= lim or not cg.f_plane[0]:
                 continue
             o = 6 if s > 0.0 else 9             # the vertex's own segment's proximal direction
             dx, dy, dz = s * pl[o], s * pl[o + 1], s * pl[o + 2]
@@ -593,6 +594,7 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
                      float(p.contact_grid), rest, vertex_segment)
     if p.fold_contact:          # the tissue-tissue contact in the fold of the named hinges (fold_contact)
         fold = fold_vertices(tm, p.fold_contact, float(p.fold_reach), float(p.contact_margin), rest, vertex_segment)
+        fold['f_plane'] = np.array([bool(p.fold_plane)])
         for a in fold.values():
             a.flags.writeable = False
         cg = cg._replace(**fold)
@@ -600,7 +602,8 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
 
 
 NO_FOLD = dict(f_seg=np.zeros((0, 2), np.int32), f_geo=np.zeros((0, 9)), f_off=np.zeros(1, np.int64),
-               f_idx=np.zeros(0, np.int32), f_side=np.zeros(0), f_floor=np.zeros(0), f_wfloor=np.zeros(0))
+               f_idx=np.zeros(0, np.int32), f_side=np.zeros(0), f_floor=np.zeros(0), f_wfloor=np.zeros(0),
+               f_plane=np.zeros(1, np.bool_))
 
 
 def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: float, rest: np.ndarray,

@@ -100,6 +100,7 @@ class Params:
     fold_contact: str = ''                # hinges (comma-separated names or name starts) whose flexion-side soft tissue keeps to its side
                                           # of the plane bisecting the two segments (thigh/calf tissue in the popliteal fold; '' off, the paper)
     fold_reach: float = 0.15              # [m] free vertices within this distance of the hinge along the segments' axis take part
+    fold_plane: bool = True               # the fold's bisector plane (False: only the flexion side, no tissue crosses to the front)
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)

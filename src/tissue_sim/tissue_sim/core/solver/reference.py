@@ -304,7 +304,7 @@ def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
         sl = slice(cg.f_off[k], cg.f_off[k + 1])
         i, s, lim = cg.f_idx[sl], cg.f_side[sl], cg.f_floor[sl]
         phi = s * ((x[i] - c) @ n)
-        hit = phi < lim
+        hit = (phi < lim) & bool(cg.f_plane[0])                         # (Params.fold_plane)
         i, s, lim, phi = i[hit], s[hit], lim[hit], phi[hit]
         d = s[:, None] * np.where((s > 0)[:, None], up_p, up_c)        # own segment's long axis, away from the plane
         dn = s * (d @ n)
