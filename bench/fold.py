@@ -1,9 +1,11 @@
 """Fold-contact benchmark (docs/contact.md "Tissue-tissue contact in the fold"), bundled model: solver steps/s with no
 contact, bone contact, and bone + fold contact in the same run (paper and physical sets), and with --hold the passive
 hamstrings held at 0/30/60/90/120 deg (physical set, fold off and on): their length change, semitendinosus's summed
-cell lengths, free vertices > 1 mm inside a bone and inverted cells.
+cell lengths, free vertices > 1 mm inside a bone and inverted cells; with --validate DIR, `tissue-sim validate -o DIR`
+on the physical set with the fold on (fold_contact 'knee'; --side-only: fold_plane False) instead.
 
     .venv/bin/python bench/fold.py [--seconds 6] [--hold]
+    .venv/bin/python bench/fold.py --validate DIR [--side-only] [validate options, e.g. --angles 0,30,60,90]
 
 Steps/s as bench/contact.py (per CPU second, one thread, full hamstring activation, windows interleaved).
 """
@@ -63,11 +65,30 @@ def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120)):
               f'   inverted cells: {len(bad)}', flush=True)
 
 
+def validate(out_dir, side_only, rest):
+    """tissue-sim validate -o out_dir (options rest) with Params.physical() turning the fold on."""
+    physical = solver.Params.physical.__func__
+
+    def with_fold(cls, **kw):
+        kw.setdefault('fold_contact', 'knee')
+        kw.setdefault('fold_plane', not side_only)
+        return physical(cls, **kw)
+    solver.Params.physical = classmethod(with_fold)
+    from tissue_sim.cli import main as cli
+    return cli(['validate', '-o', out_dir] + rest)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--seconds', type=float, default=6.0, help='measuring time per configuration [s]')
     ap.add_argument('--hold', action='store_true', help='also the passive hold, fold off and on')
-    a = ap.parse_args()
+    ap.add_argument('--validate', metavar='DIR', help='run tissue-sim validate -o DIR with the fold on instead')
+    ap.add_argument('--side-only', action='store_true', help='with --validate: fold_plane False')
+    a, rest = ap.parse_known_args()
+    if a.validate:
+        return validate(a.validate, a.side_only, rest)
+    if rest:
+        ap.error(f'unrecognised arguments: {" ".join(rest)}')
     from tissue_sim.core.builder import default_model
     tm = default_model()
     print(f'{"set":10s} {"no contact":>11s} {"bone":>9s} {"bone+fold":>10s} {"cost both":>10s} {"fold":>6s}   (steps/s per CPU s)')
@@ -84,4 +105,4 @@ def main():
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
