@@ -127,3 +127,30 @@ def test_the_fold_never_gains_energy(default_tm, activation):
     assert np.all(np.diff(wins) <= tol), np.diff(wins).max()
     assert wins.max() <= wins[0] + tol
     assert ke[-w:].max() < 0.05 * ke.max(), (ke[-w:].max(), ke.max())
+
+
+@pytest.mark.slow
+def test_passive_hamstrings_held_at_90_deg_with_the_fold(default_tm):
+    """The bundled model, physical set with the flexion-side fold (fold_plane False), no activation, the knee locked
+    and moved at 200 deg/s to 90 deg and held 1 s: the long head, short head and semimembranosus are shorter than at
+    0 deg (measured 11.5, 10.3, 16.7 mm; without the fold 8.6, 5.2, 16.1 mm: the short head's bound of 8 mm fails
+    without it; with the plane too 12.9, 11.0, 16.7); semitendinosus is not (measured +0.5 mm; OpenSim -70 mm: its
+    cells keep their rest length and the chain buckles, docs/contact.md), kept here as the known failure: within
+    3 mm of its rest length."""
+    names = list(default_tm.muscle_names)
+    idx = [names.index(n) for n in ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus',
+                                    'semitendinosus')]
+    sim = solver.compile_model(default_tm, solver.Params.physical(fold_contact='knee', fold_plane=False))
+    j = list(default_tm.joint_names).index('knee_r')
+    st, ctl = solver.make_state(sim), solver.make_control(sim)
+    ctl.joint_lock[:] = True
+    ctl.joint_target[:] = st.q
+    L0 = solver.observe(sim, st)['muscle_lengths'][idx]
+    n = int(math.ceil(90 / 200 / sim.params.dt))
+    for i in range(n):
+        ctl.joint_target[j] = math.radians(90 * (i + 1) / n)
+        solver.step(sim, st, ctl)
+    solver.step(sim, st, ctl, n_steps=int(round(1.0 / sim.params.dt)))
+    dL = 1e3 * (solver.observe(sim, st)['muscle_lengths'][idx] - L0)
+    assert dL[0] < -8 and dL[1] < -8 and dL[2] < -12, dL
+    assert abs(dL[3]) < 3, dL
