@@ -129,7 +129,6 @@ def test_the_fold_never_gains_energy(default_tm, activation):
     assert ke[-w:].max() < 0.05 * ke.max(), (ke[-w:].max(), ke.max())
 
 
-@pytest.mark.slow
 def test_passive_hamstrings_held_at_90_deg_with_the_fold(default_tm):
     """The bundled model, physical set with the flexion-side fold (fold_plane False), no activation, the knee locked
     and moved at 200 deg/s to 90 deg and held 1 s: the long head, short head and semimembranosus are shorter than at
