@@ -153,3 +153,32 @@ def test_passive_hamstrings_held_at_90_deg_with_the_fold(default_tm):
     dL = 1e3 * (solver.observe(sim, st)['muscle_lengths'][idx] - L0)
     assert dL[0] < -8 and dL[1] < -8 and dL[2] < -12, dL
     assert abs(dL[3]) < 3, dL
+
+
+def test_sheath_holds_its_vertices_near_their_rest_line():
+    """The sheath on the knee phantom (group 'hamstrings', radius 3 mm, the knee at 90 deg, static poses): a hamstring
+    vertex 10 mm off its rest line across the thigh's axis is put back to 3 mm (its axial offset kept), its outward
+    velocity removed and its inward one kept; one 2 mm off is untouched; compiled and reference agree."""
+    tm = phantom.knee(n_gaps=12)
+    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', fold_plane=False, sheath_group='hamstrings',
+                                                       contact_margin=0.0))
+    cg = sim.contact
+    assert cg.s_idx.size and np.all(tm.rest_positions[cg.s_idx, 0] < 0)          # the hamstring column only
+    assert np.all(tm.rest_positions[cg.s_idx, 2] >= C.SHEATH_FROM - 1e-12)
+    R, t = _flexed(sim, 90.0)
+    x, v = sim.rest.copy(), np.zeros_like(sim.rest)
+    x[cg.f_idx[cg.f_side < 0]] = [-0.2, 0.0, 0.05]                                # distal fold vertices out of the way
+    a, b = cg.s_idx[0], cg.s_idx[1]
+    X = tm.rest_positions
+    x[a] = X[a] + [0.0, 0.010, 0.004]                                             # 10 mm sideways, 4 mm up
+    v[a] = [0.1, 0.5, 0.0]
+    x[b] = X[b] + [0.002, 0.0, 0.0]
+    v[b] = [0.0, 0.0, 0.0]
+    xr, vr = x.copy(), v.copy()
+    work = C.work(cg, sim.n_segments)
+    work.R0[:], work.t0[:] = R, t
+    C.fold_contact(1e-3, x, v, R, t, cg, work)
+    reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3)
+    assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
+    assert np.allclose(x[a], X[a] + [0.0, 0.003, 0.004]) and np.allclose(v[a], [0.1, 0.0, 0.0])
+    assert np.array_equal(x[b], X[b] + [0.002, 0.0, 0.0])

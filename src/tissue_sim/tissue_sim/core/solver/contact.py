@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 ContactGrids = collections.namedtuple('ContactGrids', 'g_seg g_origin g_inv_h g_dims g_off g_phi c_dims c_off c_min '
-                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane')
+                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane s_off s_idx s_X s_r')
 """Constants (SimModel.contact, read-only): per grid b (B grids, one per segment with bones) its segment
 g_seg (B,) int32, origin (B, 3) [m], 1/spacing g_inv_h (B,), dims (B, 3) int64, values g_phi[g_off[b]:g_off[b+1]]
 (float32, C order, negative inside); the broad phase's block minima c_min[c_off[b]:...] over blocks of BLOCK^3
@@ -32,7 +32,9 @@ its (parent, child) segments f_seg (K, 2) int32, f_geo (K, 9) = rest joint centr
 (perpendicular to the axis, away from the child), unit flexion direction e (where the child's distal end moves in
 flexion), rest frame; its vertices f_idx[f_off[k]:f_off[k+1]] (int32), their side f_side (+1 proximal, -1 distal)
 and lowest allowed signed distance to the bisector plane f_floor [m] and to their segment's plane through the axis
-normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_plane; off: only the flexion side)."""
+normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_plane; off: only the flexion side).
+The sheath (``sheath_group``), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
+positions s_X (N, 3) [m], kept within s_r (1,) [m] of their rest line along n0 in the parent's frame."""
 ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, F, 3) (rest-frame point where a vertex was last tested) and slack (B, F) (0: test it);
@@ -434,6 +436,50 @@ def _fold_plane(R, t, ps, cs, geo, out):
 
 
 @njit(cache=True, fastmath={'contract'})
+def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, geo):
+    """The sheath of folding hinge k (a retinaculum: docs/contact.md): each of its vertices i, taken to the parent
+    segment's rest frame (p = R^T (x - t)), keeps its offset from its rest position X_i across n0 within s_r: beyond
+    it, the offset is scaled back to s_r (the axial part kept: the vertex slides freely along the segment), and its
+    outward velocity relative to the segment (whose motion over the sub-step comes from its pose at the start,
+    cw.R0 cw.t0, and now) is removed. Returns the vertices moved."""
+    r = cg.s_r[0]
+    n0x, n0y, n0z = geo[3], geo[4], geo[5]
+    hits = 0
+    ih = 1.0 / h
+    for ii in range(cg.s_off[k], cg.s_off[k + 1]):
+        i = cg.s_idx[ii]
+        dx, dy, dz = x[i, 0] - seg_t[ps, 0], x[i, 1] - seg_t[ps, 1], x[i, 2] - seg_t[ps, 2]
+        px = seg_R[ps, 0, 0] * dx + seg_R[ps, 1, 0] * dy + seg_R[ps, 2, 0] * dz
+        py = seg_R[ps, 0, 1] * dx + seg_R[ps, 1, 1] * dy + seg_R[ps, 2, 1] * dz
+        pz = seg_R[ps, 0, 2] * dx + seg_R[ps, 1, 2] * dy + seg_R[ps, 2, 2] * dz
+        ex, ey, ez = px - cg.s_X[ii, 0], py - cg.s_X[ii, 1], pz - cg.s_X[ii, 2]
+        ax = ex * n0x + ey * n0y + ez * n0z
+        lx, ly, lz = ex - ax * n0x, ey - ax * n0y, ez - ax * n0z
+        ll = math.sqrt(lx * lx + ly * ly + lz * lz)
+        if ll <= r:
+            continue
+        hits += 1
+        # the segment's velocity at the vertex: (x - (R0 p + t0)) / h, p before the projection
+        bx = (x[i, 0] - (cw.R0[ps, 0, 0] * px + cw.R0[ps, 0, 1] * py + cw.R0[ps, 0, 2] * pz + cw.t0[ps, 0])) * ih
+        by = (x[i, 1] - (cw.R0[ps, 1, 0] * px + cw.R0[ps, 1, 1] * py + cw.R0[ps, 1, 2] * pz + cw.t0[ps, 1])) * ih
+        bz = (x[i, 2] - (cw.R0[ps, 2, 0] * px + cw.R0[ps, 2, 1] * py + cw.R0[ps, 2, 2] * pz + cw.t0[ps, 2])) * ih
+        # outward unit u = R lat / |lat| (world); the vertex moves by (r - |lat|) u
+        ux = (seg_R[ps, 0, 0] * lx + seg_R[ps, 0, 1] * ly + seg_R[ps, 0, 2] * lz) / ll
+        uy = (seg_R[ps, 1, 0] * lx + seg_R[ps, 1, 1] * ly + seg_R[ps, 1, 2] * lz) / ll
+        uz = (seg_R[ps, 2, 0] * lx + seg_R[ps, 2, 1] * ly + seg_R[ps, 2, 2] * lz) / ll
+        push = r - ll
+        x[i, 0] += push * ux
+        x[i, 1] += push * uy
+        x[i, 2] += push * uz
+        vn = (v[i, 0] - bx) * ux + (v[i, 1] - by) * uy + (v[i, 2] - bz) * uz
+        if vn > 0.0:
+            v[i, 0] -= vn * ux
+            v[i, 1] -= vn * uy
+            v[i, 2] -= vn * uz
+    return hits
+
+
+@njit(cache=True, fastmath={'contract'})
 def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
     """Stage 4a of the step, the tissue-tissue contact in the fold of each folding hinge (docs/contact.md), in place
     on (x, v): while the hinge is flexed, a fold vertex i of side s (+1 proximal, -1 distal) must keep
@@ -453,6 +499,7 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
     for k in range(K):
         ps, cs = cg.f_seg[k, 0], cg.f_seg[k, 1]
         geo = cg.f_geo[k]
+        hits += _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, geo)
         if _fold_plane(seg_R, seg_t, ps, cs, geo, pl) <= 0.0:
             continue                            # straight or hyperextended: no fold
         _fold_plane(cw.R0, cw.t0, ps, cs, geo, p0)
@@ -570,6 +617,36 @@ def fold_vertices(tm, joints: str, reach: float, margin: float, rest: np.ndarray
                 f_floor=cat(floor, np.float64), f_wfloor=cat(wfloor, np.float64))
 
 
+SHEATH_FROM = 0.01      # [m] the sheath holds a group's vertices from this height above the hinge centre (along n0) up
+
+
+def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment) -> dict:
+    """The sheath's constants (s_off, s_idx, s_X, s_r; ContactGrids) for the folding hinges in fold (fold_vertices):
+    per hinge, the free vertices of the cells of the muscles of group `group` (a muscle group or name; '' none)
+    whose rest height above the hinge centre along n0 is in [SHEATH_FROM, reach] (the part of the thigh above the knee:
+    the chain may bend over the condyles below it)."""
+    vs = np.asarray(vertex_segment)
+    names = [g.strip() for g in str(group).split(',') if g.strip()]
+    mus = [m for m in range(len(tm.muscle_names)) if tm.muscle_groups[m] in names or tm.muscle_names[m] in names]
+    cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
+    cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
+                     if len(cells) else np.zeros(0, np.int64))
+    cand = cand[vs[cand] < 0]
+    off, idx = [0], []
+    for k in range(len(fold['f_seg'])):
+        c0, n0 = fold['f_geo'][k, :3], fold['f_geo'][k, 3:6]
+        hgt = (rest[cand] - c0) @ n0
+        sel = cand[(hgt >= SHEATH_FROM) & (hgt <= reach)].astype(np.int32)
+        idx.append(sel)
+        off.append(off[-1] + len(sel))
+    i = np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32)
+    out = dict(s_off=np.array(off, np.int64), s_idx=i, s_X=np.ascontiguousarray(rest[i], np.float64),
+               s_r=np.array([float(radius)]))
+    for a in out.values():
+        a.flags.writeable = False
+    return out
+
+
 # ------------------------------------------------------------------------------- compile time
 _SDF_CACHE: dict = {}
 
@@ -595,6 +672,8 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
     if p.fold_contact:          # the tissue-tissue contact in the fold of the named hinges (fold_contact)
         fold = fold_vertices(tm, p.fold_contact, float(p.fold_reach), float(p.contact_margin), rest, vertex_segment)
         fold['f_plane'] = np.array([bool(p.fold_plane)])
+        fold.update(sheath_vertices(tm, fold, p.sheath_group, float(p.sheath_radius), float(p.fold_reach), rest,
+                                    vertex_segment))
         for a in fold.values():
             a.flags.writeable = False
         cg = cg._replace(**fold)
@@ -603,7 +682,8 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
 
 NO_FOLD = dict(f_seg=np.zeros((0, 2), np.int32), f_geo=np.zeros((0, 9)), f_off=np.zeros(1, np.int64),
                f_idx=np.zeros(0, np.int32), f_side=np.zeros(0), f_floor=np.zeros(0), f_wfloor=np.zeros(0),
-               f_plane=np.zeros(1, np.bool_))
+               f_plane=np.zeros(1, np.bool_), s_off=np.zeros(1, np.int64), s_idx=np.zeros(0, np.int32),
+               s_X=np.zeros((0, 3)), s_r=np.zeros(1))
 
 
 def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: float, rest: np.ndarray,

@@ -101,6 +101,8 @@ class Params:
                                           # of the plane bisecting the two segments (thigh/calf tissue in the popliteal fold; '' off, the paper)
     fold_reach: float = 0.15              # [m] free vertices within this distance of the hinge along the segments' axis take part
     fold_plane: bool = True               # the fold's bisector plane (False: only the flexion side, no tissue crosses to the front)
+    sheath_group: str = ''                # muscle group(s)/names held in a sheath above each folding hinge (a retinaculum, e.g. 'hamstrings'; '' none)
+    sheath_radius: float = 3e-3           # [m] how far a sheathed vertex may leave its rest line along the segment, across it
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
@@ -173,6 +175,7 @@ class Params:
         need(self.contact_friction >= 0, 'contact_friction must be >= 0')
         need(2e-4 <= self.contact_grid <= 0.01, 'contact_grid must be in [2e-4, 0.01] m')
         need(0 < self.fold_reach <= 1, 'fold_reach must be in (0, 1] m')
+        need(0 < self.sheath_radius <= 0.05, 'sheath_radius must be in (0, 0.05] m')
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')

@@ -295,8 +295,25 @@ def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
     the axis bisecting the segments, c a point of the axis; along s n where that direction's s n-component is below
     contact.FOLD_MIN_COS), and their velocity loses the inward part of s (n . v + the plane's rate at x), the plane's
     rate from its pose at the sub-step's start (R0, t0) and now; then each keeps to the flexion side of its own
-    segment's plane through the axis (below). contact.fold_contact is the same stage compiled."""
+    segment's plane through the axis (below). First, whatever the angle, the sheath (Params.sheath_group). contact.fold_contact is
+    the same stage compiled."""
     for k in range(cg.f_seg.shape[0]):
+        # the sheath: its vertices keep their offset across n0 from their rest position, in the parent's rest frame,
+        # within s_r (scaled back onto it, the axial part kept); their outward velocity relative to the parent goes
+        ps, n0 = cg.f_seg[k, 0], cg.f_geo[k, 3:6]
+        sl = slice(cg.s_off[k], cg.s_off[k + 1])
+        i = cg.s_idx[sl]
+        p = (x[i] - seg_t[ps]) @ seg_R[ps]                                 # rest-frame points R^T (x - t)
+        e = p - cg.s_X[sl]
+        lat = e - (e @ n0)[:, None] * n0
+        ll = np.linalg.norm(lat, axis=1)
+        out = ll > cg.s_r[0]
+        i, p, lat, ll = i[out], p[out], lat[out], ll[out]
+        v_seg = (x[i] - (p @ R0[ps].T + t0[ps])) / h
+        u = (lat / ll[:, None]) @ seg_R[ps].T
+        x[i] += (cg.s_r[0] - ll)[:, None] * u
+        vn = np.sum((v[i] - v_seg) * u, axis=1)
+        v[i] -= np.maximum(vn, 0.0)[:, None] * u
         n, c, up_p, up_c, flex = fold_plane(cg, k, seg_R, seg_t)
         if flex <= 0:
             continue
