@@ -88,13 +88,14 @@ def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity(
 
 
 def test_fast_step_matches_the_reference_step_with_the_fold():
-    """step() and reference_step with bone contact and the fold on give the same trajectory on the knee phantom with
-    bones (full hamstring activation, the knee flexes to about 1 rad, the fold engages: the run differs from one
-    without it), to the tolerances of test_solver_contact's comparison (positions 1e-8 of the motion, velocities
+    """step() and reference_step with bone contact, the fold and a 1-mm sheath on the hamstring on give the same
+    trajectory on the knee phantom with bones (full hamstring activation, the knee flexes to about 1 rad, the fold
+    and the sheath engage: the run differs from one without them), to the tolerances of test_solver_contact's comparison (positions 1e-8 of the motion, velocities
     1e-6 of the largest)."""
     tm = _knee_with_bones()
     kw = dict(rotation_iterations=50, bone_contact=True)
-    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', **kw))
+    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', sheath_group='hamstrings',
+                                                       sheath_radius=1e-3, **kw))
     off = solver.compile_model(tm, solver.Params.paper(**kw))
     fast, ref, plain = solver.make_state(sim), solver.make_state(sim), solver.make_state(off)
     ctrl = solver.make_control(sim)
@@ -112,13 +113,15 @@ def test_fast_step_matches_the_reference_step_with_the_fold():
 
 
 @pytest.mark.parametrize('activation', [1.0, 0.0])
-def test_the_fold_never_gains_energy(default_tm, activation):
-    """The bundled model, physical set with the fold on: the energy criterion of
+@pytest.mark.parametrize('sheath', ['', 'hamstrings'])
+def test_the_fold_never_gains_energy(default_tm, activation, sheath):
+    """The bundled model, physical set with the fold on (and a 1-mm sheath on the hamstrings): the energy criterion of
     test_solver_default_model.test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest (hamstrings
     fully active for 0.5 s, then constant; 5 s): no 0.5-s window's largest total energy above the previous one's or
     the first settled one's by more than 1 % of the peak kinetic energy, and the last 0.5 s below 5 % of it."""
     from test_solver_default_model import _energy_run
-    sim = solver.compile_model(default_tm, solver.Params.physical(fold_contact='knee'))
+    sim = solver.compile_model(default_tm, solver.Params.physical(fold_contact='knee', sheath_group=sheath,
+                                                                  sheath_radius=1e-3))
     t, e, ke = _energy_run(sim, activation, 5.0)
     w = 50
     settled = np.flatnonzero(t >= 1.0)[0]
