@@ -6,7 +6,7 @@ on the physical set with the fold on (fold_contact 'knee'; --side-only: fold_pla
 in a sheath of radius R [m]) instead.
 
     .venv/bin/python bench/fold.py [--seconds 6] [--hold]
-    .venv/bin/python bench/fold.py --validate DIR [--side-only] [--sheath R] [validate options, e.g. --angles 0,30,60,90]
+    .venv/bin/python bench/fold.py --validate DIR [--side-only] [--sheath R [--below]] [validate options, e.g. --angles 0,30,60,90]
 
 Steps/s as bench/contact.py (per CPU second, one thread, full hamstring activation, windows interleaved).
 """
@@ -66,7 +66,7 @@ def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120)):
               f'   inverted cells: {len(bad)}', flush=True)
 
 
-def validate(out_dir, side_only, sheath, rest):
+def validate(out_dir, side_only, sheath, below, rest):
     """tissue-sim validate -o out_dir (options rest) with Params.physical() turning the fold on."""
     physical = solver.Params.physical.__func__
 
@@ -76,6 +76,7 @@ def validate(out_dir, side_only, sheath, rest):
         if sheath:
             kw.setdefault('sheath_group', 'hamstrings')
             kw.setdefault('sheath_radius', sheath)
+            kw.setdefault('sheath_below', below)
         return physical(cls, **kw)
     solver.Params.physical = classmethod(with_fold)
     from tissue_sim.cli import main as cli
@@ -88,10 +89,11 @@ def main():
     ap.add_argument('--hold', action='store_true', help='also the passive hold, fold off and on')
     ap.add_argument('--validate', metavar='DIR', help='run tissue-sim validate -o DIR with the fold on instead')
     ap.add_argument('--side-only', action='store_true', help='with --validate: fold_plane False')
+    ap.add_argument('--below', action='store_true', help='with --sheath: also below the knee (sheath_below)')
     ap.add_argument('--sheath', type=float, default=0.0, metavar='R', help='with --validate: the hamstrings in a sheath of radius R [m]')
     a, rest = ap.parse_known_args()
     if a.validate:
-        return validate(a.validate, a.side_only, a.sheath, rest)
+        return validate(a.validate, a.side_only, a.sheath, a.below, rest)
     if rest:
         ap.error(f'unrecognised arguments: {" ".join(rest)}')
     from tissue_sim.core.builder import default_model

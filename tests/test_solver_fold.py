@@ -95,7 +95,7 @@ def test_fast_step_matches_the_reference_step_with_the_fold():
     tm = _knee_with_bones()
     kw = dict(rotation_iterations=50, bone_contact=True)
     sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', sheath_group='hamstrings',
-                                                       sheath_radius=1e-3, **kw))
+                                                       sheath_radius=1e-3, sheath_below=True, **kw))
     off = solver.compile_model(tm, solver.Params.paper(**kw))
     fast, ref, plain = solver.make_state(sim), solver.make_state(sim), solver.make_state(off)
     ctrl = solver.make_control(sim)
@@ -121,7 +121,7 @@ def test_the_fold_never_gains_energy(default_tm, activation, sheath):
     the first settled one's by more than 1 % of the peak kinetic energy, and the last 0.5 s below 5 % of it."""
     from test_solver_default_model import _energy_run
     sim = solver.compile_model(default_tm, solver.Params.physical(fold_contact='knee', sheath_group=sheath,
-                                                                  sheath_radius=1e-3))
+                                                                  sheath_radius=1e-3, sheath_below=True))
     t, e, ke = _energy_run(sim, activation, 5.0)
     w = 50
     settled = np.flatnonzero(t >= 1.0)[0]
@@ -185,3 +185,30 @@ def test_sheath_holds_its_vertices_near_their_rest_line():
     assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
     assert np.allclose(x[a], X[a] + [0.0, 0.003, 0.004]) and np.allclose(v[a], [0.1, 0.0, 0.0])
     assert np.array_equal(x[b], X[b] + [0.002, 0.0, 0.0])
+
+
+def test_sheath_below_holds_distal_vertices_in_the_shank_frame():
+    """sheath_below: the hamstring vertices below the knee are held in the shank's frame. With the knee at 90 deg, one
+    placed at its posed rest position plus 5 mm across the shank's axis (world x at 90 deg is along the shank's axis,
+    world y across it) goes back to 1 mm across; compiled and reference agree."""
+    tm = phantom.knee(n_gaps=12)
+    sim = solver.compile_model(tm, solver.Params.paper(fold_contact='knee', fold_plane=False, sheath_group='hamstrings',
+                                                       sheath_radius=1e-3, sheath_below=True, contact_margin=0.0))
+    cg = sim.contact
+    assert np.array_equal(cg.s_side, np.where(cg.s_X[:, 2] > 0, 1.0, -1.0)) and np.any(cg.s_side < 0)
+    R, t = _flexed(sim, 90.0)
+    x = sim.rest.copy()
+    low = cg.s_idx[cg.s_side < 0]
+    x[low] = sim.rest[low] @ R[1].T + t[1]                        # the shank's vertices where the shank has them
+    x[cg.f_idx[cg.f_side < 0]] = sim.rest[cg.f_idx[cg.f_side < 0]] @ R[1].T + t[1]
+    v = np.zeros_like(x)
+    i = low[0]
+    posed = x[i].copy()
+    x[i] += [0.0, 0.005, 0.0]
+    xr, vr = x.copy(), v.copy()
+    work = C.work(cg, sim.n_segments)
+    work.R0[:], work.t0[:] = R, t
+    C.fold_contact(1e-3, x, v, R, t, cg, work)
+    reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3)
+    assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
+    assert np.allclose(x[i], posed + [0.0, 0.001, 0.0])

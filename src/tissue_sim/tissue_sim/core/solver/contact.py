@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 ContactGrids = collections.namedtuple('ContactGrids', 'g_seg g_origin g_inv_h g_dims g_off g_phi c_dims c_off c_min '
-                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane s_off s_idx s_X s_r')
+                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane s_off s_idx s_X s_side s_r')
 """Constants (SimModel.contact, read-only): per grid b (B grids, one per segment with bones) its segment
 g_seg (B,) int32, origin (B, 3) [m], 1/spacing g_inv_h (B,), dims (B, 3) int64, values g_phi[g_off[b]:g_off[b+1]]
 (float32, C order, negative inside); the broad phase's block minima c_min[c_off[b]:...] over blocks of BLOCK^3
@@ -34,7 +34,8 @@ flexion), rest frame; its vertices f_idx[f_off[k]:f_off[k+1]] (int32), their sid
 and lowest allowed signed distance to the bisector plane f_floor [m] and to their segment's plane through the axis
 normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_plane; off: only the flexion side).
 The sheath (``sheath_group``), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
-positions s_X (N, 3) [m], kept within s_r (1,) [m] of their rest line along n0 in the parent's frame."""
+positions s_X (N, 3) [m] and side s_side (+1: held in the parent's frame, above the hinge; -1: the child's, below),
+kept within s_r (1,) [m] of their rest line along n0 in that segment's frame."""
 ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, F, 3) (rest-frame point where a vertex was last tested) and slack (B, F) (0: test it);
@@ -436,9 +437,9 @@ def _fold_plane(R, t, ps, cs, geo, out):
 
 
 @njit(cache=True, fastmath={'contract'})
-def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, geo):
-    """The sheath of folding hinge k (a retinaculum: docs/contact.md): each of its vertices i, taken to the parent
-    segment's rest frame (p = R^T (x - t)), keeps its offset from its rest position X_i across n0 within s_r: beyond
+def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo):
+    """The sheath of folding hinge k (a retinaculum: docs/contact.md): each of its vertices i, taken to its segment's
+    rest frame (p = R^T (x - t); the parent p_seg for side +1, the child c_seg for -1), keeps its offset from its rest position X_i across n0 within s_r: beyond
     it, the offset is scaled back to s_r (the axial part kept: the vertex slides freely along the segment), and its
     outward velocity relative to the segment (whose motion over the sub-step comes from its pose at the start,
     cw.R0 cw.t0, and now) is removed. Returns the vertices moved."""
@@ -448,6 +449,7 @@ def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, geo):
     ih = 1.0 / h
     for ii in range(cg.s_off[k], cg.s_off[k + 1]):
         i = cg.s_idx[ii]
+        ps = p_seg if cg.s_side[ii] > 0.0 else c_seg
         dx, dy, dz = x[i, 0] - seg_t[ps, 0], x[i, 1] - seg_t[ps, 1], x[i, 2] - seg_t[ps, 2]
         px = seg_R[ps, 0, 0] * dx + seg_R[ps, 1, 0] * dy + seg_R[ps, 2, 0] * dz
         py = seg_R[ps, 0, 1] * dx + seg_R[ps, 1, 1] * dy + seg_R[ps, 2, 1] * dz
@@ -499,7 +501,7 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
     for k in range(K):
         ps, cs = cg.f_seg[k, 0], cg.f_seg[k, 1]
         geo = cg.f_geo[k]
-        hits += _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, geo)
+        hits += _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, cs, geo)
         if _fold_plane(seg_R, seg_t, ps, cs, geo, pl) <= 0.0:
             continue                            # straight or hyperextended: no fold
         _fold_plane(cw.R0, cw.t0, ps, cs, geo, p0)
@@ -620,11 +622,13 @@ def fold_vertices(tm, joints: str, reach: float, margin: float, rest: np.ndarray
 SHEATH_FROM = 0.01      # [m] the sheath holds a group's vertices from this height above the hinge centre (along n0) up
 
 
-def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment) -> dict:
+def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment,
+                    below: bool = False) -> dict:
     """The sheath's constants (s_off, s_idx, s_X, s_r; ContactGrids) for the folding hinges in fold (fold_vertices):
     per hinge, the free vertices of the cells of the muscles of group `group` (a muscle group or name; '' none)
     whose rest height above the hinge centre along n0 is in [SHEATH_FROM, reach] (the part of the thigh above the knee:
-    the chain may bend over the condyles below it)."""
+    the chain may bend over the condyles below it), held in the parent's frame (side +1); with below, also those
+    from SHEATH_FROM to reach below it, held in the child's frame (side -1)."""
     vs = np.asarray(vertex_segment)
     names = [g.strip() for g in str(group).split(',') if g.strip()]
     mus = [m for m in range(len(tm.muscle_names)) if tm.muscle_groups[m] in names or tm.muscle_names[m] in names]
@@ -632,16 +636,17 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
     cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
                      if len(cells) else np.zeros(0, np.int64))
     cand = cand[vs[cand] < 0]
-    off, idx = [0], []
+    off, idx, side = [0], [], []
     for k in range(len(fold['f_seg'])):
         c0, n0 = fold['f_geo'][k, :3], fold['f_geo'][k, 3:6]
         hgt = (rest[cand] - c0) @ n0
-        sel = cand[(hgt >= SHEATH_FROM) & (hgt <= reach)].astype(np.int32)
-        idx.append(sel)
-        off.append(off[-1] + len(sel))
+        sel = (np.abs(hgt) >= SHEATH_FROM) & (np.abs(hgt) <= reach) & ((hgt > 0) | bool(below))
+        idx.append(cand[sel].astype(np.int32))
+        side.append(np.where(hgt[sel] > 0, 1.0, -1.0))
+        off.append(off[-1] + int(sel.sum()))
     i = np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32)
     out = dict(s_off=np.array(off, np.int64), s_idx=i, s_X=np.ascontiguousarray(rest[i], np.float64),
-               s_r=np.array([float(radius)]))
+               s_side=np.concatenate(side) if side else np.zeros(0), s_r=np.array([float(radius)]))
     for a in out.values():
         a.flags.writeable = False
     return out
@@ -673,7 +678,7 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
         fold = fold_vertices(tm, p.fold_contact, float(p.fold_reach), float(p.contact_margin), rest, vertex_segment)
         fold['f_plane'] = np.array([bool(p.fold_plane)])
         fold.update(sheath_vertices(tm, fold, p.sheath_group, float(p.sheath_radius), float(p.fold_reach), rest,
-                                    vertex_segment))
+                                    vertex_segment, p.sheath_below))
         for a in fold.values():
             a.flags.writeable = False
         cg = cg._replace(**fold)
@@ -683,7 +688,7 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
 NO_FOLD = dict(f_seg=np.zeros((0, 2), np.int32), f_geo=np.zeros((0, 9)), f_off=np.zeros(1, np.int64),
                f_idx=np.zeros(0, np.int32), f_side=np.zeros(0), f_floor=np.zeros(0), f_wfloor=np.zeros(0),
                f_plane=np.zeros(1, np.bool_), s_off=np.zeros(1, np.int64), s_idx=np.zeros(0, np.int32),
-               s_X=np.zeros((0, 3)), s_r=np.zeros(1))
+               s_X=np.zeros((0, 3)), s_side=np.zeros(0), s_r=np.zeros(1))
 
 
 def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: float, rest: np.ndarray,

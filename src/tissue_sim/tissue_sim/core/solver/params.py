@@ -103,6 +103,7 @@ class Params:
     fold_plane: bool = True               # the fold's bisector plane (False: only the flexion side, no tissue crosses to the front)
     sheath_group: str = ''                # muscle group(s)/names held in a sheath above each folding hinge (a retinaculum, e.g. 'hamstrings'; '' none)
     sheath_radius: float = 3e-3           # [m] how far a sheathed vertex may leave its rest line along the segment, across it
+    sheath_below: bool = False            # the sheath also below the hinge, in the child segment's frame
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)

@@ -300,20 +300,22 @@ def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
     for k in range(cg.f_seg.shape[0]):
         # the sheath: its vertices keep their offset across n0 from their rest position, in the parent's rest frame,
         # within s_r (scaled back onto it, the axial part kept); their outward velocity relative to the parent goes
-        ps, n0 = cg.f_seg[k, 0], cg.f_geo[k, 3:6]
-        sl = slice(cg.s_off[k], cg.s_off[k + 1])
-        i = cg.s_idx[sl]
-        p = (x[i] - seg_t[ps]) @ seg_R[ps]                                 # rest-frame points R^T (x - t)
-        e = p - cg.s_X[sl]
-        lat = e - (e @ n0)[:, None] * n0
-        ll = np.linalg.norm(lat, axis=1)
-        out = ll > cg.s_r[0]
-        i, p, lat, ll = i[out], p[out], lat[out], ll[out]
-        v_seg = (x[i] - (p @ R0[ps].T + t0[ps])) / h
-        u = (lat / ll[:, None]) @ seg_R[ps].T
-        x[i] += (cg.s_r[0] - ll)[:, None] * u
-        vn = np.sum((v[i] - v_seg) * u, axis=1)
-        v[i] -= np.maximum(vn, 0.0)[:, None] * u
+        n0 = cg.f_geo[k, 3:6]
+        for side, ps in ((1.0, cg.f_seg[k, 0]), (-1.0, cg.f_seg[k, 1])):   # held in the parent's / the child's frame
+            sl = np.arange(cg.s_off[k], cg.s_off[k + 1])
+            sl = sl[cg.s_side[sl] == side]
+            i = cg.s_idx[sl]
+            p = (x[i] - seg_t[ps]) @ seg_R[ps]                             # rest-frame points R^T (x - t)
+            e = p - cg.s_X[sl]
+            lat = e - (e @ n0)[:, None] * n0
+            ll = np.linalg.norm(lat, axis=1)
+            out = ll > cg.s_r[0]
+            i, p, lat, ll = i[out], p[out], lat[out], ll[out]
+            v_seg = (x[i] - (p @ R0[ps].T + t0[ps])) / h
+            u = (lat / ll[:, None]) @ seg_R[ps].T
+            x[i] += (cg.s_r[0] - ll)[:, None] * u
+            vn = np.sum((v[i] - v_seg) * u, axis=1)
+            v[i] -= np.maximum(vn, 0.0)[:, None] * u
         n, c, up_p, up_c, flex = fold_plane(cg, k, seg_R, seg_t)
         if flex <= 0:
             continue
