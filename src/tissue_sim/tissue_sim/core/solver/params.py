@@ -121,7 +121,8 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0)
+                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0,
+                    fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -131,6 +132,11 @@ class Params:
         # and ankle fat cells at V/V0 0.56..5, omega h 2.04 at 1.4: divergence at step ~440 with or without
         # force-velocity); at 5 the ankle stays within -6..+2 deg. (tests/test_solver_default_model.py::
         # test_physical_without_force_velocity_is_stable)
+        # fold_contact knee without the plane, a 1-mm hamstring sheath above the knee (docs/contact.md): held passively
+        # the hamstrings shorten with flexion (semitendinosus -49 mm at 90 deg, was -0.1; OpenSim -70), `tissue-sim
+        # validate`: 57 of 338 signs wrong (70 without), 9 of 24 hamstring moment arms within 25 % (8), every hamstring
+        # >= 60 % of Fmax (semimembranosus 53 -> 70 %); the plane (fold_plane) and the sheath below the knee were
+        # measured and left off: the active knee then stops short of 120 deg
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
         # falls as the knee flexes, and full co-contraction at 30 deg gave 0.8 N m/rad, below the passive knee's 2.6
