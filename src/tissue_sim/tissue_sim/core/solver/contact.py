@@ -11,6 +11,11 @@ vertex closer than its floor (the margin) back to it along the gradient, removin
 relative to the bone (Coulomb friction optional). Its mutable buffers (the segment poses at the
 sub-step's start, the broad phase's records) are a ``ContactWork`` owned by the State being stepped
 (``step.Workspace``), so two states stepping one model share nothing.
+
+Stage 4a, before it, ``fold_contact``: the tissue-tissue contact in the fold of each hinge named in
+``Params.fold_contact`` (flexion-side tissue kept behind the axis and, with ``fold_plane``, on its side of the plane
+bisecting the two segments) and the sheath of ``Params.sheath_group`` (a retinaculum holding a muscle group near its
+rest line above the hinge); docs/contact.md "Tissue-tissue contact in the fold, and the hamstring sheath".
 """
 from __future__ import annotations
 
