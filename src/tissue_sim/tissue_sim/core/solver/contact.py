@@ -11,6 +11,11 @@ vertex closer than its floor (the margin) back to it along the gradient, removin
 relative to the bone (Coulomb friction optional). Its mutable buffers (the segment poses at the
 sub-step's start, the broad phase's records) are a ``ContactWork`` owned by the State being stepped
 (``step.Workspace``), so two states stepping one model share nothing.
+
+Stage 4a, before it, ``fold_contact``: the tissue-tissue contact in the fold of each hinge named in
+``Params.fold_contact`` (flexion-side tissue kept behind the axis and, with ``fold_plane``, on its side of the plane
+bisecting the two segments) and the sheath of ``Params.sheath_group`` (a retinaculum holding a muscle group near its
+rest line above the hinge); docs/contact.md "Tissue-tissue contact in the fold, and the hamstring sheath".
 """
 from __future__ import annotations
 
@@ -21,12 +26,21 @@ import numpy as np
 from numba import njit
 
 ContactGrids = collections.namedtuple('ContactGrids', 'g_seg g_origin g_inv_h g_dims g_off g_phi c_dims c_off c_min '
-                                      'floor free_idx par')
+                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane s_off s_idx s_X s_side s_r')
 """Constants (SimModel.contact, read-only): per grid b (B grids, one per segment with bones) its segment
 g_seg (B,) int32, origin (B, 3) [m], 1/spacing g_inv_h (B,), dims (B, 3) int64, values g_phi[g_off[b]:g_off[b+1]]
 (float32, C order, negative inside); the broad phase's block minima c_min[c_off[b]:...] over blocks of BLOCK^3
 cells, block dims c_dims (B, 3); each free vertex's lowest allowed distance floor (V,) [m] (the margin, or its
-distance at rest where that is smaller); the free vertices free_idx (F,) int32; par = (margin, friction)."""
+distance at rest where that is smaller); the free vertices free_idx (F,) int32; par = (margin, friction).
+The fold contact (``fold_contact``, docs/contact.md "Tissue-tissue contact in the fold"), per folding hinge k (K):
+its (parent, child) segments f_seg (K, 2) int32, f_geo (K, 9) = rest joint centre c0, unit proximal direction n0
+(perpendicular to the axis, away from the child), unit flexion direction e (where the child's distal end moves in
+flexion), rest frame; its vertices f_idx[f_off[k]:f_off[k+1]] (int32), their side f_side (+1 proximal, -1 distal)
+and lowest allowed signed distance to the bisector plane f_floor [m] and to their segment's plane through the axis
+normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_plane; off: only the flexion side).
+The sheath (``sheath_group``), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
+positions s_X (N, 3) [m] and side s_side (+1: held in the parent's frame, above the hinge; -1: the child's, below),
+kept within s_r (1,) [m] of their rest line along n0 in that segment's frame."""
 ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, F, 3) (rest-frame point where a vertex was last tested) and slack (B, F) (0: test it);
@@ -403,6 +417,246 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw):
     return hits
 
 
+# ------------------------------------------------------------------------------- the fold (tissue-tissue) stage
+FOLD_MIN_COS = 0.25     # below this cos(theta/2) (knee flexed beyond ~150 deg) a fold vertex is pushed along the plane's normal
+
+
+@njit(cache=True, inline='always')
+def _fold_plane(R, t, ps, cs, geo, out):
+    """The bisector plane of a folding hinge in the pose (R, t): out = (unit normal n (3), a point on the axis c (3),
+    the parent's proximal direction R_p n0 (3), the child's R_c n0 (3)); returns the flexion -(R_c n0) . (R_p e)
+    (> 0: flexed, the plane is the bisector of the two segments' long axes)."""
+    for r in range(3):
+        out[6 + r] = R[ps, r, 0] * geo[3] + R[ps, r, 1] * geo[4] + R[ps, r, 2] * geo[5]
+        out[9 + r] = R[cs, r, 0] * geo[3] + R[cs, r, 1] * geo[4] + R[cs, r, 2] * geo[5]
+        out[3 + r] = R[ps, r, 0] * geo[0] + R[ps, r, 1] * geo[1] + R[ps, r, 2] * geo[2] + t[ps, r]
+    nx, ny, nz = out[6] + out[9], out[7] + out[10], out[8] + out[11]
+    nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn > 0.0:
+        nx, ny, nz = nx / nn, ny / nn, nz / nn
+    out[0], out[1], out[2] = nx, ny, nz
+    flex = 0.0
+    for r in range(3):
+        flex -= out[9 + r] * (R[ps, r, 0] * geo[6] + R[ps, r, 1] * geo[7] + R[ps, r, 2] * geo[8])
+    return flex
+
+
+@njit(cache=True, fastmath={'contract'})
+def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo):
+    """The sheath of folding hinge k (a retinaculum: docs/contact.md): each of its vertices i, taken to its segment's
+    rest frame (p = R^T (x - t); the parent p_seg for side +1, the child c_seg for -1), keeps its offset from its rest position X_i across n0 within s_r: beyond
+    it, the offset is scaled back to s_r (the axial part kept: the vertex slides freely along the segment), and its
+    outward velocity relative to the segment (whose motion over the sub-step comes from its pose at the start,
+    cw.R0 cw.t0, and now) is removed. Returns the vertices moved."""
+    r = cg.s_r[0]
+    n0x, n0y, n0z = geo[3], geo[4], geo[5]
+    hits = 0
+    ih = 1.0 / h
+    for ii in range(cg.s_off[k], cg.s_off[k + 1]):
+        i = cg.s_idx[ii]
+        ps = p_seg if cg.s_side[ii] > 0.0 else c_seg
+        dx, dy, dz = x[i, 0] - seg_t[ps, 0], x[i, 1] - seg_t[ps, 1], x[i, 2] - seg_t[ps, 2]
+        px = seg_R[ps, 0, 0] * dx + seg_R[ps, 1, 0] * dy + seg_R[ps, 2, 0] * dz
+        py = seg_R[ps, 0, 1] * dx + seg_R[ps, 1, 1] * dy + seg_R[ps, 2, 1] * dz
+        pz = seg_R[ps, 0, 2] * dx + seg_R[ps, 1, 2] * dy + seg_R[ps, 2, 2] * dz
+        ex, ey, ez = px - cg.s_X[ii, 0], py - cg.s_X[ii, 1], pz - cg.s_X[ii, 2]
+        ax = ex * n0x + ey * n0y + ez * n0z
+        lx, ly, lz = ex - ax * n0x, ey - ax * n0y, ez - ax * n0z
+        ll = math.sqrt(lx * lx + ly * ly + lz * lz)
+        if ll <= r:
+            continue
+        hits += 1
+        # the segment's velocity at the vertex: (x - (R0 p + t0)) / h, p before the projection
+        bx = (x[i, 0] - (cw.R0[ps, 0, 0] * px + cw.R0[ps, 0, 1] * py + cw.R0[ps, 0, 2] * pz + cw.t0[ps, 0])) * ih
+        by = (x[i, 1] - (cw.R0[ps, 1, 0] * px + cw.R0[ps, 1, 1] * py + cw.R0[ps, 1, 2] * pz + cw.t0[ps, 1])) * ih
+        bz = (x[i, 2] - (cw.R0[ps, 2, 0] * px + cw.R0[ps, 2, 1] * py + cw.R0[ps, 2, 2] * pz + cw.t0[ps, 2])) * ih
+        # outward unit u = R lat / |lat| (world); the vertex moves by (r - |lat|) u
+        ux = (seg_R[ps, 0, 0] * lx + seg_R[ps, 0, 1] * ly + seg_R[ps, 0, 2] * lz) / ll
+        uy = (seg_R[ps, 1, 0] * lx + seg_R[ps, 1, 1] * ly + seg_R[ps, 1, 2] * lz) / ll
+        uz = (seg_R[ps, 2, 0] * lx + seg_R[ps, 2, 1] * ly + seg_R[ps, 2, 2] * lz) / ll
+        push = r - ll
+        x[i, 0] += push * ux
+        x[i, 1] += push * uy
+        x[i, 2] += push * uz
+        vn = (v[i, 0] - bx) * ux + (v[i, 1] - by) * uy + (v[i, 2] - bz) * uz
+        if vn > 0.0:
+            v[i, 0] -= vn * ux
+            v[i, 1] -= vn * uy
+            v[i, 2] -= vn * uz
+    return hits
+
+
+@njit(cache=True, fastmath={'contract'})
+def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
+    """Stage 4a of the step, the tissue-tissue contact in the fold of each folding hinge (docs/contact.md), in place
+    on (x, v): while the hinge is flexed, a fold vertex i of side s (+1 proximal, -1 distal) must keep
+    s n . (x_i - c) >= floor_i, n the unit normal of the plane through the hinge axis that bisects the two segments'
+    long axes (n ~ R_p n0 + R_c n0). A vertex below its floor moves onto it along its own segment's long axis
+    (s R_side n0 s, so that thigh tissue is pushed up the thigh and calf tissue down the calf, not round the bone;
+    along s n where cos(theta/2) < FOLD_MIN_COS), and its velocity relative to the plane loses its inward normal
+    part (the plane's rate at x from its pose at the sub-step's start, cw.R0 cw.t0, and now). Returns the
+    projections made. reference.fold_stage is the same stage in numpy."""
+    K = cg.f_seg.shape[0]
+    if K == 0:
+        return 0
+    hits = 0
+    pl = np.empty(12)
+    p0 = np.empty(12)
+    ih = 1.0 / h
+    for k in range(K):
+        ps, cs = cg.f_seg[k, 0], cg.f_seg[k, 1]
+        geo = cg.f_geo[k]
+        hits += _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, cs, geo)
+        if _fold_plane(seg_R, seg_t, ps, cs, geo, pl) <= 0.0:
+            continue                            # straight or hyperextended: no fold
+        _fold_plane(cw.R0, cw.t0, ps, cs, geo, p0)
+        nx, ny, nz, cx, cy, cz = pl[0], pl[1], pl[2], pl[3], pl[4], pl[5]
+        # the plane's own rate at a fixed point x: (n.(x - c) - n0.(x - c0)) / h = a.x + b
+        ax, ay, az = (nx - p0[0]) * ih, (ny - p0[1]) * ih, (nz - p0[2]) * ih
+        bq = ((p0[0] * p0[3] + p0[1] * p0[4] + p0[2] * p0[5]) - (nx * cx + ny * cy + nz * cz)) * ih
+        for ii in range(cg.f_off[k], cg.f_off[k + 1]):
+            i = cg.f_idx[ii]
+            s = cg.f_side[ii]
+            phi = s * (nx * (x[i, 0] - cx) + ny * (x[i, 1] - cy) + nz * (x[i, 2] - cz))
+            lim = cg.f_floor[ii]
+            if phi >= lim or not cg.f_plane[0]:
+                continue
+            o = 6 if s > 0.0 else 9             # the vertex's own segment's proximal direction
+            dx, dy, dz = s * pl[o], s * pl[o + 1], s * pl[o + 2]
+            dn = s * (nx * dx + ny * dy + nz * dz)
+            if dn < FOLD_MIN_COS:
+                dx, dy, dz, dn = s * nx, s * ny, s * nz, 1.0
+            push = (lim - phi) / dn
+            x[i, 0] += push * dx
+            x[i, 1] += push * dy
+            x[i, 2] += push * dz
+            hits += 1
+            # the vertex's rate of s phi: s (n . v + plane rate at x); inward: remove it along n
+            vn = s * (nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2] + ax * x[i, 0] + ay * x[i, 1] + az * x[i, 2] + bq)
+            if vn < 0.0:
+                v[i, 0] -= vn * s * nx
+                v[i, 1] -= vn * s * ny
+                v[i, 2] -= vn * s * nz
+        # the flexion side: a fold vertex keeps to the flexion side of its own segment's plane through the axis
+        # normal to e (it does not slide round the condyles to the front)
+        for side in range(2):
+            seg = ps if side == 0 else cs
+            sgn = 1.0 if side == 0 else -1.0
+            ex = seg_R[seg, 0, 0] * geo[6] + seg_R[seg, 0, 1] * geo[7] + seg_R[seg, 0, 2] * geo[8]
+            ey = seg_R[seg, 1, 0] * geo[6] + seg_R[seg, 1, 1] * geo[7] + seg_R[seg, 1, 2] * geo[8]
+            ez = seg_R[seg, 2, 0] * geo[6] + seg_R[seg, 2, 1] * geo[7] + seg_R[seg, 2, 2] * geo[8]
+            fx = cw.R0[seg, 0, 0] * geo[6] + cw.R0[seg, 0, 1] * geo[7] + cw.R0[seg, 0, 2] * geo[8]
+            fy = cw.R0[seg, 1, 0] * geo[6] + cw.R0[seg, 1, 1] * geo[7] + cw.R0[seg, 1, 2] * geo[8]
+            fz = cw.R0[seg, 2, 0] * geo[6] + cw.R0[seg, 2, 1] * geo[7] + cw.R0[seg, 2, 2] * geo[8]
+            eb = ((fx * p0[3] + fy * p0[4] + fz * p0[5]) - (ex * cx + ey * cy + ez * cz)) * ih
+            for ii in range(cg.f_off[k], cg.f_off[k + 1]):
+                if cg.f_side[ii] != sgn:
+                    continue
+                i = cg.f_idx[ii]
+                w = ex * (x[i, 0] - cx) + ey * (x[i, 1] - cy) + ez * (x[i, 2] - cz)
+                lim = cg.f_wfloor[ii]
+                if w >= lim:
+                    continue
+                x[i, 0] += (lim - w) * ex
+                x[i, 1] += (lim - w) * ey
+                x[i, 2] += (lim - w) * ez
+                hits += 1
+                vn = (ex * v[i, 0] + ey * v[i, 1] + ez * v[i, 2] + ((ex - fx) * x[i, 0] + (ey - fy) * x[i, 1]
+                                                                    + (ez - fz) * x[i, 2]) * ih + eb)
+                if vn < 0.0:
+                    v[i, 0] -= vn * ex
+                    v[i, 1] -= vn * ey
+                    v[i, 2] -= vn * ez
+    return hits
+
+
+def fold_vertices(tm, joints: str, reach: float, margin: float, rest: np.ndarray, vertex_segment: np.ndarray):
+    """The fold contact's constants (f_seg, f_geo, f_off, f_idx, f_side, f_floor; ContactGrids) for the hinges of
+    TissueModel tm named in joints (comma-separated; a hinge matches an entry equal to its name or its name's
+    start, e.g. 'knee' matches 'knee_r'; entries no hinge of the model matches are ignored, as the presets serve
+    every model). Per hinge: n0 = the unit direction from the centroid of the child's bone-bound vertices to the
+    joint centre, made perpendicular to the axis; e = where the child's distal end moves towards the end of the
+    joint's range farther from its rest coordinate (flexion). Its vertices: the free ones on the flexion side
+    (e . (X - c0) > 0) within reach of the joint along n0 (|n0 . (X - c0)| <= reach), side +1 above the centre
+    (n0 . (X - c0) >= 0) else -1, floor min(margin, |n0 . (X - c0)|) (a vertex closer to the plane at rest than the
+    margin keeps its rest distance: the rest state is at rest)."""
+    from tissue_sim.core.model import JOINT_HINGE
+    vs = np.asarray(vertex_segment)
+    names = [n.strip() for n in str(joints).split(',') if n.strip()]
+    segs, geos, off, idx, side, floor, wfloor = [], [], [0], [], [], [], []
+    for j, jn in enumerate(tm.joint_names):
+        if tm.joint_type[j] != JOINT_HINGE or not any(jn == n or jn.startswith(n) for n in names):
+            continue
+        ps, cs = int(tm.joint_parent[j]), int(tm.joint_child[j])
+        a = np.asarray(tm.joint_axis[j], float)
+        a = a / np.linalg.norm(a)
+        c0 = np.asarray(tm.joint_centre[j], float)
+        bound = rest[vs == cs]
+        cc = bound.mean(0) if len(bound) else np.asarray(tm.segment_com[cs], float)
+        u = c0 - cc
+        n0 = u - (u @ a) * a
+        if not np.linalg.norm(n0) > 0:
+            continue
+        n0 /= np.linalg.norm(n0)
+        lo, hi = np.asarray(tm.joint_range[j], float) - float(tm.joint_rest[j])
+        ang = hi if abs(hi) >= abs(lo) else lo
+        # the child's distal direction -n0 rotated by ang about a (Rodrigues): its displacement gives e
+        dist = -n0
+        rot = dist * math.cos(ang) + np.cross(a, dist) * math.sin(ang) + a * (a @ dist) * (1 - math.cos(ang))
+        e = rot - dist
+        e = e - (e @ n0) * n0 - (e @ a) * a
+        if not np.linalg.norm(e) > 0:
+            continue
+        e /= np.linalg.norm(e)
+        X = rest - c0
+        hgt, w = X @ n0, X @ e
+        sel = np.flatnonzero((vs < 0) & (np.abs(hgt) <= reach) & (w > 0)).astype(np.int32)
+        segs.append((ps, cs))
+        geos.append(np.concatenate([c0, n0, e]))
+        idx.append(sel)
+        side.append(np.where(hgt[sel] >= -1e-9, 1.0, -1.0))      # (on the axis to rounding: proximal)
+        floor.append(np.minimum(float(margin), np.abs(hgt[sel])))
+        wfloor.append(np.minimum(float(margin), w[sel]))
+        off.append(off[-1] + len(sel))
+    cat = lambda parts, dt: np.concatenate(parts).astype(dt) if parts else np.zeros(0, dt)  # noqa: E731
+    return dict(f_seg=np.array(segs, np.int32).reshape(-1, 2), f_geo=np.array(geos, np.float64).reshape(-1, 9),
+                f_off=np.array(off, np.int64), f_idx=cat(idx, np.int32), f_side=cat(side, np.float64),
+                f_floor=cat(floor, np.float64), f_wfloor=cat(wfloor, np.float64))
+
+
+SHEATH_FROM = 0.01      # [m] the sheath holds a group's vertices from this height above the hinge centre (along n0) up
+
+
+def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment,
+                    below: bool = False) -> dict:
+    """The sheath's constants (s_off, s_idx, s_X, s_r; ContactGrids) for the folding hinges in fold (fold_vertices):
+    per hinge, the free vertices of the cells of the muscles of group `group` (a muscle group or name; '' none)
+    whose rest height above the hinge centre along n0 is in [SHEATH_FROM, reach] (the part of the thigh above the knee:
+    the chain may bend over the condyles below it), held in the parent's frame (side +1); with below, also those
+    from SHEATH_FROM to reach below it, held in the child's frame (side -1)."""
+    vs = np.asarray(vertex_segment)
+    names = [g.strip() for g in str(group).split(',') if g.strip()]
+    mus = [m for m in range(len(tm.muscle_names)) if tm.muscle_groups[m] in names or tm.muscle_names[m] in names]
+    cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
+    cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
+                     if len(cells) else np.zeros(0, np.int64))
+    cand = cand[vs[cand] < 0]
+    off, idx, side = [0], [], []
+    for k in range(len(fold['f_seg'])):
+        c0, n0 = fold['f_geo'][k, :3], fold['f_geo'][k, 3:6]
+        hgt = (rest[cand] - c0) @ n0
+        sel = (np.abs(hgt) >= SHEATH_FROM) & (np.abs(hgt) <= reach) & ((hgt > 0) | bool(below))
+        idx.append(cand[sel].astype(np.int32))
+        side.append(np.where(hgt[sel] > 0, 1.0, -1.0))
+        off.append(off[-1] + int(sel.sum()))
+    i = np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32)
+    out = dict(s_off=np.array(off, np.int64), s_idx=i, s_X=np.ascontiguousarray(rest[i], np.float64),
+               s_side=np.concatenate(side) if side else np.zeros(0), s_r=np.array([float(radius)]))
+    for a in out.values():
+        a.flags.writeable = False
+    return out
+
+
 # ------------------------------------------------------------------------------- compile time
 _SDF_CACHE: dict = {}
 
@@ -423,8 +677,23 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
             meshes.append((np.concatenate([V for V, _ in parts]),
                            np.concatenate([np.asarray(T, np.int64) + o for (_, T), o in zip(parts, off)])))
             segs.append(s)
-    return build_grids(meshes, np.array(segs, np.int32), float(p.contact_margin), float(p.contact_friction),
-                       float(p.contact_grid), rest, vertex_segment)
+    cg = build_grids(meshes, np.array(segs, np.int32), float(p.contact_margin), float(p.contact_friction),
+                     float(p.contact_grid), rest, vertex_segment)
+    if p.fold_contact:          # the tissue-tissue contact in the fold of the named hinges (fold_contact)
+        fold = fold_vertices(tm, p.fold_contact, float(p.fold_reach), float(p.contact_margin), rest, vertex_segment)
+        fold['f_plane'] = np.array([bool(p.fold_plane)])
+        fold.update(sheath_vertices(tm, fold, p.sheath_group, float(p.sheath_radius), float(p.fold_reach), rest,
+                                    vertex_segment, p.sheath_below))
+        for a in fold.values():
+            a.flags.writeable = False
+        cg = cg._replace(**fold)
+    return cg
+
+
+NO_FOLD = dict(f_seg=np.zeros((0, 2), np.int32), f_geo=np.zeros((0, 9)), f_off=np.zeros(1, np.int64),
+               f_idx=np.zeros(0, np.int32), f_side=np.zeros(0), f_floor=np.zeros(0), f_wfloor=np.zeros(0),
+               f_plane=np.zeros(1, np.bool_), s_off=np.zeros(1, np.int64), s_idx=np.zeros(0, np.int32),
+               s_X=np.zeros((0, 3)), s_side=np.zeros(0), s_r=np.zeros(1))
 
 
 def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: float, rest: np.ndarray,
@@ -460,7 +729,7 @@ def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: f
             sample_grid(g['g_origin'], g['g_inv_h'], g['g_dims'], g['g_off'], g['g_phi'], b,
                         np.ascontiguousarray(rest[free_idx], np.float64), d, gr)
             floor[free_idx] = np.minimum(floor[free_idx], d)
-    cg = ContactGrids(floor=floor, free_idx=free_idx, par=par, **g)
+    cg = ContactGrids(floor=floor, free_idx=free_idx, par=par, **g, **NO_FOLD)
     for a in cg:
         a.flags.writeable = False
     return cg

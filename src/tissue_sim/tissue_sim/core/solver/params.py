@@ -101,6 +101,13 @@ class Params:
     contact_margin: float = 5e-4          # [m] distance from a bone's surface a free vertex is projected back to
     contact_friction: float = 0.0         # Coulomb coefficient of the tissue-bone contact (0: frictionless sliding)
     contact_grid: float = 1.5e-3          # [m] spacing of the bones' signed-distance grids
+    fold_contact: str = ''                # hinges (comma-separated names or name starts) whose flexion-side soft tissue keeps to its side
+                                          # of the plane bisecting the two segments (thigh/calf tissue in the popliteal fold; '' off, the paper)
+    fold_reach: float = 0.15              # [m] free vertices within this distance of the hinge along the segments' axis take part
+    fold_plane: bool = True               # the fold's bisector plane (False: only the flexion side, no tissue crosses to the front)
+    sheath_group: str = ''                # muscle group(s)/names held in a sheath above each folding hinge (a retinaculum, e.g. 'hamstrings'; '' none)
+    sheath_radius: float = 3e-3           # [m] how far a sheathed vertex may leave its rest line along the segment, across it
+    sheath_below: bool = False            # the sheath also below the hinge, in the child segment's frame
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
@@ -119,7 +126,8 @@ class Params:
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0,
-                    passive_force_length=True, fl_passive_strain=2.0)
+                    passive_force_length=True, fl_passive_strain=2.0,
+                    fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -130,6 +138,11 @@ class Params:
         # force-velocity); at 5 the ankle stays within -6..+2 deg (-32..-3 with the passive fibre force, which
         # plantarflexes the relaxed foot). (tests/test_solver_default_model.py::
         # test_physical_without_force_velocity_is_stable)
+        # fold_contact knee without the plane, a 1-mm hamstring sheath above the knee (docs/contact.md): held passively
+        # the hamstrings shorten with flexion (semitendinosus -49 mm at 90 deg, was -0.1; OpenSim -70), `tissue-sim
+        # validate`: 57 of 338 signs wrong (70 without), 9 of 24 hamstring moment arms within 25 % (8), every hamstring
+        # >= 60 % of Fmax (semimembranosus 53 -> 70 %); the plane (fold_plane) and the sheath below the knee were
+        # measured and left off: the active knee then stops short of 120 deg
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
         # falls as the knee flexes, and full co-contraction at 30 deg gives 18.4 N m/rad against the passive knee's 8.8
@@ -181,6 +194,8 @@ class Params:
         need(0 <= self.contact_margin <= 0.01, 'contact_margin must be in [0, 0.01] m')
         need(self.contact_friction >= 0, 'contact_friction must be >= 0')
         need(2e-4 <= self.contact_grid <= 0.01, 'contact_grid must be in [2e-4, 0.01] m')
+        need(0 < self.fold_reach <= 1, 'fold_reach must be in (0, 1] m')
+        need(0 < self.sheath_radius <= 0.05, 'sheath_radius must be in (0, 0.05] m')
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')

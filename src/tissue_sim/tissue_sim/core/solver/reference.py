@@ -173,7 +173,9 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
             state.x[free] += h * state.v[free]
             state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
-        # 4. bone contact: free vertices closer to a bone than their floor are projected out (Params.bone_contact)
+        # 4. fold contact (Params.fold_contact), then bone contact: free vertices closer to a bone than their floor are
+        # projected out (Params.bone_contact)
+        fold_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h)
         contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h)
         state.f[:] = f
     state.quat[:] = rotation_quaternions(R)
@@ -279,6 +281,76 @@ def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
         keep = np.maximum(0.0, 1.0 - mu * -vn / np.where(vt > 0, vt, 1.0)) if mu > 0 else np.ones_like(vn)
         keep = np.where((vt > 0) | (mu == 0), keep, 0.0)
         v[i] = np.where((vn < 0)[:, None], v_bone + keep[:, None] * tang, v[i])
+
+
+def fold_plane(cg, k, seg_R, seg_t):
+    """Folding hinge k's bisector plane in the pose (seg_R, seg_t): (unit normal n, point c on the axis, the parent's
+    and the child's proximal directions R_p n0 and R_c n0, the flexion -(R_c n0) . (R_p e))."""
+    ps, cs = cg.f_seg[k]
+    c0, n0, e = cg.f_geo[k, :3], cg.f_geo[k, 3:6], cg.f_geo[k, 6:]
+    up_p, up_c = seg_R[ps] @ n0, seg_R[cs] @ n0
+    n = (up_p + up_c) / np.linalg.norm(up_p + up_c)
+    return n, seg_R[ps] @ c0 + seg_t[ps], up_p, up_c, -up_c @ (seg_R[ps] @ e)
+
+
+def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
+    """Stage 4a, the fold contact (docs/contact.md), in place on the positions and velocities stage 3 wrote: for each
+    folding hinge k while it is flexed, its vertices i (side s: +1 proximal, -1 distal) with s n . (x_i - c) below their
+    floor move onto it along their own segment's proximal direction times s (n the unit normal of the plane through
+    the axis bisecting the segments, c a point of the axis; along s n where that direction's s n-component is below
+    contact.FOLD_MIN_COS), and their velocity loses the inward part of s (n . v + the plane's rate at x), the plane's
+    rate from its pose at the sub-step's start (R0, t0) and now; then each keeps to the flexion side of its own
+    segment's plane through the axis (below). First, whatever the angle, the sheath (Params.sheath_group). contact.fold_contact is
+    the same stage compiled."""
+    for k in range(cg.f_seg.shape[0]):
+        # the sheath: its vertices keep their offset across n0 from their rest position, in the parent's rest frame,
+        # within s_r (scaled back onto it, the axial part kept); their outward velocity relative to the parent goes
+        n0 = cg.f_geo[k, 3:6]
+        for side, ps in ((1.0, cg.f_seg[k, 0]), (-1.0, cg.f_seg[k, 1])):   # held in the parent's / the child's frame
+            sl = np.arange(cg.s_off[k], cg.s_off[k + 1])
+            sl = sl[cg.s_side[sl] == side]
+            i = cg.s_idx[sl]
+            p = (x[i] - seg_t[ps]) @ seg_R[ps]                             # rest-frame points R^T (x - t)
+            e = p - cg.s_X[sl]
+            lat = e - (e @ n0)[:, None] * n0
+            ll = np.linalg.norm(lat, axis=1)
+            out = ll > cg.s_r[0]
+            i, p, lat, ll = i[out], p[out], lat[out], ll[out]
+            v_seg = (x[i] - (p @ R0[ps].T + t0[ps])) / h
+            u = (lat / ll[:, None]) @ seg_R[ps].T
+            x[i] += (cg.s_r[0] - ll)[:, None] * u
+            vn = np.sum((v[i] - v_seg) * u, axis=1)
+            v[i] -= np.maximum(vn, 0.0)[:, None] * u
+        n, c, up_p, up_c, flex = fold_plane(cg, k, seg_R, seg_t)
+        if flex <= 0:
+            continue
+        n_start, c_start = fold_plane(cg, k, R0, t0)[:2]
+        sl = slice(cg.f_off[k], cg.f_off[k + 1])
+        i, s, lim = cg.f_idx[sl], cg.f_side[sl], cg.f_floor[sl]
+        phi = s * ((x[i] - c) @ n)
+        hit = (phi < lim) & bool(cg.f_plane[0])                         # (Params.fold_plane)
+        i, s, lim, phi = i[hit], s[hit], lim[hit], phi[hit]
+        d = s[:, None] * np.where((s > 0)[:, None], up_p, up_c)        # own segment's long axis, away from the plane
+        dn = s * (d @ n)
+        weak = dn < CT.FOLD_MIN_COS
+        d[weak], dn[weak] = s[weak, None] * n, 1.0
+        x[i] += ((lim - phi) / dn)[:, None] * d
+        rate = ((x[i] - c) @ n - (x[i] - c_start) @ n_start) / h      # the plane's own rate of n . (x - c) at x
+        vn = s * (v[i] @ n + rate)
+        v[i] -= np.where(vn < 0, vn * s, 0.0)[:, None] * n
+        # the flexion side: each vertex keeps e_own . (x - c) >= its floor (e_own: the flexion direction e in its own
+        # segment's pose), moved along e_own, its velocity relative to that plane losing its inward part
+        e = cg.f_geo[k, 6:]
+        for sgn, seg in ((1.0, cg.f_seg[k, 0]), (-1.0, cg.f_seg[k, 1])):
+            sel = cg.f_side[sl] == sgn
+            i, lim = cg.f_idx[sl][sel], cg.f_wfloor[sl][sel]
+            E, E_start = seg_R[seg] @ e, R0[seg] @ e
+            w = (x[i] - c) @ E
+            hit = w < lim
+            i, lim, w = i[hit], lim[hit], w[hit]
+            x[i] += (lim - w)[:, None] * E
+            vn = v[i] @ E + ((x[i] - c) @ E - (x[i] - c_start) @ E_start) / h
+            v[i] -= np.minimum(vn, 0.0)[:, None] * E
 
 
 def rotation_quaternions(R: np.ndarray) -> np.ndarray:

@@ -151,8 +151,10 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 return swaps
             # 4. bone contact: free vertices closer to a bone than the margin are projected out, their inward
             # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
-            if cgrid.g_seg.shape[0] > 0:
+            # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane)
+            if cgrid.g_seg.shape[0] > 0 or cgrid.f_seg.shape[0] > 0:
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
+                CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork)
                 CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork)
             x, xb = xb, x
             v, vb = vb, v

@@ -1,0 +1,118 @@
+"""Fold-contact benchmark (docs/contact.md "Tissue-tissue contact in the fold"), bundled model: solver steps/s with no
+contact, bone contact, and bone + fold contact (the physical set's: the flexion side and the 1-mm hamstring sheath) in
+the same run (paper and physical sets), and with --hold the passive
+hamstrings held at 0/30/60/90/120 deg (physical set, neither fold nor sheath, and the physical set's): their length change, semitendinosus's summed
+cell lengths, free vertices > 1 mm inside a bone and inverted cells; with --validate DIR, `tissue-sim validate -o DIR`
+on the physical set with the fold on (fold_contact 'knee'; --side-only: fold_plane False; --sheath R: the hamstrings
+in a sheath of radius R [m]) instead.
+
+    .venv/bin/python bench/fold.py [--seconds 6] [--hold]
+    .venv/bin/python bench/fold.py --validate DIR [--side-only] [--sheath R [--below]] [validate options, e.g. --angles 0,30,60,90]
+
+Steps/s as bench/contact.py (per CPU second, one thread, full hamstring activation, windows interleaved).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import contact as B  # noqa: E402  (bench/contact.py: sets one thread, the import path)
+
+import numpy as np  # noqa: E402
+
+from tissue_sim.core import solver  # noqa: E402
+from tissue_sim.core.solver import contact  # noqa: E402
+
+HAM = ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus', 'semitendinosus')
+
+
+def chain_length(tm, x, m):
+    """Sum over muscle m's cells of the distance between their two ring centroids [m]."""
+    tot = 0.0
+    for c in np.flatnonzero(tm.cell_muscle == m):
+        cv = tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]]
+        h = len(cv) // 2
+        tot += np.linalg.norm(x[cv[h:]].mean(0) - x[cv[:h]].mean(0))
+    return tot
+
+
+def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120)):
+    sim = solver.compile_model(tm, solver.Params.physical(fold_contact=fold, sheath_group='hamstrings' if fold else ''))
+    names = list(tm.muscle_names)
+    mi = [names.index(n) for n in HAM]
+    j = list(tm.joint_names).index('knee_r')
+    st, ctl = solver.make_state(sim), solver.make_control(sim)
+    ctl.joint_lock[:] = True
+    ctl.joint_target[:] = st.q
+    print(f'fold_contact={fold!r} ({len(sim.contact.f_idx)} fold vertices): length change [mm] of '
+          + ', '.join(HAM) + '; semitendinosus cells summed [mm]')
+    cur, dt, L0 = 0.0, sim.params.dt, None
+    for deg in angles:
+        n = int(math.ceil(abs(deg - cur) / 200 / dt))
+        for i in range(n):
+            ctl.joint_target[j] = math.radians(cur + (deg - cur) * (i + 1) / n)
+            solver.step(sim, st, ctl)
+        ctl.joint_target[j] = math.radians(deg)
+        solver.step(sim, st, ctl, n_steps=int(settle / dt))
+        cur = deg
+        L = solver.observe(sim, st)['muscle_lengths'][mi]
+        L0 = L.copy() if L0 is None else L0
+        pen = contact.mesh_penetration(sim, st)
+        bad, r, _ = contact.inverted_cells(sim, st.x)
+        print(f'  {deg:4d} deg ' + ' '.join(f'{1e3 * (a - b):+7.1f}' for a, b in zip(L, L0))
+              + f'   {1e3 * chain_length(tm, st.x, mi[3]):6.1f}   >1 mm inside a bone: {sum(v[1] for v in pen.values())}'
+              f'   inverted cells: {len(bad)}', flush=True)
+
+
+def validate(out_dir, side_only, sheath, below, rest):
+    """tissue-sim validate -o out_dir (options rest) with Params.physical() turning the fold on."""
+    physical = solver.Params.physical.__func__
+
+    def with_fold(cls, **kw):
+        kw.setdefault('fold_contact', 'knee')
+        kw.setdefault('fold_plane', not side_only)
+        if sheath:
+            kw.setdefault('sheath_group', 'hamstrings')
+            kw.setdefault('sheath_radius', sheath)
+            kw.setdefault('sheath_below', below)
+        return physical(cls, **kw)
+    solver.Params.physical = classmethod(with_fold)
+    from tissue_sim.cli import main as cli
+    return cli(['validate', '-o', out_dir] + rest)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--seconds', type=float, default=6.0, help='measuring time per configuration [s]')
+    ap.add_argument('--hold', action='store_true', help='also the passive hold, fold off and on')
+    ap.add_argument('--validate', metavar='DIR', help='run tissue-sim validate -o DIR with the fold on instead')
+    ap.add_argument('--side-only', action='store_true', help='with --validate: fold_plane False')
+    ap.add_argument('--below', action='store_true', help='with --sheath: also below the knee (sheath_below)')
+    ap.add_argument('--sheath', type=float, default=0.0, metavar='R', help='with --validate: the hamstrings in a sheath of radius R [m]')
+    a, rest = ap.parse_known_args()
+    if a.validate:
+        return validate(a.validate, a.side_only, a.sheath, a.below, rest)
+    if rest:
+        ap.error(f'unrecognised arguments: {" ".join(rest)}')
+    from tissue_sim.core.builder import default_model
+    tm = default_model()
+    print(f'{"set":10s} {"no contact":>11s} {"bone":>9s} {"bone+fold":>10s} {"cost both":>10s} {"fold":>6s}   (steps/s per CPU s)')
+    for preset in ('paper', 'physical'):
+        P = getattr(solver.Params, preset)
+        none = dict(fold_contact='', sheath_group='')
+        fold = dict(fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3)   # the physical set's
+        sims = [solver.compile_model(tm, P(bone_contact=False, **none)), solver.compile_model(tm, P(bone_contact=True, **none)),
+                solver.compile_model(tm, P(bone_contact=True, **fold))]
+        best, _ = B.steps_per_s(sims, a.seconds)
+        print(f'{preset:10s} {best[0]:11.0f} {best[1]:9.0f} {best[2]:10.0f} {100 * (1 - best[2] / best[0]):9.1f}% '
+              f'{100 * (1 - best[2] / best[1]):5.1f}%', flush=True)
+    if a.hold:
+        for fold in ('', 'knee'):
+            hold(tm, fold)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
