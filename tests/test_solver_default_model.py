@@ -233,11 +233,11 @@ def test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest(defau
 def test_hamstrings_deliver_most_of_their_max_force_at_a_locked_knee(physical_sim):
     """Issue 19 target, physical set: the knee locked at 0 deg (the source model's optimal fibre length of
     the long head, semimembranosus and semitendinosus lies nearest 0 deg, docs/validation.md), all four
-    hamstrings fully active, each puts >= 50 % of its max isometric force on the shank. The issue's target is
-    60 %: measured 71 % (long head), 53 % (semimembranosus), 83 % (semitendinosus), short head 78 %, with each
-    muscle's source-model rest fibre length (the physical set; with every fibre at its optimum 82, 66, 83,
-    83 %: docs/validation.md); 30, 5, 65 % while the shared vertices of their end rings were left free, the
-    short head 32 % while its top slices lay in front of the femur and its belly cut into it under tension."""
+    hamstrings fully active, each puts >= 60 % of its max isometric force on the shank (the issue's target):
+    measured 73 % (long head), 70 % (semimembranosus), 91 % (semitendinosus), short head 84 %, with the physical
+    set's hamstring sheath (docs/contact.md; without it semimembranosus 53 %), each muscle's source-model rest
+    fibre length and the passive fibre force; 30, 5, 65 % while the shared vertices of their end rings were left
+    free, the short head 32 % while its top slices lay in front of the femur and its belly cut into it."""
     import yaml
 
     from tissue_sim.core import validation
@@ -250,5 +250,5 @@ def test_hamstrings_deliver_most_of_their_max_force_at_a_locked_knee(physical_si
     assert r['diverged'] is None
     frac = {km.name: r['muscle_force'][0][i] / km.max_force for i, km in enumerate(muscles)}
     for name in hams:
-        assert frac[name] >= 0.50, (name, frac)
+        assert frac[name] >= 0.60, (name, frac)
     assert r['torque'][0] > 0.0                           # they flex the knee
