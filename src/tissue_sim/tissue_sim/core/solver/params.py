@@ -100,6 +100,8 @@ class Params:
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
+    threads: int = 0                      # threads of the cell pass (numba's; 0: numba's default, all cores; 1: the serial kernel);
+                                          # the results do not depend on it (bit-identical, docs/solver.md "Threads")
 
     # ------------------------------------------------------------------------------ presets
     @classmethod
@@ -172,6 +174,8 @@ class Params:
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')
         need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')
+        need(isinstance(self.threads, int) and not isinstance(self.threads, bool) and self.threads >= 0,
+             'threads must be an integer >= 0 (0: all cores)')
         need(self.fixed_root, 'fixed_root False (floating base) is not supported yet')
         return self
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import math
 
+import numba
 import numpy as np
 from numba import njit
 
@@ -49,7 +50,7 @@ Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
                                 'ch_rest inv_lopt fmax ch_off ch_idx l_rest')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
-                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0')
+                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 par')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
                                  'chord chord_axis')
 
@@ -103,13 +104,13 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             xe = x
             if imp.on:
-                IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)
+                IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp, imp.par)
                 xe = imp.y
             if num.fl_on:
                 MU.chord_lengths(xe, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.chord, tissue.ch_rest,
                                      tissue.inv_lopt, tissue.l_rest, num.fl_on, num.fl_gamma, act_t)
-            bad = CK.lane_forces(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            bad = CK.cell_pass(num.par, xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
             if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
                 MU.passive_tension(xe, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
                                    tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
@@ -131,7 +132,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 for _ in range(1, imp.iters):
                     if fast or not ok:
                         break
-                    if CK.lane_forces(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
+                    if CK.cell_pass(num.par, xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
                     if num.pe_on:
@@ -221,7 +222,7 @@ class Workspace:
                       h / (p.fv_filter_time + h),
                       float(p.activation_time), float(p.deactivation_time), p.force_length and p.specific_tension > 0,
                       float(p.fl_width), p.passive_force_length and p.specific_tension > 0, float(p.fl_passive_shape),
-                      float(p.fl_passive_strain))
+                      float(p.fl_passive_strain), p.threads != 1)
         M, J = sim.n_muscles, sim.n_joints
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M),
@@ -254,6 +255,8 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
           state.muscle_velocity, state.joint_lock_torque, state.activation)   # (the fields of Arrays)
     if lock is None:
         lock, target = ws.no_lock
+    if p.threads != 1:          # (numba's setting is per Python thread: set where the step runs)
+        set_threads(p.threads)
     swaps = advance(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)
     if info[2] == CAUSE_ACTIVATION:
         m = int(info[1])
@@ -319,3 +322,13 @@ def joint_lock_of(sim: SimModel, ctrl: Control):
 
 
 _BOOL, _F64 = np.dtype(np.bool_), np.dtype(np.float64)
+_MAX_THREADS = int(numba.config.NUMBA_NUM_THREADS)
+
+
+def set_threads(n: int) -> int:
+    """numba's threads for the cell pass (Params.threads): n, at most NUMBA_NUM_THREADS; 0: all of them. Returns the
+    number set. Only the speed depends on it (cells.lane_forces_par is bit-identical for any number)."""
+    n = _MAX_THREADS if n <= 0 else min(int(n), _MAX_THREADS)
+    if numba.get_num_threads() != n:
+        numba.set_num_threads(n)
+    return n
