@@ -585,12 +585,13 @@ def _scatter(ff, gv, idx, n, cnt):
 def lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
     """lane_forces over numba's threads (numba.set_num_threads), bit-identical to it for any number of threads.
 
-    Three passes. (1) The tasks (cells.tasks: every group's positions cut into runs of TASK_POSITIONS, a cut that
+    Three passes, two of them parallel. (1) The tasks (cells.tasks: every group's positions cut into runs of TASK_POSITIONS, a cut that
     does not depend on the number of threads) in parallel, each as lane_forces runs its positions, with the
     thread's own scratch: its rings' sums, its cells' algebra and state (each cell block belongs to one task),
     and the forces of the rings it completes, stored per ring slot (work.fr) instead of added into f. The ring
     at a cut gets its map from two tasks: the task above stores its share and the ring's gathered vertices
-    (bb, bgv, bro), the task below the share of its last cell (bh). (2) Those rings in parallel: map = bh of
+    (bb, bgv, bro), the task below the share of its last cell (bh). (2) Those rings (serially: one ring block per
+    cut, a few per cent of the work; a parallel region costs more where the cores are shared): map = bh of
     the task below + bb, the forces stored per slot. The maps are the same sums as lane_forces' (0 + share,
     then share below + that), so every slot's force is the same number. (3) Per vertex in parallel, its slots'
     forces added in lane_forces' order (cells.gptr/gsrc): f is bit-identical to lane_forces', with no two
@@ -599,9 +600,9 @@ def lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, wo
     xf, vf = x.reshape(-1), v.reshape(-1)
     for t in prange(tasks.shape[0]):
         tbad[t] = _task_forces(xf, vf, cells, lam, act, volume_actual, iters, vol_gain, work, t, numba.get_thread_id())
-    for t in prange(tasks.shape[0]):
+    for t in range(tasks.shape[0]):             # (a few rings: serially, one parallel region less)
         if tasks[t, 1] > 0:
-            _cut_ring_forces(cells, work, t, numba.get_thread_id())
+            _cut_ring_forces(cells, work, t, 0)
     gptr, gsrc, fr = cells.gptr, cells.gsrc, work.fr
     nv = gptr.shape[0] - 1
     for i in prange(f.shape[0]):
