@@ -596,14 +596,23 @@ def lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, wo
     then share below + that), so every slot's force is the same number. (3) Per vertex in parallel, its slots'
     forces added in lane_forces' order (cells.gptr/gsrc): f is bit-identical to lane_forces', with no two
     threads writing one vertex. Returns the lowest bad cell or -1, as lane_forces."""
-    tasks, tbad = cells.tasks, work.tbad        # (tbad[t] =, not work.tbad[t] =: numba lost the latter's writes in prange)
+    # (arrays only into the prange body, no named tuple: numba lost writes through a tuple's array there, and a
+    # step segfaulted now and then)
+    tasks, tbad = cells.tasks, work.tbad
+    groups, ids, rings, ring_idx, ring_X0, par, lane_muscle = (cells.groups, cells.ids, cells.rings, cells.ring_idx,
+                                                              cells.ring_X0, cells.par, cells.lane_muscle)
+    tw, trs0, trs1, tgv0, tgv1 = work.tw, work.trs0, work.trs1, work.tgv0, work.tgv1
+    lq, lp, le, ll, fr, bh, bb, bgv, bro = work.lq, work.lp, work.le, work.ll, work.fr, work.bh, work.bb, work.bgv, work.bro
     xf, vf = x.reshape(-1), v.reshape(-1)
     for t in prange(tasks.shape[0]):
-        tbad[t] = _task_forces(xf, vf, cells, lam, act, volume_actual, iters, vol_gain, work, t, numba.get_thread_id())
+        tid = numba.get_thread_id()
+        tbad[t] = _task_forces(xf, vf, groups, ids, rings, ring_idx, ring_X0, par, lane_muscle, tasks, lam, act,
+                               volume_actual, iters, vol_gain, tw[tid], trs0[tid], trs1[tid], tgv0[tid], tgv1[tid],
+                               lq, lp, le, ll, fr, bh, bb, bgv, bro, t)
     for t in range(tasks.shape[0]):             # (a few rings: serially, one parallel region less)
         if tasks[t, 1] > 0:
             _cut_ring_forces(cells, work, t, 0)
-    gptr, gsrc, fr = cells.gptr, cells.gsrc, work.fr
+    gptr, gsrc = cells.gptr, cells.gsrc
     nv = gptr.shape[0] - 1
     for i in prange(f.shape[0]):
         s0 = s1 = s2 = 0.0
@@ -621,14 +630,11 @@ def lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, wo
 
 
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
-def _task_forces(xf, vf, cells, lam, act, volume_actual, iters, vol_gain, work, t, tid):
-    """Task t of lane_forces_par (positions j0 .. j1 - 1 of its group) on thread tid's scratch. Returns its lowest
-    bad cell or -1."""
-    groups, ids, rings, ring_idx, ring_X0, par, lane_muscle = (cells.groups, cells.ids, cells.rings, cells.ring_idx,
-                                                              cells.ring_X0, cells.par, cells.lane_muscle)
-    w, rs0, rs1, gv0, gv1 = work.tw[tid], work.trs0[tid], work.trs1[tid], work.tgv0[tid], work.tgv1[tid]
-    lq, lp, le, ll, fr = work.lq, work.lp, work.le, work.ll, work.fr
-    gi, j0, j1 = cells.tasks[t, 0], cells.tasks[t, 1], cells.tasks[t, 2]
+def _task_forces(xf, vf, groups, ids, rings, ring_idx, ring_X0, par, lane_muscle, tasks, lam, act, volume_actual, iters,
+                 vol_gain, w, rs0, rs1, gv0, gv1, lq, lp, le, ll, fr, bh, bb, bgv, bro, t):
+    """Task t of lane_forces_par (positions j0 .. j1 - 1 of its group) on one thread's scratch (w, rs0, rs1, gv0,
+    gv1). Returns its lowest bad cell or -1."""
+    gi, j0, j1 = tasks[t, 0], tasks[t, 1], tasks[t, 2]
     n, L, b0, q0, plain = groups[gi, 0], groups[gi, 1], groups[gi, 2], groups[gi, 3], groups[gi, 4] == 1
     fatvol = groups[gi, 4] == 2
     q = q0 + j0
@@ -667,14 +673,14 @@ def _task_forces(xf, vf, cells, lam, act, volume_actual, iters, vol_gain, work, 
         elif j1 == L:
             _last_ring_coefs(w)
         else:               # ring j1 is the next task's first: its share of it
-            work.bh[t, :] = w[W_H * BLK:(W_H + 17) * BLK]
+            bh[t, :] = w[W_H * BLK:(W_H + 17) * BLK]
             break
         q = q0 + j
         m_real, m, r0 = rings[q, 0], rings[q, 1], rings[q, 2]
         if j == j0 and j0 > 0:          # the cut ring: completed in the cut pass
-            work.bb[t, :] = w[W_RM * BLK:(W_RM + 17) * BLK]
-            work.bgv[t, :6 * m * BLK] = gb[:6 * m * BLK]
-            work.bro[t, :] = rb
+            bb[t, :] = w[W_RM * BLK:(W_RM + 17) * BLK]
+            bgv[t, :6 * m * BLK] = gb[:6 * m * BLK]
+            bro[t, :] = rb
             continue
         _ring_forces(w, gb, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], rb, m)
         _store(fr, gb, r0, m)
