@@ -739,14 +739,6 @@ def _scatter_store(ff, fr, gv, idx, ex, r0, n, cnt):
 
 
 @njit(cache=True)
-def cell_pass(par, x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
-    """lane_forces_par if par, else lane_forces (the same numbers; the step calls this)."""
-    if par:
-        return lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work)
-    return lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work)
-
-
-@njit(cache=True)
 def _load_muscles(lam, act, mus, w):
     """Per lane: the muscle's lam and activation (1 and 0 for fat or a dummy) and the muscle flag."""
     for c in range(BLK):

@@ -28,20 +28,18 @@ import collections
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
-from numba import njit, prange
+from numba import njit
 
 from tissue_sim.core.solver import integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz par')
+                                  'n_lnz')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
 (elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
 weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
-star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative); par:
-the per-vertex and per-row loops (prediction, right-hand side, velocities) over numba's threads (Params.threads != 1;
-the same numbers: every row is computed alone, the count of fast vertices is an integer sum)."""
+star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -125,7 +123,7 @@ def make(sim, h: float) -> Implicit:
     if sim.params.integrator != 'implicit':
         e_i, e_f = np.zeros(0, np.int32), np.zeros(0)
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, np.zeros(1, np.int64),
-                        e_i, np.zeros(1, np.int64), e_i, e_f, e_f, np.zeros((0, 3)), 0, False)
+                        e_i, np.zeros(1, np.int64), e_i, e_f, e_f, np.zeros((0, 3)), 0)
     A, free, keff = star_system(sim, h)
     nf, n = free.size, A.shape[0]
     lu = sla.splu(A, permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
@@ -160,59 +158,48 @@ def make(sim, h: float) -> Implicit:
     mh2 = np.where(sim.inv_mass > 0, sim.mass / h ** 2, 0.0)
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, Ls.indptr.astype(np.int64), Ls.indices.astype(np.int32),
-                    Ls.data.copy(), 1.0 / d, np.zeros((n, 3)), int(Ls.nnz + n), sim.params.threads != 1)
-
-
-@njit(cache=True)
-def predict(h, x, v, y, mh2, gravity, vel_damp, par):
-    """y = x + h (1 - h c_v)(v + h g) for the free vertices (mh2 > 0), y = x + h v for the bone-attached ones (their
-    segment's motion continued): the positions the step's forces are evaluated at (the same free positions
-    integration.integrate writes with a zero force). The bones must be predicted too: with them where they are, tissue
-    moving with a bone would lie h v ahead of it and pull it on (a negative damping k h: the knee diverged in 24 steps).
-    par: over numba's threads (the same numbers)."""
-    if par:
-        _predict_par(h, x, v, y, mh2, gravity, vel_damp)
-    else:
-        _predict(h, x, v, y, mh2, gravity, vel_damp)
-
-
-@njit(fastmath={'contract'}, inline='always')
-def _predict_vertex(i, h, x, v, y, mh2, gravity, damp):
-    if mh2[i] > 0.0:
-        for a in range(3):
-            y[i, a] = x[i, a] + h * ((v[i, a] + h * gravity[a]) * damp)
-    else:
-        y[i, 0] = x[i, 0] + h * v[i, 0]; y[i, 1] = x[i, 1] + h * v[i, 1]; y[i, 2] = x[i, 2] + h * v[i, 2]
+                    Ls.data.copy(), 1.0 / d, np.zeros((n, 3)), int(Ls.nnz + n))
 
 
 @njit(cache=True, fastmath={'contract'})
-def _predict(h, x, v, y, mh2, gravity, vel_damp):
+def predict(h, x, v, y, mh2, gravity, vel_damp):
+    """y = x + h (1 - h c_v)(v + h g) for the free vertices (mh2 > 0), y = x + h v for the bone-attached ones (their
+    segment's motion continued): the positions the step's forces are evaluated at (the same free positions
+    integration.integrate writes with a zero force). The bones must be predicted too: with them where they are, tissue
+    moving with a bone would lie h v ahead of it and pull it on (a negative damping k h: the knee diverged in 24 steps)."""
     damp = 1.0 - h * vel_damp
     for i in range(x.shape[0]):
-        _predict_vertex(i, h, x, v, y, mh2, gravity, damp)
-
-
-@njit(cache=True, fastmath={'contract'}, parallel=True)
-def _predict_par(h, x, v, y, mh2, gravity, vel_damp):
-    damp = 1.0 - h * vel_damp
-    for i in prange(x.shape[0]):
-        _predict_vertex(i, h, x, v, y, mh2, gravity, damp)
+        if mh2[i] > 0.0:
+            for a in range(3):
+                y[i, a] = x[i, a] + h * ((v[i, a] + h * gravity[a]) * damp)
+        else:
+            y[i, 0] = x[i, 0] + h * v[i, 0]; y[i, 1] = x[i, 1] + h * v[i, 1]; y[i, 2] = x[i, 2] + h * v[i, 2]
 
 
 @njit(cache=True, fastmath={'contract'})
 def _solve(imp, f, xk, y, first):
     """xk_free += w, A w = the right-hand side (f - M (xk - y)/h^2 on the vertices' rows; on the cells' rows in the
-    first iteration the bones' motion beyond the prediction, keff_c sum (xk_a - y_a)): L z' = rhs (the rhs formed first, in
-    z, each row alone: over numba's threads with imp.par; then the forward pass in place), z' D^-1, L^T w = z' D^-1 (each w_p final when the backward pass leaves
+    first iteration the bones' motion beyond the prediction, keff_c sum (xk_a - y_a)): L z' = rhs (the rhs formed row
+    by row as the forward pass reaches it), z' D^-1, L^T w = z' D^-1 (each w_p final when the backward pass leaves
     row p: the update is made there)."""
     z, Lp, Lj, Lx, dinv = imp.z, imp.Lp, imp.Lj, imp.Lx, imp.dinv
+    row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
     n = z.shape[0]
-    if imp.par:
-        _rhs_par(z, imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx, f, xk, y, first)
-    else:
-        _rhs(z, imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx, f, xk, y, first)
     for p in range(n):
-        s0, s1, s2 = z[p, 0], z[p, 1], z[p, 2]
+        i = row_v[p]
+        if i >= 0:
+            m = mh2[i]
+            s0 = f[i, 0] - m * (xk[i, 0] - y[i, 0])
+            s1 = f[i, 1] - m * (xk[i, 1] - y[i, 1])
+            s2 = f[i, 2] - m * (xk[i, 2] - y[i, 2])
+        else:
+            s0 = s1 = s2 = 0.0
+            if first:
+                for q in range(att_ptr[p], att_ptr[p + 1]):
+                    a = att_idx[q]
+                    s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
+                k = keff[row_c[p]]
+                s0 *= k; s1 *= k; s2 *= k
         for q in range(Lp[p], Lp[p + 1]):
             j = Lj[q]
             l = Lx[q]
@@ -227,77 +214,22 @@ def _solve(imp, f, xk, y, first):
             j = Lj[q]
             l = Lx[q]
             z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
-        i = imp.row_v[p]
+        i = row_v[p]
         if i >= 0:
             xk[i, 0] += w0; xk[i, 1] += w1; xk[i, 2] += w2
 
 
-@njit(fastmath={'contract'}, inline='always')
-def _rhs_row(p, z, row_v, row_c, mh2, keff, att_ptr, att_idx, f, xk, y, first):
-    """Row p of the right-hand side into z[p] (the forward pass then runs in place). The arrays come one by one,
-    not as the Implicit tuple: numba lost writes through a tuple's array inside a prange body (measured: a
-    per-task result stayed unwritten, cells.lane_forces_par)."""
-    i = row_v[p]
-    if i >= 0:
-        m = mh2[i]
-        s0 = f[i, 0] - m * (xk[i, 0] - y[i, 0])
-        s1 = f[i, 1] - m * (xk[i, 1] - y[i, 1])
-        s2 = f[i, 2] - m * (xk[i, 2] - y[i, 2])
-    else:
-        s0 = s1 = s2 = 0.0
-        if first:
-            for q in range(att_ptr[p], att_ptr[p + 1]):
-                a = att_idx[q]
-                s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
-            k = keff[row_c[p]]
-            s0 *= k; s1 *= k; s2 *= k
-    z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
-
-
 @njit(cache=True, fastmath={'contract'})
-def _rhs(z, row_v, row_c, mh2, keff, att_ptr, att_idx, f, xk, y, first):
-    for p in range(z.shape[0]):
-        _rhs_row(p, z, row_v, row_c, mh2, keff, att_ptr, att_idx, f, xk, y, first)
-
-
-@njit(cache=True, fastmath={'contract'}, parallel=True)
-def _rhs_par(z, row_v, row_c, mh2, keff, att_ptr, att_idx, f, xk, y, first):
-    for p in prange(z.shape[0]):
-        _rhs_row(p, z, row_v, row_c, mh2, keff, att_ptr, att_idx, f, xk, y, first)
-
-
-@njit(fastmath={'contract'}, inline='always')
-def _velocity(i, ih, x, xn, vn, mh2, vmax2):
-    """Vertex i's new velocity (free vertices); 1 if it is too fast or not finite, else 0."""
-    if mh2[i] > 0.0:
-        a = (xn[i, 0] - x[i, 0]) * ih
-        b = (xn[i, 1] - x[i, 1]) * ih
-        c = (xn[i, 2] - x[i, 2]) * ih
-        vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
-        return 0 if a * a + b * b + c * c <= vmax2 else 1          # (NaN counts)
-    return 0
-
-
-@njit(cache=True)
-def _velocities(h, x, xn, vn, mh2, vmax2, par):
-    return _velocities_par(h, x, xn, vn, mh2, vmax2) if par else _velocities_serial(h, x, xn, vn, mh2, vmax2)
-
-
-@njit(cache=True, fastmath={'contract'})
-def _velocities_serial(h, x, xn, vn, mh2, vmax2):
+def _velocities(h, x, xn, vn, mh2, vmax2):
     nfast = 0
     ih = 1.0 / h
     for i in range(x.shape[0]):
-        nfast += _velocity(i, ih, x, xn, vn, mh2, vmax2)
-    return nfast
-
-
-@njit(cache=True, fastmath={'contract'}, parallel=True)
-def _velocities_par(h, x, xn, vn, mh2, vmax2):
-    nfast = 0
-    ih = 1.0 / h
-    for i in prange(x.shape[0]):
-        nfast += _velocity(i, ih, x, xn, vn, mh2, vmax2)
+        if mh2[i] > 0.0:
+            a = (xn[i, 0] - x[i, 0]) * ih
+            b = (xn[i, 1] - x[i, 1]) * ih
+            c = (xn[i, 2] - x[i, 2]) * ih
+            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
+            nfast += 0 if a * a + b * b + c * c <= vmax2 else 1          # (NaN counts)
     return nfast
 
 
@@ -309,11 +241,11 @@ def integrate(h, x, v, f, xn, vn, imp, att_idx, att_seg, rest, seg_R, seg_t, gra
     nfast = IK.integrate(h, x, v, f, imp.zero_inv, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp,
                          vmax2)
     _solve(imp, f, xn, imp.y, True)
-    return nfast + _velocities(h, x, xn, vn, imp.mh2, vmax2, imp.par)
+    return nfast + _velocities(h, x, xn, vn, imp.mh2, vmax2)
 
 
 @njit(cache=True)
 def correct(h, x, f, xn, vn, imp, vmax2):
     """A further local/global iteration: f = the forces at (xn, vn); xn_free += A^-1 (f - M (xn - y)/h^2)."""
     _solve(imp, f, xn, imp.y, False)
-    return _velocities(h, x, xn, vn, imp.mh2, vmax2, imp.par)
+    return _velocities(h, x, xn, vn, imp.mh2, vmax2)

@@ -50,9 +50,12 @@ Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
                                 'ch_rest inv_lopt fmax ch_off ch_idx l_rest')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
-                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 par')
+                                 'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
                                  'chord chord_axis')
+
+
+_cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: cells.lane_forces_par)
 
 
 @njit(cache=True)
@@ -104,13 +107,13 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             xe = x
             if imp.on:
-                IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp, imp.par)
+                IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)
                 xe = imp.y
             if num.fl_on:
                 MU.chord_lengths(xe, tissue.ch_off, tissue.ch_idx, scratch.chord, scratch.chord_axis)
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.chord, tissue.ch_rest,
                                      tissue.inv_lopt, tissue.l_rest, num.fl_on, num.fl_gamma, act_t)
-            bad = CK.cell_pass(num.par, xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            bad = _cell_pass(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
             if num.pe_on:         # the passive fibre force between each muscle's attachments (conservative, muscle.py)
                 MU.passive_tension(xe, f, tissue.ch_off, tissue.ch_idx, tissue.ch_rest, tissue.inv_lopt, tissue.fmax,
                                    tissue.l_rest, num.pe_k, num.pe_eps0, scratch.chord, scratch.chord_axis, scratch.passive)
@@ -132,7 +135,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 for _ in range(1, imp.iters):
                     if fast or not ok:
                         break
-                    if CK.cell_pass(num.par, xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
+                    if _cell_pass(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
                     if num.pe_on:
@@ -159,6 +162,25 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             swaps += 1
     CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
     return swaps
+
+
+_PARALLEL = []
+
+
+def parallel_advance():
+    """advance with the thread-parallel cell pass (cells.lane_forces_par; Params.threads != 1): the same code,
+    compiled from it with _cell_pass bound to the parallel kernel, once per process and not cached on disk. (numba
+    caches parallel kernels, but a cached function that calls one segfaulted when loaded in a later process if it
+    had been compiled against a callee loaded from the cache: measured with advance itself; so advance, cached,
+    never calls a parallel kernel.) The first call compiles it (about as long as advance's cold compile)."""
+    if not _PARALLEL:
+        import types
+        g = dict(globals())
+        g['_cell_pass'] = CK.lane_forces_par
+        inner = types.FunctionType(_advance.py_func.__code__, g, '_advance_parallel')
+        g['_advance'] = njit(inner)
+        _PARALLEL.append(njit(types.FunctionType(advance.py_func.__code__, g, 'advance_parallel')))
+    return _PARALLEL[0]
 
 
 class Workspace:
@@ -222,7 +244,7 @@ class Workspace:
                       h / (p.fv_filter_time + h),
                       float(p.activation_time), float(p.deactivation_time), p.force_length and p.specific_tension > 0,
                       float(p.fl_width), p.passive_force_length and p.specific_tension > 0, float(p.fl_passive_shape),
-                      float(p.fl_passive_strain), p.threads != 1)
+                      float(p.fl_passive_strain))
         M, J = sim.n_muscles, sim.n_joints
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M),
@@ -255,9 +277,11 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
           state.muscle_velocity, state.joint_lock_torque, state.activation)   # (the fields of Arrays)
     if lock is None:
         lock, target = ws.no_lock
+    run = advance
     if p.threads != 1:          # (numba's setting is per Python thread: set where the step runs)
         set_threads(p.threads)
-    swaps = advance(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)
+        run = parallel_advance()
+    swaps = run(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)
     if info[2] == CAUSE_ACTIVATION:
         m = int(info[1])
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]; muscle {m} '
