@@ -1,13 +1,22 @@
 """Solver benchmark: steps per second (per CPU second) of the default model on one thread, side by side with the
 same step in plain numpy (solver.reference_step) and with pypbd's shape matching (PositionBasedDynamics) on the
-same cells.
+same cells; then the thread scaling of the step.
 
-    .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3] [--fine FILE.npz]
+    .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3] [--fine FILE.npz] [--threads 1,2] [--refine R]
+                                     [--quick]
 
 The physical set runs with its mass_scaled integrator (4 sub-steps) and, beside it, with the implicit integrator (one
 sub-step of 1 ms; docs/solver.md "Implicit integrator"). --fine: the same two on a finer model (e.g. from
 `tissue-sim build-model --slices 140 --muscle-rays 24 --fat-rays 36 --allow-broken-muscles`), with the factor's size
 and the process's peak memory.
+
+Thread scaling (--threads, default 1,2; 'none' skips it): steps per wall second for each number of threads
+(Params.threads; 1 is the serial cell kernel, more the parallel one: the same numbers), side by side in one
+process per configuration (the thread counts alternate, best of 3 windows each), for the paper set (mass_scaled,
+100-step chunks), the physical set (mass_scaled, 4 sub-steps) and the physical set with the implicit integrator,
+on the default model and, with --refine R (the bundled limb built R times finer, builder.default_model(refine=R))
+or --fine FILE, on a finer model; with each configuration's peak resident memory (its own process:
+resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only (what `make bench` runs).
 
 Model: tissue_sim.core.builder.default_model() (the bundled anatomy); if that is not available,
 the builder's synthetic paper-sized limb phantom (tests/phantoms.py). Prints the figures as lines, then as a
@@ -22,11 +31,29 @@ import sys
 import time
 from pathlib import Path
 
-for _v in ('NUMBA_NUM_THREADS', 'OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
-    os.environ[_v] = '1'                     # one thread for everything measured (pypbd uses OpenMP, numpy BLAS)
+def _max_threads(argv) -> int:
+    """The most threads --threads asks for (numba's pool is sized before numba is imported); 1 if none."""
+    for i, a in enumerate(argv):
+        text = a.split('=', 1)[1] if a.startswith('--threads=') else argv[i + 1] if a == '--threads' and i + 1 < len(argv) else None
+        if text is not None:
+            try:
+                return max([1] + [int(t) for t in text.split(',') if t.strip().isdigit()])
+            except ValueError:
+                return 1
+    return min(2, os.cpu_count() or 1)
+
+
+for _v in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ[_v] = '1'                     # one thread for pypbd (OpenMP) and numpy's BLAS
+if '--scaling-child' not in sys.argv:        # (a child inherits its parent's setting)
+    os.environ['NUMBA_NUM_THREADS'] = str(_max_threads(sys.argv))   # numba's pool; the one-thread rows set threads: 1
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'src' / 'tissue_sim'))
 sys.path.insert(0, str(ROOT / 'tests'))
+
+import dataclasses  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -111,12 +138,68 @@ def _cpu():
     return {'cpu_model': model, 'llvm_cpu': CK.compile_cpu(), 'lanes_per_block': CK.BLK}
 
 
+def _cpu_name():
+    """lscpu's model name (the processor the figures were measured on), else /proc/cpuinfo's."""
+    try:
+        out = subprocess.run(['lscpu'], capture_output=True, text=True, timeout=10).stdout
+        name = next((ln.split(':', 1)[1].strip() for ln in out.splitlines() if ln.startswith('Model name')), None)
+        if name:
+            return name
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return _cpu()['cpu_model']
+
+
+def parse_threads(text):
+    """'1,2' -> [1, 2]; 'none' -> []; exit 2 with an error line otherwise."""
+    if text.strip().lower() == 'none':
+        return []
+    try:
+        out = [int(t) for t in text.split(',')]
+    except ValueError:
+        out = []
+    if not out or any(n < 1 for n in out):
+        print(f'error: --threads {text!r}: expected numbers >= 1 separated by commas, or none', file=sys.stderr)
+        sys.exit(2)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--model', help='a model .npz (default: the bundled anatomy)')
     ap.add_argument('--seconds', type=float, default=3.0, help='measuring time per figure [s]')
     ap.add_argument('--fine', help='also a finer model .npz: physical set, mass_scaled beside implicit')
+    ap.add_argument('--threads', default=None, help="thread counts of the scaling section, e.g. 1,2 (default: 1,2 on a "
+                    "machine with 2 or more cores; 'none': skip it)")
+    ap.add_argument('--refine', help='the scaling section also on the bundled limb built R times finer (e.g. 3)')
+    ap.add_argument('--quick', action='store_true', help='the scaling section only, 1-s windows')
+    ap.add_argument('--scaling-child', help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.scaling_child:
+        return scaling_child(json.loads(args.scaling_child))
+    threads = parse_threads(args.threads if args.threads is not None else ','.join(
+        str(n) for n in sorted({1, min(2, os.cpu_count() or 1)})))
+    if args.refine is not None:
+        from tissue_sim.core.builder import parse_refinements
+        try:
+            refine = parse_refinements(args.refine)
+        except ValueError as e:
+            print(f'error: {e}', file=sys.stderr)
+            sys.exit(2)
+        if len(refine) != 1:
+            print(f'error: --refine {args.refine!r}: one refinement', file=sys.stderr)
+            sys.exit(2)
+    for path in (args.model, args.fine):
+        if path and not Path(path).is_file():
+            print(f'error: {path}: no such model file', file=sys.stderr)
+            sys.exit(2)
+    if args.quick:
+        out = {'cpu': _cpu_name(), **_cpu(), 'timing': 'steps per wall second'}
+        print(f'CPU: {out["cpu"]} ({os.cpu_count()} cores; numba compiles for {out["llvm_cpu"]})')
+        out['scaling'] = scaling(args, threads, 1.0)
+        print()
+        print(json.dumps(out))
+        return
     tm, source = load_model(args.model)
     print(f'model: {source}: {tm.n_vertices} vertices, {tm.n_cells} cells '
           f'({int(np.sum(tm.cell_tissue == 1))} muscle, {int(np.sum(tm.cell_tissue == 2))} fat), '
@@ -127,7 +210,7 @@ def main():
     ham = [m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]
 
     def solver_rate(params, chunk, model=tm):
-        sim = solver.compile_model(model, params)
+        sim = solver.compile_model(model, dataclasses.replace(params, threads=1))      # one thread (the serial kernel)
         st, ctrl = solver.make_state(sim), solver.make_control(sim)
         ctrl.activation[[m for m, g in enumerate(model.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0
         if chunk == 1:
@@ -194,6 +277,7 @@ def main():
                cpu_load_1min=round(os.getloadavg()[0], 2), timing='per CPU second of this process, one thread')
     if args.fine:
         out['fine'] = fine_model(args.fine, solver_rate)
+    out['scaling'] = scaling(args, threads, args.seconds)
     if r_pbd:
         out.update(pypbd_steps_per_s=round(r_pbd, 1), speedup_vs_pypbd=round(r_chunk / r_pbd, 2),
                    speedup_vs_pypbd_per_pass=round(passes / r_pbd, 2), pypbd_target_met=bool(r_chunk >= 4 * r_pbd))
@@ -205,6 +289,118 @@ def main():
     print(markdown_table(out))
     print()
     print(json.dumps(out))
+
+
+# ------------------------------------------------------------------------------------ thread scaling
+SCALING_CONFIGS = (('paper set, mass_scaled', 'paper', {}),
+                   ('physical set, mass_scaled x4', 'physical', {}),
+                   ('physical set, implicit', 'physical', dict(integrator='implicit', substeps=1)))
+
+
+def scaling(args, threads, seconds):
+    """The thread-scaling section: one child process per (model, configuration) (its own peak memory), the
+    thread counts side by side in it. Prints a table; returns the rows."""
+    if not threads:
+        return []
+    models = [('default', {'model': args.model})]
+    if args.refine is not None:
+        models.append((f'refine {args.refine}', {'refine': float(args.refine)}))
+    if args.fine:
+        models.append((Path(args.fine).name, {'model': args.fine}))
+    cpu = _cpu_name()
+    rows = []
+    print(f'\nthread scaling: steps per wall second, threads {",".join(map(str, threads))} side by side (best of 3 '
+          f'windows of ~{seconds / 3:.1f} s each); {cpu}, {os.cpu_count()} cores, load average '
+          f'{os.getloadavg()[0]:.1f} at the start')
+    for mname, mspec in models:
+        for cname, preset, kw in SCALING_CONFIGS:
+            spec = dict(mspec, preset=preset, kw=kw, threads=threads, seconds=seconds)
+            env = dict(os.environ, NUMBA_NUM_THREADS=str(max(threads)))
+            res = subprocess.run([sys.executable, __file__, '--scaling-child', json.dumps(spec)], capture_output=True,
+                                 text=True, env=env)
+            lines = [ln for ln in res.stdout.splitlines() if ln.startswith('{')]
+            if res.returncode != 0 or not lines:
+                r = {'error': (res.stderr.strip().splitlines() or ['no output'])[-1]}
+            else:
+                r = json.loads(lines[-1])
+            r.update(model_name=mname, config=cname)
+            rows.append(r)
+            if 'error' in r:
+                print(f'  {mname:10s} {cname:30s} failed: {r["error"]}')
+                continue
+            rates = '  '.join(f'{n} thr: {r["rates"][str(n)]:>9}' for n in threads)
+            ratio = (f'  x{r["rates"][str(threads[-1])] / r["rates"][str(threads[0])]:.2f}'
+                     if all(isinstance(r['rates'][str(n)], float) for n in (threads[0], threads[-1])) else '')
+            print(f'  {mname:10s} ({r["vertices"]:,} vertices) {cname:30s} {rates}{ratio}  peak RSS {r["peak_rss_mb"]:.0f} MB')
+    print()
+    print(scaling_table(rows, threads, cpu))
+    return rows
+
+
+def scaling_table(rows, threads, cpu):
+    """The scaling rows as a markdown table (docs/convergence.md shows it)."""
+    head = '| model | run | ' + ' | '.join(f'{n} thread{"s" if n > 1 else ""} [steps/s]' for n in threads) + \
+        (f' | {threads[-1]} vs {threads[0]} |' if len(threads) > 1 else ' |') + ' peak RSS [MB] |'
+    lines = [f'{cpu}; steps per wall second', '', head, '|' + '---|' * (3 + len(threads) + (len(threads) > 1))]
+    for r in rows:
+        if 'error' in r:
+            lines.append(f'| {r["model_name"]} | {r["config"]} | ' + ' | '.join('failed' for _ in threads) + ' |')
+            continue
+        vals = [r['rates'][str(n)] for n in threads]
+        ratio = (f' | {vals[-1] / vals[0]:.2f}x' if all(isinstance(v, float) for v in (vals[0], vals[-1])) else ' | –') \
+            if len(threads) > 1 else ''
+        lines.append(f'| {r["model_name"]} ({r["vertices"]:,} vertices) | {r["config"]} | '
+                     + ' | '.join(f'{v:,.0f}' if isinstance(v, float) else str(v) for v in vals) + ratio
+                     + f' | {r["peak_rss_mb"]:.0f} |')
+    return '\n'.join(lines)
+
+
+def scaling_child(spec):
+    """One (model, configuration): steps per wall (and CPU) second for each thread count, alternating; the state
+    starts afresh every 100 steps (untimed: a fine model that diverges later is still timed, every count times the
+    same first 100 ms of the contraction)."""
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if 'refine' in spec:
+        from tissue_sim.core.builder import default_model
+        tm = default_model(refine=spec['refine'])
+    else:
+        tm = load_model(spec.get('model'))[0]
+    make = solver.Params.physical if spec['preset'] == 'physical' else solver.Params.paper
+    ham = [m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]
+    sims = {n: solver.compile_model(tm, make(threads=n, **spec['kw'])) for n in spec['threads']}
+    sim0 = sims[spec['threads'][0]]
+    chunk = 100 if spec['preset'] == 'paper' else 20
+    cap = 100
+    best, best_cpu = {n: 0.0 for n in sims}, {n: 0.0 for n in sims}
+    diverged = {}
+    from tissue_sim.core.solver.step import _run
+    for _ in range(3):
+        for n, sim in sims.items():
+            ctrl = solver.make_control(sim)
+            ctrl.activation[ham] = 1.0
+            acts = np.tile(ctrl.activation, (chunk, 1))
+            steps, wall, cpu = 0, 0.0, 0.0
+            end = time.perf_counter() + spec['seconds'] / 3
+            try:
+                while time.perf_counter() < end:
+                    st = solver.make_state(sim)
+                    _run(sim, st, acts[:1], sim.params.dt)          # warm (compiled, caches)
+                    while st.step - 1 + chunk <= cap and time.perf_counter() < end:
+                        t0, c0 = time.perf_counter(), time.process_time()
+                        _run(sim, st, acts, sim.params.dt)
+                        wall += time.perf_counter() - t0
+                        cpu += time.process_time() - c0
+                        steps += chunk
+            except solver.DivergenceError as e:
+                diverged[n] = str(e)
+            if steps and n not in diverged:
+                best[n] = max(best[n], steps / wall)
+                best_cpu[n] = max(best_cpu[n], steps / max(cpu, 1e-9))
+    rates = {str(n): (round(best[n], 1) if best[n] > 0 else f'diverged: {diverged.get(n)}') for n in sims}
+    print(json.dumps({'vertices': int(tm.n_vertices), 'cells': int(tm.n_cells), 'substeps': int(sim0.n_substeps),
+                      'rates': rates, 'cpu_rates': {str(n): round(best_cpu[n], 1) for n in sims},
+                      'diverged': diverged, 'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                      'rss_after_import_mb': round(rss0, 1), 'load_average': round(os.getloadavg()[0], 2)}))
 
 
 def implicit_factor(sim):

@@ -14,7 +14,8 @@ import collections
 import math
 
 import numpy as np
-from numba import njit
+import numba
+from numba import njit, prange
 
 def _noalias_option() -> dict:
     """The jit option that marks a function's array arguments noalias (LLVM), as {'_noalias': True}.
@@ -218,16 +219,24 @@ N_W = W_H + 17
 # slot: its own first vertex with Xr = 0, adding exact zeros.
 
 
-CellLayout = collections.namedtuple('CellLayout', 'groups ids rings ring_idx ring_X0 par lane_muscle lane_of')
-CellWork = collections.namedtuple('CellWork', 'w rs0 rs1 gv0 gv1 lq lp le ll')
+CellLayout = collections.namedtuple('CellLayout', 'groups ids rings ring_idx ring_X0 par lane_muscle lane_of tasks excl '
+                                    'gvert gptr gsrc')
+CellWork = collections.namedtuple('CellWork', 'w rs0 rs1 gv0 gv1 lq lp le ll tw trs0 trs1 tgv0 tgv1 bh bb bgv bro fr tbad')
 CellWork.__doc__ = """The scratch buffers of lane_forces (cell_work): w the per-lane rows (W_*), rs0/rs1 the sums of two
 ring blocks (R_*), gv0/gv1 their gathered vertices, and the per-cell state in lane order: lq the rotation
-quaternions (rows x, y, z, w of block b at (4 b + r) BLK), lp pressure, le energy, ll axial length (at b BLK)."""
+quaternions (rows x, y, z, w of block b at (4 b + r) BLK), lp pressure, le energy, ll axial length (at b BLK).
+lane_forces_par's: tw, trs0, trs1, tgv0, tgv1 the same scratch per thread (row = numba's thread id); per task
+(CellLayout.tasks) bh the top-ring share of its last cell, bb the bottom-ring share of its first cell, bgv and bro
+its first ring's gathered vertices and sums (the ring whose map needs the previous task's bh); fr the forces of
+every ring slot ((r0 + s) * 3 + axis) * BLK + lane; tbad each task's lowest bad cell."""
+TASK_POSITIONS = 8          # positions (cell blocks) per task of lane_forces_par: a fixed cut of every group, so the
+                            # results do not depend on the number of threads (a cut costs one ring's sums twice)
 
 
-def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv):
+def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv,
+               task_positions=TASK_POSITIONS):
     """The layout lane_forces reads (numpy, at compile time). Returns a CellLayout (groups, ids, rings,
-    ring_idx, ring_X0, par, lane_muscle, lane_of):
+    ring_idx, ring_X0, par, lane_muscle, lane_of, tasks, excl, gvert, gptr, gsrc):
 
     - groups (G, 5) int64: per cell size n (ascending): n, positions L, first cell block, first ring block
       (a group has L cell blocks and L + 1 ring blocks), the kernel version it runs: 0 general, 1 no muscle,
@@ -240,7 +249,12 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
       ((r0 + s) * 3 + d) * BLK (0 for padding);
     - par (Bc, N_PAR * BLK): per-lane constants (P_* rows, 0 for a dummy);
     - lane_muscle (Bc, BLK) int32: muscle of each lane (-1: fat or dummy);
-    - lane_of (C,) int64: the lane of each cell, b * BLK + lane (the order of the kernel's per-cell state).
+    - lane_of (C,) int64: the lane of each cell, b * BLK + lane (the order of the kernel's per-cell state);
+    - tasks (T, 3) int64: lane_forces_par's tasks, group and positions j0 .. j1 - 1 (task_positions per task);
+    - excl (R, BLK) uint8: 1 where the slot's vertex gets all its ring forces from one unit of lane_forces_par
+      (one task, or the cut rings' pass), which then adds them into f itself;
+    - gvert (S,), gptr (S + 1,), gsrc (E,) int64: the other (shared) vertices and per shared vertex (CSR) the
+      offsets in CellWork.fr of its ring slots' forces, in the order lane_forces adds them.
 
     Chains: cell c continues into cell d when c's top ring and d's bottom ring are the same vertices with
     the same rest shape about their centroids (to 1e-12 of the cells' size), both cells have the same even
@@ -358,8 +372,42 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     lane_of = np.zeros(C, np.int64)
     real = ids >= 0
     lane_of[ids[real]] = np.flatnonzero(real.reshape(-1))
+    # lane_forces_par: each group's positions cut into tasks of TASK_POSITIONS, and per vertex its ring slots'
+    # forces in the order lane_forces adds them (ring blocks, then slots, then lanes: ascending flat offsets)
+    tasks = np.array([(gi, j0, min(j0 + task_positions, g[1])) for gi, g in enumerate(groups)
+                      for j0 in range(0, g[1], task_positions)], np.int64).reshape(-1, 3)
+    unit = np.zeros(Br, np.int64)                       # the unit that forces each ring block: its task, or T (cuts)
+    for t, (gi, j0, j1) in enumerate(tasks):
+        q0, L = groups[gi][3], groups[gi][1]
+        unit[q0 + j0:q0 + j1 + (1 if j1 == L else 0)] = t
+        if j0 > 0:
+            unit[q0 + j0] = len(tasks)
+    src, dst, uni = [], [], []
+    for q in range(Br):
+        m_real, r0, cnt = rings[q, 0], rings[q, 2], rings[q, 3]
+        for s in range(m_real):
+            src.append((r0 + s) * 3 * BLK + np.arange(cnt))
+            dst.append(ring_idx[r0 + s, :cnt] // 3)
+            uni.append(np.full(cnt, unit[q]))
+    src = np.concatenate(src).astype(np.int64) if src else np.zeros(0, np.int64)
+    dst = np.concatenate(dst).astype(np.int64) if dst else np.zeros(0, np.int64)
+    uni = np.concatenate(uni).astype(np.int64) if uni else np.zeros(0, np.int64)
+    n_v = int(cv.max()) + 1 if cv.size else 0
+    lo, hi = np.full(n_v, np.iinfo(np.int64).max), np.full(n_v, -1)
+    np.minimum.at(lo, dst, uni)
+    np.maximum.at(hi, dst, uni)
+    own = lo == hi                                      # the vertex's ring forces all come from one unit
+    excl = np.zeros(ring_idx.shape, np.uint8)
+    excl[src // (3 * BLK), src % (3 * BLK)] = own[dst]
+    shared = ~own[dst]
+    src, dst = src[shared], dst[shared]
+    order = np.argsort(dst, kind='stable')              # per vertex, src stays ascending
+    gvert, counts = np.unique(dst, return_counts=True)
+    gptr = np.zeros(gvert.size + 1, np.int64)
+    np.cumsum(counts, out=gptr[1:])
     out = CellLayout(np.array(groups, np.int64).reshape(-1, 5), ids, rings, ring_idx, ring_X0.reshape(-1),
-                     par.reshape(Bc, N_PAR * BLK), lane_muscle, lane_of)
+                     par.reshape(Bc, N_PAR * BLK), lane_muscle, lane_of, tasks, excl, gvert.astype(np.int64), gptr,
+                     src[order])
     for arr in out:
         arr.flags.writeable = False
     return out
@@ -401,9 +449,17 @@ def cell_work(cells: CellLayout) -> CellWork:
     m_max = max(2, int(cells.rings[:, 1].max(initial=0)))
     lq = _aligned_zeros(4 * n_lanes)
     lq.reshape(-1, 4, BLK)[:, 3] = 1.0
+    nt, T = max(int(numba.config.NUMBA_NUM_THREADS), 1), max(cells.tasks.shape[0], 1)
+    slots = int(cells.ring_idx.shape[0])
+
+    def rows(k, size):
+        return _aligned_zeros(k * size).reshape(k, size)
     return CellWork(_aligned_zeros(N_W * BLK), _aligned_zeros(N_R * BLK), _aligned_zeros(N_R * BLK),
                     _aligned_zeros(6 * m_max * BLK), _aligned_zeros(6 * m_max * BLK), lq, _aligned_zeros(n_lanes),
-                    _aligned_zeros(n_lanes), _aligned_zeros(n_lanes))
+                    _aligned_zeros(n_lanes), _aligned_zeros(n_lanes),
+                    rows(nt, N_W * BLK), rows(nt, N_R * BLK), rows(nt, N_R * BLK), rows(nt, 6 * m_max * BLK),
+                    rows(nt, 6 * m_max * BLK), rows(T, 17 * BLK), rows(T, 17 * BLK), rows(T, 6 * m_max * BLK),
+                    rows(T, N_R * BLK), _aligned_zeros(3 * slots * BLK), np.full(T, -1, np.int64))
 
 
 @njit(cache=True)
@@ -543,6 +599,143 @@ def _scatter(ff, gv, idx, n, cnt):
         for c in range(cnt):
             i = idx[s, c]
             ff[i] += gv[g + c]; ff[i + 1] += gv[g + BLK + c]; ff[i + 2] += gv[g + 2 * BLK + c]
+
+
+@njit(cache=True, parallel=True)
+def lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
+    """lane_forces over numba's threads (numba.set_num_threads), bit-identical to it for any number of threads.
+
+    Three passes, two of them parallel. (1) The tasks (cells.tasks: every group's positions cut into runs of TASK_POSITIONS, a cut that
+    does not depend on the number of threads) in parallel, each as lane_forces runs its positions, with the
+    thread's own scratch: its rings' sums, its cells' algebra and state (each cell block belongs to one task),
+    and the forces of the rings it completes, added into f or stored per ring slot (work.fr, see below). The ring
+    at a cut gets its map from two tasks: the task above stores its share and the ring's gathered vertices
+    (bb, bgv, bro), the task below the share of its last cell (bh). (2) Those rings (serially: one ring block per
+    cut, a few per cent of the work; a parallel region costs more where the cores are shared): map = bh of
+    the task below + bb. The maps are the same sums as lane_forces' (0 + share, then share below + that), so
+    every slot's force is the same number. A vertex whose ring forces all come from one task (or all from the
+    cut rings) gets them added into f by it, in lane_forces' order (cells.excl); the others' are stored per slot.
+    (3) Per shared vertex in parallel, its slots' forces added in lane_forces' order (cells.gvert/gptr/gsrc):
+    f is bit-identical to lane_forces', with no two threads writing one vertex. Returns the lowest bad cell or -1, as lane_forces."""
+    # (arrays only into the prange body, no named tuple: numba lost writes through a tuple's array there, and a
+    # step segfaulted now and then)
+    tasks, tbad = cells.tasks, work.tbad
+    groups, ids, rings, ring_idx, ring_X0, par, lane_muscle = (cells.groups, cells.ids, cells.rings, cells.ring_idx,
+                                                              cells.ring_X0, cells.par, cells.lane_muscle)
+    tw, trs0, trs1, tgv0, tgv1 = work.tw, work.trs0, work.trs1, work.tgv0, work.tgv1
+    lq, lp, le, ll, fr, bh, bb, bgv, bro = work.lq, work.lp, work.le, work.ll, work.fr, work.bh, work.bb, work.bgv, work.bro
+    excl = cells.excl
+    f[:] = 0.0
+    xf, vf, ff = x.reshape(-1), v.reshape(-1), f.reshape(-1)
+    for t in prange(tasks.shape[0]):
+        tid = numba.get_thread_id()
+        tbad[t] = _task_forces(xf, vf, ff, groups, ids, rings, ring_idx, ring_X0, par, lane_muscle, tasks, excl, lam,
+                               act, volume_actual, iters, vol_gain, tw[tid], trs0[tid], trs1[tid], tgv0[tid], tgv1[tid],
+                               lq, lp, le, ll, fr, bh, bb, bgv, bro, t)
+    for t in range(tasks.shape[0]):             # (a few rings: serially, one parallel region less)
+        if tasks[t, 1] > 0:
+            _cut_ring_forces(ff, cells, work, t, 0)
+    gvert, gptr, gsrc = cells.gvert, cells.gptr, cells.gsrc
+    for u in prange(gvert.shape[0]):
+        s0 = s1 = s2 = 0.0
+        for e in range(gptr[u], gptr[u + 1]):
+            k = gsrc[e]
+            s0 += fr[k]; s1 += fr[k + BLK]; s2 += fr[k + 2 * BLK]
+        i = gvert[u]
+        f[i, 0] = s0; f[i, 1] = s1; f[i, 2] = s2
+    bad = -1
+    for t in range(tasks.shape[0]):
+        b = tbad[t]
+        if b >= 0 and (bad < 0 or b < bad):
+            bad = b
+    return bad
+
+
+@njit(cache=True, fastmath={'contract'}, error_model='numpy')
+def _task_forces(xf, vf, ff, groups, ids, rings, ring_idx, ring_X0, par, lane_muscle, tasks, excl, lam, act, volume_actual,
+                 iters, vol_gain, w, rs0, rs1, gv0, gv1, lq, lp, le, ll, fr, bh, bb, bgv, bro, t):
+    """Task t of lane_forces_par (positions j0 .. j1 - 1 of its group) on one thread's scratch (w, rs0, rs1, gv0,
+    gv1). Returns its lowest bad cell or -1."""
+    gi, j0, j1 = tasks[t, 0], tasks[t, 1], tasks[t, 2]
+    n, L, b0, q0, plain = groups[gi, 0], groups[gi, 1], groups[gi, 2], groups[gi, 3], groups[gi, 4] == 1
+    fatvol = groups[gi, 4] == 2
+    q = q0 + j0
+    m_real, m, r0 = rings[q, 0], rings[q, 1], rings[q, 2]
+    w[W_H * BLK:N_W * BLK] = 0.0        # no cell below the first ring (its share comes in the cut pass)
+    _ring_moments(rs0, gv0, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], m, m_real, xf, vf, ring_idx[r0:r0 + m])
+    bad = -1
+    for j in range(j0, j1 + 1):
+        rb, rt, gb, gt = (rs0, rs1, gv0, gv1) if (j - j0) % 2 == 0 else (rs1, rs0, gv1, gv0)
+        if j < j1:
+            q = q0 + j + 1
+            m_real, m, r0 = rings[q, 0], rings[q, 1], rings[q, 2]
+            _ring_moments(rt, gt, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], m, m_real, xf, vf, ring_idx[r0:r0 + m])
+            b = b0 + j
+            pb = par[b]
+            at = np.uint64(b * BLK)
+            _load_muscles(lam, act, lane_muscle[b], w)
+            _combine(w, rb, rt, pb, n, lq, lp, at)
+            if plain:
+                _cell_algebra(w, pb, n, volume_actual, vol_gain, True)
+                _rotations(w, iters)
+                _force_maps(w, pb, n, True)
+            elif fatvol:
+                _cell_algebra(w, pb, n, volume_actual, vol_gain, True, True)
+                _rotations(w, iters)
+                _force_maps(w, pb, n, True)
+            else:
+                _cell_algebra(w, pb, n, volume_actual, vol_gain, None)
+                _rotations(w, iters)
+                _force_maps(w, pb, n, None)
+            _ring_coefs(w, pb, lq, lp, le, ll, at)
+            for c in range(BLK):
+                cell = ids[b, c]
+                if w[W_BAD * BLK + c] != 0.0 and cell >= 0 and (bad < 0 or cell < bad):
+                    bad = cell
+        elif j1 == L:
+            _last_ring_coefs(w)
+        else:               # ring j1 is the next task's first: its share of it
+            bh[t, :] = w[W_H * BLK:(W_H + 17) * BLK]
+            break
+        q = q0 + j
+        m_real, m, r0 = rings[q, 0], rings[q, 1], rings[q, 2]
+        if j == j0 and j0 > 0:          # the cut ring: completed in the cut pass
+            bb[t, :] = w[W_RM * BLK:(W_RM + 17) * BLK]
+            bgv[t, :6 * m * BLK] = gb[:6 * m * BLK]
+            bro[t, :] = rb
+            continue
+        _ring_forces(w, gb, ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], rb, m)
+        _scatter_store(ff, fr, gb, ring_idx[r0:r0 + m], excl[r0:r0 + m], r0, m_real, rings[q, 3])
+    return bad
+
+
+@njit(cache=True)
+def _cut_ring_forces(ff, cells, work, t, tid):
+    """The first ring of task t (j0 > 0): its map the share of the task below's last cell (bh[t - 1]) + the share
+    of t's first cell (bb[t]), its forces into the slots' buffer."""
+    w, bh, bb = work.tw[tid], work.bh[t - 1], work.bb[t]
+    for r in range(17 * BLK):
+        w[W_RM * BLK + r] = bh[r] + bb[r]
+    gi, j0 = cells.tasks[t, 0], cells.tasks[t, 1]
+    q = cells.groups[gi, 3] + j0
+    m_real, m, r0 = cells.rings[q, 0], cells.rings[q, 1], cells.rings[q, 2]
+    gv = work.bgv[t]
+    _ring_forces(w, gv, cells.ring_X0[r0 * 3 * BLK:(r0 + m) * 3 * BLK], work.bro[t], m)
+    _scatter_store(ff, work.fr, gv, cells.ring_idx[r0:r0 + m], cells.excl[r0:r0 + m], r0, m_real, cells.rings[q, 3])
+
+
+@njit(cache=True)
+def _scatter_store(ff, fr, gv, idx, ex, r0, n, cnt):
+    """A ring block's slot forces (gv after _ring_forces): added into f (flat) where the vertex is its unit's alone
+    (ex; in lane_forces' order: slot by slot, lane by lane), else stored into fr at rows r0 .. r0 + n for the gather."""
+    for s in range(n):
+        g, o = 6 * s * BLK, (r0 + s) * 3 * BLK
+        for c in range(cnt):
+            if ex[s, c]:
+                i = idx[s, c]
+                ff[i] += gv[g + c]; ff[i + 1] += gv[g + BLK + c]; ff[i + 2] += gv[g + 2 * BLK + c]
+            else:
+                fr[o + c] = gv[g + c]; fr[o + BLK + c] = gv[g + BLK + c]; fr[o + 2 * BLK + c] = gv[g + 2 * BLK + c]
 
 
 @njit(cache=True)

@@ -111,6 +111,10 @@ class Params:
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
+    threads: int = 1                      # threads of the step's cell pass (1: the serial kernel; 0: numba's default, all cores;
+                                          # n: n, at most NUMBA_NUM_THREADS); the results do not depend on it (bit-identical).
+                                          # 1 by default: on cores shared with other busy processes 2 threads were 4-7x slower
+                                          # (measured; docs/solver.md "Threads")
 
     # ------------------------------------------------------------------------------ presets
     @classmethod
@@ -200,6 +204,8 @@ class Params:
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')
         need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')
+        need(isinstance(self.threads, int) and not isinstance(self.threads, bool) and self.threads >= 0,
+             'threads must be an integer >= 0 (0: all cores)')
         need(self.fixed_root, 'fixed_root False (floating base) is not supported yet')
         return self
 

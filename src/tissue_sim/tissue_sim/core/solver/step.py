@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import math
 
+import numba
 import numpy as np
 from numba import njit
 
@@ -52,6 +53,9 @@ Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actua
                                  'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 pe_curve')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
                                  'fibre path_mono path_dmono path_len path_dlen part_l tau_pe')
+
+
+_cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: cells.lane_forces_par)
 
 
 @njit(cache=True)
@@ -116,7 +120,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                                        scratch.tau_pe, scratch.passive)
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
                                      num.fl_gamma, act_t)
-            bad = CK.lane_forces(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            bad = _cell_pass(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
             if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
                                    num.fv_alpha, scratch.muscle_sums)
@@ -135,7 +139,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 for _ in range(1, imp.iters):
                     if fast or not ok:
                         break
-                    if CK.lane_forces(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
+                    if _cell_pass(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
                     fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
@@ -161,6 +165,25 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             swaps += 1
     CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
     return swaps
+
+
+_PARALLEL = []
+
+
+def parallel_advance():
+    """advance with the thread-parallel cell pass (cells.lane_forces_par; Params.threads != 1): the same code,
+    compiled from it with _cell_pass bound to the parallel kernel, once per process and not cached on disk. (numba
+    caches parallel kernels, but a cached function that calls one segfaulted when loaded in a later process if it
+    had been compiled against a callee loaded from the cache: measured with advance itself; so advance, cached,
+    never calls a parallel kernel.) The first call compiles it (about as long as advance's cold compile)."""
+    if not _PARALLEL:
+        import types
+        g = dict(globals())
+        g['_cell_pass'] = CK.lane_forces_par
+        inner = types.FunctionType(_advance.py_func.__code__, g, '_advance_parallel')
+        g['_advance'] = njit(inner)
+        _PARALLEL.append(njit(types.FunctionType(advance.py_func.__code__, g, 'advance_parallel')))
+    return _PARALLEL[0]
 
 
 class Workspace:
@@ -257,7 +280,11 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
           state.muscle_velocity, state.joint_lock_torque, state.activation)   # (the fields of Arrays)
     if lock is None:
         lock, target = ws.no_lock
-    swaps = advance(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)
+    run = advance
+    if p.threads != 1:          # (numba's setting is per Python thread: set where the step runs)
+        set_threads(p.threads)
+        run = parallel_advance()
+    swaps = run(n_steps, n_sub, h, acts, lock, target, st, *ws.plain(h), info)
     if info[2] == CAUSE_ACTIVATION:
         m = int(info[1])
         raise ValueError(f'activation must be {sim.n_muscles} finite values in [0, 1]; muscle {m} '
@@ -322,3 +349,13 @@ def joint_lock_of(sim: SimModel, ctrl: Control):
 
 
 _BOOL, _F64 = np.dtype(np.bool_), np.dtype(np.float64)
+_MAX_THREADS = int(numba.config.NUMBA_NUM_THREADS)
+
+
+def set_threads(n: int) -> int:
+    """numba's threads for the cell pass (Params.threads): n, at most NUMBA_NUM_THREADS; 0: all of them. Returns the
+    number set. Only the speed depends on it (cells.lane_forces_par is bit-identical for any number)."""
+    n = _MAX_THREADS if n <= 0 else min(int(n), _MAX_THREADS)
+    if numba.get_num_threads() != n:
+        numba.set_num_threads(n)
+    return n

@@ -1,0 +1,114 @@
+"""The thread-parallel cell pass (cells.lane_forces_par, Params.threads): bit-identical to the serial kernel
+(cells.lane_forces, itself checked against reference.cell_forces in tests/test_solver_kernel.py) and to itself for
+1 and 2 threads (real numba runs with numba.set_num_threads; no timing), with the tasks cut at every position (every
+ring a cut ring) as well as at the default cut; the whole step likewise, paper and physical set (mass_scaled and
+implicit). Speed: bench/solver.py --threads 1,2."""
+import numba
+import numpy as np
+import pytest
+
+from tissue_sim.core import solver
+from tissue_sim.core.solver import cells as K
+
+two_threads = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason='needs NUMBA_NUM_THREADS >= 2')
+
+
+def _with_tasks(cells, per_task):
+    """The layout cut into tasks of per_task positions (what pack_cells' task_positions does)."""
+    g = cells.groups
+    t = np.array([(gi, j0, min(j0 + per_task, g[gi, 1])) for gi in range(g.shape[0])
+                  for j0 in range(0, g[gi, 1], per_task)], np.int64).reshape(-1, 3)
+    t.flags.writeable = False
+    return cells._replace(tasks=t)
+
+
+def _pass(kernel, sim, cells, x, v, lam, act, threads=None, calls=3):
+    """calls cell passes from the same state (the rotation warm start and pressure carried): (bad, f, quat,
+    pressure, energy, axial length) after the last."""
+    old = numba.get_num_threads()
+    if threads:
+        numba.set_num_threads(threads)
+    try:
+        work = K.cell_work(cells)
+        C = sim.n_cells
+        q, p, e, ln = np.tile([0.0, 0.0, 0.0, 1.0], (C, 1)), np.zeros(C), np.zeros(C), np.zeros(C)
+        K.to_lanes(q, p, e, ln, cells, work)
+        f = np.full_like(x, np.nan)             # every entry written (0 for a vertex of no cell)
+        for _ in range(calls):
+            bad = kernel(x, v, f, cells, lam, act, True, 1, 0.01, work)
+        K.from_lanes(work, cells, q, p, e, ln)
+        return bad, f, q, p, e, ln
+    finally:
+        numba.set_num_threads(old)
+
+
+def _same(a, b):
+    return a[0] == b[0] and all(np.array_equal(u, w) for u, w in zip(a[1:], b[1:]))
+
+
+@pytest.fixture(scope='module')
+def deformed(default_tm):
+    sim = solver.compile_model(default_tm, solver.Params.physical())
+    rng = np.random.default_rng(3)
+    x = sim.rest + rng.normal(scale=1e-3, size=sim.rest.shape)
+    v = rng.normal(scale=0.05, size=sim.rest.shape)
+    M = max(sim.n_muscles, 1)
+    return sim, x, v, rng.uniform(0.8, 1.0, M), rng.uniform(0.0, 1.0, M)
+
+
+@two_threads
+@pytest.mark.parametrize('per_task', [1, 3, K.TASK_POSITIONS])
+def test_parallel_pass_is_bit_identical_to_the_serial_one_for_1_and_2_threads(deformed, per_task):
+    sim, x, v, lam, act = deformed
+    cells = _with_tasks(sim.cell_blocks, per_task)
+    assert cells.tasks.shape[0] > cells.groups.shape[0]          # cut rings present
+    serial = _pass(K.lane_forces, sim, cells, x, v, lam, act)
+    assert serial[0] == -1 and np.abs(serial[1]).max() > 0 and np.all(np.isfinite(serial[1]))
+    one = _pass(K.lane_forces_par, sim, cells, x, v, lam, act, threads=1)
+    two = _pass(K.lane_forces_par, sim, cells, x, v, lam, act, threads=2)
+    assert _same(one, two)
+    assert _same(serial, one)
+
+
+@two_threads
+def test_parallel_pass_names_the_same_bad_cell(deformed):
+    sim, x, v, lam, act = deformed
+    cells = _with_tasks(sim.cell_blocks, 2)
+    xb = x.copy()
+    worst = sim.cv[sim.off[sim.n_cells - 5]]            # a vertex of a late cell, and one of an early cell
+    xb[worst] = np.nan
+    xb[sim.cv[sim.off[7]]] = 1e200
+    serial = _pass(K.lane_forces, sim, cells, xb, v, lam, act, calls=1)
+    assert serial[0] >= 0
+    for threads in (1, 2):
+        assert _pass(K.lane_forces_par, sim, cells, xb, v, lam, act, threads=threads, calls=1)[0] == serial[0]
+
+
+def _run(tm, params, steps=15):
+    sim = solver.compile_model(tm, params)
+    st, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[[m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0
+    solver.step(sim, st, ctrl, n_steps=steps)
+    assert np.all(np.isfinite(st.x)) and np.abs(st.x - sim.rest).max() > 1e-6      # it moved
+    return st
+
+
+@two_threads
+@pytest.mark.parametrize('kw', [dict(preset='paper'), dict(preset='physical'),
+                                dict(preset='physical', integrator='implicit', substeps=1)],
+                         ids=['paper', 'physical', 'physical-implicit'])
+def test_step_does_not_depend_on_the_threads(default_tm, kw):
+    kw = dict(kw)
+    make = solver.Params.physical if kw.pop('preset') == 'physical' else solver.Params.paper
+    runs = [_run(default_tm, make(threads=n, **kw)) for n in (1, 2, 0)]
+    for other in runs[1:]:
+        for name in ('x', 'v', 'q', 'qd', 'quat', 'pressure', 'cell_energy', 'muscle_velocity'):
+            assert np.array_equal(getattr(runs[0], name), getattr(other, name)), name
+
+
+def test_threads_parameter_is_checked():
+    with pytest.raises(ValueError, match='threads'):
+        solver.Params.paper(threads=-1)
+    with pytest.raises(ValueError, match='threads'):
+        solver.Params.from_dict({'threads': 1.5})
+    assert solver.Params.from_dict({'threads': 2}).threads == 2
