@@ -150,12 +150,30 @@ def test_a_fine_model_is_stable_at_one_ms():
 
 @pytest.mark.slow
 def test_the_demo_motion_agrees_with_mass_scaled(default_tm):
-    """The demo's motion (physical set, hamstrings ramped 0 -> 1 over 8 s, 10 s): the implicit knee trajectory within
-    1 deg of mass_scaled's (measured 0.46 deg at worst, t = 3.1 s; both at the 120-deg stop from 8 s)."""
+    """The demo's motion (physical set, hamstrings ramped 0 -> 1 over 8 s, 10 s), the same physics in both (the
+    implicit set has no hamstring sheath, so neither has here): the implicit knee trajectory within 1 deg of
+    mass_scaled's. Measured: 0.44 deg at worst (t = 2.8 s), both ending at 113.9-114.0 deg (the quadriceps' passive
+    fibres hold the knee short of its 120-deg stop)."""
     q = {}
-    for name, params in (('mass_scaled', solver.Params.physical()), ('implicit', _implicit())):
+    for name, params in (('mass_scaled', solver.Params.physical(sheath_group='')), ('implicit', _implicit())):
         sim = solver.compile_model(default_tm, params)
         q[name] = np.degrees([o['joint_positions'][0] for _, o in solver.simulate(
             sim, 10.0, {'hamstrings': [(0.0, 0.0), (8.0, 1.0)]}, every=50, output='obs')])
-    assert q['mass_scaled'][-1] == pytest.approx(120.0, abs=1.0)
-    assert np.abs(q['implicit'] - q['mass_scaled']).max() < 1.0
+    d = np.abs(q['implicit'] - q['mass_scaled'])
+    print(f"max diff {d.max():.2f} deg at frame {int(d.argmax())}; end {q['mass_scaled'][-1]:.1f} / {q['implicit'][-1]:.1f} deg")
+    assert q['mass_scaled'][-1] >= 105.0
+    assert d.max() < 1.0
+
+
+def test_the_implicit_physical_set_has_no_sheath_and_both_are_refused():
+    """The hamstring sheath's projection diverges under the implicit integrator (docs/contact.md: step 149 on the
+    bundled limb, 137 on the 26k-vertex model): the physical preset with integrator implicit leaves it out, a set that
+    asks for both (code or a parameter file edited from the bundled one) is refused with one line naming the fix."""
+    assert solver.Params.physical().sheath_group == 'hamstrings'
+    assert solver.Params.physical(integrator='implicit', substeps=1).sheath_group == ''
+    with pytest.raises(ValueError, match="sheath_group: ''"):
+        solver.Params.physical(integrator='implicit', sheath_group='hamstrings')
+    d = solver.Params.physical().to_dict()
+    d['integrator'] = 'implicit'
+    with pytest.raises(ValueError, match='sheath_group with integrator implicit'):
+        solver.Params.from_dict(d)
