@@ -194,6 +194,18 @@ def test_physical_without_force_velocity_is_stable(default_tm):
     assert vmax < 25.0, vmax                     # m/s (measured 5.4; max_speed 50)
 
 
+def assert_energy_settles(t, e, ke, w=50):
+    """From 1 s on, in windows of w samples (0.5 s of 10-ms samples): no window's largest total energy e above the
+    previous one's or the first one's by more than 1 % of the peak kinetic energy ke, and the last window's kinetic
+    energy below 5 % of its peak."""
+    settled = np.flatnonzero(t >= 1.0)[0]
+    wins = e[settled:settled + (len(e) - settled) // w * w].reshape(-1, w).max(axis=1)
+    tol = 0.01 * ke.max()
+    assert np.all(np.diff(wins) <= tol), np.diff(wins).max()
+    assert wins.max() <= wins[0] + tol
+    assert ke[-w:].max() < 0.05 * ke.max(), (ke[-w:].max(), ke.max())
+
+
 def _energy_run(sim, activation, duration):
     """Hamstrings fully active for 0.5 s, then held at ``activation`` (constant) for the rest of ``duration``:
     per 10 ms the total energy (kinetic + elastic + volume + tension + skeleton, J) and the kinetic energy
@@ -220,13 +232,7 @@ def test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest(defau
     swings on at 20-55 J, the windows' largest energy rising by up to 8.5 J."""
     sim = default_sim if preset == 'paper' else physical_sim
     t, e, ke = _energy_run(sim, activation, duration)
-    w = 50                                                     # 0.5 s of 10-ms samples
-    settled = np.flatnonzero(t >= 1.0)[0]
-    wins = e[settled:settled + (len(e) - settled) // w * w].reshape(-1, w).max(axis=1)
-    tol = 0.01 * ke.max()
-    assert np.all(np.diff(wins) <= tol), np.diff(wins).max()
-    assert wins.max() <= wins[0] + tol
-    assert ke[-w:].max() < 0.05 * ke.max(), (ke[-w:].max(), ke.max())
+    assert_energy_settles(t, e, ke)
 
 
 @pytest.mark.slow

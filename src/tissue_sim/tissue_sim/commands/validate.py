@@ -60,17 +60,23 @@ def run(args) -> int:
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        jpath, ppath = out / f'validation_{args.params}.json', out / f'validation_{args.params}.png'
-        jpath.write_text(json.dumps(V.jsonable(res), indent=1))
-        V.plot(res, ppath)
-    except OSError as e:
-        raise UserError(f'{out}: cannot write ({e})') from None
+    jpath, ppath = _write(out, f'validation_{args.params}', res, V.jsonable, V.plot)
     _print(con, res, args.quiet)
     con.print(f'wrote {jpath} and {ppath} ({res["wall_s"]} s)')
     failed = [k for k, v in res['targets'].items() if v['pass'] is False]
     return 1 if (args.strict and failed) else 0
+
+
+def _write(out, stem, res, jsonable, plot):
+    """out/stem.json and out/stem.png of a result; UserError naming the folder if they cannot be written."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        jpath, ppath = out / f'{stem}.json', out / f'{stem}.png'
+        jpath.write_text(json.dumps(jsonable(res), indent=1))
+        plot(res, ppath)
+    except OSError as e:
+        raise UserError(f'{out}: cannot write ({e})') from None
+    return jpath, ppath
 
 
 def _run_passive(args, con, out, V, progress):
@@ -83,13 +89,7 @@ def _run_passive(args, con, out, V, progress):
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        jpath, ppath = out / f'passive_{args.params}.json', out / f'passive_{args.params}.png'
-        jpath.write_text(json.dumps(V.jsonable(res), indent=1))
-        V.plot_passive(res, ppath)
-    except OSError as e:
-        raise UserError(f'{out}: cannot write ({e})') from None
+    jpath, ppath = _write(out, f'passive_{args.params}', res, V.jsonable, V.plot_passive)
     from rich.table import Table
     pc = res['passive_curve']
     t = Table(title=f'passive knee moment [N m] (+ flexing), hip 0, ankle 0, params {res["params"]} (passive fibres '

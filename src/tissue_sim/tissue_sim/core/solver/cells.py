@@ -501,6 +501,33 @@ def cell_forces(x, v, f, quat, cells, lam, act, volume_actual, iters, cell_energ
     return bad
 
 
+@njit(cache=True, fastmath={'contract'}, error_model='numpy', inline='always')
+def _cell_block(w, rb, rt, pb, n, lq, lp, le, ll, at, lam, act, lane_muscle_b, ids_b, plain, fatvol, volume_actual,
+                vol_gain, iters, bad):
+    """One block of BLK cells between rings rb and rt (lane_forces and lane_forces_par): its muscles, moments, algebra,
+    rotations, force maps and ring coefficients into w; returns the lowest bad cell so far (bad, or one of ids_b)."""
+    _load_muscles(lam, act, lane_muscle_b, w)
+    _combine(w, rb, rt, pb, n, lq, lp, at)
+    if plain:       # no muscle, volume or tension in the group: a version compiled without them
+        _cell_algebra(w, pb, n, volume_actual, vol_gain, True)
+        _rotations(w, iters)
+        _force_maps(w, pb, n, True)
+    elif fatvol:    # no muscle or tension, a volume term: compiled without the muscle parts
+        _cell_algebra(w, pb, n, volume_actual, vol_gain, True, True)
+        _rotations(w, iters)
+        _force_maps(w, pb, n, True)
+    else:
+        _cell_algebra(w, pb, n, volume_actual, vol_gain, None)
+        _rotations(w, iters)
+        _force_maps(w, pb, n, None)
+    _ring_coefs(w, pb, lq, lp, le, ll, at)
+    for c in range(BLK):
+        cell = ids_b[c]
+        if w[W_BAD * BLK + c] != 0.0 and cell >= 0 and (bad < 0 or cell < bad):
+            bad = cell
+    return bad
+
+
 @njit(cache=True, fastmath={'contract'}, error_model='numpy')
 def lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
     """Elastic (+ volume, + deformation-damping) forces of all cells, accumulated into f (V, 3)
@@ -563,25 +590,8 @@ def lane_forces(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
                 b = b0 + j
                 pb = par[b]
                 at = np.uint64(b * BLK)         # the block's lanes in the lane-ordered state (unsigned: no wrap-around)
-                _load_muscles(lam, act, lane_muscle[b], w)
-                _combine(w, rb, rt, pb, n, lq, lp, at)
-                if plain:       # no muscle, volume or tension in the group: a version compiled without them
-                    _cell_algebra(w, pb, n, volume_actual, vol_gain, True)
-                    _rotations(w, iters)
-                    _force_maps(w, pb, n, True)
-                elif fatvol:    # no muscle or tension, a volume term: compiled without the muscle parts
-                    _cell_algebra(w, pb, n, volume_actual, vol_gain, True, True)
-                    _rotations(w, iters)
-                    _force_maps(w, pb, n, True)
-                else:
-                    _cell_algebra(w, pb, n, volume_actual, vol_gain, None)
-                    _rotations(w, iters)
-                    _force_maps(w, pb, n, None)
-                _ring_coefs(w, pb, lq, lp, le, ll, at)
-                for c in range(BLK):
-                    cell = ids[b, c]
-                    if w[W_BAD * BLK + c] != 0.0 and cell >= 0 and (bad < 0 or cell < bad):
-                        bad = cell
+                bad = _cell_block(w, rb, rt, pb, n, lq, lp, le, ll, at, lam, act, lane_muscle[b], ids[b], plain, fatvol,
+                                  volume_actual, vol_gain, iters, bad)
             else:               # the group's last ring: the share of the cell below it only
                 _last_ring_coefs(w)
             q = q0 + j          # ring j is complete: its vertices' forces
@@ -673,25 +683,8 @@ def _task_forces(xf, vf, ff, groups, ids, rings, ring_idx, ring_X0, par, lane_mu
             b = b0 + j
             pb = par[b]
             at = np.uint64(b * BLK)
-            _load_muscles(lam, act, lane_muscle[b], w)
-            _combine(w, rb, rt, pb, n, lq, lp, at)
-            if plain:
-                _cell_algebra(w, pb, n, volume_actual, vol_gain, True)
-                _rotations(w, iters)
-                _force_maps(w, pb, n, True)
-            elif fatvol:
-                _cell_algebra(w, pb, n, volume_actual, vol_gain, True, True)
-                _rotations(w, iters)
-                _force_maps(w, pb, n, True)
-            else:
-                _cell_algebra(w, pb, n, volume_actual, vol_gain, None)
-                _rotations(w, iters)
-                _force_maps(w, pb, n, None)
-            _ring_coefs(w, pb, lq, lp, le, ll, at)
-            for c in range(BLK):
-                cell = ids[b, c]
-                if w[W_BAD * BLK + c] != 0.0 and cell >= 0 and (bad < 0 or cell < bad):
-                    bad = cell
+            bad = _cell_block(w, rb, rt, pb, n, lq, lp, le, ll, at, lam, act, lane_muscle[b], ids[b], plain, fatvol,
+                              volume_actual, vol_gain, iters, bad)
         elif j1 == L:
             _last_ring_coefs(w)
         else:               # ring j1 is the next task's first: its share of it
