@@ -109,3 +109,123 @@ def test_warm_up_times_a_scratch_runner():
     p = rt.Pacer(s.run, 1e-3, clock=scratch.clock)
     assert p.warm_up(scratch.run) == pytest.approx(3e-5)
     assert s.steps == 0 and scratch.steps == rt.WARM_STEPS
+
+
+# ---------------------------------------------------------------- the solver thread (real threads)
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+class CountingSolver:
+    """Steps that cost nothing and count; ``fail_after``: raise on the call that passes that many steps."""
+
+    def __init__(self, fail_after=None):
+        self.steps, self.fail_after, self.state = 0, fail_after, 0
+
+    def run(self, k):
+        if self.fail_after is not None and self.steps + k > self.fail_after:
+            raise ArithmeticError('diverged')
+        self.steps += k
+        self.state = self.steps
+
+    def snapshot(self):
+        return self.state
+
+
+def _wait_until(cond, timeout=5.0):
+    t0 = time.monotonic()
+    while not cond():
+        assert time.monotonic() - t0 < timeout, 'timed out'
+        time.sleep(0.005)
+
+
+def test_solver_thread_follows_wall_time_in_chunks_and_pauses():
+    s = CountingSolver()
+    period = rt.frame_period(34.0)
+    p = rt.Pacer(s.run, 1e-3)
+    p.warm_up(lambda k: None)
+    th = rt.SolverThread(p, s.snapshot, period).start()
+    try:
+        time.sleep(0.2)                             # (start-up)
+        n0, t0 = s.steps, time.monotonic()
+        time.sleep(1.0)
+        n1, t1 = s.steps, time.monotonic()
+        # real time: 1 step per ms of wall time, paid in chunks of half a frame period
+        assert abs((n1 - n0) - 1e3 * (t1 - t0)) <= 1e3 * rt.CHUNK_SHARE * period + 30
+        assert n0 <= th.latest <= s.steps                # a copy of the state after a chunk
+        assert 0.5 * 1e3 * (t1 - t0) / (1e3 * rt.CHUNK_SHARE * period) < th.chunks
+        th.set_paused(True)
+        n_paused = s.steps
+        time.sleep(0.2)
+        assert s.steps == n_paused and th.latest == n_paused
+        th.rate = 3.0                                # settings are read at each chunk
+        th.set_paused(False)
+        time.sleep(0.5)
+        assert s.steps - n_paused > 1.2e3
+    finally:
+        th.stop()
+    assert not th._thread.is_alive()
+
+
+def test_solver_thread_pauses_itself_on_a_failed_step():
+    s = CountingSolver(fail_after=100)
+    errors = []
+    p = rt.Pacer(s.run, 1e-3)
+    p.warm_up(lambda k: None)
+    th = rt.SolverThread(p, s.snapshot, rt.frame_period(34.0), on_error=errors.append).start()
+    try:
+        _wait_until(lambda: errors)
+        assert isinstance(errors[0], ArithmeticError) and th.error is errors[0]
+        n = s.steps
+        time.sleep(0.2)
+        assert s.steps == n <= 100 and th.latest == n   # stopped stepping; the last good state is the latest
+        s.fail_after = None
+        th.set_paused(False)                            # a resume clears the error
+        _wait_until(lambda: s.steps > n + 50)
+    finally:
+        th.stop()
+
+
+def test_node_stepping_in_a_thread_is_bit_identical_to_one_step_at_a_time():
+    """Real numba steps: the simulator's stepping path (Pacer batches in the SolverThread, the activation
+    copied at each batch, changed while it runs, as fast as possible) against solver.step one step at a time
+    under the same activations, on the knee phantom with the physical set."""
+    from tissue_sim.core import solver
+    from tissue_sim.core.solver import phantom
+    sim = solver.compile_model(phantom.knee(), solver.Params.physical())
+    state, ctrl = solver.make_state(sim), solver.make_control(sim)
+    step_ctrl = solver.make_control(sim)
+    log = []
+
+    def run_steps(k):               # what Simulator.run_steps does, with a record of each batch
+        step_ctrl.activation[:] = ctrl.activation
+        solver.step(sim, state, step_ctrl, sim.params.dt, n_steps=k)
+        log.append((k, step_ctrl.activation.copy()))
+
+    p = rt.Pacer(run_steps, sim.params.dt)
+    p.warm_up(lambda k: solver.step(sim, solver.make_state(sim), ctrl, sim.params.dt, n_steps=k))
+    th = rt.SolverThread(p, state.copy, 0.01)
+    th.realtime = False
+    th.start()
+    try:
+        for a in (0.3, 1.0, 0.0, 0.6):
+            _wait_until(lambda: len(log) > 3)
+            ctrl.activation[:] = 0.0
+            ctrl.activation[0] = a                   # a message arrives while the thread steps
+            n = len(log)
+            _wait_until(lambda: len(log) > n + 3)
+    finally:
+        th.stop()
+    assert len({a.tobytes() for _, a in log}) >= 3
+    ref = solver.make_state(sim)
+    one = solver.make_control(sim)
+    for k, a in log:
+        one.activation[:] = a
+        for _ in range(k):
+            solver.step(sim, ref, one, sim.params.dt)
+    assert state.step == ref.step == sum(k for k, _ in log) > 0
+    for name in ('x', 'v', 'q', 'qd', 'lam', 'activation', 'muscle_velocity'):
+        assert np.array_equal(getattr(state, name), getattr(ref, name)), name
+    assert np.array_equal(th.latest.x, state.x) and th.latest.step == state.step
+    assert abs(state.q[0] - sim.j_rest[0]) > 1e-3            # the knee moved: the comparison is not of rest states

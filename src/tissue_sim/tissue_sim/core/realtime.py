@@ -11,9 +11,18 @@ The steps of a frame run in a few batched solver calls, each sized from the meas
 step to ``BATCH_FILL`` of the budget left: a call has a fixed cost (~20 % of a paper-set step), and
 k steps in one call give bit for bit the state of k calls of one step (activations change only
 between frames), so batching changes the timing only.
+
+With two or more cores the frame loop and the stepping run side by side (:class:`SolverThread`): a
+thread of its own runs the Pacer in chunks of ``CHUNK_SHARE`` of a frame period of owed sim time and,
+after each chunk, leaves a copy of the state (``latest``) for the frame loop to publish. The compiled
+step releases the GIL (numba ``nogil``), so stepping takes one core while the frame loop builds and
+publishes on another: the published frame is the state at the end of the last chunk, at most a chunk
+(~15 ms at 34 Hz) behind the solver. The steps are the same calls either way, so the states are the
+same bit for bit.
 """
 from __future__ import annotations
 
+import threading
 import time
 from typing import Callable
 
@@ -22,6 +31,7 @@ WARM_STEPS = 10      # steps timed at start-up for the first batch's size
 HEADROOM = 1.02      # frames are scheduled at publish_rate x HEADROOM (publish_rate is the floor)
 BUDGET_SHARE = 0.85  # of the frame period, less the measured publish cost, goes to stepping ...
 BUDGET_FLOOR = 0.2   # ... but never less than this share of it
+CHUNK_SHARE = 0.5    # SolverThread: a chunk is the steps owed over this share of a frame period
 
 
 def frame_period(publish_rate: float) -> float:
@@ -81,3 +91,90 @@ class Pacer:
             self.step_cost += 0.3 * ((self.clock() - t1) / k - self.step_cost)
             n += k
         return n
+
+
+class SolverThread:
+    """Runs ``pacer`` in a thread of its own (module docstring): in real-time mode it sleeps until
+    ``CHUNK_SHARE`` of a frame ``period`` of sim time is owed, then pays the debt through
+    :meth:`Pacer.advance` (a frame period of wall time at most: a slow solver falls behind as in the
+    frame loop); as fast as possible it steps for ``CHUNK_SHARE`` of a period at a time. After each
+    chunk ``latest`` is ``snapshot()`` (a copy of the state, taken while the state is still). ``lock``
+    is held while a chunk steps: who changes the state from another thread (a reset) takes it first.
+    A step that raises pauses the thread: ``error`` is the exception, ``on_error(exc)`` is called from
+    the thread. Settings (``realtime``, ``rate``, ``cap``) are plain attributes, read at each chunk."""
+
+    def __init__(self, pacer: Pacer, snapshot: Callable[[], object], period: float, *, paused: bool = False,
+                 on_error: Callable[[BaseException], None] | None = None, clock: Callable[[], float] = time.perf_counter):
+        self.pacer, self.snapshot, self.period, self.on_error, self.clock = pacer, snapshot, float(period), on_error, clock
+        self.realtime, self.rate, self.cap = True, 1.0, 2000
+        self.lock = threading.Lock()
+        self.latest = snapshot()
+        self.paused = bool(paused)
+        self.error: BaseException | None = None
+        self.step_wall = 0.0            # wall seconds spent in chunks
+        self.step_cpu = 0.0             # CPU seconds of this thread spent in chunks
+        self.chunks = 0
+        self._wake = threading.Event()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name='tissue_sim solver', daemon=True)
+
+    def start(self) -> 'SolverThread':
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop = True
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def set_paused(self, paused: bool) -> None:
+        """Pause (the chunk under way ends first) or resume (the debt starts from zero)."""
+        with self.lock:
+            self.paused = bool(paused)
+            self.pacer.reset()
+            if not paused:
+                self.error = None
+        self._wake.set()
+
+    def refresh(self) -> None:
+        """A new ``latest`` now (after the state was changed under ``lock``)."""
+        self.latest = self.snapshot()
+
+    def chunk_sim(self) -> float:
+        """Sim seconds owed before a chunk starts (real-time mode)."""
+        return max(self.pacer.dt, CHUNK_SHARE * self.period * self.rate)
+
+    def _run(self) -> None:
+        last = self.clock()
+        while not self._stop:
+            if self.paused or self.error is not None:
+                self._wake.wait(0.05)
+                self._wake.clear()
+                last = self.clock()
+                continue
+            if self.realtime:
+                owed = self.pacer.sim_debt + (self.clock() - last) * self.rate
+                need = self.chunk_sim()
+                if owed < need:
+                    self._wake.wait(min((need - owed) / self.rate, self.period))
+                    self._wake.clear()
+                    continue
+            err = None
+            with self.lock:
+                if self.paused or self._stop:
+                    continue
+                now, cpu0 = self.clock(), time.thread_time()
+                wall_dt, last = now - last, now
+                try:
+                    self.pacer.advance(wall_dt, realtime=self.realtime, rate=self.rate, cap=self.cap,
+                                       budget=self.period if self.realtime else CHUNK_SHARE * self.period)
+                except Exception as e:          # (a divergence, a refused step): pause, report
+                    err = self.error = e
+                    self.pacer.reset()
+                self.latest = self.snapshot()
+                self.step_wall += self.clock() - now
+                self.step_cpu += time.thread_time() - cpu0
+                self.chunks += 1
+            if err is not None and self.on_error is not None:
+                self.on_error(err)

@@ -12,11 +12,13 @@ frame ``world`` (the model frame, the hip joint centre of the bundled limb at it
 frame is its URDF link frame, so robot_state_publisher fed the same /robot_description and
 /joint_states gives the same tree (then run the simulator with ``publish_tf: false``).
 
-Timing (tissue_sim.core.realtime): in real-time mode (``realtime: true``) each frame advances sim
-time by the wall time since the last frame x ``rate``, in solver steps of params.dt, at most
-``max_steps_per_tick`` steps (when the solver cannot keep up, sim time falls behind and /diagnostics
-shows the real-time factor). With ``realtime: false`` (as fast as possible) each frame steps the
-solver for most of the frame's wall time, so viewers stay fluid while sim time races.
+Timing (tissue_sim.core.realtime): in real-time mode (``realtime: true``) sim time advances by the
+wall time x ``rate``, in solver steps of params.dt, at most ``max_steps_per_tick`` steps at a time
+(when the solver cannot keep up, sim time falls behind and /diagnostics shows the real-time factor).
+With ``realtime: false`` (as fast as possible) the solver steps all the time it has, while frames keep
+their rate. With ``solver_thread: true`` (the default) the solver steps in a thread of its own
+(realtime.SolverThread: the compiled step releases the GIL) and each frame publishes the state its
+last chunk left; with ``false`` each frame's timer callback steps, then publishes (one core).
 
 Parameters (PARAMS below, each declared once) have descriptors (``ros2 param describe /simulator
 <name>``), a command-line flag each, and load from YAML with ``--ros-args --params-file
@@ -66,7 +68,11 @@ PARAMS = (
     Param('publish_robot_description', True, 'publish the URDF of the model on /robot_description (transient local)',
           read_only=True),
     Param('frame_id', 'world', 'frame of positions and markers (REP-103)', read_only=True),
-    Param('max_steps_per_tick', 2000, 'cap on solver steps per published frame', lo=1, hi=1000000),
+    Param('max_steps_per_tick', 2000, 'cap on solver steps per published frame (per chunk of the solver thread)',
+          lo=1, hi=1000000),
+    Param('solver_thread', True, 'step the solver in a thread of its own beside the frame loop (two cores: stepping '
+          'and publishing in parallel); false: in the frame timer callback, between publishes (one core)',
+          read_only=True),
     Param('start_paused', False, 'start paused (resume with ~/pause false)', read_only=True),
     Param('diagnostics_period', 1.0, 'seconds between /diagnostics', lo=0.1, hi=60.0),
 )
@@ -112,14 +118,16 @@ class Simulator(Node):
         # kernels (numba compile) on a scratch state, timing a few steps; the marker colours (their rest
         # references come from the start state, as the first frame would take them) and encoder; the TF
         # message. (ros.common.main then freezes the set-up's objects out of the garbage collector.)
-        self.pacer = realtime.Pacer(lambda k: solver.step(self.sim, self.state, self.ctrl, self.dt, n_steps=k), self.dt)
+        self.step_ctrl = solver.make_control(self.sim)    # the activations of the steps under way (a copy)
+        self.steps_done = 0
+        self.pacer = realtime.Pacer(self.run_steps, self.dt)
         warm = solver.make_state(self.sim)
         solver.step(self.sim, warm, self.ctrl, self.dt)
         self.pacer.warm_up(lambda k: solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=k))
         if self.marker_enc is not None:
             self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'],
                                    self.corner_colours(self.state.x))
-        self.tf_message(0, range(self.tm.n_segments))
+        self.tf_message(0, range(self.tm.n_segments), self.state)
         self.get_logger().info(f'model {self.tm.name!r}: {self.tm.n_vertices} vertices, {self.tm.n_cells} cells, '
                                f'{self.tm.n_muscles} muscles; params {self.params.preset}, dt {self.dt:g} s; '
                                f'ready in {time.monotonic() - t0:.1f} s')
@@ -148,7 +156,7 @@ class Simulator(Node):
             self.pub_description.publish(String(data=urdf.robot_description(self.tm)))
         fixed = [s for s in range(self.tm.n_segments) if s not in self.tf_moving]
         if self.pub_tf_static is not None and fixed:
-            self.pub_tf_static.publish(self.tf_message(0, fixed))
+            self.pub_tf_static.publish(self.tf_message(0, fixed, self.state))
         # bookkeeping
         self.paused = bool(P['start_paused'])
         self.diverged = ''
@@ -157,15 +165,22 @@ class Simulator(Node):
         self.publish_times = collections.deque(maxlen=512)
         self.marker_ms = collections.deque(maxlen=256)          # build + publish [ms]
         self.marker_encode_ms = collections.deque(maxlen=256)   # build only (colours + numpy CDR) [ms]
-        self.step_wall = 0.0
-        self.steps_done = 0
+        self.step_wall = 0.0            # wall seconds spent stepping (the solver thread's chunks or the ticks' steps)
+        self.step_cpu = 0.0             # CPU seconds of the stepping thread spent stepping
         self.publish_cost = 0.0
         self.period = realtime.frame_period(P['publish_rate'])
+        self.stepper = None
+        self.frame = self.state                 # the state of the last frame published
+        if P['solver_thread']:
+            self.stepper = realtime.SolverThread(self.pacer, self.state.copy, self.period, paused=self.paused,
+                                                 on_error=self.on_step_error)
+            self.stepper_settings()
+            self.stepper.start()
         self.last_tick = time.monotonic()
         self.t_start = self.last_tick
         self.sim_t_start = self.state.time
         self.last_diag = self.last_tick
-        self.diag_window = (self.last_tick, self.state.time, 0)   # wall, sim time, steps
+        self.diag_window = (self.last_tick, self.state.time, 0, 0.0, 0.0)   # wall, sim time, steps, stepping wall, cpu
         self.timer = self.create_timer(self.period, self.tick)
         print(f'simulator ready: publishing at {P["publish_rate"]:g} Hz', flush=True)
 
@@ -181,8 +196,20 @@ class Simulator(Node):
         self.ctrl.activation[idx] = values
         self.accepted += 1
 
+    def run_steps(self, k: int) -> None:
+        """k solver steps of the state under the activations commanded now (copied: a message arriving
+        while the solver thread steps changes the next chunk, not the one under way)."""
+        self.step_ctrl.activation[:] = self.ctrl.activation
+        self.solver.step(self.sim, self.state, self.step_ctrl, self.dt, n_steps=k)
+        self.steps_done += k
+
     def on_reset(self, req, resp):
-        self.solver.reset(self.sim, self.state)
+        if self.stepper is not None:
+            with self.stepper.lock:
+                self.solver.reset(self.sim, self.state)
+                self.stepper.refresh()
+        else:
+            self.solver.reset(self.sim, self.state)
         self.ctrl.activation[:] = 0.0
         self.diverged = ''
         self.pacer.reset()
@@ -196,39 +223,65 @@ class Simulator(Node):
             return resp
         self.paused = bool(req.data)
         self.pacer.reset()
+        if self.stepper is not None:
+            self.stepper.set_paused(self.paused)
         resp.success, resp.message = True, 'paused' if self.paused else 'running'
         return resp
 
+    def on_step_error(self, e):
+        """A failed step in the solver thread (realtime.SolverThread: it has paused itself)."""
+        self.report_failure(e)
+
+    def report_failure(self, e):
+        if isinstance(e, self.solver.DivergenceError):
+            self.diverged = str(e)
+            self.get_logger().error(f'solver diverged: {e}; paused (call ~/reset)')
+        elif isinstance(e, ValueError):      # should not happen: activations are validated on arrival
+            self.diverged = f'solver refused the step: {e}'
+            self.get_logger().error(self.diverged)
+        else:
+            self.diverged = f'solver failed: {e!r}'
+            self.get_logger().error(self.diverged)
+        self.paused = True
+
+    def on_shutdown(self):
+        if self.stepper is not None:
+            self.stepper.stop()
+
+    def stepper_settings(self):
+        st = self.stepper
+        st.realtime = bool(self.get_parameter('realtime').value)
+        st.rate = float(self.get_parameter('rate').value)
+        st.cap = int(self.get_parameter('max_steps_per_tick').value)
+
     # ------------------------------------------------------------------ loop
     def advance(self, now):
-        """The solver steps of one frame (core.realtime.Pacer); a failure pauses the node."""
+        """The solver steps of one frame (core.realtime.Pacer) when the solver has no thread of its own;
+        a failure pauses the node. Returns the state to publish."""
         wall_dt = now - self.last_tick
         self.last_tick = now
+        if self.stepper is not None:
+            self.stepper_settings()
+            self.step_wall, self.step_cpu = self.stepper.step_wall, self.stepper.step_cpu
+            return self.stepper.latest
         if self.paused or self.diverged:
-            return
-        t0 = time.perf_counter()
-        step0 = self.state.step
+            return self.state
+        t0, c0 = time.perf_counter(), time.thread_time()
         try:
             self.pacer.advance(wall_dt, realtime=self.get_parameter('realtime').value,
                                rate=float(self.get_parameter('rate').value),
                                cap=int(self.get_parameter('max_steps_per_tick').value),
                                budget=realtime.step_budget(self.period, self.publish_cost))
-        except self.solver.DivergenceError as e:
-            self.diverged = str(e)
-            self.paused = True
-            self.get_logger().error(f'solver diverged: {e}; paused (call ~/reset)')
-        except ValueError as e:        # should not happen: activations are validated on arrival
-            self.diverged = f'solver refused the step: {e}'
-            self.paused = True
-            self.get_logger().error(self.diverged)
-        self.steps_done += self.state.step - step0
+        except (self.solver.DivergenceError, ValueError) as e:
+            self.report_failure(e)
         self.step_wall += time.perf_counter() - t0
+        self.step_cpu += time.thread_time() - c0
+        return self.state
 
     def tick(self):
         now = time.monotonic()
-        self.advance(now)
-        x = self.state.x
-        if not np.isfinite(x).all():               # never publish NaN
+        st = self.frame = self.advance(now)
+        if not np.isfinite(st.x).all():               # never publish NaN
             if not self.diverged:
                 self.diverged = 'non-finite vertex positions'
                 self.paused = True
@@ -236,13 +289,13 @@ class Simulator(Node):
             self.maybe_diagnostics(now)
             return
         t0 = time.perf_counter()
-        self.publish_frame()
+        self.publish_frame(st)
         self.publish_cost = 0.8 * self.publish_cost + 0.2 * (time.perf_counter() - t0)
         self.publish_times.append(time.monotonic())
         self.maybe_diagnostics(now)
 
-    def publish_frame(self):
-        st = self.state
+    def publish_frame(self, st):
+        """Publish the frame of state ``st`` (the solver thread's latest copy, or the state itself)."""
         obs = self.solver.observe(self.sim, st)
         stamp = int(round(st.time * 1e9))
         clock = self.Clock()
@@ -254,7 +307,7 @@ class Simulator(Node):
         js.name, js.position, js.velocity = urdf.joint_states(self.sim, obs['joint_positions'], obs['joint_velocities'])
         self.pub_joints.publish(js)
         if self.pub_tf is not None and self.tf_moving:
-            self.pub_tf.publish(self.tf_message(stamp, self.tf_moving))
+            self.pub_tf.publish(self.tf_message(stamp, self.tf_moving, st))
         if self.get_parameter('publish_state').value:
             self.pub_state.publish(self.tcdr.encode_frame(self.tm, st, obs, self.ctrl.activation,
                                                           stamp_ns=stamp, frame_id=self.frame_id))
@@ -279,11 +332,10 @@ class Simulator(Node):
         self._last_marker_t = now
         return True
 
-    def tf_message(self, stamp_ns: int, segments):
+    def tf_message(self, stamp_ns: int, segments, st):
         """TFMessage of the given segments' transforms (urdf.tf_transforms: each under its parent
-        segment, the root under ``world``) in the current state, stamped ``stamp_ns``."""
+        segment, the root under ``world``) in state ``st``, stamped ``stamp_ns``."""
         from geometry_msgs.msg import TransformStamped
-        st = self.state
         tfs = urdf.tf_transforms(self.tm, st.seg_R, st.seg_t)
         msg = self.TFMessage()
         for s in segments:
@@ -319,12 +371,15 @@ class Simulator(Node):
 
     # ------------------------------------------------------------------ diagnostics
     def figures(self, now) -> dict:
-        w0, s0, n0 = self.diag_window
+        w0, s0, n0, sw0, sc0 = self.diag_window
         span = max(now - w0, 1e-9)
         recent = [t for t in self.publish_times if t > now - max(span, 1.0)]
         rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 2 else 0.0
-        return dict(publish_rate_hz=rate, real_time_factor=(self.state.time - s0) / span,
-                    steps_per_s=(self.steps_done - n0) / span, sim_time=self.state.time,
+        return dict(publish_rate_hz=rate, real_time_factor=(self.frame.time - s0) / span,
+                    steps_per_s=(self.steps_done - n0) / span, sim_time=self.frame.time,
+                    stepping_share=(self.step_wall - sw0) / span,
+                    steps_per_cpu_s=(self.steps_done - n0) / max(self.step_cpu - sc0, 1e-9), frame_ms=1e3 * self.publish_cost,
+                    solver_thread=self.stepper is not None,
                     marker_ms_mean=float(np.mean(self.marker_ms)) if self.marker_ms else 0.0,
                     marker_ms_max=float(np.max(self.marker_ms)) if self.marker_ms else 0.0,
                     marker_encode_ms_mean=float(np.mean(self.marker_encode_ms)) if self.marker_encode_ms else 0.0,
@@ -335,7 +390,7 @@ class Simulator(Node):
             return
         from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
         f = self.figures(now)
-        self.diag_window = (now, self.state.time, self.steps_done)
+        self.diag_window = (now, self.frame.time, self.steps_done, self.step_wall, self.step_cpu)
         self.last_diag = now
         target = float(self.P['publish_rate'])
         if self.diverged:
@@ -350,11 +405,11 @@ class Simulator(Node):
             level, message = DiagnosticStatus.OK, 'running'
         st = DiagnosticStatus(level=level, name='tissue_sim: simulator', message=message, hardware_id=self.tm.name)
         vals = dict(f, paused=self.paused, accepted_activations=self.accepted,
-                    knee_angle=float(self.state.q[0]) if self.state.q.size else 0.0,
+                    knee_angle=float(self.frame.q[0]) if self.frame.q.size else 0.0,
                     **{f'rejected_{k}': v for k, v in self.rejected.items()})
         st.values = [KeyValue(key=k, value=(f'{v:.6g}' if isinstance(v, float) else str(v))) for k, v in vals.items()]
         arr = self.DiagnosticArray()
-        stamp = int(round(self.state.time * 1e9))
+        stamp = int(round(self.frame.time * 1e9))
         arr.header.stamp.sec, arr.header.stamp.nanosec = stamp // 1_000_000_000, stamp % 1_000_000_000
         arr.status = [st]
         self.pub_diag.publish(arr)

@@ -58,7 +58,7 @@ Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mle
 _cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: cells.lane_forces_par)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)     # nogil: the simulator node steps in a thread of its own (core/realtime.py)
 def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, contact, imp, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
     same for every step) and the joint lock (lock (J,) bool, target (J,) [rad]: Control.joint_lock/joint_target),
@@ -182,7 +182,7 @@ def parallel_advance():
         g['_cell_pass'] = CK.lane_forces_par
         inner = types.FunctionType(_advance.py_func.__code__, g, '_advance_parallel')
         g['_advance'] = njit(inner)
-        _PARALLEL.append(njit(types.FunctionType(advance.py_func.__code__, g, 'advance_parallel')))
+        _PARALLEL.append(njit(types.FunctionType(advance.py_func.__code__, g, 'advance_parallel'), nogil=True))
     return _PARALLEL[0]
 
 
