@@ -2,19 +2,28 @@
 """Benchmark: the simulator node at 34 Hz with full markers, seen from a separate subscriber process.
 
 Starts the installed `simulator` (the bundled anatomy by default; --refine R for the bundled limb
-R x finer (`build-model --refine R`), --model FILE or --phantom for the solver's knee phantom scaled up) in its own ROS domain, then this process subscribes to
-/joint_states and /tissue/markers for --seconds and reports:
+R x finer (`build-model --refine R`; a list 1,2,3 runs each), --model FILE or --phantom for the solver's knee
+phantom scaled up) in its own ROS domain, then this process subscribes to /joint_states, /tissue/state, /tf and
+/tissue/markers for --seconds and reports:
 
 * publish rate and inter-arrival p50/p99 per topic as received here;
 * the simulator's CPU share (utime+stime from /proc over the window, % of one core);
-* the real-time factor and solver steps/s (from /diagnostics);
-* the node's marker build+publish time per frame (mean/max, from /diagnostics; target < 5 ms);
+* the real-time factor, solver steps/s, the share of wall time the stepping thread spent stepping and its steps
+  per CPU second (the figure bench/solver.py gives for the bare solver), the frame's build+publish time (from
+  /diagnostics);
+* the node's marker build+publish time per frame (mean/max, from /diagnostics; target < 5 ms), per 10k vertices,
+  and the MarkerArray's bytes;
 * side by side in this process: building the same MarkerArray as rclpy Python objects and
   serialising it, vs the numpy CDR encoder (ratio).
 
-Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom | --refine R]
+--compare runs each configuration twice, the solver in a thread of its own (solver_thread: true, the default)
+and in the frame timer's callback (solver_thread: false), one after the other: the old and the new stepping
+loop side by side under the same load. Several runs print a markdown table of them at the end.
+
+Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom | --refine R[,R...]]
       [--params paper|physical|FILE] [--integrator NAME] [--as-fast-as-possible] [--paused] [--no-objects]
-Last line: one JSON object.
+      [--compare | --no-solver-thread]
+Last line: one JSON object (a list of them with several runs).
 """
 import argparse
 import json
@@ -48,15 +57,15 @@ def stats(ts):
 
 
 def python_object_markers(tm, x, reps=2):
-    """Build the same MarkerArray with rclpy Python objects and serialise it (the slow way); only the
-    soft-tissue markers are built as objects (the bones would add more), the numpy encoder does all."""
+    """Build the soft tissue's MarkerArray with rclpy Python objects and serialise it (the slow way; reps 0:
+    not at all), and with the numpy CDR encoder the node uses; returns (ms, ms, the encoder's bytes)."""
     from geometry_msgs.msg import Point
     from rclpy.serialization import serialize_message
     from std_msgs.msg import ColorRGBA
     from visualization_msgs.msg import Marker, MarkerArray
     from tissue_sim.core import markers as mk
-    enc = mk.MarkerArrayEncoder(tm)
-    best = 1e9
+    enc = mk.MarkerArrayEncoder(tm, bones=False)      # what the node encodes each frame (the bones go once)
+    best = float('nan') if reps == 0 else 1e9
     for _ in range(reps):
         t0 = time.perf_counter()
         arr = MarkerArray()
@@ -70,6 +79,7 @@ def python_object_markers(tm, x, reps=2):
             arr.markers.append(m)
         data = serialize_message(arr)
         best = min(best, time.perf_counter() - t0)
+    enc.encode(0, x)                                  # (first call: allocations)
     t0 = time.perf_counter()
     for _ in range(20):
         enc.encode(0, x)
@@ -77,93 +87,55 @@ def python_object_markers(tm, x, reps=2):
     return best * 1e3, numpy_s * 1e3, enc.nbytes
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--seconds', type=float, default=10.0, help='measurement window [s] (default 10)')
-    ap.add_argument('--model', default='', help="model file (.npz); '' = the bundled anatomy")
-    ap.add_argument('--phantom', action='store_true', help='use the knee phantom with extra muscles and fat')
-    ap.add_argument('--refine', type=float, default=1.0, help='the bundled limb R x finer (build-model --refine R; default 1)')
-    ap.add_argument('--integrator', default='', help="the parameter set's integrator replaced by this one ('' = the set's)")
-    ap.add_argument('--paused', action='store_true',
-                    help='start the simulator paused (start_paused:=true): frames and markers without stepping, the '
-                         'publishing and transport alone')
-    ap.add_argument('--no-objects', action='store_true',
-                    help='skip the rclpy Python-object MarkerArray for comparison (seconds per frame on finer models)')
-    ap.add_argument('--rate', type=float, default=34.0, help='publish_rate (default 34)')
-    ap.add_argument('--colouring', default='none', help='marker colouring (none, skin_area, fat_deformation)')
-    ap.add_argument('--params', default='', help="parameter set of the node (paper, physical or a YAML file; '' = the node's default)")
-    ap.add_argument('--as-fast-as-possible', action='store_true',
-                    help='realtime:=false (steps/s then measures the node\'s stepping, not the real-time pace)')
-    a = ap.parse_args()
-
+def measure(a, model, tm, params, solver_thread):
+    """One run of the simulator node: the figures of the module docstring as a dict."""
     import rclpy
+    import rclpy.executors
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import JointState
+    from tf2_msgs.msg import TFMessage
+    from tissue_msgs.msg import TissueState
     from visualization_msgs.msg import MarkerArray
-    from tissue_sim.core.model import TissueModel
-
     tmp = Path(tempfile.mkdtemp(prefix='ros_rate_'))
-    model = a.model
-    if a.refine != 1.0 and not (a.model or a.phantom):
-        from tissue_sim.core.builder import default_model
-        from tissue_sim.errors import UserError
-        try:
-            model = str(default_model(refine=a.refine).save(tmp / f'bundled_x{a.refine:g}.npz'))
-        except UserError as e:
-            sys.exit(f'error: {e}')
-    if a.integrator:
-        from tissue_sim.core.load import load_params
-        import dataclasses
-        try:
-            p = dataclasses.replace(load_params(a.params or 'physical'), integrator=a.integrator).validate()
-        except ValueError as e:
-            sys.exit(f'error: {e}')
-        a.params = str(tmp / 'params.yaml')
-        p.to_yaml(a.params)
-    if a.phantom:
-        from tissue_sim.core.solver import phantom
-        model = str(phantom.knee(n_gaps=20, extra_muscles=8, fat_sectors=12).save(tmp / 'phantom.npz'))
-    if not model:
-        from tissue_sim.core.load import load_model
-        from tissue_sim.core.model import ModelError
-        try:
-            model = str(load_model('').save(tmp / 'bundled.npz'))
-        except ModelError as e:
-            sys.exit(f'{e} (or run with --phantom)')
-    tm = TissueModel.load(model)
-    dom = 1 + os.getpid() % 101
+    dom = 1 + (os.getpid() + int(1e3 * time.monotonic())) % 101
     env = dict(os.environ, ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
     env.pop('ROS_LOCALHOST_ONLY', None)
     os.environ.update(ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     log = open(tmp / 'simulator.log', 'w+')
     sim = subprocess.Popen([str(EXE / 'simulator'), '--ros-args', '-p', f'model:={model}',
-                            '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}']
-                           + (['-p', f'params:={a.params}'] if a.params else [])
+                            '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}',
+                            '-p', f'solver_thread:={str(solver_thread).lower()}']
+                           + (['-p', f'params:={params}'] if params else [])
                            + (['-p', 'realtime:=false'] if a.as_fast_as_possible else [])
                            + (['-p', 'start_paused:=true'] if a.paused else []),
                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    topics = {'js': (JointState, '/joint_states'), 'state': (TissueState, '/tissue/state'), 'tf': (TFMessage, '/tf'),
+              'mk': (MarkerArray, '/tissue/markers')}
     try:
         rclpy.init()
         node = rclpy.create_node('ros_rate_probe')
-        arr = {'js': [], 'mk': []}
+        arr = {k: [] for k in topics}
         diag = [None]
-        node.create_subscription(JointState, '/joint_states', lambda m: arr['js'].append(time.monotonic()), 10)
-        node.create_subscription(MarkerArray, '/tissue/markers', lambda m: arr['mk'].append(time.monotonic()), 10,
-                                 raw=True)
+        for k, (typ, name) in topics.items():
+            node.create_subscription(typ, name, lambda m, k=k: arr[k].append(time.monotonic()), 10, raw=True)
         node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diag.__setitem__(0, m), 10)
+        ex = rclpy.executors.SingleThreadedExecutor()      # one executor for the run: rclpy.spin_once(node) makes a
+        ex.add_node(node)                                  # wait set per call and takes one message, the first topic first
         t_start = time.monotonic()
         while len(arr['mk']) < 20:
-            if sim.poll() is not None or time.monotonic() - t_start > 600:
+            if sim.poll() is not None or time.monotonic() - t_start > 900:
                 log.seek(0)
                 sys.exit(f'simulator did not start publishing:\n{log.read()}')
-            rclpy.spin_once(node, timeout_sec=0.1)
+            ex.spin_once(timeout_sec=0.1)
         c0, w0 = cpu_seconds(sim.pid), time.monotonic()
         n0 = {k: len(v) for k, v in arr.items()}
-        while time.monotonic() - w0 < a.seconds:
-            rclpy.spin_once(node, timeout_sec=0.05)
+        diag[0] = None
+        while time.monotonic() - w0 < a.seconds or (diag[0] is None and time.monotonic() - w0 < a.seconds + 5):
+            ex.spin_once(timeout_sec=0.05)
         c1, w1 = cpu_seconds(sim.pid), time.monotonic()
         d = {kv.key: kv.value for kv in diag[0].status[0].values} if diag[0] else {}
-        js, mkst = stats(arr['js'][n0['js']:]), stats(arr['mk'][n0['mk']:])
+        rates = {k: stats(arr[k][n0[k]:]) for k in topics}
+        ex.shutdown()
         node.destroy_node()
         rclpy.shutdown()
     finally:
@@ -175,31 +147,143 @@ def main():
             sim.wait()
     x = np.asarray(tm.rest_positions, np.float64)
     if a.no_objects:
-        py_ms, np_ms, nbytes = float('nan'), float('nan'), 0
+        py_ms, np_ms, nbytes = python_object_markers(tm, x, reps=0)
     else:
         py_ms, np_ms, nbytes = python_object_markers(tm, x)
+    num = lambda k: float(d.get(k, 'nan'))      # noqa: E731
+    per10k = 1e4 / tm.n_vertices
+    js, mkst = rates['js'], rates['mk']
     out = {
-        'model': tm.name, 'refine': a.refine, 'params': a.params or 'default', 'integrator': a.integrator or 'the set\'s', 'paused': a.paused, 'realtime': not a.as_fast_as_possible, 'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
-        'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2), 'publish_rate_target_hz': a.rate,
-        'joint_states': js, 'markers': mkst,
+        'model': tm.name, 'refine': a.refine_now, 'params': a.params or 'default', 'integrator': a.integrator or "the set's",
+        'solver_thread': solver_thread, 'paused': a.paused, 'realtime': not a.as_fast_as_possible,
+        'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
+        'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2),
+        'publish_rate_target_hz': a.rate,
+        'joint_states': js, 'tissue_state': rates['state'], 'tf': rates['tf'], 'markers': mkst,
         'simulator_cpu_percent_of_one_core': round(100 * (c1 - c0) / (w1 - w0), 1),
-        'real_time_factor': float(d.get('real_time_factor', 'nan')), 'steps_per_s': float(d.get('steps_per_s', 'nan')),
-        'node_marker_ms_mean': float(d.get('marker_ms_mean', 'nan')), 'node_marker_ms_max': float(d.get('marker_ms_max', 'nan')),
-        'node_marker_encode_ms_mean': float(d.get('marker_encode_ms_mean', 'nan')),
+        'real_time_factor': num('real_time_factor'), 'steps_per_s': num('steps_per_s'),
+        'stepping_share': num('stepping_share'), 'steps_per_cpu_s': num('steps_per_cpu_s'),
+        'frame_ms': num('frame_ms'),
+        'node_marker_ms_mean': num('marker_ms_mean'), 'node_marker_ms_max': num('marker_ms_max'),
+        'node_marker_encode_ms_mean': num('marker_encode_ms_mean'),
+        'node_marker_ms_per_10k_vertices': round(num('marker_ms_mean') * per10k, 3),
+        'marker_bytes_per_vertex': round(float(d.get('marker_bytes', nbytes)) / tm.n_vertices, 1),
         'load_average_1min': os.getloadavg()[0], 'cpu_count': os.cpu_count(),
         'marker_python_objects_ms': round(py_ms, 1), 'marker_numpy_ms': round(np_ms, 3),
+        'marker_numpy_ms_per_10k_vertices': round(np_ms * per10k, 3),
         'numpy_speedup': round(py_ms / np_ms, 1),
-        'markers_ok_34hz': bool(mkst['rate_hz'] >= 34.0), 'marker_under_5ms': bool(float(d.get('marker_ms_mean', 'nan')) < 5.0),
+        'markers_ok_34hz': bool(mkst['rate_hz'] >= 34.0), 'marker_under_5ms': bool(num('marker_ms_mean') < 5.0),
     }
-    print(f"model {out['model']}: {out['vertices']} vertices, MarkerArray {out['marker_bytes'] / 1e6:.2f} MB")
-    print(f"/joint_states  {js['rate_hz']:.2f} Hz  p50 {js['p50_ms']} ms  p99 {js['p99_ms']} ms")
-    print(f"/tissue/markers {mkst['rate_hz']:.2f} Hz  p50 {mkst['p50_ms']} ms  p99 {mkst['p99_ms']} ms")
+    print(f"model {out['model']} (refine {out['refine']:g}): {out['vertices']} vertices, MarkerArray "
+          f"{out['marker_bytes'] / 1e6:.2f} MB; solver_thread {solver_thread}")
+    for k, name in (('js', '/joint_states'), ('state', '/tissue/state'), ('tf', '/tf'), ('mk', '/tissue/markers')):
+        r = rates[k]
+        print(f"{name:16s} {r['rate_hz']:.2f} Hz  p50 {r['p50_ms']} ms  p99 {r['p99_ms']} ms")
     print(f"simulator CPU {out['simulator_cpu_percent_of_one_core']} % of one core; real-time factor "
-          f"{out['real_time_factor']}; {out['steps_per_s']:.0f} steps/s")
+          f"{out['real_time_factor']}; {out['steps_per_s']:.0f} steps/s; stepping {out['stepping_share']:.2f} of wall time "
+          f"at {out['steps_per_cpu_s']:.0f} steps per CPU second; frame {out['frame_ms']:.2f} ms")
     print(f"marker build+publish in the node: mean {out['node_marker_ms_mean']:.2f} ms, max {out['node_marker_ms_max']:.2f} ms "
-          f"(encode alone {out['node_marker_encode_ms_mean']:.2f} ms; target < 5 ms); load average {out['load_average_1min']:.1f} on {out['cpu_count']} CPUs\n"
-          f"Python objects {py_ms:.1f} ms vs numpy {np_ms:.3f} ms (x{out['numpy_speedup']})")
-    print(json.dumps(out))
+          f"(encode alone {out['node_marker_encode_ms_mean']:.2f} ms; target < 5 ms; "
+          f"{out['node_marker_ms_per_10k_vertices']:.2f} ms per 10k vertices); load average "
+          f"{out['load_average_1min']:.1f} on {out['cpu_count']} CPUs\n"
+          f"Python objects {py_ms:.1f} ms vs numpy {np_ms:.3f} ms (x{out['numpy_speedup']})", flush=True)
+    return out
+
+
+TABLE = (('refine', 'refine', '{:g}'), ('vertices', 'vertices', '{}'), ('solver thread', 'solver_thread', '{}'),
+         ('RTF', 'real_time_factor', '{:.2f}'), ('steps/s', 'steps_per_s', '{:.0f}'),
+         ('stepping share', 'stepping_share', '{:.2f}'), ('steps/CPU-s', 'steps_per_cpu_s', '{:.0f}'),
+         ('CPU % of a core', 'simulator_cpu_percent_of_one_core', '{:.0f}'),
+         ('/joint_states Hz', ('joint_states', 'rate_hz'), '{:.1f}'), ('/tissue/state Hz', ('tissue_state', 'rate_hz'), '{:.1f}'),
+         ('/tf Hz', ('tf', 'rate_hz'), '{:.1f}'), ('/tissue/markers Hz', ('markers', 'rate_hz'), '{:.1f}'),
+         ('markers p99 ms', ('markers', 'p99_ms'), '{}'), ('frame ms', 'frame_ms', '{:.1f}'),
+         ('marker build+publish ms', 'node_marker_ms_mean', '{:.2f}'),
+         ('... per 10k vertices', 'node_marker_ms_per_10k_vertices', '{:.2f}'),
+         ('numpy encode ms per 10k vertices', 'marker_numpy_ms_per_10k_vertices', '{:.3f}'),
+         ('MarkerArray MB', 'marker_bytes', '{:.2f}'), ('load avg', 'load_average_1min', '{:.1f}'))
+
+
+def table(runs) -> str:
+    def cell(r, key, fmt):
+        v = r[key[0]][key[1]] if isinstance(key, tuple) else r[key]
+        if key == 'marker_bytes':
+            v = v / 1e6
+        try:
+            return fmt.format(v)
+        except (TypeError, ValueError):
+            return str(v)
+    lines = ['| ' + ' | '.join(h for h, _, _ in TABLE) + ' |', '|' + '---|' * len(TABLE)]
+    lines += ['| ' + ' | '.join(cell(r, k, f) for _, k, f in TABLE) + ' |' for r in runs]
+    return '\n'.join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--seconds', type=float, default=10.0, help='measurement window [s] (default 10)')
+    ap.add_argument('--model', default='', help="model file (.npz); '' = the bundled anatomy")
+    ap.add_argument('--phantom', action='store_true', help='use the knee phantom with extra muscles and fat')
+    ap.add_argument('--refine', default='1', help='the bundled limb R x finer (build-model --refine R; default 1); '
+                    'a list 1,2,3 runs each')
+    ap.add_argument('--integrator', default='', help="the parameter set's integrator replaced by this one ('' = the set's)")
+    ap.add_argument('--paused', action='store_true',
+                    help='start the simulator paused (start_paused:=true): frames and markers without stepping, the '
+                         'publishing and transport alone')
+    ap.add_argument('--no-objects', action='store_true',
+                    help='skip the rclpy Python-object MarkerArray for comparison (seconds per frame on finer models)')
+    ap.add_argument('--rate', type=float, default=34.0, help='publish_rate (default 34)')
+    ap.add_argument('--colouring', default='none', help='marker colouring (none, skin_area, fat_deformation)')
+    ap.add_argument('--params', default='', help="parameter set of the node (paper, physical or a YAML file; '' = the node's default)")
+    ap.add_argument('--as-fast-as-possible', action='store_true',
+                    help='realtime:=false (steps/s then measures the node\'s stepping, not the real-time pace)')
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument('--compare', action='store_true', help='each run with the solver thread and without it (side by side)')
+    g.add_argument('--no-solver-thread', action='store_true', help='solver_thread:=false (step in the frame timer)')
+    a = ap.parse_args()
+
+    from tissue_sim.core.builder import parse_refinements
+    from tissue_sim.core.model import TissueModel
+    from tissue_sim.errors import UserError
+    try:
+        refines = parse_refinements(a.refine)
+    except (UserError, ValueError) as e:
+        sys.exit(f'error: {e}')
+    tmp = Path(tempfile.mkdtemp(prefix='ros_rate_'))
+    params = a.params
+    if a.integrator:
+        from tissue_sim.core.load import load_params
+        import dataclasses
+        try:
+            p = dataclasses.replace(load_params(a.params or 'physical'), integrator=a.integrator).validate()
+        except ValueError as e:
+            sys.exit(f'error: {e}')
+        params = str(tmp / 'params.yaml')
+        p.to_yaml(params)
+    runs = []
+    for r in refines:
+        a.refine_now = r
+        model = a.model
+        if r != 1.0 and not (a.model or a.phantom):
+            from tissue_sim.core.builder import default_model
+            try:
+                model = str(default_model(refine=r).save(tmp / f'bundled_x{r:g}.npz'))
+            except UserError as e:
+                sys.exit(f'error: {e}')
+        if a.phantom:
+            from tissue_sim.core.solver import phantom
+            model = str(phantom.knee(n_gaps=20, extra_muscles=8, fat_sectors=12).save(tmp / 'phantom.npz'))
+        if not model:
+            from tissue_sim.core.load import load_model
+            from tissue_sim.core.model import ModelError
+            try:
+                model = str(load_model('').save(tmp / 'bundled.npz'))
+            except ModelError as e:
+                sys.exit(f'{e} (or run with --phantom)')
+        tm = TissueModel.load(model)
+        for threaded in ((False, True) if a.compare else (not a.no_solver_thread,)):
+            runs.append(measure(a, model, tm, params, threaded))
+    if len(runs) > 1:
+        print(table(runs))
+    print(json.dumps(runs[0] if len(runs) == 1 else runs))
 
 
 if __name__ == '__main__':

@@ -32,6 +32,8 @@ HEADROOM = 1.02      # frames are scheduled at publish_rate x HEADROOM (publish_
 BUDGET_SHARE = 0.85  # of the frame period, less the measured publish cost, goes to stepping ...
 BUDGET_FLOOR = 0.2   # ... but never less than this share of it
 CHUNK_SHARE = 0.5    # SolverThread: a chunk is the steps owed over this share of a frame period
+GIL_SWITCH = 0.0005  # [s] sys.setswitchinterval with a SolverThread: how long it may wait for the GIL after a chunk
+                     # while the frame loop runs Python (Python's default is 5 ms, a third of a chunk)
 
 
 def frame_period(publish_rate: float) -> float:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import sys
 import time
 
 import numpy as np
@@ -172,6 +173,7 @@ class Simulator(Node):
         self.stepper = None
         self.frame = self.state                 # the state of the last frame published
         if P['solver_thread']:
+            sys.setswitchinterval(realtime.GIL_SWITCH)
             self.stepper = realtime.SolverThread(self.pacer, self.state.copy, self.period, paused=self.paused,
                                                  on_error=self.on_step_error)
             self.stepper_settings()
