@@ -22,7 +22,7 @@ loop side by side under the same load. Several runs print a markdown table of th
 
 Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom | --refine R[,R...]]
       [--params paper|physical|FILE] [--integrator NAME] [--as-fast-as-possible] [--paused] [--no-objects]
-      [--compare | --no-solver-thread]
+      [--compare | --no-solver-thread] [--solver-only]
 Last line: one JSON object (a list of them with several runs).
 """
 import argparse
@@ -190,6 +190,74 @@ def measure(a, model, tm, params, solver_thread):
     return out
 
 
+def solver_only(model, params, seconds, windows=3):
+    """The solver alone, in this process, with no ROS: steps per wall second and per CPU second of (a) one
+    solver.step() call per step on this thread (bench/solver.py's figure for the physical set), (b) the simulator's
+    stepping path: realtime.SolverThread as fast as possible (Pacer batches, the activations copied per batch, a
+    copy of the state after each chunk), this thread idle; (c) the same thread while this thread encodes the
+    node's frames (observe, TissueState, MarkerArray: the frame loop's work without the transport). Windows
+    alternate (a, b, c, a, b, c, ...) so that all see the same load; best of ``windows`` each."""
+    from tissue_sim.core import markers as mk, realtime, solver, tissue_cdr
+    from tissue_sim.core.load import load_model, load_params
+    tm = load_model(model)
+    sim = solver.compile_model(tm, load_params(params or 'physical', 0.0))
+    dt = sim.params.dt
+    ctrl = solver.make_control(sim)
+    enc = mk.MarkerArrayEncoder(tm, bones=False)
+    best = {k: [0.0, 0.0] for k in ('a', 'b', 'c')}
+
+    def one_thread(state):
+        n, t0, c0 = 0, time.perf_counter(), time.thread_time()
+        while time.perf_counter() - t0 < seconds:
+            solver.step(sim, state, ctrl, dt)
+            n += 1
+        return n / (time.perf_counter() - t0), n / max(time.thread_time() - c0, 1e-9)
+
+    def threaded(state, frames):
+        step_ctrl, done = solver.make_control(sim), [0]
+
+        def run_steps(k):
+            step_ctrl.activation[:] = ctrl.activation
+            solver.step(sim, state, step_ctrl, dt, n_steps=k)
+            done[0] += k
+        pacer = realtime.Pacer(run_steps, dt)
+        pacer.warm_up(lambda k: solver.step(sim, solver.make_state(sim), ctrl, dt, n_steps=k))
+        th = realtime.SolverThread(pacer, state.copy, realtime.frame_period(34.0))
+        th.realtime = False
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(realtime.GIL_SWITCH)
+        t0 = time.perf_counter()
+        th.start()
+        try:
+            while time.perf_counter() - t0 < seconds:
+                if frames:
+                    st = th.latest
+                    obs = solver.observe(sim, st)
+                    tissue_cdr.encode_frame(tm, st, obs, ctrl.activation, stamp_ns=0)
+                    enc.encode(0, st.x, obs['segment_poses'])
+                time.sleep(1.0 / 34.0 if not frames else 0.01)
+        finally:
+            th.stop()
+            sys.setswitchinterval(old)
+        return done[0] / (time.perf_counter() - t0), done[0] / max(th.step_cpu, 1e-9)
+
+    state = solver.make_state(sim)
+    solver.step(sim, state, ctrl, dt, n_steps=10)
+    for _ in range(windows):
+        for k, fn in (('a', lambda: one_thread(state)), ('b', lambda: threaded(state, False)),
+                      ('c', lambda: threaded(state, True))):
+            w, c = fn()
+            best[k] = [max(best[k][0], w), max(best[k][1], c)]
+    out = {'solver_step_per_call': best['a'], 'node_thread_idle_main': best['b'], 'node_thread_beside_frames': best['c'],
+           'load_average_1min': os.getloadavg()[0], 'vertices': tm.n_vertices, 'params': params or 'physical'}
+    names = {'solver_step_per_call': 'solver.step() per step, this thread', 'node_thread_idle_main': 'node path: SolverThread, main idle',
+             'node_thread_beside_frames': 'node path: SolverThread beside frame encoding'}
+    for k, name in names.items():
+        print(f'{name:48s} {out[k][0]:7.0f} steps per wall s  {out[k][1]:7.0f} steps per CPU s (best of {windows})')
+    print(f'load average {out["load_average_1min"]:.1f} on {os.cpu_count()} CPUs', flush=True)
+    return out
+
+
 TABLE = (('refine', 'refine', '{:g}'), ('vertices', 'vertices', '{}'), ('solver thread', 'solver_thread', '{}'),
          ('RTF', 'real_time_factor', '{:.2f}'), ('steps/s', 'steps_per_s', '{:.0f}'),
          ('stepping share', 'stepping_share', '{:.2f}'), ('steps/CPU-s', 'steps_per_cpu_s', '{:.0f}'),
@@ -225,6 +293,8 @@ def main():
     ap.add_argument('--refine', default='1', help='the bundled limb R x finer (build-model --refine R; default 1); '
                     'a list 1,2,3 runs each')
     ap.add_argument('--integrator', default='', help="the parameter set's integrator replaced by this one ('' = the set's)")
+    ap.add_argument('--substeps', type=int, default=None,
+                    help="sub-steps per step with --integrator (default: the set's; implicit: 1, as bench/solver.py)")
     ap.add_argument('--paused', action='store_true',
                     help='start the simulator paused (start_paused:=true): frames and markers without stepping, the '
                          'publishing and transport alone')
@@ -238,6 +308,8 @@ def main():
     g = ap.add_mutually_exclusive_group()
     g.add_argument('--compare', action='store_true', help='each run with the solver thread and without it (side by side)')
     g.add_argument('--no-solver-thread', action='store_true', help='solver_thread:=false (step in the frame timer)')
+    ap.add_argument('--solver-only', action='store_true',
+                    help='no ROS: the node\'s stepping path against one solver.step() per step, in this process (solver_only())')
     a = ap.parse_args()
 
     from tissue_sim.core.builder import parse_refinements
@@ -253,7 +325,11 @@ def main():
         from tissue_sim.core.load import load_params
         import dataclasses
         try:
-            p = dataclasses.replace(load_params(a.params or 'physical'), integrator=a.integrator).validate()
+            kw = dict(sheath_group='', substeps=1) if a.integrator == 'implicit' else {}
+            kw.update({} if a.substeps is None else dict(substeps=a.substeps))
+            p = dataclasses.replace(load_params(a.params or 'physical'), integrator=a.integrator, **kw).validate()
+            # implicit: one sub-step of dt and no sheath, as bench/solver.py runs it (the sheath diverges under the
+            # implicit integrator: Params.physical(integrator='implicit') drops it too)
         except ValueError as e:
             sys.exit(f'error: {e}')
         params = str(tmp / 'params.yaml')
@@ -279,6 +355,9 @@ def main():
             except ModelError as e:
                 sys.exit(f'{e} (or run with --phantom)')
         tm = TissueModel.load(model)
+        if a.solver_only:
+            runs.append(solver_only(model, params, max(1.0, a.seconds / 3)))
+            continue
         for threaded in ((False, True) if a.compare else (not a.no_solver_thread,)):
             runs.append(measure(a, model, tm, params, threaded))
     if len(runs) > 1:

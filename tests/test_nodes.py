@@ -121,21 +121,26 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
     assert sim.returncode == 0, sim.output
 
 
-def test_activation_flexes_the_knee_and_bad_messages_are_rejected(knee_model):
+@pytest.mark.parametrize('solver_thread', ['true', 'false'])
+def test_activation_flexes_the_knee_and_bad_messages_are_rejected(knee_model, solver_thread):
     """Paper experiment (hamstrings only) flexes the knee (+ about +y); every kind of bad message
-    is rejected and counted while the node keeps publishing finite frames."""
+    is rejected and counted while the node keeps publishing finite frames. Both stepping loops: the
+    solver in a thread of its own (the default) and in the frame timer."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import JointState
     from tissue_msgs.msg import MuscleActivation
     with isolated_domain() as dom, ros_context(dom.id) as ctx, \
-            run_executable('simulator', *sim_args(knee_model), env=dom.env) as sim:
+            run_executable('simulator', *sim_args(knee_model, '-p', f'solver_thread:={solver_thread}'),
+                           env=dom.env) as sim:
         node = rclpy.create_node('probe', context=ctx)
         js = Collector(node, JointState, '/joint_states')
         diag = Collector(node, DiagnosticArray, '/diagnostics')
         pub = node.create_publisher(MuscleActivation, '/tissue/activation', 10)
         sim.wait_for_output('simulator ready', timeout=60)
         wait_for_subscribers(node, pub, 1, timeout=30)
+        spin_until(lambda: diag.msgs, node, 10, 'diagnostics')
+        assert diag_values(diag.msgs[-1])['solver_thread'] == str(solver_thread == 'true')
         spin_until(lambda: len(js.msgs) > 5, node, 30, 'joint states')
         # -- bad messages first: none may change the (passive, resting) knee
         bad = [(['hamstring'], [math.nan]), (['hamstring'], [math.inf]), (['hamstring'], [-0.5]),
@@ -317,9 +322,11 @@ def _call(node, client, req, timeout=20):
     return fut.result()
 
 
-def test_pause_reset_services_and_divergence_is_reported_not_published(knee_model, tmp_path):
+@pytest.mark.parametrize('solver_thread', ['true', 'false'])
+def test_pause_reset_services_and_divergence_is_reported_not_published(knee_model, tmp_path, solver_thread):
     """~/pause stops sim time, ~/reset returns to rest; a solver divergence (forced with a tiny
-    max_speed) pauses the node with an ERROR diagnostic while frames keep flowing, never NaN."""
+    max_speed) pauses the node with an ERROR diagnostic while frames keep flowing, never NaN. Both
+    stepping loops (the solver thread: the divergence is raised in it)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from sensor_msgs.msg import JointState
@@ -328,8 +335,8 @@ def test_pause_reset_services_and_divergence_is_reported_not_published(knee_mode
     params = tmp_path / 'fragile.yaml'
     params.write_text('max_speed: 0.05\n')        # [m/s]: a contracting hamstring exceeds it at once
     with isolated_domain() as dom, ros_context(dom.id) as ctx, \
-            run_executable('simulator', *sim_args(knee_model, '-p', f'params:={params}', '-p', 'realtime:=false'),
-                           env=dom.env) as sim:
+            run_executable('simulator', *sim_args(knee_model, '-p', f'params:={params}', '-p', 'realtime:=false',
+                                                  '-p', f'solver_thread:={solver_thread}'), env=dom.env) as sim:
         node = rclpy.create_node('probe', context=ctx)
         js = Collector(node, JointState, '/joint_states')
         diag = Collector(node, DiagnosticArray, '/diagnostics')

@@ -22,6 +22,7 @@ same bit for bit.
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
 from typing import Callable
@@ -32,6 +33,7 @@ HEADROOM = 1.02      # frames are scheduled at publish_rate x HEADROOM (publish_
 BUDGET_SHARE = 0.85  # of the frame period, less the measured publish cost, goes to stepping ...
 BUDGET_FLOOR = 0.2   # ... but never less than this share of it
 CHUNK_SHARE = 0.5    # SolverThread: a chunk is the steps owed over this share of a frame period
+SOLVER_NICE = 5      # the solver thread's nice increment: where cores are short, the frame loop gets the CPU first
 GIL_SWITCH = 0.0005  # [s] sys.setswitchinterval with a SolverThread: how long it may wait for the GIL after a chunk
                      # while the frame loop runs Python (Python's default is 5 ms, a third of a chunk)
 
@@ -95,6 +97,17 @@ class Pacer:
         return n
 
 
+def lower_priority(increment: int) -> bool:
+    """Raise the calling thread's nice value by ``increment`` (Linux: per thread; anyone may lower their own
+    priority); False where the platform does not allow it."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + int(increment)))
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
 class SolverThread:
     """Runs ``pacer`` in a thread of its own (module docstring): in real-time mode it sleeps until
     ``CHUNK_SHARE`` of a frame ``period`` of sim time is owed, then pays the debt through
@@ -102,7 +115,8 @@ class SolverThread:
     frame loop); as fast as possible it steps for ``CHUNK_SHARE`` of a period at a time. After each
     chunk ``latest`` is ``snapshot()`` (a copy of the state, taken while the state is still). ``lock``
     is held while a chunk steps: who changes the state from another thread (a reset) takes it first.
-    A step that raises pauses the thread: ``error`` is the exception, ``on_error(exc)`` is called from
+    The thread runs ``SOLVER_NICE`` below the process's priority: on a busy machine the frame rate comes
+    first, as in the frame loop's own stepping. A step that raises pauses the thread: ``error`` is the exception, ``on_error(exc)`` is called from
     the thread. Settings (``realtime``, ``rate``, ``cap``) are plain attributes, read at each chunk."""
 
     def __init__(self, pacer: Pacer, snapshot: Callable[[], object], period: float, *, paused: bool = False,
@@ -148,6 +162,7 @@ class SolverThread:
         return max(self.pacer.dt, CHUNK_SHARE * self.period * self.rate)
 
     def _run(self) -> None:
+        lower_priority(SOLVER_NICE)
         last = self.clock()
         while not self._stop:
             if self.paused or self.error is not None:
