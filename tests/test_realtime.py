@@ -234,3 +234,23 @@ def test_node_stepping_in_a_thread_is_bit_identical_to_one_step_at_a_time():
         assert np.array_equal(getattr(state, name), getattr(ref, name)), name
     assert np.array_equal(th.latest.x, state.x) and th.latest.step == state.step
     assert abs(state.q[0] - sim.j_rest[0]) > 1e-3            # the knee moved: the comparison is not of rest states
+
+
+def test_the_frames_muscle_volumes_are_the_whole_arrays():
+    """observe() (each frame of the node) computes the muscle cells' volumes alone: bit for bit the muscle
+    cells' entries of every cell's volumes, on a deformed state of the knee phantom."""
+    from tissue_sim.core import solver
+    from tissue_sim.core.solver import phantom
+    from tissue_sim.core.solver.measures import cell_volumes
+    sim = solver.compile_model(phantom.knee(fat_sectors=6), solver.Params.physical())
+    state, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[0] = 1.0
+    solver.step(sim, state, ctrl, n_steps=200)
+    sel = sim.cell_muscle >= 0
+    assert 0 < sel.sum() < sim.n_cells
+    every = cell_volumes(sim, state.x)
+    assert np.array_equal(cell_volumes(sim, state.x, 'muscle'), every[sel])
+    mv = np.bincount(sim.cell_muscle[sel], weights=every[sel], minlength=sim.n_muscles)
+    assert np.array_equal(solver.observe(sim, state)['muscle_volumes'], mv)
+    assert np.abs(state.x - sim.rest).max() > 1e-3                     # deformed: not the rest state
+    assert not np.array_equal(every, cell_volumes(sim, sim.rest))
