@@ -168,7 +168,8 @@ class Simulator(Node):
         self.marker_encode_ms = collections.deque(maxlen=256)   # build only (colours + numpy CDR) [ms]
         self.step_wall = 0.0            # wall seconds spent stepping (the solver thread's chunks or the ticks' steps)
         self.step_cpu = 0.0             # CPU seconds of the stepping thread spent stepping
-        self.publish_cost = 0.0
+        self.publish_cost = 0.0         # a frame's build + publish [s of wall time], running mean
+        self.publish_cpu = 0.0          # ... [s of the frame loop's CPU time]
         self.period = realtime.frame_period(P['publish_rate'])
         self.stepper = None
         self.frame = self.state                 # the state of the last frame published
@@ -290,9 +291,10 @@ class Simulator(Node):
                 self.get_logger().error('non-finite positions; paused (call ~/reset)')
             self.maybe_diagnostics(now)
             return
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self.publish_frame(st)
         self.publish_cost = 0.8 * self.publish_cost + 0.2 * (time.perf_counter() - t0)
+        self.publish_cpu = 0.8 * self.publish_cpu + 0.2 * (time.thread_time() - c0)
         self.publish_times.append(time.monotonic())
         self.maybe_diagnostics(now)
 
@@ -380,7 +382,7 @@ class Simulator(Node):
         return dict(publish_rate_hz=rate, real_time_factor=(self.frame.time - s0) / span,
                     steps_per_s=(self.steps_done - n0) / span, sim_time=self.frame.time,
                     stepping_share=(self.step_wall - sw0) / span,
-                    steps_per_cpu_s=(self.steps_done - n0) / max(self.step_cpu - sc0, 1e-9), frame_ms=1e3 * self.publish_cost,
+                    steps_per_cpu_s=(self.steps_done - n0) / max(self.step_cpu - sc0, 1e-9), frame_ms=1e3 * self.publish_cost, frame_cpu_ms=1e3 * self.publish_cpu,
                     solver_thread=self.stepper is not None,
                     marker_ms_mean=float(np.mean(self.marker_ms)) if self.marker_ms else 0.0,
                     marker_ms_max=float(np.max(self.marker_ms)) if self.marker_ms else 0.0,
