@@ -97,10 +97,11 @@ def measure(a, model, tm, params, solver_thread):
     from tissue_msgs.msg import TissueState
     from visualization_msgs.msg import MarkerArray
     tmp = Path(tempfile.mkdtemp(prefix='ros_rate_'))
-    dom = 1 + (os.getpid() + int(1e3 * time.monotonic())) % 101
-    env = dict(os.environ, ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
-    env.pop('ROS_LOCALHOST_ONLY', None)
-    os.environ.update(ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    sys.path.insert(0, str(ROOT / 'tests'))
+    from rosutil import acquire_domain      # a domain id no other process holds (the tests' lock files): another
+    dom = acquire_domain()                  # simulator in the same domain would mix its topics into these
+    env = dom.env
+    os.environ.update(ROS_DOMAIN_ID=str(dom.id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     log = open(tmp / 'simulator.log', 'w+')
     sim = subprocess.Popen([str(EXE / 'simulator'), '--ros-args', '-p', f'model:={model}',
                             '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}',
@@ -145,6 +146,7 @@ def measure(a, model, tm, params, solver_thread):
         except subprocess.TimeoutExpired:
             sim.kill()
             sim.wait()
+        dom.release()
     x = np.asarray(tm.rest_positions, np.float64)
     if a.no_objects:
         py_ms, np_ms, nbytes = python_object_markers(tm, x, reps=0)
