@@ -75,6 +75,7 @@ def diag_values(msg):
 def test_simulator_publishes_at_34hz_with_markers(builder_model):
     import rclpy
     from sensor_msgs.msg import JointState
+    from tf2_msgs.msg import TFMessage
     from tissue_msgs.msg import TissueState, TissueTopology
     from visualization_msgs.msg import MarkerArray
     from tissue_sim.core import tissue_cdr
@@ -86,6 +87,8 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         # raw: turning each MarkerArray into Python objects here would make this probe the bottleneck
         mk = Collector(node, MarkerArray, '/tissue/markers', raw=True)
         st = Collector(node, TissueState, '/tissue/state', raw=True)
+        # /tf beside the markers, with tf2's listener depth: a depth-100 /tf publisher came in bursts here (7-19 Hz)
+        tf = Collector(node, TFMessage, '/tf', keep=False, raw=True, qos=100)
         topo = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
         bones = Collector(node, MarkerArray, '/tissue/bone_markers', qos=qos_latched())
         sim.wait_for_output('simulator ready', timeout=60)
@@ -94,8 +97,9 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         spin_until(lambda: time.monotonic() - t0 > 5.0, node, 10, '5 s of frames')
         r_js, n_js = js.rate_over(t0, t0 + 5.0)
         r_mk, n_mk = mk.rate_over(t0, t0 + 5.0)
-        print(f'joint_states {r_js:.2f} Hz ({n_js}), markers {r_mk:.2f} Hz ({n_mk})')
-        assert r_js >= 34.0 and r_mk >= 34.0
+        r_tf, n_tf = tf.rate_over(t0, t0 + 5.0)
+        print(f'joint_states {r_js:.2f} Hz ({n_js}), markers {r_mk:.2f} Hz ({n_mk}), tf {r_tf:.2f} Hz ({n_tf})')
+        assert r_js >= 34.0 and r_mk >= 34.0 and r_tf >= 34.0
         # markers: the soft tissue in 'world' each frame (muscle opaque, skin/fat translucent); the bones
         # once, opaque, in their segments' TF frames, frame-locked (viewers move them with /tf)
         from rclpy.serialization import deserialize_message
