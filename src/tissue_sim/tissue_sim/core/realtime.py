@@ -33,7 +33,6 @@ HEADROOM = 1.02      # frames are scheduled at publish_rate x HEADROOM (publish_
 BUDGET_SHARE = 0.85  # of the frame period, less the measured publish cost, goes to stepping ...
 BUDGET_FLOOR = 0.2   # ... but never less than this share of it
 CHUNK_SHARE = 0.5    # SolverThread: a chunk is the steps owed over this share of a frame period
-SOLVER_NICE = 5      # the solver thread's nice increment: where cores are short, the frame loop gets the CPU first
 GIL_SWITCH = 0.0005  # [s] sys.setswitchinterval with a SolverThread: how long it may wait for the GIL after a chunk
                      # while the frame loop runs Python (Python's default is 5 ms, a third of a chunk)
 
@@ -115,14 +114,16 @@ class SolverThread:
     frame loop); as fast as possible it steps for ``CHUNK_SHARE`` of a period at a time. After each
     chunk ``latest`` is ``snapshot()`` (a copy of the state, taken while the state is still). ``lock``
     is held while a chunk steps: who changes the state from another thread (a reset) takes it first.
-    The thread runs ``SOLVER_NICE`` below the process's priority: on a busy machine the frame rate comes
-    first, as in the frame loop's own stepping. A step that raises pauses the thread: ``error`` is the exception, ``on_error(exc)`` is called from
+    ``nice`` > 0 runs the thread that much below the process's priority (the frame loop then gets the CPU
+    first where cores are short; the operating system already favours it, as it sleeps between frames,
+    and a lower priority starved the solver beside other jobs). A step that raises pauses the thread: ``error`` is the exception, ``on_error(exc)`` is called from
     the thread. Settings (``realtime``, ``rate``, ``cap``) are plain attributes, read at each chunk."""
 
-    def __init__(self, pacer: Pacer, snapshot: Callable[[], object], period: float, *, paused: bool = False,
+    def __init__(self, pacer: Pacer, snapshot: Callable[[], object], period: float, *, paused: bool = False, nice: int = 0,
                  on_error: Callable[[BaseException], None] | None = None, clock: Callable[[], float] = time.perf_counter):
         self.pacer, self.snapshot, self.period, self.on_error, self.clock = pacer, snapshot, float(period), on_error, clock
         self.realtime, self.rate, self.cap = True, 1.0, 2000
+        self.nice = int(nice)
         self.lock = threading.Lock()
         self.latest = snapshot()
         self.paused = bool(paused)
@@ -162,7 +163,8 @@ class SolverThread:
         return max(self.pacer.dt, CHUNK_SHARE * self.period * self.rate)
 
     def _run(self) -> None:
-        lower_priority(SOLVER_NICE)
+        if self.nice > 0:
+            lower_priority(self.nice)
         last = self.clock()
         while not self._stop:
             if self.paused or self.error is not None:

@@ -74,6 +74,8 @@ PARAMS = (
     Param('solver_thread', True, 'step the solver in a thread of its own beside the frame loop (two cores: stepping '
           'and publishing in parallel); false: in the frame timer callback, between publishes (one core)',
           read_only=True),
+    Param('solver_nice', 0, "the solver thread's nice increment (Linux, its thread only): > 0 gives the frame loop the "
+          'CPU first where cores are short, at the cost of the real-time factor', lo=0, hi=19, read_only=True),
     Param('start_paused', False, 'start paused (resume with ~/pause false)', read_only=True),
     Param('diagnostics_period', 1.0, 'seconds between /diagnostics', lo=0.1, hi=60.0),
 )
@@ -178,7 +180,7 @@ class Simulator(Node):
         if P['solver_thread']:
             sys.setswitchinterval(realtime.GIL_SWITCH)
             self.stepper = realtime.SolverThread(self.pacer, self.state.copy, self.period, paused=self.paused,
-                                                 on_error=self.on_step_error)
+                                                 nice=int(P['solver_nice']), on_error=self.on_step_error)
             self.stepper_settings()
             self.stepper.start()
         self.last_tick = time.monotonic()
