@@ -30,16 +30,19 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from numba import njit
 
-from tissue_sim.core.solver import integration as IK
+from tissue_sim.core.solver import contact as CT, integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz')
+                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
 (elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
 weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
-star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative)."""
+star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative).
+The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [N/m] k_s of each vertex
+(sheath_weights), sd (V, 3) scratch (each sheathed vertex's way back), the factor of A' = A + diag(ks) in the same
+star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -82,6 +85,31 @@ def reference_solve(sim, h: float, f, x_iter, y, xa_moved):
     return x_iter[free] + sla.spsolve(A, r).reshape(-1, 3) if r.size else x_iter[free]
 
 
+SHEATH_STIFFNESS = 1e3      # k_s of a sheathed vertex in the correction's system, relative to its diagonal in A
+
+
+def sheath_weights(sim, h: float) -> np.ndarray:
+    """(V,) [N/m] k_s of each vertex in the sheath correction's system A' = A + diag(k_s): SHEATH_STIFFNESS times its
+    diagonal in A's star form (m/h^2 + the summed keff of its cells) for the free sheathed vertices
+    (Params.sheath_group; contact.sheath_vertices), 0 elsewhere."""
+    keff = cell_weights(sim, h)
+    cell = np.repeat(np.arange(sim.n_cells), np.diff(sim.off))
+    diag = sim.mass / h ** 2 + np.bincount(sim.cv, keff[cell], sim.n_vertices)
+    ks = np.zeros(sim.n_vertices)
+    idx = np.asarray(sim.contact.s_idx)
+    idx = idx[sim.inv_mass[idx] > 0]
+    ks[idx] = SHEATH_STIFFNESS * diag[idx]
+    return ks
+
+
+def reference_sheath_solve(sim, h: float, d):
+    """The sheath correction of reference.reference_step: w (n_free, 3) solving A' w = k_s d over the free vertices
+    (d (V, 3): each sheathed vertex's way back onto the radius, zero elsewhere) with scipy's sparse direct solve."""
+    A, _, free = _system_cached(sim, h)
+    ks = sheath_weights(sim, h)[free]
+    return sla.spsolve((A + sp.diags(ks)).tocsc(), ks[:, None] * d[free]).reshape(-1, 3)
+
+
 _CACHE = {}
 
 
@@ -117,15 +145,9 @@ def star_system(sim, h: float):
     return A.tocsc(), free, keff
 
 
-def make(sim, h: float) -> Implicit:
-    """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators)."""
-    V = sim.n_vertices
-    if sim.params.integrator != 'implicit':
-        e_i, e_f = np.zeros(0, np.int32), np.zeros(0)
-        return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, np.zeros(1, np.int64),
-                        e_i, np.zeros(1, np.int64), e_i, e_f, e_f, np.zeros((0, 3)), 0)
-    A, free, keff = star_system(sim, h)
-    nf, n = free.size, A.shape[0]
+def _factor(A):
+    """A = L D L^T (SuperLU, minimum degree on A^T + A, no pivoting: A is SPD; checked). Returns (perm: the unknown
+    of each row of the factor, L strictly lower (CSR, sorted), D's diagonal)."""
     lu = sla.splu(A, permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
     if not np.array_equal(lu.perm_r, lu.perm_c):
         raise RuntimeError('implicit integrator: SuperLU pivoted the SPD system (perm_r != perm_c)')
@@ -139,8 +161,24 @@ def make(sim, h: float) -> Implicit:
     Ls = sp.tril(Lf, k=-1).tocsr()
     Ls.sort_indices()
     # row p of the factor is unknown perm_c[p] of A (Pr A Pc = L U, perm_r == perm_c)
-    unk = np.argsort(lu.perm_c)                     # unknown of each row
-    row_v = np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
+    return np.argsort(lu.perm_c), Ls, d
+
+
+def make(sim, h: float) -> Implicit:
+    """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators)."""
+    V = sim.n_vertices
+    e_i, e_f, e_p = np.zeros(0, np.int32), np.zeros(0), np.zeros(1, np.int64)
+    if sim.params.integrator != 'implicit':
+        return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
+                        e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
+                        np.zeros((0, 3)))
+    A, free, keff = star_system(sim, h)
+    nf, n = free.size, A.shape[0]
+    unk, Ls, d = _factor(A)
+
+    def rows_of(unk):
+        return np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
+    row_v = rows_of(unk)
     row_c = np.where(unk >= nf, unk - nf, -1).astype(np.int32)
     # the bone-attached vertices of each cell row (their motion enters that row: keff_c sum of displacements)
     att = sim.inv_mass <= 0
@@ -156,9 +194,21 @@ def make(sim, h: float) -> Implicit:
             ptr[p + 1] = ptr[p]
     idx = np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32)
     mh2 = np.where(sim.inv_mass > 0, sim.mass / h ** 2, 0.0)
+    ks = sheath_weights(sim, h)
+    if ks.any():              # the sheath correction's system A' = A + diag(k_s) (sheath_correct)
+        fidx = np.full(V, -1)
+        fidx[free] = np.arange(nf)
+        sel = np.flatnonzero(ks > 0)
+        add = np.zeros(n)
+        add[fidx[sel]] = ks[sel]
+        s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsc())
+        sheath = (ks, np.zeros((V, 3)), rows_of(s_unk), sLs.indptr.astype(np.int64), sLs.indices.astype(np.int32),
+                  sLs.data.copy(), 1.0 / sd_, np.zeros((n, 3)))
+    else:
+        sheath = (e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, Ls.indptr.astype(np.int64), Ls.indices.astype(np.int32),
-                    Ls.data.copy(), 1.0 / d, np.zeros((n, 3)), int(Ls.nnz + n))
+                    Ls.data.copy(), 1.0 / d, np.zeros((n, 3)), int(Ls.nnz + n), *sheath)
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -248,4 +298,51 @@ def integrate(h, x, v, f, xn, vn, imp, att_idx, att_seg, rest, seg_R, seg_t, gra
 def correct(h, x, f, xn, vn, imp, vmax2):
     """A further local/global iteration: f = the forces at (xn, vn); xn_free += A^-1 (f - M (xn - y)/h^2)."""
     _solve(imp, f, xn, imp.y, False)
+    return _velocities(h, x, xn, vn, imp.mh2, vmax2)
+
+
+@njit(cache=True, fastmath={'contract'})
+def _solve_sheath(imp, xk):
+    """xk_free += w, A' w = k_s d (imp.sd, the sheathed vertices' way back; A' = A + diag(k_s)): the forward pass,
+    D^-1 and the backward pass of _solve on the sheath factor."""
+    z, Lp, Lj, Lx, dinv, row_v, ks, d = imp.s_z, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_dinv, imp.s_row_v, imp.ks, imp.sd
+    n = z.shape[0]
+    for p in range(n):
+        i = row_v[p]
+        s0 = s1 = s2 = 0.0
+        if i >= 0:
+            k = ks[i]
+            if k > 0.0:
+                s0, s1, s2 = k * d[i, 0], k * d[i, 1], k * d[i, 2]
+        for q in range(Lp[p], Lp[p + 1]):
+            j = Lj[q]
+            l = Lx[q]
+            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+    for p in range(n):
+        dd = dinv[p]
+        z[p, 0] *= dd; z[p, 1] *= dd; z[p, 2] *= dd
+    for p in range(n - 1, -1, -1):
+        w0, w1, w2 = z[p, 0], z[p, 1], z[p, 2]
+        for q in range(Lp[p], Lp[p + 1]):
+            j = Lj[q]
+            l = Lx[q]
+            z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
+        i = row_v[p]
+        if i >= 0:
+            xk[i, 0] += w0; xk[i, 1] += w1; xk[i, 2] += w2
+
+
+@njit(cache=True)
+def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2):
+    """The sheath with the implicit integrator (Params.sheath_group; docs/solver.md "Implicit integrator"), after the
+    last iteration: the sheathed vertices beyond their radius at xn (contact.sheath_offsets, in the segments' new
+    poses) are moved back onto it and the tissue follows them, xn_free += A'^-1 (k_s d), A' = A + diag(k_s) (k_s =
+    SHEATH_STIFFNESS x a vertex's diagonal: the sheathed vertices held where the correction puts them, the rest of
+    each cell following as the constant system says); v1 = (xn - x)/h. Stage 4's projection (contact._sheath) then
+    finds them on the radius within ~1/SHEATH_STIFFNESS of their way back. Returns how many vertices are too fast
+    or not finite (0 with nothing beyond the radius: nothing done)."""
+    if imp.sd.shape[0] == 0 or CT.sheath_offsets(xn, seg_R, seg_t, cg, imp.sd) == 0:
+        return 0
+    _solve_sheath(imp, xn)
     return _velocities(h, x, xn, vn, imp.mh2, vmax2)
