@@ -3,7 +3,7 @@ same step in plain numpy (solver.reference_step) and with pypbd's shape matching
 same cells; then the thread scaling of the step.
 
     .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3] [--fine FILE.npz] [--threads 1,2] [--refine R]
-                                     [--quick]
+                                     [--quick] [--ab N]
 
 The physical set runs with its mass_scaled integrator (4 sub-steps) and, beside it, with the implicit integrator (one
 sub-step of 1 ms; docs/solver.md "Implicit integrator"). --fine: the same two on a finer model (e.g. from
@@ -16,7 +16,9 @@ process per configuration (the thread counts alternate, best of 3 windows each),
 100-step chunks), the physical set (mass_scaled, 4 sub-steps) and the physical set with the implicit integrator,
 on the default model and, with --refine R (the bundled limb built R times finer, builder.default_model(refine=R))
 or --fine FILE, on a finer model; with each configuration's peak resident memory (its own process:
-resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only (what `make bench` runs).
+resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only (what `make bench` runs). --ab N:
+only the physical set, mass_scaled beside implicit (both with the hamstring sheath) and implicit without it, N
+alternating rounds (ab_rates): the ratio the issue's target is about, on a shared machine.
 
 Model: tissue_sim.core.builder.default_model() (the bundled anatomy); if that is not available,
 the builder's synthetic paper-sized limb phantom (tests/phantoms.py). Prints the figures as lines, then as a
@@ -173,6 +175,8 @@ def main():
                     "machine with 2 or more cores; 'none': skip it)")
     ap.add_argument('--refine', help='the scaling section also on the bundled limb built R times finer (e.g. 3)')
     ap.add_argument('--quick', action='store_true', help='the scaling section only, 1-s windows')
+    ap.add_argument('--ab', type=int, default=0, metavar='N', help='only the physical set mass_scaled beside implicit '
+                    '(with and without the sheath), N alternating rounds of --seconds each (ab_rates)')
     ap.add_argument('--scaling-child', help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.scaling_child:
@@ -208,6 +212,10 @@ def main():
     print(f'CPU: {cpu["cpu_model"]} (numba compiles for {cpu["llvm_cpu"]}; {cpu["lanes_per_block"]} cells per SIMD block)')
     out = {'model': source, 'vertices': tm.n_vertices, 'cells': tm.n_cells, **cpu}
     ham = [m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]
+    if args.ab:
+        out['ab'] = ab_rates(tm, args.ab, args.seconds)
+        print(json.dumps(out))
+        return
 
     def solver_rate(params, chunk, model=tm):
         sim = solver.compile_model(model, dataclasses.replace(params, threads=1))      # one thread (the serial kernel)
@@ -403,13 +411,49 @@ def scaling_child(spec):
                       'rss_after_import_mb': round(rss0, 1), 'load_average': round(os.getloadavg()[0], 2)}))
 
 
+def ab_rates(tm, rounds, seconds):
+    """--ab N: the physical set under mass_scaled (4 sub-steps) and under implicit (1 sub-step; both with the set's
+    hamstring sheath, the implicit one with its correction solve), and implicit without the sheath (what the correction
+    costs), full hamstring activation, 100-step chunks, one thread: N rounds, each configuration one window of
+    `seconds` in turn (steps per CPU second, best of rate()'s 3 sub-windows), so load changes hit all of them alike.
+    Prints each round, the median rates and ratio, and the load average."""
+    from tissue_sim.core.solver.step import _run
+    confs = (('mass_scaled', {}), ('implicit', dict(integrator='implicit', substeps=1)),
+             ('implicit, no sheath', dict(integrator='implicit', substeps=1, sheath_group='')))
+    runs = []
+    for name, kw in confs:
+        sim = solver.compile_model(tm, solver.Params.physical(threads=1, **kw))
+        st, ctrl = solver.make_state(sim), solver.make_control(sim)
+        ctrl.activation[[m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0
+        acts = np.tile(ctrl.activation, (100, 1))
+        runs.append((name, lambda sim=sim, st=st, acts=acts: _run(sim, st, acts, sim.params.dt)))
+    rates = {name: [] for name, _ in confs}
+    load = [os.getloadavg()[0]]
+    for r in range(rounds):
+        for name, fn in runs:
+            rates[name].append(100 * rate(fn, seconds))
+        load.append(os.getloadavg()[0])
+        print(f'round {r + 1}: ' + ', '.join(f'{n} {v[-1]:,.0f}' for n, v in rates.items())
+              + f' steps/s; implicit/mass_scaled {rates["implicit"][-1] / rates["mass_scaled"][-1]:.2f}; '
+              f'load average {load[-1]:.2f}', flush=True)
+    med = {n: float(np.median(v)) for n, v in rates.items()}
+    ratios = [a / b for a, b in zip(rates['implicit'], rates['mass_scaled'])]
+    print(f'median: ' + ', '.join(f'{n} {v:,.0f}' for n, v in med.items()) + f' steps/s; implicit/mass_scaled: median of '
+          f'the rounds\' ratios {np.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}); the sheath '
+          f'correction costs {100 * (1 - med["implicit"] / med["implicit, no sheath"]):.1f} % of the implicit step; '
+          f'load average {min(load):.2f}-{max(load):.2f}')
+    return {'rates': {n: [round(x) for x in v] for n, v in rates.items()}, 'median': {n: round(v) for n, v in med.items()},
+            'ratio_median': round(float(np.median(ratios)), 2), 'load_average': [round(x, 2) for x in load]}
+
+
 def implicit_factor(sim):
     """The implicit integrator's factor at params.dt: unknowns (free vertices + cells), entries, bytes, build time."""
     from tissue_sim.core.solver import implicit as IM
     t0 = time.perf_counter()
     imp = IM.make(sim, sim.params.dt)
     return {'unknowns': int(imp.z.shape[0]), 'entries': int(imp.n_lnz), 'bytes': int(imp.Lx.nbytes + imp.Lj.nbytes +
-            imp.Lp.nbytes + imp.dinv.nbytes), 'build_s': round(time.perf_counter() - t0, 3)}
+            imp.Lp.nbytes + imp.dinv.nbytes), 'build_s': round(time.perf_counter() - t0, 3),
+            'sheath_entries': int(imp.s_Lx.size + imp.s_dinv.size)}     # the sheath correction's factor (0: none)
 
 
 def fine_model(path, solver_rate):

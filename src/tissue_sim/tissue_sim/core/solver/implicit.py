@@ -102,12 +102,39 @@ def sheath_weights(sim, h: float) -> np.ndarray:
     return ks
 
 
+SHEATH_RINGS = 2            # the correction moves the free vertices within this many cells of a sheathed vertex
+
+
+def sheath_region(sim) -> np.ndarray:
+    """(V,) bool: the free vertices the sheath correction moves: the sheathed ones and those within SHEATH_RINGS cells
+    of them (ring 1: the free vertices of the cells with a sheathed vertex; ring 2: of the cells touching ring 1)."""
+    free = sim.inv_mass > 0
+    reg = np.zeros(sim.n_vertices, bool)
+    reg[np.asarray(sim.contact.s_idx)] = True
+    reg &= free
+    if not reg.any():
+        return reg
+    cell = np.repeat(np.arange(sim.n_cells), np.diff(sim.off))
+    for _ in range(SHEATH_RINGS):
+        touch = np.zeros(sim.n_cells, bool)
+        touch[cell[reg[sim.cv]]] = True
+        reg[sim.cv[touch[cell]]] = True
+        reg &= free
+    return reg
+
+
 def reference_sheath_solve(sim, h: float, d):
     """The sheath correction of reference.reference_step: w (n_free, 3) solving A' w = k_s d over the free vertices
-    (d (V, 3): each sheathed vertex's way back onto the radius, zero elsewhere) with scipy's sparse direct solve."""
+    of sheath_region (the principal submatrix of A + diag(k_s): the rest of the tissue held), zero for the other free
+    vertices (d (V, 3): each sheathed vertex's way back onto the radius, zero elsewhere), with scipy's sparse direct
+    solve."""
     A, _, free = _system_cached(sim, h)
     ks = sheath_weights(sim, h)[free]
-    return sla.spsolve((A + sp.diags(ks)).tocsc(), ks[:, None] * d[free]).reshape(-1, 3)
+    reg = sheath_region(sim)[free]
+    w = np.zeros((int(free.sum()), 3))
+    Ar = (A + sp.diags(ks)).tocsr()[reg][:, reg].tocsc()
+    w[reg] = sla.spsolve(Ar, ks[reg, None] * d[free][reg]).reshape(-1, 3)
+    return w
 
 
 _CACHE = {}
@@ -195,15 +222,21 @@ def make(sim, h: float) -> Implicit:
     idx = np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32)
     mh2 = np.where(sim.inv_mass > 0, sim.mass / h ** 2, 0.0)
     ks = sheath_weights(sim, h)
-    if ks.any():              # the sheath correction's system A' = A + diag(k_s) (sheath_correct)
+    if ks.any():              # the sheath correction's system A' = A + diag(k_s) over sheath_region (sheath_correct)
         fidx = np.full(V, -1)
         fidx[free] = np.arange(nf)
         sel = np.flatnonzero(ks > 0)
         add = np.zeros(n)
         add[fidx[sel]] = ks[sel]
-        s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsc())
-        sheath = (ks, np.zeros((V, 3)), rows_of(s_unk), sLs.indptr.astype(np.int64), sLs.indices.astype(np.int32),
-                  sLs.data.copy(), 1.0 / sd_, np.zeros((n, 3)))
+        reg = np.flatnonzero(sheath_region(sim)[free])                  # its vertices' unknowns, then the cells
+        cell = np.repeat(np.arange(sim.n_cells), np.diff(sim.off))      # touching them
+        touch = np.zeros(sim.n_cells, bool)
+        touch[cell[np.isin(sim.cv, free[reg])]] = True
+        keep = np.concatenate([reg, nf + np.flatnonzero(touch)])
+        s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsr()[keep][:, keep].tocsc())
+        s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
+        sheath = (ks, np.zeros((V, 3)), s_rows, sLs.indptr.astype(np.int64), sLs.indices.astype(np.int32),
+                  sLs.data.copy(), 1.0 / sd_, np.zeros((keep.size, 3)))
     else:
         sheath = (e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
@@ -303,8 +336,8 @@ def correct(h, x, f, xn, vn, imp, vmax2):
 
 @njit(cache=True, fastmath={'contract'})
 def _solve_sheath(imp, xk):
-    """xk_free += w, A' w = k_s d (imp.sd, the sheathed vertices' way back; A' = A + diag(k_s)): the forward pass,
-    D^-1 and the backward pass of _solve on the sheath factor."""
+    """xk += w over sheath_region's vertices, A' w = k_s d (imp.sd, the sheathed vertices' way back; A' = A +
+    diag(k_s) over the region, the rest held): the forward pass, D^-1 and the backward pass of _solve on its factor."""
     z, Lp, Lj, Lx, dinv, row_v, ks, d = imp.s_z, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_dinv, imp.s_row_v, imp.ks, imp.sd
     n = z.shape[0]
     for p in range(n):
