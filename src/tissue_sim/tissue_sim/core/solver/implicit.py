@@ -33,7 +33,7 @@ from numba import njit
 from tissue_sim.core.solver import contact as CT, integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z')
+                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
@@ -42,7 +42,8 @@ weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over 
 star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative).
 The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [N/m] k_s of each vertex
 (sheath_weights), sd (V, 3) scratch (each sheathed vertex's way back), the factor of A' = A + diag(ks) in the same
-star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch)."""
+star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
+s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -187,6 +188,7 @@ def _factor(A):
         raise RuntimeError('implicit integrator: the factor is not symmetric (U != D L^T)')
     Ls = sp.tril(Lf, k=-1).tocsr()
     Ls.sort_indices()
+    Ls.indices, Ls.indptr = Ls.indices.astype(np.int32), Ls.indptr.astype(np.int64)
     # row p of the factor is unknown perm_c[p] of A (Pr A Pc = L U, perm_r == perm_c)
     return np.argsort(lu.perm_c), Ls, d
 
@@ -198,7 +200,7 @@ def make(sim, h: float) -> Implicit:
     if sim.params.integrator != 'implicit':
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
                         e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
-                        np.zeros((0, 3)))
+                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f)
     A, free, keff = star_system(sim, h)
     nf, n = free.size, A.shape[0]
     unk, Ls, d = _factor(A)
@@ -235,13 +237,22 @@ def make(sim, h: float) -> Implicit:
         keep = np.concatenate([reg, nf + np.flatnonzero(touch)])
         s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsr()[keep][:, keep].tocsc())
         s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
-        sheath = (ks, np.zeros((V, 3)), s_rows, sLs.indptr.astype(np.int64), sLs.indices.astype(np.int32),
-                  sLs.data.copy(), 1.0 / sd_, np.zeros((keep.size, 3)))
+        sheath = (ks, np.zeros((V, 3)), s_rows, sLs.indptr, sLs.indices, sLs.data.copy(), 1.0 / sd_,
+                  np.zeros((keep.size, 3)))
+        sU = _transposed(sLs)
     else:
         sheath = (e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
+        sU = (e_p, e_i, e_f)
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
-                    np.ascontiguousarray(keff), ptr, idx, Ls.indptr.astype(np.int64), Ls.indices.astype(np.int32),
-                    Ls.data.copy(), 1.0 / d, np.zeros((n, 3)), int(Ls.nnz + n), *sheath)
+                    np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
+                    np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU)
+
+
+def _transposed(Ls):
+    """(indptr, indices, data) of L^T by rows (CSR, sorted): the backward pass reads row p's entries L_jp, j > p."""
+    U = Ls.T.tocsr()
+    U.sort_indices()
+    return U.indptr.astype(np.int64), U.indices.astype(np.int32), U.data.copy()
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -263,8 +274,8 @@ def predict(h, x, v, y, mh2, gravity, vel_damp):
 def _solve(imp, f, xk, y, first):
     """xk_free += w, A w = the right-hand side (f - M (xk - y)/h^2 on the vertices' rows; on the cells' rows in the
     first iteration the bones' motion beyond the prediction, keff_c sum (xk_a - y_a)): L z' = rhs (the rhs formed row
-    by row as the forward pass reaches it), z' D^-1, L^T w = z' D^-1 (each w_p final when the backward pass leaves
-    row p: the update is made there)."""
+    by row as the forward pass reaches it), then L^T w = D^-1 z' (_backward: each w_p final when the backward pass
+    leaves row p, the update made there)."""
     z, Lp, Lj, Lx, dinv = imp.z, imp.Lp, imp.Lj, imp.Lx, imp.dinv
     row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
     n = z.shape[0]
@@ -288,18 +299,24 @@ def _solve(imp, f, xk, y, first):
             l = Lx[q]
             s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
         z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
-    for p in range(n):
+    _backward(imp.Up, imp.Uj, imp.Ux, dinv, row_v, z, xk)
+
+
+@njit(cache=True, fastmath={'contract'})
+def _backward(Up, Uj, Ux, dinv, row_v, z, xk):
+    """The backward pass of _solve and _solve_sheath: w = L^-T D^-1 z in gather form (row p of L^T: w_p = z_p / D_p
+    - sum_j>p L_jp w_j, w in place of z), each w_p final when its row is done: xk[row_v[p]] += w_p there."""
+    for p in range(z.shape[0] - 1, -1, -1):
         d = dinv[p]
-        z[p, 0] *= d; z[p, 1] *= d; z[p, 2] *= d
-    for p in range(n - 1, -1, -1):
-        w0, w1, w2 = z[p, 0], z[p, 1], z[p, 2]
-        for q in range(Lp[p], Lp[p + 1]):
-            j = Lj[q]
-            l = Lx[q]
-            z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
+        s0, s1, s2 = z[p, 0] * d, z[p, 1] * d, z[p, 2] * d
+        for q in range(Up[p], Up[p + 1]):
+            j = Uj[q]
+            l = Ux[q]
+            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
         i = row_v[p]
         if i >= 0:
-            xk[i, 0] += w0; xk[i, 1] += w1; xk[i, 2] += w2
+            xk[i, 0] += s0; xk[i, 1] += s1; xk[i, 2] += s2
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -352,18 +369,7 @@ def _solve_sheath(imp, xk):
             l = Lx[q]
             s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
         z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
-    for p in range(n):
-        dd = dinv[p]
-        z[p, 0] *= dd; z[p, 1] *= dd; z[p, 2] *= dd
-    for p in range(n - 1, -1, -1):
-        w0, w1, w2 = z[p, 0], z[p, 1], z[p, 2]
-        for q in range(Lp[p], Lp[p + 1]):
-            j = Lj[q]
-            l = Lx[q]
-            z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
-        i = row_v[p]
-        if i >= 0:
-            xk[i, 0] += w0; xk[i, 1] += w1; xk[i, 2] += w2
+    _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, dinv, row_v, z, xk)
 
 
 @njit(cache=True)
@@ -378,4 +384,13 @@ def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2):
     if imp.sd.shape[0] == 0 or CT.sheath_offsets(xn, seg_R, seg_t, cg, imp.sd) == 0:
         return 0
     _solve_sheath(imp, xn)
-    return _velocities(h, x, xn, vn, imp.mh2, vmax2)
+    nfast = 0                   # (the velocities of the region's vertices: the others did not move)
+    ih = 1.0 / h
+    for i in imp.s_row_v:
+        if i >= 0:
+            a = (xn[i, 0] - x[i, 0]) * ih
+            b = (xn[i, 1] - x[i, 1]) * ih
+            c = (xn[i, 2] - x[i, 2]) * ih
+            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
+            nfast += 0 if a * a + b * b + c * c <= vmax2 else 1          # (NaN counts)
+    return nfast
