@@ -133,13 +133,17 @@ def test_bad_implicit_iterations_are_refused():
 
 
 @pytest.mark.slow
-def test_a_fine_model_is_stable_at_one_ms():
-    """~26k vertices (the builder at 140 slices, 24 muscle and 36 fat rays), physical set, full hamstring activation,
-    1 ms, one sub-step, two local/global iterations: 0.4 s without divergence, the knee flexing (with one iteration a
-    thin semitendinosus tendon cell inverts at ~0.1 s, docs/solver.md)."""
+@pytest.mark.parametrize('settings', [dict(slices=140, muscle_rays=24, fat_rays=36, allow_broken=True),
+                                      dict(refine=3.0)], ids=['26k', 'refine3'])
+def test_a_fine_model_is_stable_at_one_ms(settings):
+    """~26k vertices (the builder at 140 slices, 24 muscle and 36 fat rays) and the bundled limb refined 3x (32k),
+    physical set with its hamstring sheath, full hamstring activation, 1 ms, one sub-step, two local/global
+    iterations: 0.4 s without divergence, the knee flexing (with one iteration a thin semitendinosus tendon cell
+    inverts at ~0.1 s, docs/solver.md; before the sheath correction the 26k model diverged at step 137)."""
     from tissue_sim.core.builder import default_model
-    tm = default_model(slices=140, muscle_rays=24, fat_rays=36, allow_broken=True)
+    tm = default_model(**settings)
     assert tm.n_vertices >= 25000
+    assert solver.Params.physical(integrator='implicit').sheath_group == 'hamstrings'
     sim = solver.compile_model(tm, _implicit(implicit_iterations=2))
     st = _run(sim, 400)
     assert np.degrees(st.q[0]) > 20.0
