@@ -7,6 +7,7 @@ on the physical set with the fold on (fold_contact 'knee'; --side-only: fold_pla
 in a sheath of radius R [m]) instead.
 
     .venv/bin/python bench/fold.py [--seconds 6] [--hold]
+    .venv/bin/python bench/fold.py --implicit      (the physical set under mass_scaled and implicit, side by side)
     .venv/bin/python bench/fold.py --validate DIR [--side-only] [--sheath R [--below]] [validate options, e.g. --angles 0,30,60,90]
 
 Steps/s as bench/contact.py (per CPU second, one thread, full hamstring activation, windows interleaved).
@@ -39,8 +40,9 @@ def chain_length(tm, x, m):
     return tot
 
 
-def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120)):
-    sim = solver.compile_model(tm, solver.Params.physical(fold_contact=fold, sheath_group='hamstrings' if fold else ''))
+def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120), **kw):
+    sim = solver.compile_model(tm, solver.Params.physical(fold_contact=fold, sheath_group='hamstrings' if fold else '', **kw))
+    print(f"integrator {sim.params.integrator}, {sim.n_substeps} sub-step(s)")
     names = list(tm.muscle_names)
     mi = [names.index(n) for n in HAM]
     j = list(tm.joint_names).index('knee_r')
@@ -50,6 +52,7 @@ def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120)):
     print(f'fold_contact={fold!r} ({len(sim.contact.f_idx)} fold vertices): length change [mm] of '
           + ', '.join(HAM) + '; semitendinosus cells summed [mm]')
     cur, dt, L0 = 0.0, sim.params.dt, None
+    out = {}
     for deg in angles:
         n = int(math.ceil(abs(deg - cur) / 200 / dt))
         for i in range(n):
@@ -65,6 +68,38 @@ def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120)):
         print(f'  {deg:4d} deg ' + ' '.join(f'{1e3 * (a - b):+7.1f}' for a, b in zip(L, L0))
               + f'   {1e3 * chain_length(tm, st.x, mi[3]):6.1f}   >1 mm inside a bone: {sum(v[1] for v in pen.values())}'
               f'   inverted cells: {len(bad)}', flush=True)
+        out[deg] = L - L0
+    return out
+
+
+def implicit_vs_mass_scaled(tm, duration=1.0, every=0.05):
+    """The physical set as it is (fold + sheath) under its mass_scaled integrator, under the implicit one (one
+    1-ms sub-step, the sheath correction: docs/solver.md "Implicit integrator") and under explicit at true masses
+    (64 sub-steps: the reference without added mass; its automatic 43 diverged in the hold): the passive hold's hamstring length changes and the knee
+    of a full hamstring contraction from rest (every `every` s for `duration` s), side by side."""
+    held, knee = {}, {}
+    for name, kw in (('mass_scaled', {}), ('implicit', dict(integrator='implicit', substeps=1)),
+                     ('explicit', dict(integrator='explicit', substeps=64))):
+        try:
+            held[name] = hold(tm, 'knee', **kw)
+        except solver.DivergenceError as e:        # (explicit at its automatic 43 sub-steps: at step 501)
+            print(f'{name}: {e}')
+            held[name] = {deg: np.full(4, np.nan) for deg in held['mass_scaled']}
+        sim = solver.compile_model(tm, solver.Params.physical(**kw))
+        knee[name] = np.degrees([o['joint_positions'][0] for _, o in solver.simulate(
+            sim, duration, {'hamstrings': [(0.0, 1.0)]}, every=int(round(every / sim.params.dt)), output='obs')])
+    print('hamstring length change [mm] at each angle, mass_scaled / implicit / explicit at true masses '
+          '(max |implicit - mass_scaled|, max |implicit - explicit|):')
+    for deg in held['mass_scaled']:
+        a, b, c = held['mass_scaled'][deg], held['implicit'][deg], held['explicit'][deg]
+        print(f'  {deg:4d} deg ' + '  '.join(f'{1e3 * u:+6.1f}/{1e3 * w:+6.1f}/{1e3 * e:+6.1f}' for u, w, e in zip(a, b, c))
+              + f'   ({1e3 * np.abs(a - b).max():.1f} mm, {1e3 * np.abs(c - b).max():.1f} mm)')
+    print(f'knee [deg] every {every} s, full hamstring activation from rest:')
+    for name in knee:
+        print(f'  {name:11s} ' + ' '.join(f'{v:6.1f}' for v in knee[name]))
+    for ref in ('mass_scaled', 'explicit'):
+        d = np.abs(knee['implicit'] - knee[ref])
+        print(f'  max |implicit - {ref}| {d.max():.2f} deg at {every * int(d.argmax()):.2f} s', flush=True)
 
 
 def validate(out_dir, side_only, sheath, below, rest):
@@ -91,6 +126,8 @@ def main():
     ap.add_argument('--validate', metavar='DIR', help='run tissue-sim validate -o DIR with the fold on instead')
     ap.add_argument('--side-only', action='store_true', help='with --validate: fold_plane False')
     ap.add_argument('--below', action='store_true', help='with --sheath: also below the knee (sheath_below)')
+    ap.add_argument('--implicit', action='store_true', help='the physical set (fold + sheath) under mass_scaled and '
+                    'implicit: the passive hold and a full hamstring contraction, side by side (nothing else)')
     ap.add_argument('--sheath', type=float, default=0.0, metavar='R', help='with --validate: the hamstrings in a sheath of radius R [m]')
     a, rest = ap.parse_known_args()
     if a.validate:
@@ -99,6 +136,8 @@ def main():
         ap.error(f'unrecognised arguments: {" ".join(rest)}')
     from tissue_sim.core.builder import default_model
     tm = default_model()
+    if a.implicit:
+        return implicit_vs_mass_scaled(tm)
     print(f'{"set":10s} {"no contact":>11s} {"bone":>9s} {"bone+fold":>10s} {"cost both":>10s} {"fold":>6s}   (steps/s per CPU s)')
     for preset in ('paper', 'physical'):
         P = getattr(solver.Params, preset)

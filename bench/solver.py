@@ -3,7 +3,7 @@ same step in plain numpy (solver.reference_step) and with pypbd's shape matching
 same cells; then the thread scaling of the step.
 
     .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3] [--fine FILE.npz] [--threads 1,2] [--refine R]
-                                     [--quick]
+                                     [--quick] [--ab N] [--stages I]
 
 The physical set runs with its mass_scaled integrator (4 sub-steps) and, beside it, with the implicit integrator (one
 sub-step of 1 ms; docs/solver.md "Implicit integrator"). --fine: the same two on a finer model (e.g. from
@@ -16,7 +16,10 @@ process per configuration (the thread counts alternate, best of 3 windows each),
 100-step chunks), the physical set (mass_scaled, 4 sub-steps) and the physical set with the implicit integrator,
 on the default model and, with --refine R (the bundled limb built R times finer, builder.default_model(refine=R))
 or --fine FILE, on a finer model; with each configuration's peak resident memory (its own process:
-resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only (what `make bench` runs).
+resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only (what `make bench` runs). --ab N:
+only the physical set, mass_scaled beside implicit (both with the hamstring sheath) and implicit without it, N
+alternating rounds (ab_rates): the ratio the issue's target is about, on a shared machine. --stages I: the implicit
+step's stages timed one by one (stage_times; --refine R: on the refined limb), where its time goes.
 
 Model: tissue_sim.core.builder.default_model() (the bundled anatomy); if that is not available,
 the builder's synthetic paper-sized limb phantom (tests/phantoms.py). Prints the figures as lines, then as a
@@ -173,6 +176,10 @@ def main():
                     "machine with 2 or more cores; 'none': skip it)")
     ap.add_argument('--refine', help='the scaling section also on the bundled limb built R times finer (e.g. 3)')
     ap.add_argument('--quick', action='store_true', help='the scaling section only, 1-s windows')
+    ap.add_argument('--ab', type=int, default=0, metavar='N', help='only the physical set mass_scaled beside implicit '
+                    '(with and without the sheath), N alternating rounds of --seconds each (ab_rates)')
+    ap.add_argument('--stages', type=int, default=0, metavar='I', help='only the implicit step\'s stages timed on '
+                    'their own (I iterations; with --refine R on the refined limb) (stage_times)')
     ap.add_argument('--scaling-child', help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.scaling_child:
@@ -208,6 +215,18 @@ def main():
     print(f'CPU: {cpu["cpu_model"]} (numba compiles for {cpu["llvm_cpu"]}; {cpu["lanes_per_block"]} cells per SIMD block)')
     out = {'model': source, 'vertices': tm.n_vertices, 'cells': tm.n_cells, **cpu}
     ham = [m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]
+    if args.ab:
+        out['ab'] = ab_rates(tm, args.ab, args.seconds)
+        print(json.dumps(out))
+        return
+    if args.stages:
+        if args.refine is not None:
+            from tissue_sim.core.builder import default_model
+            tm = default_model(refine=float(args.refine))
+            print(f'refined x{args.refine}: {tm.n_vertices} vertices, {tm.n_cells} cells')
+        out['stages'] = stage_times(tm, args.stages)
+        print(json.dumps(out))
+        return
 
     def solver_rate(params, chunk, model=tm):
         sim = solver.compile_model(model, dataclasses.replace(params, threads=1))      # one thread (the serial kernel)
@@ -403,13 +422,114 @@ def scaling_child(spec):
                       'rss_after_import_mb': round(rss0, 1), 'load_average': round(os.getloadavg()[0], 2)}))
 
 
+def ab_rates(tm, rounds, seconds):
+    """--ab N: the physical set under mass_scaled (4 sub-steps) and under implicit (1 sub-step; both with the set's
+    hamstring sheath, the implicit one with its correction solve), and implicit without the sheath (what the correction
+    costs), full hamstring activation, 100-step chunks, one thread: N rounds, each configuration one window of
+    `seconds` in turn (steps per CPU second, best of rate()'s 3 sub-windows), so load changes hit all of them alike.
+    Prints each round, the median rates and ratio, and the load average."""
+    from tissue_sim.core.solver.step import _run
+    confs = (('mass_scaled', {}), ('implicit', dict(integrator='implicit', substeps=1)),
+             ('implicit, no sheath', dict(integrator='implicit', substeps=1, sheath_group='')))
+    runs = []
+    for name, kw in confs:
+        sim = solver.compile_model(tm, solver.Params.physical(threads=1, **kw))
+        st, ctrl = solver.make_state(sim), solver.make_control(sim)
+        ctrl.activation[[m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0
+        acts = np.tile(ctrl.activation, (100, 1))
+        runs.append((name, lambda sim=sim, st=st, acts=acts: _run(sim, st, acts, sim.params.dt)))
+    rates = {name: [] for name, _ in confs}
+    load = [os.getloadavg()[0]]
+    for r in range(rounds):
+        for name, fn in runs:
+            rates[name].append(100 * rate(fn, seconds))
+        load.append(os.getloadavg()[0])
+        print(f'round {r + 1}: ' + ', '.join(f'{n} {v[-1]:,.0f}' for n, v in rates.items())
+              + f' steps/s; implicit/mass_scaled {rates["implicit"][-1] / rates["mass_scaled"][-1]:.2f}; '
+              f'load average {load[-1]:.2f}', flush=True)
+    med = {n: float(np.median(v)) for n, v in rates.items()}
+    ratios = [a / b for a, b in zip(rates['implicit'], rates['mass_scaled'])]
+    print(f'median: ' + ', '.join(f'{n} {v:,.0f}' for n, v in med.items()) + f' steps/s; implicit/mass_scaled: median of '
+          f'the rounds\' ratios {np.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}); the sheath '
+          f'correction costs {100 * (1 - med["implicit"] / med["implicit, no sheath"]):.1f} % of the implicit step; '
+          f'load average {min(load):.2f}-{max(load):.2f}')
+    return {'rates': {n: [round(x) for x in v] for n, v in rates.items()}, 'median': {n: round(v) for n, v in med.items()},
+            'ratio_median': round(float(np.median(ratios)), 2), 'load_average': [round(x, 2) for x in load]}
+
+
+def stage_times(tm, iterations, reps=None):
+    """--stages I: where the implicit step's time goes (physical set, `integrator: implicit`, I iterations, one
+    thread): each stage's kernel called on its own on the state after 200 steps of a full hamstring contraction,
+    microseconds per call (CPU time, best of 3 windows), beside the whole step (step() in 10-step calls). A step makes
+    one prediction, I cell passes, one skeleton step, one integration (its bones' poses, the first solve, the
+    velocities), I - 1 further solves, the sheath correction and the contact stage."""
+    from tissue_sim.core.solver import contact as CT, implicit as IM, skeleton as SK
+    from tissue_sim.core.solver.step import _cell_pass
+    sim = solver.compile_model(tm, solver.Params.physical(integrator='implicit', substeps=1, threads=1,
+                                                          implicit_iterations=iterations))
+    st, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[[m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0
+    solver.step(sim, st, ctrl, n_steps=200)
+    h = sim.params.dt
+    cells, tissue, sk, num, scratch, (cg, cw) = st.workspace.arrays(h)
+    imp = st.workspace.implicit(h)
+    x, v, f = st.x.copy(), st.v.copy(), st.f.copy()
+    xn, vn = x.copy(), v.copy()
+    lam, act = st.lam.copy(), np.full(sim.n_muscles, 0.5)
+    R, t = st.seg_R.copy(), st.seg_t.copy()
+    no_lock = np.zeros(sim.n_joints, np.bool_)
+
+    def skel():
+        q, qd = st.q.copy(), st.qd.copy()
+        SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z, R, t,
+                         scratch.skel_work, no_lock, st.q.copy(), np.zeros(sim.n_joints), scratch.tau_pe)
+
+    def contact():
+        xn[:] = x; vn[:] = v
+        SK.forward_kinematics(st.q, sk, cw.R0, cw.t0)
+        CT.fold_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw)
+        CT.bone_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw)
+
+    def sheath():
+        xn[:] = x
+        IM.sheath_correct(h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, 1e9)
+
+    stages = [
+        ('prediction y = x + h v', lambda: IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)),
+        ('cell pass (rotations/polar, forces)', lambda: _cell_pass(x, v, f, cells, lam, act, num.vol_actual, num.iters,
+                                                                     num.vol_gain, scratch.cell_work)),
+        ('skeleton step', skel),
+        ('solve: rhs + L, D^-1, L^T (one)', lambda: IM._solve(imp, f, xn, imp.y, False)),
+        ('velocities (x1 - x)/h', lambda: IM._velocities(h, x, xn, vn, imp.mh2, 1e9)),
+        ('sheath correction (offsets, region solve, velocities)', sheath),
+        ('fold + bone contact (stage 4)', contact),
+    ]
+    res = {}
+    print(f'implicit step, {iterations} iteration(s), {sim.n_vertices} vertices, {sim.n_cells} cells; factor '
+          f'{imp.n_lnz:,} entries, sheath region factor {imp.s_Lx.size + imp.s_dinv.size:,}; microseconds per call:')
+    for name, fn in stages:
+        n = reps or max(5, int(2e5 / sim.n_vertices))
+        res[name] = 1e6 / rate(lambda: [fn() for _ in range(n)], 1.0) / n
+        print(f'  {name:55s} {res[name]:9.1f}', flush=True)
+    whole = 1e6 / (10 * rate(lambda: solver.step(sim, st, ctrl, n_steps=10), 3.0))
+    res['whole step'] = whole
+    parts = (res['prediction y = x + h v'] + iterations * res['cell pass (rotations/polar, forces)']
+             + res['skeleton step'] + iterations * (res['solve: rhs + L, D^-1, L^T (one)'] + res['velocities (x1 - x)/h'])
+             + res['sheath correction (offsets, region solve, velocities)'] + res['fold + bone contact (stage 4)'])
+    print(f'  {"sum of the parts (x iterations where repeated)":55s} {parts:9.1f}')
+    print(f'  {"whole step (step(), 10 per call)":55s} {whole:9.1f}   ({1e6 / whole:,.0f} steps/s; load average '
+          f'{os.getloadavg()[0]:.2f})')
+    return {k: round(v, 1) for k, v in res.items()}
+
+
 def implicit_factor(sim):
     """The implicit integrator's factor at params.dt: unknowns (free vertices + cells), entries, bytes, build time."""
     from tissue_sim.core.solver import implicit as IM
     t0 = time.perf_counter()
     imp = IM.make(sim, sim.params.dt)
     return {'unknowns': int(imp.z.shape[0]), 'entries': int(imp.n_lnz), 'bytes': int(imp.Lx.nbytes + imp.Lj.nbytes +
-            imp.Lp.nbytes + imp.dinv.nbytes), 'build_s': round(time.perf_counter() - t0, 3)}
+            imp.Lp.nbytes + imp.dinv.nbytes), 'build_s': round(time.perf_counter() - t0, 3),
+            'sheath_entries': int(imp.s_Lx.size + imp.s_dinv.size)}     # the sheath correction's factor (0: none)
 
 
 def fine_model(path, solver_rate):

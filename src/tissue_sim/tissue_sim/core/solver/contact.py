@@ -441,6 +441,30 @@ def _fold_plane(R, t, ps, cs, geo, out):
     return flex
 
 
+@njit(cache=True, fastmath={'contract'}, inline='always')
+def _sheath_push(x, seg_R, seg_t, cg, ii, ps, n0x, n0y, n0z, out):
+    """Sheathed vertex ii (s_idx[ii], held in segment ps's frame) at x: out = (its rest-frame point p = R^T (x - t) (3),
+    the outward unit u = R lat / |lat| (3, world), lat its offset from its rest position X across n0); returns how far
+    it must move along u to be back within s_r (r - |lat| < 0), 0 when it is within."""
+    i = cg.s_idx[ii]
+    dx, dy, dz = x[i, 0] - seg_t[ps, 0], x[i, 1] - seg_t[ps, 1], x[i, 2] - seg_t[ps, 2]
+    px = seg_R[ps, 0, 0] * dx + seg_R[ps, 1, 0] * dy + seg_R[ps, 2, 0] * dz
+    py = seg_R[ps, 0, 1] * dx + seg_R[ps, 1, 1] * dy + seg_R[ps, 2, 1] * dz
+    pz = seg_R[ps, 0, 2] * dx + seg_R[ps, 1, 2] * dy + seg_R[ps, 2, 2] * dz
+    ex, ey, ez = px - cg.s_X[ii, 0], py - cg.s_X[ii, 1], pz - cg.s_X[ii, 2]
+    ax = ex * n0x + ey * n0y + ez * n0z
+    lx, ly, lz = ex - ax * n0x, ey - ax * n0y, ez - ax * n0z
+    ll = math.sqrt(lx * lx + ly * ly + lz * lz)
+    r = cg.s_r[0]
+    if ll <= r:
+        return 0.0
+    out[0], out[1], out[2] = px, py, pz
+    out[3] = (seg_R[ps, 0, 0] * lx + seg_R[ps, 0, 1] * ly + seg_R[ps, 0, 2] * lz) / ll
+    out[4] = (seg_R[ps, 1, 0] * lx + seg_R[ps, 1, 1] * ly + seg_R[ps, 1, 2] * lz) / ll
+    out[5] = (seg_R[ps, 2, 0] * lx + seg_R[ps, 2, 1] * ly + seg_R[ps, 2, 2] * lz) / ll
+    return r - ll
+
+
 @njit(cache=True, fastmath={'contract'})
 def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo):
     """The sheath of folding hinge k (a retinaculum: docs/contact.md): each of its vertices i, taken to its segment's
@@ -448,33 +472,22 @@ def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo):
     it, the offset is scaled back to s_r (the axial part kept: the vertex slides freely along the segment), and its
     outward velocity relative to the segment (whose motion over the sub-step comes from its pose at the start,
     cw.R0 cw.t0, and now) is removed. Returns the vertices moved."""
-    r = cg.s_r[0]
-    n0x, n0y, n0z = geo[3], geo[4], geo[5]
     hits = 0
     ih = 1.0 / h
+    o = np.empty(6)
     for ii in range(cg.s_off[k], cg.s_off[k + 1]):
-        i = cg.s_idx[ii]
         ps = p_seg if cg.s_side[ii] > 0.0 else c_seg
-        dx, dy, dz = x[i, 0] - seg_t[ps, 0], x[i, 1] - seg_t[ps, 1], x[i, 2] - seg_t[ps, 2]
-        px = seg_R[ps, 0, 0] * dx + seg_R[ps, 1, 0] * dy + seg_R[ps, 2, 0] * dz
-        py = seg_R[ps, 0, 1] * dx + seg_R[ps, 1, 1] * dy + seg_R[ps, 2, 1] * dz
-        pz = seg_R[ps, 0, 2] * dx + seg_R[ps, 1, 2] * dy + seg_R[ps, 2, 2] * dz
-        ex, ey, ez = px - cg.s_X[ii, 0], py - cg.s_X[ii, 1], pz - cg.s_X[ii, 2]
-        ax = ex * n0x + ey * n0y + ez * n0z
-        lx, ly, lz = ex - ax * n0x, ey - ax * n0y, ez - ax * n0z
-        ll = math.sqrt(lx * lx + ly * ly + lz * lz)
-        if ll <= r:
+        push = _sheath_push(x, seg_R, seg_t, cg, ii, ps, geo[3], geo[4], geo[5], o)
+        if push == 0.0:
             continue
+        i = cg.s_idx[ii]
         hits += 1
+        px, py, pz, ux, uy, uz = o[0], o[1], o[2], o[3], o[4], o[5]
         # the segment's velocity at the vertex: (x - (R0 p + t0)) / h, p before the projection
         bx = (x[i, 0] - (cw.R0[ps, 0, 0] * px + cw.R0[ps, 0, 1] * py + cw.R0[ps, 0, 2] * pz + cw.t0[ps, 0])) * ih
         by = (x[i, 1] - (cw.R0[ps, 1, 0] * px + cw.R0[ps, 1, 1] * py + cw.R0[ps, 1, 2] * pz + cw.t0[ps, 1])) * ih
         bz = (x[i, 2] - (cw.R0[ps, 2, 0] * px + cw.R0[ps, 2, 1] * py + cw.R0[ps, 2, 2] * pz + cw.t0[ps, 2])) * ih
-        # outward unit u = R lat / |lat| (world); the vertex moves by (r - |lat|) u
-        ux = (seg_R[ps, 0, 0] * lx + seg_R[ps, 0, 1] * ly + seg_R[ps, 0, 2] * lz) / ll
-        uy = (seg_R[ps, 1, 0] * lx + seg_R[ps, 1, 1] * ly + seg_R[ps, 1, 2] * lz) / ll
-        uz = (seg_R[ps, 2, 0] * lx + seg_R[ps, 2, 1] * ly + seg_R[ps, 2, 2] * lz) / ll
-        push = r - ll
+        # the vertex moves by (r - |lat|) u
         x[i, 0] += push * ux
         x[i, 1] += push * uy
         x[i, 2] += push * uz
@@ -483,6 +496,26 @@ def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo):
             v[i, 0] -= vn * ux
             v[i, 1] -= vn * uy
             v[i, 2] -= vn * uz
+    return hits
+
+
+@njit(cache=True, fastmath={'contract'})
+def sheath_offsets(x, seg_R, seg_t, cg, d):
+    """The sheath's way back at x, for the implicit integrator's sheath correction (implicit.sheath_correct): d[i] =
+    (r - |lat|) u for each sheathed vertex i beyond the radius (what _sheath would move it by), 0 for the others
+    (d's other rows untouched). Returns how many are beyond. reference.sheath_offsets is the same in numpy."""
+    hits = 0
+    o = np.empty(6)
+    for k in range(cg.f_seg.shape[0]):
+        for ii in range(cg.s_off[k], cg.s_off[k + 1]):
+            ps = cg.f_seg[k, 0] if cg.s_side[ii] > 0.0 else cg.f_seg[k, 1]
+            push = _sheath_push(x, seg_R, seg_t, cg, ii, ps, cg.f_geo[k, 3], cg.f_geo[k, 4], cg.f_geo[k, 5], o)
+            i = cg.s_idx[ii]
+            if push == 0.0:
+                d[i, 0] = d[i, 1] = d[i, 2] = 0.0
+            else:
+                d[i, 0], d[i, 1], d[i, 2] = push * o[3], push * o[4], push * o[5]
+                hits += 1
     return hits
 
 

@@ -30,16 +30,20 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from numba import njit
 
-from tissue_sim.core.solver import integration as IK
+from tissue_sim.core.solver import contact as CT, integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz')
+                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
 (elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
 weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
-star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative)."""
+star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative).
+The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [N/m] k_s of each vertex
+(sheath_weights), sd (V, 3) scratch (each sheathed vertex's way back), the factor of A' = A + diag(ks) in the same
+star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
+s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -82,6 +86,58 @@ def reference_solve(sim, h: float, f, x_iter, y, xa_moved):
     return x_iter[free] + sla.spsolve(A, r).reshape(-1, 3) if r.size else x_iter[free]
 
 
+SHEATH_STIFFNESS = 1e3      # k_s of a sheathed vertex in the correction's system, relative to its diagonal in A
+
+
+def sheath_weights(sim, h: float) -> np.ndarray:
+    """(V,) [N/m] k_s of each vertex in the sheath correction's system A' = A + diag(k_s): SHEATH_STIFFNESS times its
+    diagonal in A's star form (m/h^2 + the summed keff of its cells) for the free sheathed vertices
+    (Params.sheath_group; contact.sheath_vertices), 0 elsewhere."""
+    keff = cell_weights(sim, h)
+    cell = np.repeat(np.arange(sim.n_cells), np.diff(sim.off))
+    diag = sim.mass / h ** 2 + np.bincount(sim.cv, keff[cell], sim.n_vertices)
+    ks = np.zeros(sim.n_vertices)
+    idx = np.asarray(sim.contact.s_idx)
+    idx = idx[sim.inv_mass[idx] > 0]
+    ks[idx] = SHEATH_STIFFNESS * diag[idx]
+    return ks
+
+
+SHEATH_RINGS = 2            # the correction moves the free vertices within this many cells of a sheathed vertex
+
+
+def sheath_region(sim) -> np.ndarray:
+    """(V,) bool: the free vertices the sheath correction moves: the sheathed ones and those within SHEATH_RINGS cells
+    of them (ring 1: the free vertices of the cells with a sheathed vertex; ring 2: of the cells touching ring 1)."""
+    free = sim.inv_mass > 0
+    reg = np.zeros(sim.n_vertices, bool)
+    reg[np.asarray(sim.contact.s_idx)] = True
+    reg &= free
+    if not reg.any():
+        return reg
+    cell = np.repeat(np.arange(sim.n_cells), np.diff(sim.off))
+    for _ in range(SHEATH_RINGS):
+        touch = np.zeros(sim.n_cells, bool)
+        touch[cell[reg[sim.cv]]] = True
+        reg[sim.cv[touch[cell]]] = True
+        reg &= free
+    return reg
+
+
+def reference_sheath_solve(sim, h: float, d):
+    """The sheath correction of reference.reference_step: w (n_free, 3) solving A' w = k_s d over the free vertices
+    of sheath_region (the principal submatrix of A + diag(k_s): the rest of the tissue held), zero for the other free
+    vertices (d (V, 3): each sheathed vertex's way back onto the radius, zero elsewhere), with scipy's sparse direct
+    solve."""
+    A, _, free = _system_cached(sim, h)
+    ks = sheath_weights(sim, h)[free]
+    reg = sheath_region(sim)[free]
+    w = np.zeros((int(free.sum()), 3))
+    Ar = (A + sp.diags(ks)).tocsr()[reg][:, reg].tocsc()
+    w[reg] = sla.spsolve(Ar, ks[reg, None] * d[free][reg]).reshape(-1, 3)
+    return w
+
+
 _CACHE = {}
 
 
@@ -117,15 +173,9 @@ def star_system(sim, h: float):
     return A.tocsc(), free, keff
 
 
-def make(sim, h: float) -> Implicit:
-    """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators)."""
-    V = sim.n_vertices
-    if sim.params.integrator != 'implicit':
-        e_i, e_f = np.zeros(0, np.int32), np.zeros(0)
-        return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, np.zeros(1, np.int64),
-                        e_i, np.zeros(1, np.int64), e_i, e_f, e_f, np.zeros((0, 3)), 0)
-    A, free, keff = star_system(sim, h)
-    nf, n = free.size, A.shape[0]
+def _factor(A):
+    """A = L D L^T (SuperLU, minimum degree on A^T + A, no pivoting: A is SPD; checked). Returns (perm: the unknown
+    of each row of the factor, L strictly lower (CSR, sorted), D's diagonal)."""
     lu = sla.splu(A, permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
     if not np.array_equal(lu.perm_r, lu.perm_c):
         raise RuntimeError('implicit integrator: SuperLU pivoted the SPD system (perm_r != perm_c)')
@@ -138,9 +188,26 @@ def make(sim, h: float) -> Implicit:
         raise RuntimeError('implicit integrator: the factor is not symmetric (U != D L^T)')
     Ls = sp.tril(Lf, k=-1).tocsr()
     Ls.sort_indices()
+    Ls.indices, Ls.indptr = Ls.indices.astype(np.int32), Ls.indptr.astype(np.int64)
     # row p of the factor is unknown perm_c[p] of A (Pr A Pc = L U, perm_r == perm_c)
-    unk = np.argsort(lu.perm_c)                     # unknown of each row
-    row_v = np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
+    return np.argsort(lu.perm_c), Ls, d
+
+
+def make(sim, h: float) -> Implicit:
+    """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators)."""
+    V = sim.n_vertices
+    e_i, e_f, e_p = np.zeros(0, np.int32), np.zeros(0), np.zeros(1, np.int64)
+    if sim.params.integrator != 'implicit':
+        return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
+                        e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
+                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f)
+    A, free, keff = star_system(sim, h)
+    nf, n = free.size, A.shape[0]
+    unk, Ls, d = _factor(A)
+
+    def rows_of(unk):
+        return np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
+    row_v = rows_of(unk)
     row_c = np.where(unk >= nf, unk - nf, -1).astype(np.int32)
     # the bone-attached vertices of each cell row (their motion enters that row: keff_c sum of displacements)
     att = sim.inv_mass <= 0
@@ -156,9 +223,36 @@ def make(sim, h: float) -> Implicit:
             ptr[p + 1] = ptr[p]
     idx = np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32)
     mh2 = np.where(sim.inv_mass > 0, sim.mass / h ** 2, 0.0)
+    ks = sheath_weights(sim, h)
+    if ks.any():              # the sheath correction's system A' = A + diag(k_s) over sheath_region (sheath_correct)
+        fidx = np.full(V, -1)
+        fidx[free] = np.arange(nf)
+        sel = np.flatnonzero(ks > 0)
+        add = np.zeros(n)
+        add[fidx[sel]] = ks[sel]
+        reg = np.flatnonzero(sheath_region(sim)[free])                  # its vertices' unknowns, then the cells
+        cell = np.repeat(np.arange(sim.n_cells), np.diff(sim.off))      # touching them
+        touch = np.zeros(sim.n_cells, bool)
+        touch[cell[np.isin(sim.cv, free[reg])]] = True
+        keep = np.concatenate([reg, nf + np.flatnonzero(touch)])
+        s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsr()[keep][:, keep].tocsc())
+        s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
+        sheath = (ks, np.zeros((V, 3)), s_rows, sLs.indptr, sLs.indices, sLs.data.copy(), 1.0 / sd_,
+                  np.zeros((keep.size, 3)))
+        sU = _transposed(sLs)
+    else:
+        sheath = (e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
+        sU = (e_p, e_i, e_f)
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
-                    np.ascontiguousarray(keff), ptr, idx, Ls.indptr.astype(np.int64), Ls.indices.astype(np.int32),
-                    Ls.data.copy(), 1.0 / d, np.zeros((n, 3)), int(Ls.nnz + n))
+                    np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
+                    np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU)
+
+
+def _transposed(Ls):
+    """(indptr, indices, data) of L^T by rows (CSR, sorted): the backward pass reads row p's entries L_jp, j > p."""
+    U = Ls.T.tocsr()
+    U.sort_indices()
+    return U.indptr.astype(np.int64), U.indices.astype(np.int32), U.data.copy()
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -180,8 +274,8 @@ def predict(h, x, v, y, mh2, gravity, vel_damp):
 def _solve(imp, f, xk, y, first):
     """xk_free += w, A w = the right-hand side (f - M (xk - y)/h^2 on the vertices' rows; on the cells' rows in the
     first iteration the bones' motion beyond the prediction, keff_c sum (xk_a - y_a)): L z' = rhs (the rhs formed row
-    by row as the forward pass reaches it), z' D^-1, L^T w = z' D^-1 (each w_p final when the backward pass leaves
-    row p: the update is made there)."""
+    by row as the forward pass reaches it), then L^T w = D^-1 z' (_backward: each w_p final when the backward pass
+    leaves row p, the update made there)."""
     z, Lp, Lj, Lx, dinv = imp.z, imp.Lp, imp.Lj, imp.Lx, imp.dinv
     row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
     n = z.shape[0]
@@ -205,18 +299,24 @@ def _solve(imp, f, xk, y, first):
             l = Lx[q]
             s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
         z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
-    for p in range(n):
+    _backward(imp.Up, imp.Uj, imp.Ux, dinv, row_v, z, xk)
+
+
+@njit(cache=True, fastmath={'contract'})
+def _backward(Up, Uj, Ux, dinv, row_v, z, xk):
+    """The backward pass of _solve and _solve_sheath: w = L^-T D^-1 z in gather form (row p of L^T: w_p = z_p / D_p
+    - sum_j>p L_jp w_j, w in place of z), each w_p final when its row is done: xk[row_v[p]] += w_p there."""
+    for p in range(z.shape[0] - 1, -1, -1):
         d = dinv[p]
-        z[p, 0] *= d; z[p, 1] *= d; z[p, 2] *= d
-    for p in range(n - 1, -1, -1):
-        w0, w1, w2 = z[p, 0], z[p, 1], z[p, 2]
-        for q in range(Lp[p], Lp[p + 1]):
-            j = Lj[q]
-            l = Lx[q]
-            z[j, 0] -= l * w0; z[j, 1] -= l * w1; z[j, 2] -= l * w2
+        s0, s1, s2 = z[p, 0] * d, z[p, 1] * d, z[p, 2] * d
+        for q in range(Up[p], Up[p + 1]):
+            j = Uj[q]
+            l = Ux[q]
+            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
         i = row_v[p]
         if i >= 0:
-            xk[i, 0] += w0; xk[i, 1] += w1; xk[i, 2] += w2
+            xk[i, 0] += s0; xk[i, 1] += s1; xk[i, 2] += s2
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -249,3 +349,48 @@ def correct(h, x, f, xn, vn, imp, vmax2):
     """A further local/global iteration: f = the forces at (xn, vn); xn_free += A^-1 (f - M (xn - y)/h^2)."""
     _solve(imp, f, xn, imp.y, False)
     return _velocities(h, x, xn, vn, imp.mh2, vmax2)
+
+
+@njit(cache=True, fastmath={'contract'})
+def _solve_sheath(imp, xk):
+    """xk += w over sheath_region's vertices, A' w = k_s d (imp.sd, the sheathed vertices' way back; A' = A +
+    diag(k_s) over the region, the rest held): the forward pass, D^-1 and the backward pass of _solve on its factor."""
+    z, Lp, Lj, Lx, dinv, row_v, ks, d = imp.s_z, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_dinv, imp.s_row_v, imp.ks, imp.sd
+    n = z.shape[0]
+    for p in range(n):
+        i = row_v[p]
+        s0 = s1 = s2 = 0.0
+        if i >= 0:
+            k = ks[i]
+            if k > 0.0:
+                s0, s1, s2 = k * d[i, 0], k * d[i, 1], k * d[i, 2]
+        for q in range(Lp[p], Lp[p + 1]):
+            j = Lj[q]
+            l = Lx[q]
+            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+    _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, dinv, row_v, z, xk)
+
+
+@njit(cache=True)
+def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2):
+    """The sheath with the implicit integrator (Params.sheath_group; docs/solver.md "Implicit integrator"), after the
+    last iteration: the sheathed vertices beyond their radius at xn (contact.sheath_offsets, in the segments' new
+    poses) are moved back onto it and the tissue follows them, xn_free += A'^-1 (k_s d), A' = A + diag(k_s) (k_s =
+    SHEATH_STIFFNESS x a vertex's diagonal: the sheathed vertices held where the correction puts them, the rest of
+    each cell following as the constant system says); v1 = (xn - x)/h. Stage 4's projection (contact._sheath) then
+    finds them on the radius within ~1/SHEATH_STIFFNESS of their way back. Returns how many vertices are too fast
+    or not finite (0 with nothing beyond the radius: nothing done)."""
+    if imp.sd.shape[0] == 0 or CT.sheath_offsets(xn, seg_R, seg_t, cg, imp.sd) == 0:
+        return 0
+    _solve_sheath(imp, xn)
+    nfast = 0                   # (the velocities of the region's vertices: the others did not move)
+    ih = 1.0 / h
+    for i in imp.s_row_v:
+        if i >= 0:
+            a = (xn[i, 0] - x[i, 0]) * ih
+            b = (xn[i, 1] - x[i, 1]) * ih
+            c = (xn[i, 2] - x[i, 2]) * ih
+            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
+            nfast += 0 if a * a + b * b + c * c <= vmax2 else 1          # (NaN counts)
+    return nfast

@@ -159,8 +159,6 @@ class Params:
         # curve: -501 and 56); Riener & Edrich 1999's passive knee moment (hip 0, ankle 0) is matched with eps0 1.5-2.0
         # (whole model, `tissue-sim validate --passive`: RMS 4.6 N m against 5.7 with the fibres off and 47.8 with
         # eps0 0.6), and their ankle fit best with 2.0 (docs/solver.md "Force-length")
-        if kw.get('integrator') == 'implicit' and 'sheath_group' not in kw:
-            base['sheath_group'] = ''     # the sheath diverges under the implicit integrator (validate(), docs/contact.md)
         base.update(kw)
         return cls(**base).validate()
 
@@ -202,9 +200,6 @@ class Params:
         need(2e-4 <= self.contact_grid <= 0.01, 'contact_grid must be in [2e-4, 0.01] m')
         need(0 < self.fold_reach <= 1, 'fold_reach must be in (0, 1] m')
         need(0 < self.sheath_radius <= 0.05, 'sheath_radius must be in (0, 0.05] m')
-        need(not (self.integrator == 'implicit' and self.sheath_group),
-             "sheath_group with integrator implicit diverges (its projection fights the volume term: a full hamstring "
-             "contraction from rest at step 149 on the bundled limb, 137 on a 26k-vertex one); set sheath_group: ''")
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')

@@ -169,6 +169,9 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
                     sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
                 state.x[free] = IM.reference_solve(sim, h, f, state.x, y, np.zeros_like(state.x))
                 state.v[:] = (state.x - x_old) / h
+            if sim.contact.s_idx.size:        # the sheath (docs/solver.md "Implicit integrator": the sheath)
+                sheath_correction(sim, h, state.x, state.seg_R, state.seg_t)
+                state.v[:] = (state.x - x_old) / h
         else:
             state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
             state.x[free] += h * state.v[free]
@@ -293,6 +296,41 @@ def fold_plane(cg, k, seg_R, seg_t):
     return n, seg_R[ps] @ c0 + seg_t[ps], up_p, up_c, -up_c @ (seg_R[ps] @ e)
 
 
+def sheath_offsets(cg, k, x, seg_R, seg_t):
+    """The sheath of folding hinge k (Params.sheath_group, docs/contact.md) at positions x: per side (held in the
+    parent's frame, then the child's), (i, p, seg, push, u) of its vertices beyond s_r across n0 from their rest
+    position in that segment's rest frame: their ids, rest-frame points p = R^T (x - t), the segment, how far they
+    move (s_r - |lateral offset|, < 0) along the outward unit u (world) to be back on the radius."""
+    n0 = cg.f_geo[k, 3:6]
+    out_ = []
+    for side, ps in ((1.0, cg.f_seg[k, 0]), (-1.0, cg.f_seg[k, 1])):   # held in the parent's / the child's frame
+        sl = np.arange(cg.s_off[k], cg.s_off[k + 1])
+        sl = sl[cg.s_side[sl] == side]
+        i = cg.s_idx[sl]
+        p = (x[i] - seg_t[ps]) @ seg_R[ps]                             # rest-frame points R^T (x - t)
+        e = p - cg.s_X[sl]
+        lat = e - (e @ n0)[:, None] * n0
+        ll = np.linalg.norm(lat, axis=1)
+        out = ll > cg.s_r[0]
+        i, p, lat, ll = i[out], p[out], lat[out], ll[out]
+        out_.append((i, p, ps, cg.s_r[0] - ll, (lat / ll[:, None]) @ seg_R[ps].T))
+    return out_
+
+
+def sheath_correction(sim, h, x, seg_R, seg_t):
+    """The implicit integrator's sheath correction (implicit.py, docs/solver.md "Implicit integrator"): the
+    sheathed vertices beyond the radius moved back onto it and the rest of the tissue following them, A' w = r with
+    A' = A + k_s over the sheath's vertices (implicit.sheath_weights) and r = k_s times each one's way back
+    (reference_solve's scipy solve). In place on x."""
+    cg = sim.contact
+    d = np.zeros_like(x)
+    for k in range(cg.f_seg.shape[0]):
+        for i, _, _, push, u in sheath_offsets(cg, k, x, seg_R, seg_t):
+            d[i] = push[:, None] * u
+    if np.any(d):
+        x[sim.inv_mass > 0] += IM.reference_sheath_solve(sim, h, d)
+
+
 def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
     """Stage 4a, the fold contact (docs/contact.md), in place on the positions and velocities stage 3 wrote: for each
     folding hinge k while it is flexed, its vertices i (side s: +1 proximal, -1 distal) with s n . (x_i - c) below their
@@ -305,20 +343,9 @@ def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
     for k in range(cg.f_seg.shape[0]):
         # the sheath: its vertices keep their offset across n0 from their rest position, in the parent's rest frame,
         # within s_r (scaled back onto it, the axial part kept); their outward velocity relative to the parent goes
-        n0 = cg.f_geo[k, 3:6]
-        for side, ps in ((1.0, cg.f_seg[k, 0]), (-1.0, cg.f_seg[k, 1])):   # held in the parent's / the child's frame
-            sl = np.arange(cg.s_off[k], cg.s_off[k + 1])
-            sl = sl[cg.s_side[sl] == side]
-            i = cg.s_idx[sl]
-            p = (x[i] - seg_t[ps]) @ seg_R[ps]                             # rest-frame points R^T (x - t)
-            e = p - cg.s_X[sl]
-            lat = e - (e @ n0)[:, None] * n0
-            ll = np.linalg.norm(lat, axis=1)
-            out = ll > cg.s_r[0]
-            i, p, lat, ll = i[out], p[out], lat[out], ll[out]
+        for i, p, ps, push, u in sheath_offsets(cg, k, x, seg_R, seg_t):
             v_seg = (x[i] - (p @ R0[ps].T + t0[ps])) / h
-            u = (lat / ll[:, None]) @ seg_R[ps].T
-            x[i] += (cg.s_r[0] - ll)[:, None] * u
+            x[i] += push[:, None] * u
             vn = np.sum((v[i] - v_seg) * u, axis=1)
             v[i] -= np.maximum(vn, 0.0)[:, None] * u
         n, c, up_p, up_c, flex = fold_plane(cg, k, seg_R, seg_t)

@@ -143,6 +143,8 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
                     fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
+                if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
+                    fast = IM.sheath_correct(h, x, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2)
             else:
                 fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
                                     st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
