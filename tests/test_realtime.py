@@ -155,7 +155,8 @@ def test_solver_thread_follows_wall_time_in_chunks_and_pauses():
         time.sleep(1.0)
         n1, t1 = s.steps, time.monotonic()
         # real time: 1 step per ms of wall time, paid in chunks of half a frame period
-        assert abs((n1 - n0) - 1e3 * (t1 - t0)) <= 1e3 * rt.CHUNK_SHARE * period + 30
+        # (+ 150 ms: a busy machine delays a thread's wake-up by up to ~110 ms, tests/test_nodes_stalls.py)
+        assert abs((n1 - n0) - 1e3 * (t1 - t0)) <= 1e3 * rt.CHUNK_SHARE * period + 150
         assert n0 <= th.latest <= s.steps                # a copy of the state after a chunk
         # nice: the solver thread (only) runs at a lower priority
         assert s.nice == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 3)
