@@ -449,7 +449,7 @@ def ab_rates(tm, rounds, seconds):
               f'load average {load[-1]:.2f}', flush=True)
     med = {n: float(np.median(v)) for n, v in rates.items()}
     ratios = [a / b for a, b in zip(rates['implicit'], rates['mass_scaled'])]
-    print(f'median: ' + ', '.join(f'{n} {v:,.0f}' for n, v in med.items()) + f' steps/s; implicit/mass_scaled: median of '
+    print('median: ' + ', '.join(f'{n} {v:,.0f}' for n, v in med.items()) + f' steps/s; implicit/mass_scaled: median of '
           f'the rounds\' ratios {np.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}); the sheath '
           f'correction costs {100 * (1 - med["implicit"] / med["implicit, no sheath"]):.1f} % of the implicit step; '
           f'load average {min(load):.2f}-{max(load):.2f}')

@@ -18,8 +18,14 @@ energy sum_c keff_c sum_i |u_i - u_c|^2, whose Schur complement on the vertices 
 vertices' motion enters the cells' rows (keff_c sum of their displacements), and the triangular solves, the
 right-hand side and the update run in numba inside the compiled step (``integrate``, ``correct``).
 
-``system_matrix`` (plain scipy, the vertices' matrix with the cells' blocks written out) and ``reference_solve``
-are the readable definition (reference.reference_step uses them; tests/test_solver_implicit.py compares).
+With a sheath (Params.sheath_group) one more solve follows the last iteration (``sheath_correct``): the sheathed
+vertices beyond their radius moved back onto it with the tissue of their neighbourhood (``sheath_region``) following,
+A' w = k_s d, A' = A + diag(k_s) over that region (``sheath_weights``), factored once beside A; the plain projection
+after the solve (stage 4) alone diverged (docs/solver.md "Implicit integrator", "The sheath").
+
+``system_matrix`` (plain scipy, the vertices' matrix with the cells' blocks written out), ``reference_solve`` and
+``reference_sheath_solve`` are the readable definition (reference.reference_step uses them;
+tests/test_solver_implicit.py compares).
 """
 from __future__ import annotations
 
@@ -204,10 +210,7 @@ def make(sim, h: float) -> Implicit:
     A, free, keff = star_system(sim, h)
     nf, n = free.size, A.shape[0]
     unk, Ls, d = _factor(A)
-
-    def rows_of(unk):
-        return np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
-    row_v = rows_of(unk)
+    row_v = np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
     row_c = np.where(unk >= nf, unk - nf, -1).astype(np.int32)
     # the bone-attached vertices of each cell row (their motion enters that row: keff_c sum of displacements)
     att = sim.inv_mass <= 0

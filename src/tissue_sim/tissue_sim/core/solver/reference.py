@@ -318,10 +318,10 @@ def sheath_offsets(cg, k, x, seg_R, seg_t):
 
 
 def sheath_correction(sim, h, x, seg_R, seg_t):
-    """The implicit integrator's sheath correction (implicit.py, docs/solver.md "Implicit integrator"): the
-    sheathed vertices beyond the radius moved back onto it and the rest of the tissue following them, A' w = r with
-    A' = A + k_s over the sheath's vertices (implicit.sheath_weights) and r = k_s times each one's way back
-    (reference_solve's scipy solve). In place on x."""
+    """The implicit integrator's sheath correction (implicit.sheath_correct, docs/solver.md "Implicit integrator"):
+    the sheathed vertices beyond the radius moved back onto it and the tissue of implicit.sheath_region following
+    them, A' w = r with A' = A + diag(k_s) (implicit.sheath_weights) over that region (the rest held) and r = k_s times
+    each one's way back (implicit.reference_sheath_solve: scipy's solve of the written-out system). In place on x."""
     cg = sim.contact
     d = np.zeros_like(x)
     for k in range(cg.f_seg.shape[0]):
