@@ -39,6 +39,8 @@ DEFAULTS = {
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
     'anchor_muscles': True,    # fix muscle end rings to their origin/insertion segments (table); False = only
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
+    'bind_passed_over': True,  # a muscle's vertices may be bound to any segment between its origin and insertion
+                               # (the shank for the gastrocnemii); False = to its origin and insertion segments only
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
@@ -629,7 +631,9 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ---------------------------------------------------------------- bone attachment
     # A vertex is fixed to the nearest bone within attach_m whose segment lies on the path between
     # the origin and insertion segments of every muscle using the vertex: nothing of a muscle is
-    # bound across a joint it does not cross (the fat, and muscles without origin/insertion, any).
+    # bound across a joint it does not cross (the fat, and muscles without origin/insertion, any);
+    # with bind_passed_over off, only to the origin or insertion segment of each (docs/anatomy.md, the
+    # gastrocnemii and the calcaneus).
     seg_names = skel['segment_names']
     nseg = len(seg_names)
     cmus_k = cell_muscle_all[kc]
@@ -640,6 +644,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         if span is None:
             continue
         row = np.zeros(nseg, bool); row[span] = True
+        if not s['bind_passed_over']:               # not to a bone the muscle only passes over
+            row[:] = False; row[[seg_names.index(o), seg_names.index(i_)]] = True
         cm = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus_k == m))
         vm = np.unique(np.concatenate([verts_k[offsets_k[c]:offsets_k[c + 1]] for c in cm]))
         allowed[vm] &= row
