@@ -273,14 +273,13 @@ def cover_shifts(skins, lab, clearance):
     return np.round(shifts).astype(int)
 
 
-def partition(region, seeds_px, targets, iters=400, allowed=None):
+def partition(region, seeds_px, targets, iters=400):
     """Split region pixels among muscles to match target areas: a geodesic power diagram.
 
     Pixel p goes to the muscle minimising min_seed g(p, seed)^2 - w_m, g the geodesic distance
     inside the region (squared-distance optimal transport: compact cells around their seeds that
     do not wrap around bone).  The weights w are found by dual ascent on
     the area mismatch with a decaying step; returns an int image (-1 outside region).
-    ``allowed`` (M images of bool, None = everywhere): the pixels each muscle may take.
     """
     from skimage.graph import MCP_Geometric
 
@@ -293,8 +292,6 @@ def partition(region, seeds_px, targets, iters=400, allowed=None):
         g, _ = MCP_Geometric(cost).find_costs([tuple(p) for p in sp])
         d = g[idx[:, 0], idx[:, 1]]
         D[m] = np.where(np.isfinite(d), d, 1e6) ** 2
-        if allowed is not None:
-            D[m][~allowed[m][idx[:, 0], idx[:, 1]]] = 1e18
     tgt = targets / targets.sum() * len(idx)
     w = np.zeros(M)
     best, best_err = None, np.inf
@@ -546,16 +543,13 @@ def build(out_dir: Path, verbose=True, behind_bones=False):
             comp, nc = ndimage.label(region)
             seeded = {comp[p] for pts in sp for p in pts}
             region &= np.isin(comp, list(seeded))
-            # opt-in (behind_bones): the muscles of MU.BEHIND_BONES take no pixel in front of the
-            # femur/tibia section's centroid; there the space no other present muscle may take is fat
-            allowed = None
+            # opt-in (behind_bones): where the muscles of MU.BEHIND_BONES are the only ones (the knee),
+            # the space in front of the femur/tibia section's centroid is not theirs: fat
             knee_bones = np.isin(sl, BEHIND_LABELS)
-            if behind_bones and knee_bones.any() and any(table[m]['name'] in MU.BEHIND_BONES for m in present):
-                behind = jj <= np.argwhere(knee_bones)[:, 1].mean()
-                allowed = [behind if table[m]['name'] in MU.BEHIND_BONES else np.ones_like(behind)
-                           for m in present]
-                region &= np.any(allowed, axis=0)
-            part = partition(region, sp, area[present, k], allowed=allowed)
+            if behind_bones and knee_bones.any() and all(table[m]['name'] in MU.BEHIND_BONES for m in present):
+                region &= jj <= np.argwhere(knee_bones)[:, 1].mean()
+                sp = [[p for p in pts if region[p]] or pts for pts in sp]
+            part = partition(region, sp, area[present, k])
             for n, m in enumerate(present):
                 sl[part == n] = MUSCLE_LABEL0 + m
         if verbose and k % 10 == 0:
@@ -742,8 +736,8 @@ def main(argv=None):
                     help='experiment, not the bundled limb: both gastrocnemii get tendons onto the calcaneus '
                          '(muscles.GASTROCNEMIUS_TENDONS; docs/anatomy.md, the gastrocnemii and the calcaneus)')
     ap.add_argument('--behind-bones', action='store_true',
-                    help='experiment, not the bundled limb: muscles.BEHIND_BONES take no pixel in front of the '
-                         'femur/tibia section centroid')
+                    help='experiment, not the bundled limb: where muscles.BEHIND_BONES are the only muscles (the '
+                         'knee), the space in front of the femur/tibia section centroid is fat')
     a = ap.parse_args(argv)
     if a.gastrocnemius_tendons:
         MU.TENDONS.update(MU.GASTROCNEMIUS_TENDONS)

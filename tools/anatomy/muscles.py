@@ -98,8 +98,8 @@ TENDON_OFFSET_MM = {
     'gastrocnemius_medialis': (-9.0, 0.0),
     'gastrocnemius_lateralis': (9.0, 0.0),
 }
-# Opt-in (generate.py --behind-bones): muscles that take no pixel in front of the femur/tibia section's
-# centroid.  The gastrocnemii arise from the posterior surfaces of the femoral condyles (Gray's Anatomy,
+# Opt-in (generate.py --behind-bones): in the slices where these are the only muscles (the knee), the
+# fascia space in front of the femur/tibia section's centroid is fat, not theirs.  The gastrocnemii arise from the posterior surfaces of the femoral condyles (Gray's Anatomy,
 # 41st ed., ch. 83); at the knee, where they are the only muscles, the partition gives them the whole
 # fascia space, round the condyles into the front of the knee (medialis' section centred 30 mm in front
 # of the femur's at S -405 mm), so their origin rings lie in front of the knee axis.
