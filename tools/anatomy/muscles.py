@@ -83,6 +83,27 @@ TENDONS = {
     'soleus': (6,),
     'tibialis_anterior': (6,),
 }
+# Opt-in (generate.py --gastrocnemius-tendons; not in the bundled limb): both gastrocnemii continue as
+# tendons onto the calcaneus beside the soleus's, which they join in the calcaneal tendon.  The three
+# parts share one OpenSim insertion point: side by side in the slice (R, A offsets in mm; R lateral for
+# this right leg), soleus in the middle, as in the Achilles tendon, whose gastrocnemius fibres lie
+# medial and lateral of the soleus part at the calcaneus.  Measured (docs/anatomy.md, "The
+# gastrocnemii and the calcaneus"): no divergence with the physical set, but the medialis' knee-end
+# cells invert at full activation.
+GASTROCNEMIUS_TENDONS = {
+    'gastrocnemius_medialis': (6,),
+    'gastrocnemius_lateralis': (6,),
+}
+TENDON_OFFSET_MM = {
+    'gastrocnemius_medialis': (-9.0, 0.0),
+    'gastrocnemius_lateralis': (9.0, 0.0),
+}
+# Opt-in (generate.py --behind-bones): in the slices where these are the only muscles (the knee), the
+# fascia space in front of the femur/tibia section's centroid is fat, not theirs.  The gastrocnemii arise from the posterior surfaces of the femoral condyles (Gray's Anatomy,
+# 41st ed., ch. 83); at the knee, where they are the only muscles, the partition gives them the whole
+# fascia space, round the condyles into the front of the knee (medialis' section centred 30 mm in front
+# of the femur's at S -405 mm), so their origin rings lie in front of the knee axis.
+BEHIND_BONES = ('gastrocnemius_medialis', 'gastrocnemius_lateralis')
 # Tendons that run along a bone of the segment they leave (tibialis anterior on the anterior tibia)
 # keep this gap to bone above their insertion: a tendon glides over the bone; bound to it, its active
 # cells would be squeezed between bound vertices.  Where such a tendon's path crosses a bone that

@@ -39,6 +39,8 @@ DEFAULTS = {
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
     'anchor_muscles': True,    # fix muscle end rings to their origin/insertion segments (table); False = only
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
+    'bind_passed_over': True,  # a muscle's vertices may be bound to any segment between its origin and insertion
+                               # (the shank for the gastrocnemii); False = not to one it passes over (below)
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
@@ -630,10 +632,17 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # A vertex is fixed to the nearest bone within attach_m whose segment lies on the path between
     # the origin and insertion segments of every muscle using the vertex: nothing of a muscle is
     # bound across a joint it does not cross (the fat, and muscles without origin/insertion, any).
+    # With bind_passed_over off, a segment strictly between a muscle's origin and insertion (the shank
+    # for the gastrocnemii) is one it glides over: its vertices are not bound to that bone by
+    # proximity, and by an end ring only where a muscle arising from that bone shares them (the
+    # soleus's origin ring beside the gastrocnemius lateralis; not the insertion rings of the tendons
+    # beside the medialis, which pinned its belly to the tibia: docs/anatomy.md, the gastrocnemii).
     seg_names = skel['segment_names']
     nseg = len(seg_names)
     cmus_k = cell_muscle_all[kc]
     allowed = np.ones((V, nseg), bool)
+    passed = np.zeros((V, nseg), bool)               # a muscle using the vertex passes over the segment
+    arises = np.zeros((V, nseg), bool)               # a muscle using the vertex arises from the segment
     for m, lab in enumerate(muscle_labels_used):
         o, i_ = tab[lab].get('origin'), tab[lab].get('insertion')
         span = segment_span(skel['segment_parent'], seg_names.index(o) if o else None, seg_names.index(i_) if i_ else None)
@@ -643,6 +652,10 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         cm = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus_k == m))
         vm = np.unique(np.concatenate([verts_k[offsets_k[c]:offsets_k[c + 1]] for c in cm]))
         allowed[vm] &= row
+        if not s['bind_passed_over']:
+            row[[seg_names.index(o), seg_names.index(i_)]] = False
+            passed[vm] |= row
+            arises[vm, seg_names.index(o)] = True
     vseg = np.full(V, -1, np.int32)
     refused = 0
     bone_touch = {}
@@ -657,7 +670,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             d, _ = cKDTree(bxy[bseg_px == sg]).query(pos[on, :2])
             D[:, sg] = np.maximum(d - 0.5 * px_mm / 1000.0, 0.0)
         near = D.min(axis=1) <= attach_m + 1e-12
-        D[~allowed[on]] = np.inf
+        D[~(allowed & ~passed)[on]] = np.inf
         best = np.argmin(D, axis=1)
         hit = D[np.arange(len(on)), best] <= attach_m + 1e-12
         refused += int(np.count_nonzero(near & ~hit))
@@ -670,7 +683,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
 
     # ---------------------------------------------------------------- muscle origins and insertions
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
-                                 tab, seg_names, bonepix, vseg, warnings, pos, allowed) if s['anchor_muscles'] else {}
+                                 tab, seg_names, bonepix, vseg, warnings, pos, allowed & ~(passed & ~arises)) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
