@@ -124,8 +124,8 @@ def passive_sweep(sim, sweep_s=1.2, hold_s=1.0):
 
 def ankle_transient(sim, duration=1.5, every=0.025, watch=(380, 388)):
     """Full hamstring activation from rest, sampled every `every` s: (rows, {cell: [(t, V/V0)]}, knee peak [deg],
-    steps per CPU second (the steps alone), (least V/V0 of any cell at any step, its time, the cell)). Each row: t, knee and ankle angle [deg] and velocity [deg/s], V/V0 of the watched
-    cells, the inverted cells."""
+    steps per CPU second (the steps alone), (least V/V0 of any cell at any step, its time, the cell)). Each row:
+    t, knee and ankle angle [deg] and velocity [deg/s], V/V0 of the watched cells, the inverted cells."""
     tm = sim.tissue
     names = list(tm.joint_names)
     jk, ja = knee(sim), names.index('ankle_r')
@@ -180,8 +180,8 @@ def ankle_main(sets):
     for r in rows:
         if r['inverted'] or 0.4 <= r['t'] <= 1.0:
             w = ' '.join(f'{c}:{v:.3f}' for c, v in r['watch'].items())
-            print(f'  {r["t"]:6.3f} {r["knee"]:7.2f} {r["knee_vel"]:8.1f} {r["ankle"]:7.2f} {r["ankle_vel"]:8.1f}  {w}   '
-                  f'{r["inverted"]}')
+            print(f'  {r["t"]:6.3f} {r["knee"]:7.2f} {r["knee_vel"]:8.1f} {r["ankle"]:7.2f} {r["ankle_vel"]:8.1f}'
+                  f'  {w}   {r["inverted"]}')
     low = min((v for s in inv.values() for _, v in s), default=None)
     print(f'inverted: {({c: (s[0][0], s[-1][0]) for c, s in inv.items()}) or "none"}, min V/V0 {low}, '
           f'knee peak {peak:.2f} deg, {sps:.0f} steps per CPU s')

@@ -14,7 +14,7 @@ import trimesh
 
 from tissue_sim.core import solver
 from tissue_sim.core.builder.bones import winding_number
-from tissue_sim.core.model import JOINT_HINGE, TISSUE_MUSCLE
+from tissue_sim.core.model import JOINT_HINGE, TISSUE_FAT, TISSUE_MUSCLE
 from tissue_sim.core.solver import contact as C, phantom
 
 H = 1.5e-3          # grid spacing of the tests [m]
@@ -365,3 +365,18 @@ def test_inverted_cells_with_contact_are_the_measured_known_ones(limb_runs, defa
                 assert bound_across, (run, k, c, segs)
         assert len(rows[-1][1]) == 0, (run, rows[-1][1])
     assert len(runs['active_fine']) == 60 and abs(runs['active_fine'][-1][0] - 1.5) < 1e-9
+
+
+@pytest.mark.parametrize('tissue', [TISSUE_FAT, TISSUE_MUSCLE])
+def test_damping_ratio_fat_sets_the_fat_cells_deformation_damping(tissue):
+    """damping_ratio_fat (docs/solver.md "Damping"; physical 2.0, docs/contact.md "Ankle fat") is a fat cell's zeta;
+    < 0 (the paper set) leaves it at damping_ratio; a muscle cell keeps damping_ratio whatever it is."""
+    tm = phantom.one_cell(6, tissue=tissue)
+    b = {z: solver.compile_model(tm, solver.Params.paper(damping_ratio=0.3, damping_ratio_fat=z)).damp_b
+         for z in (-1.0, 2.0)}
+    plain = {z: solver.compile_model(tm, solver.Params.paper(damping_ratio=z)).damp_b for z in (0.3, 2.0)}
+    assert np.array_equal(b[-1.0], plain[0.3]) and plain[2.0][0] > 6.0 * plain[0.3][0] > 0
+    assert np.array_equal(b[2.0], plain[2.0] if tissue == TISSUE_FAT else plain[0.3])
+    assert solver.Params.paper().damping_ratio_fat < 0 and solver.Params.physical().damping_ratio_fat == 2.0
+    with pytest.raises(ValueError, match='damping_ratio_fat'):
+        solver.Params.paper(damping_ratio_fat=float('nan'))
