@@ -167,15 +167,19 @@ def _value(text):
 
 def ankle_main(sets):
     from tissue_sim.core.builder import default_model
+    bad = [s for s in sets if '=' not in s]
+    if bad:
+        print(f'error: --set {bad[0]!r}: expected NAME=VALUE', file=sys.stderr)
+        sys.exit(2)
+    kw = {k: _value(v) for k, v in (s.split('=', 1) for s in sets)}
     try:
-        kw = {k: _value(v) for k, v in (s.split('=', 1) for s in sets)}
         params = solver.Params.physical(**kw)
     except (ValueError, TypeError) as e:
-        print(f'error: --set: {e}', file=sys.stderr)
+        print(f'error: --set {" ".join(sets)}: {e}', file=sys.stderr)
         sys.exit(2)
     sim = solver.compile_model(default_model(), params)
     rows, inv, peak, sps, least = ankle_transient(sim)
-    print(f'physical set {kw or ""}: full hamstring activation from rest, every 25 ms')
+    print(f'physical set{" with " + str(kw) if kw else ""}: full hamstring activation from rest, every 25 ms')
     print(f'  {"t":>6s} {"knee":>7s} {"knee/s":>8s} {"ankle":>7s} {"ankle/s":>8s}  V/V0 watched   inverted')
     for r in rows:
         if r['inverted'] or 0.4 <= r['t'] <= 1.0:
