@@ -4,6 +4,12 @@ cells over an active 0-120 deg flexion and a passive sweep (physical set), and o
 hamstring contraction, contact on and off.
 
     .venv/bin/python bench/contact.py [--seconds 6] [--penetration]
+    .venv/bin/python bench/contact.py --ankle [--set NAME=VALUE ...]
+
+--ankle: only the physical set's active run (full hamstring activation from rest), its first 1.5 s sampled
+every 25 ms: knee and ankle angle and velocity, V/V0 of the ankle's front fat (cells 380, 388), every
+inverted cell (the ankle fat's transient after the knee's 120-deg stop, docs/contact.md "Ankle fat"), the
+knee's peak, steps per CPU second; --set overrides a Params field of the physical set (repeatable).
 
 Steps/s are per CPU second of this process on one thread (bench/solver.py's measure), best of 4
 windows, the contact-off and contact-on windows interleaved; tests/sub-step = the broad phase's vertex-grid
@@ -116,11 +122,88 @@ def passive_sweep(sim, sweep_s=1.2, hold_s=1.0):
     return rows
 
 
+def ankle_transient(sim, duration=1.5, every=0.025, watch=(380, 388)):
+    """Full hamstring activation from rest, sampled every `every` s: (rows, {cell: [(t, V/V0)]}, knee peak [deg],
+    steps per CPU second (the steps alone), (least V/V0 of any cell at any step, its time, the cell)). Each row:
+    t, knee and ankle angle [deg] and velocity [deg/s], V/V0 of the watched cells, the inverted cells."""
+    tm = sim.tissue
+    names = list(tm.joint_names)
+    jk, ja = knee(sim), names.index('ankle_r')
+    st, ctl = solver.make_state(sim), solver.make_control(sim)
+    ctl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+    solver.step(sim, st, ctl)                                   # compiled
+    n = int(round(every / sim.params.dt))
+    rows, inv, peak, cpu = [], {}, math.degrees(st.q[jk]), 0.0
+    low = (math.inf, 0.0, -1)                                   # every step: (least V/V0 of any cell, t, cell)
+    for k in range(int(round(duration / every))):
+        for _ in range(n if k else n - 1):
+            c0 = time.process_time()
+            solver.step(sim, st, ctl)
+            cpu += time.process_time() - c0
+            peak = max(peak, math.degrees(st.q[jk]))
+            r = contact.inverted_cells(sim, st.x)[2]
+            c = int(np.argmin(r))
+            if r[c] < low[0]:
+                low = (float(r[c]), st.step * sim.params.dt, c)
+        t = (k + 1) * every
+        bad, ratio, allr = contact.inverted_cells(sim, st.x)
+        for c, r in zip(bad, ratio):
+            inv.setdefault(int(c), []).append((round(t, 3), round(float(r), 3)))
+        rows.append(dict(t=round(t, 3), knee=math.degrees(st.q[jk]), knee_vel=math.degrees(st.qd[jk]),
+                         ankle=math.degrees(st.q[ja]), ankle_vel=math.degrees(st.qd[ja]),
+                         watch={c: float(allr[c]) for c in watch if c < len(allr)}, inverted=[int(c) for c in bad]))
+    steps = int(round(duration / every)) * n - 1
+    return rows, inv, peak, steps / max(cpu, 1e-9), low
+
+
+def _value(text):
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return {'true': True, 'false': False}.get(text.lower(), text)
+
+
+def ankle_main(sets):
+    from tissue_sim.core.builder import default_model
+    bad = [s for s in sets if '=' not in s]
+    if bad:
+        print(f'error: --set {bad[0]!r}: expected NAME=VALUE', file=sys.stderr)
+        sys.exit(2)
+    kw = {k: _value(v) for k, v in (s.split('=', 1) for s in sets)}
+    try:
+        params = solver.Params.physical(**kw)
+    except (ValueError, TypeError) as e:
+        print(f'error: --set {" ".join(sets)}: {e}', file=sys.stderr)
+        sys.exit(2)
+    sim = solver.compile_model(default_model(), params)
+    rows, inv, peak, sps, least = ankle_transient(sim)
+    print(f'physical set{" with " + str(kw) if kw else ""}: full hamstring activation from rest, every 25 ms')
+    print(f'  {"t":>6s} {"knee":>7s} {"knee/s":>8s} {"ankle":>7s} {"ankle/s":>8s}  V/V0 watched   inverted')
+    for r in rows:
+        if r['inverted'] or 0.4 <= r['t'] <= 1.0:
+            w = ' '.join(f'{c}:{v:.3f}' for c, v in r['watch'].items())
+            print(f'  {r["t"]:6.3f} {r["knee"]:7.2f} {r["knee_vel"]:8.1f} {r["ankle"]:7.2f} {r["ankle_vel"]:8.1f}'
+                  f'  {w}   {r["inverted"]}')
+    low = min((v for s in inv.values() for _, v in s), default=None)
+    print(f'inverted: {({c: (s[0][0], s[-1][0]) for c, s in inv.items()}) or "none"}, min V/V0 {low}, '
+          f'knee peak {peak:.2f} deg, {sps:.0f} steps per CPU s')
+    print(f'every step: least V/V0 {least[0]:.3f} (cell {least[2]} at {least[1]:.3f} s)')
+    print(json.dumps(dict(params=kw, inverted=inv, min_ratio=low, knee_peak_deg=round(peak, 3),
+                          knee_end_deg=round(rows[-1]['knee'], 3), steps_per_cpu_s=round(sps, 1),
+                          least_every_step=dict(ratio=round(least[0], 4), t=round(least[1], 3), cell=least[2]))))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--seconds', type=float, default=6.0, help='measuring time per configuration [s]')
     ap.add_argument('--penetration', action='store_true', help='also run the active flexion and passive sweep')
+    ap.add_argument('--ankle', action='store_true', help="only the ankle fat's transient (physical set, every 25 ms)")
+    ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE', help='with --ankle: a Params field')
     a = ap.parse_args()
+    if a.ankle:
+        return ankle_main(a.set)
     from tissue_sim.core.builder import default_model
     tm = default_model()
     out = dict(model='default_model()', speed={})

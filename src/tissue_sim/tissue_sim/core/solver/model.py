@@ -229,7 +229,8 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     mcell = np.zeros(C)
     np.add.at(mcell, cell_of_k, mass[cv])
     mcell /= sizes
-    damp_b = 2.0 * p.damping_ratio * np.sqrt((k + k_active) * mcell) if p.damping == 'deformation' else np.zeros(C)
+    zeta = np.where(muscle | (p.damping_ratio_fat < 0), p.damping_ratio, p.damping_ratio_fat)
+    damp_b = 2.0 * zeta * np.sqrt((k + k_active) * mcell) if p.damping == 'deformation' else np.zeros(C)
     vel_damp = p.velocity_damping
     # volume penalty on the best-fit affine map D = A Qinv: kvol = volume_stiffness * k / sum_i |Qinv X0_i|^2
     # (its stiffness at rest is then volume_stiffness * k); fat cells the same with volume_stiffness_fat

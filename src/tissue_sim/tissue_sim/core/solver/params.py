@@ -14,6 +14,7 @@ Every field is documented with its unit. ``docs/solver.md`` explains the choices
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import yaml
@@ -52,6 +53,8 @@ class Params:
                                           # with its max isometric force x specific_tension / 6e5 (model.active_stiffness)
     damping: str = 'deformation'          # 'deformation' (relative to each cell's rigid motion), 'velocity', 'none'
     damping_ratio: float = 0.05           # fraction of critical damping of one cell's mode (deformation damping)
+    damping_ratio_fat: float = -1.0       # the same for fat cells; < 0: damping_ratio (physical: 2.0, keeps the fat in front
+                                          # of the ankle from turning inside out when the knee hits its stop; docs/contact.md)
     velocity_damping: float = 0.0         # [1/s] plain velocity damping of free vertices (any mode)
     # --- contraction -----------------------------------------------------------------------
     contraction_rate: float = 0.998       # factor on a fully active muscle's fibre stretch per rate_dt (paper c)
@@ -129,7 +132,7 @@ class Params:
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
                     integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
-                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0,
+                    force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
@@ -188,6 +191,7 @@ class Params:
         need(self.rest_fibre_length == 0 or 0.2 <= self.rest_fibre_length <= 2,
              'rest_fibre_length must be 0 (each muscle\'s own) or in [0.2, 2]')
         need(self.volume_stiffness_fat >= 0, 'volume_stiffness_fat must be >= 0')
+        need(math.isfinite(self.damping_ratio_fat), 'damping_ratio_fat must be finite (< 0: damping_ratio)')
         for name in ('max_contraction_velocity', 'fv_filter_time', 'volume_relax_time', 'volume_stiffness', 'specific_tension', 'damping_ratio', 'velocity_damping', 'joint_damping', 'limit_damping_ratio'):
             need(getattr(self, name) >= 0, f'{name} must be >= 0')
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
