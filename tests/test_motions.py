@@ -101,7 +101,7 @@ def test_knee_flexion(physical_sim):
 
 @pytest.mark.slow
 def test_knee_extension(physical_sim):
-    """Hamstrings flex the knee (measured 67.1 deg at 1.0 s), then the quadriceps extend it to its
+    """Hamstrings flex the knee (measured peak 78.0 deg, physical set with the fat damping), then the quadriceps extend it to its
     0-deg stop (measured 0.0 deg at the end): >= 40 deg of flexion, then >= 35 deg of extension,
     ending within 10 deg of straight."""
     run = _run(physical_sim, 'knee_extension')
@@ -114,7 +114,7 @@ def test_knee_extension(physical_sim):
 
 @pytest.mark.slow
 def test_kick(physical_sim):
-    """Wind-up flexion (measured 78.3 deg at 0.8 s), then a fast extension back to straight (measured 0.0 deg
+    """Wind-up flexion (measured peak 89.1 deg), then a fast extension back to straight (measured 0.0 deg
     at the end)."""
     run = _run(physical_sim, 'kick')
     k = run[0][:, _joint(physical_sim, 'knee_r')]
