@@ -297,12 +297,18 @@ def _solve(imp, f, xk, y, first):
                     s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
                 k = keff[row_c[p]]
                 s0 *= k; s1 *= k; s2 *= k
-        for q in range(Lp[p], Lp[p + 1]):
-            j = Lj[q]
-            l = Lx[q]
-            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
-        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+        _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2)
     _backward(imp.Up, imp.Uj, imp.Ux, dinv, row_v, z, xk)
+
+
+@njit(inline='always')
+def _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2):
+    """Row p of the forward pass of _solve and _solve_sheath: z_p = s - sum_j<p L_pj z_j (s: the row's right-hand side)."""
+    for q in range(Lp[p], Lp[p + 1]):
+        j = Lj[q]
+        l = Lx[q]
+        s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+    z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -367,11 +373,7 @@ def _solve_sheath(imp, xk):
             k = ks[i]
             if k > 0.0:
                 s0, s1, s2 = k * d[i, 0], k * d[i, 1], k * d[i, 2]
-        for q in range(Lp[p], Lp[p + 1]):
-            j = Lj[q]
-            l = Lx[q]
-            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
-        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+        _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2)
     _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, dinv, row_v, z, xk)
 
 
