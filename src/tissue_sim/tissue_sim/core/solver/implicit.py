@@ -328,17 +328,23 @@ def _backward(Up, Uj, Ux, dinv, row_v, z, xk):
             xk[i, 0] += s0; xk[i, 1] += s1; xk[i, 2] += s2
 
 
+@njit(inline='always')
+def _velocity(i, ih, x, xn, vn, vmax2):
+    """vn[i] = (xn[i] - x[i]) / h (ih = 1/h); 1 if it is faster than sqrt(vmax2) or not finite (NaN counts), else 0."""
+    a = (xn[i, 0] - x[i, 0]) * ih
+    b = (xn[i, 1] - x[i, 1]) * ih
+    c = (xn[i, 2] - x[i, 2]) * ih
+    vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
+    return 0 if a * a + b * b + c * c <= vmax2 else 1
+
+
 @njit(cache=True, fastmath={'contract'})
 def _velocities(h, x, xn, vn, mh2, vmax2):
     nfast = 0
     ih = 1.0 / h
     for i in range(x.shape[0]):
         if mh2[i] > 0.0:
-            a = (xn[i, 0] - x[i, 0]) * ih
-            b = (xn[i, 1] - x[i, 1]) * ih
-            c = (xn[i, 2] - x[i, 2]) * ih
-            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
-            nfast += 0 if a * a + b * b + c * c <= vmax2 else 1          # (NaN counts)
+            nfast += _velocity(i, ih, x, xn, vn, vmax2)
     return nfast
 
 
@@ -393,9 +399,5 @@ def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2):
     ih = 1.0 / h
     for i in imp.s_row_v:
         if i >= 0:
-            a = (xn[i, 0] - x[i, 0]) * ih
-            b = (xn[i, 1] - x[i, 1]) * ih
-            c = (xn[i, 2] - x[i, 2]) * ih
-            vn[i, 0] = a; vn[i, 1] = b; vn[i, 2] = c
-            nfast += 0 if a * a + b * b + c * c <= vmax2 else 1          # (NaN counts)
+            nfast += _velocity(i, ih, x, xn, vn, vmax2)
     return nfast
