@@ -256,3 +256,47 @@ def test_the_frames_muscle_volumes_are_the_whole_arrays():
     assert np.array_equal(solver.observe(sim, state)['muscle_volumes'], mv)
     assert np.abs(state.x - sim.rest).max() > 1e-3                     # deformed: not the rest state
     assert not np.array_equal(every, cell_volumes(sim, sim.rest))
+
+
+class SleepingSolver(CountingSolver):
+    """Steps that take wall time without the GIL (as the compiled step does: numba nogil)."""
+
+    def run(self, k):
+        time.sleep(2e-4 * k)
+        super().run(k)
+
+
+def test_a_pause_is_not_starved_by_a_solver_thread_that_never_sleeps():
+    """As fast as possible the thread steps chunk after chunk; with a plain lock it took the lock again at once,
+    so a pause or reset from the frame loop waited several chunks (a pause service call timed out after 20 s
+    and /joint_states stopped for 3.5 s after a reset on a busy machine; here 27 ms on average, 162 ms at most,
+    with the chunks' state copies). With hold() no new chunk starts while someone waits: at most the chunk
+    under way ends first."""
+    s = SleepingSolver()
+    s.snapshot = lambda: np.full(30000, s.steps)     # a state copy after each chunk, as the node's
+    period = rt.frame_period(34.0)
+    p = rt.Pacer(s.run, 1e-3)
+    p.warm_up(lambda k: None)
+    th = rt.SolverThread(p, s.snapshot, period)
+    th.realtime = False
+    th.start()
+    try:
+        _wait_until(lambda: th.chunks > 3)
+        passed = []
+        for _ in range(20):
+            c0 = th.chunks
+            with th.hold():                              # what the node's reset does
+                passed.append(th.chunks - c0)
+                n = s.steps
+                time.sleep(0.002)
+                assert s.steps == n                      # nothing steps while it is held
+            time.sleep(0.01)
+        assert max(passed) <= 1, passed
+        t0 = time.monotonic()
+        th.set_paused(True)
+        assert time.monotonic() - t0 < 0.5
+        n = s.steps
+        time.sleep(0.05)
+        assert s.steps == n
+    finally:
+        th.stop()

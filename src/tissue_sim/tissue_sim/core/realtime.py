@@ -22,6 +22,7 @@ same bit for bit.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -113,7 +114,8 @@ class SolverThread:
     :meth:`Pacer.advance` (a frame period of wall time at most: a slow solver falls behind as in the
     frame loop); as fast as possible it steps for ``CHUNK_SHARE`` of a period at a time. After each
     chunk ``latest`` is ``snapshot()`` (a copy of the state, taken while the state is still). ``lock``
-    is held while a chunk steps: who changes the state from another thread (a reset) takes it first.
+    is held while a chunk steps: who changes the state from another thread (a reset) takes it first, through
+    :meth:`hold` (ahead of the next chunk).
     ``nice`` > 0 runs the thread that much below the process's priority (the frame loop then gets the CPU
     first where cores are short; the operating system already favours it, as it sleeps between frames,
     and a lower priority starved the solver beside other jobs). A step that raises pauses the thread: ``error`` is the exception, ``on_error(exc)`` is called from
@@ -125,6 +127,8 @@ class SolverThread:
         self.realtime, self.rate, self.cap = True, 1.0, 2000
         self.nice = int(nice)
         self.lock = threading.Lock()
+        self._waiting = 0               # other threads waiting in hold() (the solver thread lets them in first)
+        self._waiting_lock = threading.Lock()
         self.latest = snapshot()
         self.paused = bool(paused)
         self.error: BaseException | None = None
@@ -145,9 +149,26 @@ class SolverThread:
         if self._thread.is_alive():
             self._thread.join(timeout)
 
+    @contextlib.contextmanager
+    def hold(self):
+        """``lock`` for another thread (a pause, a reset), taken before the solver's next chunk: a plain lock is not
+        fair, and a solver thread that never sleeps (as fast as possible, or behind real time) would take it again
+        at once, for seconds (a pause service call timed out so), so the thread waits while anyone is here."""
+        with self._waiting_lock:
+            self._waiting += 1
+        try:
+            self.lock.acquire()
+        finally:
+            with self._waiting_lock:
+                self._waiting -= 1
+        try:
+            yield
+        finally:
+            self.lock.release()
+
     def set_paused(self, paused: bool) -> None:
         """Pause (the chunk under way ends first) or resume (the debt starts from zero)."""
-        with self.lock:
+        with self.hold():
             self.paused = bool(paused)
             self.pacer.reset()
             if not paused:
@@ -179,6 +200,8 @@ class SolverThread:
                     self._wake.wait(min((need - owed) / self.rate, self.period))
                     self._wake.clear()
                     continue
+            while self._waiting and not self._stop:      # a pause or reset waits for the lock: it goes first
+                time.sleep(0.0002)
             err = None
             with self.lock:
                 if self.paused or self._stop:

@@ -212,7 +212,7 @@ class Simulator(Node):
 
     def on_reset(self, req, resp):
         if self.stepper is not None:
-            with self.stepper.lock:
+            with self.stepper.hold():
                 self.solver.reset(self.sim, self.state)
                 self.stepper.refresh()
         else:
