@@ -328,11 +328,10 @@ def main():
         from tissue_sim.core.load import load_params
         import dataclasses
         try:
-            kw = dict(sheath_group='', substeps=1) if a.integrator == 'implicit' else {}
+            kw = dict(substeps=1) if a.integrator == 'implicit' else {}
             kw.update({} if a.substeps is None else dict(substeps=a.substeps))
             p = dataclasses.replace(load_params(a.params or 'physical'), integrator=a.integrator, **kw).validate()
-            # implicit: one sub-step of dt and no sheath, as bench/solver.py runs it (the sheath diverges under the
-            # implicit integrator: Params.physical(integrator='implicit') drops it too)
+            # implicit: one sub-step of dt, the sheath kept (its correction solve), as bench/solver.py runs it
         except ValueError as e:
             sys.exit(f'error: {e}')
         params = str(tmp / 'params.yaml')
