@@ -16,7 +16,7 @@ Timing (tissue_sim.core.realtime): in real-time mode (``realtime: true``) sim ti
 wall time x ``rate``, in solver steps of params.dt, at most ``max_steps_per_tick`` steps at a time
 (when the solver cannot keep up, sim time falls behind and /diagnostics shows the real-time factor).
 With ``realtime: false`` (as fast as possible) the solver steps all the time it has, while frames keep
-their rate. With ``solver_thread: true`` (the default) the solver steps in a thread of its own
+their rate. With ``solver_thread: true`` (default false) the solver steps in a thread of its own
 (realtime.SolverThread: the compiled step releases the GIL) and each frame publishes the state its
 last chunk left; with ``false`` each frame's timer callback steps, then publishes (one core).
 
@@ -71,7 +71,7 @@ PARAMS = (
     Param('frame_id', 'world', 'frame of positions and markers (REP-103)', read_only=True),
     Param('max_steps_per_tick', 2000, 'cap on solver steps per published frame (per chunk of the solver thread)',
           lo=1, hi=1000000),
-    Param('solver_thread', True, 'step the solver in a thread of its own beside the frame loop (two cores: stepping '
+    Param('solver_thread', False, 'step the solver in a thread of its own beside the frame loop (two cores: stepping '
           'and publishing in parallel); false: in the frame timer callback, between publishes (one core)',
           read_only=True),
     Param('solver_nice', 0, "the solver thread's nice increment (Linux, its thread only): > 0 gives the frame loop the "
