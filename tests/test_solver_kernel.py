@@ -25,7 +25,7 @@ from tissue_sim.core.solver.reference import padded, rotation_quaternions
 ITERS = 50                  # rotation iterations of the kernel: converged to the exact polar factor the reference uses
 
 
-def _run_both(x, v, quat, lam, act, pressure, vol_gain, volume_actual, csr, cells):
+def _run_both(x, v, quat, lam, act, pressure, vol_gain, volume_actual, csr, cells, volume_cap=None):
     """(new, reference) results of one call each on copies of the mutable inputs: (bad, f, rotation
     quaternion (w >= 0), pressure, cell_energy, cell_length); the reference's bad is always -1 (it has no check)."""
     off, cv, X0, Qinv, fibre, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length = csr
@@ -34,7 +34,8 @@ def _run_both(x, v, quat, lam, act, pressure, vol_gain, volume_actual, csr, cell
     q = q * np.where(q[:, 3:] < 0, -1.0, 1.0)
     new = (bad, f, q, p, e, ln)
     ns = SimpleNamespace(off=off, cv=cv, X0=X0, Qinv=Qinv, fibre=fibre, cell_muscle=cell_muscle, k=k, k_active=k_active,
-                         damp_b=damp_b, k_volume=k_volume, rest_length=rest_length)
+                         damp_b=damp_b, k_volume=k_volume, rest_length=rest_length,
+                         volume_cap=np.zeros(off.size - 1) if volume_cap is None else volume_cap)
     rp = pressure.copy()
     rf, re, rln, R = reference.cell_forces(ns, padded(ns), x, v, lam, act, rp, vol_gain, volume_actual)
     return new, (-1, rf, rotation_quaternions(R), rp, re, rln)
@@ -198,6 +199,32 @@ def test_shared_rings_are_computed_once_and_agree():
     for volume_actual in (True, False):
         new, ref = _run_both(x, v, quat, lam, act, pressure, 0.05, volume_actual, csr, cells)
         _assert_agree(new, ref)
+
+
+def test_the_implicit_volume_bound_matches_the_reference():
+    """The implicit integrator's bound on the volume term (SimModel.volume_cap, Params.implicit_volume_cap): cells
+    sheared 3:1 (det D near 1, |grad det D|^2 ~10x its rest value) with the bound on every other cell at 2x the rest
+    value: the kernel's scaled volume force agrees with the reference's, and the bound did act (the forces differ
+    from the unbounded ones)."""
+    rng = np.random.default_rng(13)
+    rest, csr, _ = _mixed_cells(rng, [(8, 2 * K.BLK + 3), (12, 9), (24, 5)])
+    off, cv, X0, Qinv, fibre, muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length = csr
+    C = off.size - 1
+    g2 = np.trace(Qinv, axis1=1, axis2=2)                    # |grad det D|^2 at rest: sum_i |Qinv X0_i|^2
+    cap = np.where((np.arange(C) % 2 == 0) & (k_volume > 0), 2.0 * g2, 0.0)
+    cells = K.pack_cells(off, cv, X0, muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv,
+                         volume_cap=cap)
+    shear = np.array([[1.0, 3.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    x = rest @ shear.T + rng.normal(scale=0.001, size=rest.shape)
+    v = rng.normal(scale=0.1, size=rest.shape)
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (C, 1))
+    lam, act = np.array([0.8, 1.0, 0.9]), np.array([1.0, 0.0, 0.5])
+    pressure = np.zeros(C)
+    new, ref = _run_both(x, v, quat, lam, act, pressure, 0.0, True, csr, cells, volume_cap=cap)
+    _assert_agree(new, ref)
+    free, _ = _run_both(x, v, quat, lam, act, pressure, 0.0, True, csr, _mixed_cells(np.random.default_rng(13), [
+        (8, 2 * K.BLK + 3), (12, 9), (24, 5)])[2])
+    assert np.abs(free[1] - new[1]).max() > 0.1 * np.abs(free[1]).max()
 
 
 def test_divergence_names_the_lowest_bad_cell():

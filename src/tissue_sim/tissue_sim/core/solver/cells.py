@@ -161,7 +161,9 @@ P_DQ = 13                   # det Qinv [1/m^6]: det D = det A det Qinv, cof(D) Q
 P_PB = 14                   # rest centroid of the bottom ring relative to the cell's rest centroid [m] (3)
 P_PT = 17                   # the same for the top ring (3)
 P_ON = 20                   # 1.0 for a cell, 0.0 for a dummy position
-N_PAR = 21
+P_Q = 21                    # Q = sum X0 X0^T (6: xx, yy, zz, xy, xz, yz) [m^2]
+P_VCAP = 27                 # the volume term's bound on |grad det D|^2 [1/m^2] (0: none; SimModel.volume_cap)
+N_PAR = 28
 
 # rows of a ring block's sums (ring buffers: rs[row * BLK + lane]); d_i = x_i - o, o the ring's first vertex
 R_S = 0                     # sum d_i (3)
@@ -233,8 +235,17 @@ TASK_POSITIONS = 8          # positions (cell blocks) per task of lane_forces_pa
                             # results do not depend on the number of threads (a cut costs one ring's sums twice)
 
 
+def _second_moments(off, X0):
+    """(C, 6) Q = sum X0_i X0_i^T of each cell (xx, yy, zz, xy, xz, yz)."""
+    cell = np.repeat(np.arange(off.size - 1), np.diff(off))
+    out = np.zeros((off.size - 1, 6))
+    for j, (a, b) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+        out[:, j] = np.bincount(cell, X0[:, a] * X0[:, b], off.size - 1)
+    return out
+
+
 def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv,
-               task_positions=TASK_POSITIONS):
+               task_positions=TASK_POSITIONS, volume_cap=None):
     """The layout lane_forces reads (numpy, at compile time). Returns a CellLayout (groups, ids, rings,
     ring_idx, ring_X0, par, lane_muscle, lane_of, tasks, excl, gvert, gptr, gsrc):
 
@@ -247,7 +258,7 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
       position array: unsigned, so no negative-index wrap-around; a padding slot or lane repeats a vertex);
     - ring_X0 (R * 3 * BLK,): the slot's rest position about its ring's rest centroid, axis d at
       ((r0 + s) * 3 + d) * BLK (0 for padding);
-    - par (Bc, N_PAR * BLK): per-lane constants (P_* rows, 0 for a dummy);
+    - par (Bc, N_PAR * BLK): per-lane constants (P_* rows, 0 for a dummy; volume_cap (C,): P_VCAP, None = zeros);
     - lane_muscle (Bc, BLK) int32: muscle of each lane (-1: fat or dummy);
     - lane_of (C,) int64: the lane of each cell, b * BLK + lane (the order of the kernel's per-cell state);
     - tasks (T, 3) int64: lane_forces_par's tasks, group and positions j0 .. j1 - 1 (task_positions per task);
@@ -275,7 +286,8 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
                            np.asarray(q_tr, float)[None], np.asarray(q_ff, float)[None],
                            np.asarray(rest_length, float)[None], np.asarray(fibre, float).T,
                            np.einsum('cij,cj->ci', Qi, np.asarray(fibre, float)).T, np.linalg.det(Qi)[None],
-                           pb.T, pt.T, np.ones((1, C))])
+                           pb.T, pt.T, np.ones((1, C)), _second_moments(off, X0).T,
+                           (np.zeros(C) if volume_cap is None else np.asarray(volume_cap, float))[None]])
     # the chains
     tol = 1e-12 * max(float(np.abs(X0).max()) if X0.size else 0.0, 1e-300)
     bottoms, tops = {}, {}
@@ -981,6 +993,18 @@ def _cell_algebra(w, pb, n, volume_actual, vol_gain, plain, fatvol=None):
         pres = w[W_PRES * BLK + c] + vol_gain * g if vol else w[W_PRES * BLK + c]
         w[W_PRES * BLK + c] = pres
         g = (g + pres) * dq
+        # the implicit integrator's bound (P_VCAP > 0): |grad det D|^2 = dq^2 tr(cof(A) Q cof(A)^T), the volume
+        # term's stiffness relative to its rest value, beyond the bound the force scaled by bound / |grad det D|^2
+        vcap = pb[P_VCAP * BLK + c]
+        q00, q11, q22 = pb[P_Q * BLK + c], pb[(P_Q + 1) * BLK + c], pb[(P_Q + 2) * BLK + c]
+        q01, q02, q12 = pb[(P_Q + 3) * BLK + c], pb[(P_Q + 4) * BLK + c], pb[(P_Q + 5) * BLK + c]
+        gn = ((c00 * (q00 * c00 + q01 * c01 + q02 * c02) + c01 * (q01 * c00 + q11 * c01 + q12 * c02)
+               + c02 * (q02 * c00 + q12 * c01 + q22 * c02))
+              + (c10 * (q00 * c10 + q01 * c11 + q02 * c12) + c11 * (q01 * c10 + q11 * c11 + q12 * c12)
+                 + c12 * (q02 * c10 + q12 * c11 + q22 * c12))
+              + (c20 * (q00 * c20 + q01 * c21 + q02 * c22) + c21 * (q01 * c20 + q11 * c21 + q12 * c22)
+                 + c22 * (q02 * c20 + q12 * c21 + q22 * c22))) * (dq * dq)
+        g = g * (vcap / gn) if vcap > 0.0 and gn > vcap else g
         w[W_EV * BLK + c] = 0.5 * kv * ((det - 1.0) * (det - 1.0)) if vol else 0.0
         w[W_P * BLK + c] = g * c00 if vol else 0.0
         w[(W_P + 1) * BLK + c] = g * c01 if vol else 0.0

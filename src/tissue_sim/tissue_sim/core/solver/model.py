@@ -64,6 +64,8 @@ class SimModel:
     damp_b: np.ndarray              # (C,) deformation-damping coefficient [N s/m]
     rest_volume: np.ndarray         # (C,) [m^3]
     k_volume: np.ndarray            # (C,) volume penalty stiffness on det of the best-fit affine map [J] (0 = off)
+    volume_cap: np.ndarray          # (C,) [1/m^2] bound on |grad det D|^2 = sum_i |cof(D) Qinv X0_i|^2 beyond which the volume
+                                    # force is scaled down: implicit_volume_cap x its rest value (implicit integrator; 0 = none)
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
@@ -234,12 +236,14 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     vel_damp = p.velocity_damping
     # volume penalty on the best-fit affine map D = A Qinv: kvol = volume_stiffness * k / sum_i |Qinv X0_i|^2
     # (its stiffness at rest is then volume_stiffness * k); fat cells the same with volume_stiffness_fat
-    k_volume = np.zeros(C)
+    k_volume, volume_cap = np.zeros(C), np.zeros(C)
     vol_rel = np.where(muscle, p.volume_stiffness, p.volume_stiffness_fat)       # relative volume stiffness per cell
     if np.any(vol_rel > 0):
         g = np.einsum('kij,kj->ki', Qinv[cell_of_k], X0)
         g2 = np.bincount(cell_of_k, weights=np.sum(g * g, axis=1), minlength=C)
         k_volume = np.where(~flat, vol_rel * (k + k_active) / np.maximum(g2, 1e-300), 0.0)
+        if p.integrator == 'implicit' and p.implicit_volume_cap > 0:     # (docs/solver.md: the volume term's bound)
+            volume_cap = np.where(k_volume > 0, p.implicit_volume_cap * g2, 0.0)
     # muscle length weights: cells of a muscle in the same slice gap share one gap length
     lw = np.zeros(C)
     for m in range(tm.n_muscles):
@@ -303,7 +307,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
         Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(q_ff), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
-        k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), cell_sign=_frozen(sign),
+        k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), volume_cap=_frozen(volume_cap), cell_sign=_frozen(sign),
         length_weight=_frozen(lw),
         muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
                                                minlength=tm.n_muscles)[:tm.n_muscles]),
@@ -317,7 +321,8 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
         **coupling_spline(tm),
         skeleton=None,
-        cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv))
+        cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv,
+                                  volume_cap=volume_cap))
     sim_kw['contact'] = CT.build(tm, p, rest, vs)          # bone signed-distance grids (stage 4; none when off)
     sim_kw['skeleton'] = SK.Skeleton(*(sim_kw[n] for n in SK.Skeleton._fields))
     c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0

@@ -40,7 +40,8 @@ def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_a
     """Force (V, 3) [N] of every cell on its vertices: shape matching to the contracted rest shape, volume,
     deformation damping, active axial tension (docs/solver.md "Elastic cells", "Contraction"). ``cells``: a
     SimModel (or anything with its cell arrays); lam, act (M,) the contraction state and the tension's
-    activation; pressure (C,) the integral volume term, updated in place (vol_gain = h / volume_relax_time).
+    activation; pressure (C,) the integral volume term, updated in place (vol_gain = h / volume_relax_time);
+    the volume force scaled by volume_cap / |grad det D|^2 where that is above a cell's volume_cap > 0.
     Returns f, cell energy (C,) [J], axial length (C,) [m] (ring-centroid distance), rotations (C, 3, 3)."""
     m = pad.mask[..., None]
     n = pad.mask.sum(1)
@@ -65,7 +66,12 @@ def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_a
     pressure += vol_gain * g
     g = np.where(cells.k_volume > 0, g + pressure, 0.0)
     cof = np.stack([np.cross(D[:, 1], D[:, 2]), np.cross(D[:, 2], D[:, 0]), np.cross(D[:, 0], D[:, 1])], axis=1)
-    f += np.einsum('cij,cpj->cpi', g[:, None, None] * cof @ cells.Qinv, pad.X0)
+    grad = np.einsum('cij,cpj->cpi', cof @ cells.Qinv, pad.X0)          # grad det D: one row per vertex
+    # the implicit integrator's bound (volume_cap > 0): beyond it the force scaled by volume_cap / |grad det D|^2
+    gn = (grad * grad * m).sum((1, 2))
+    cap = cells.volume_cap
+    g = np.where((cap > 0) & (gn > cap), g * cap / np.where(gn > 0, gn, 1.0), g)
+    f += g[:, None, None] * grad
     # deformation damping: -b (v_i - vbar - w x r_i), w = I^-1 L the cell's rigid angular velocity
     vbar = vc.sum(1) / n[:, None]
     Y = np.einsum('cpi,cpj->cij', r, r)
