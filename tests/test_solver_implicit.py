@@ -133,9 +133,10 @@ def test_bad_implicit_iterations_are_refused():
 
 
 def test_the_volume_bound_is_the_implicit_integrators_only():
-    """Params.implicit_volume_cap: 0 (off) or >= 1, anything else refused; compile_model sets the bound only for the
-    implicit integrator (mass_scaled and explicit keep the unbounded volume term, the paper's)."""
-    for bad in (0.5, -1.0, float('nan'), float('inf')):
+    """Params.implicit_volume_cap: a finite number >= 0 (0: off), anything else refused; compile_model sets the bound
+    only for the implicit integrator (mass_scaled and explicit keep the unbounded volume term, the paper's), at keff's
+    stiffness: |grad det D|^2 <= (1 + vol) / vol x its rest value (2x for muscle cells, 1.05x for the physical set's fat)."""
+    for bad in (-0.5, float('nan'), float('inf')):
         with pytest.raises(ValueError, match='implicit_volume_cap'):
             solver.Params.physical(implicit_volume_cap=bad)
     tm = phantom.knee(n_gaps=8)
@@ -145,6 +146,12 @@ def test_the_volume_bound_is_the_implicit_integrators_only():
         assert np.any(sim.volume_cap > 0) == (integrator == 'implicit')
     sim = solver.compile_model(tm, _implicit(implicit_volume_cap=0.0))
     assert not np.any(sim.volume_cap)
+    sim = solver.compile_model(tm, _implicit())
+    g2 = np.einsum('cii->c', sim.Qinv)                    # |grad det D|^2 at rest
+    vol = sim.k_volume > 0
+    ratio = sim.volume_cap[vol] / g2[vol]
+    muscle = (sim.cell_muscle >= 0)[vol]
+    assert np.allclose(ratio[muscle], 2.0) and np.allclose(ratio[~muscle], 21.0 / 20.0)
 
 
 @pytest.mark.slow

@@ -65,7 +65,8 @@ class SimModel:
     rest_volume: np.ndarray         # (C,) [m^3]
     k_volume: np.ndarray            # (C,) volume penalty stiffness on det of the best-fit affine map [J] (0 = off)
     volume_cap: np.ndarray          # (C,) [1/m^2] bound on |grad det D|^2 = sum_i |cof(D) Qinv X0_i|^2 beyond which the volume
-                                    # force is scaled down: implicit_volume_cap x its rest value (implicit integrator; 0 = none)
+                                    # force is scaled down (implicit integrator: kvol x the bound = implicit_volume_cap x keff;
+                                    # 0 = none)
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
@@ -242,8 +243,10 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         g = np.einsum('kij,kj->ki', Qinv[cell_of_k], X0)
         g2 = np.bincount(cell_of_k, weights=np.sum(g * g, axis=1), minlength=C)
         k_volume = np.where(~flat, vol_rel * (k + k_active) / np.maximum(g2, 1e-300), 0.0)
-        if p.integrator == 'implicit' and p.implicit_volume_cap > 0:     # (docs/solver.md: the volume term's bound)
-            volume_cap = np.where(k_volume > 0, p.implicit_volume_cap * g2, 0.0)
+        if p.integrator == 'implicit' and p.implicit_volume_cap > 0:
+            # the volume term's stiffness kvol |grad det D|^2 (vol_rel (k + k_active) at rest, |grad det D|^2 = g2) at most
+            # implicit_volume_cap x keff's (1 + vol_rel)(k + k_active) (docs/solver.md "Implicit integrator")
+            volume_cap = np.where(k_volume > 0, p.implicit_volume_cap * g2 * (1.0 + vol_rel) / np.maximum(vol_rel, 1e-300), 0.0)
     # muscle length weights: cells of a muscle in the same slice gap share one gap length
     lw = np.zeros(C)
     for m in range(tm.n_muscles):

@@ -36,9 +36,9 @@ class Params:
                                           # 'explicit': true masses, automatic sub-steps (docs/solver.md);
                                           # 'implicit': implicit Euler of the free vertices (prefactored; true masses, 1 sub-step)
     implicit_iterations: int = 1          # local/global iterations per sub-step of the implicit integrator (1: one solve)
-    implicit_volume_cap: float = 2.0      # implicit integrator only: a cell's volume term at most this many times its rest
-                                          # stiffness (its force scaled down beyond; 0 = unbounded; docs/solver.md "Implicit
-                                          # integrator", "The volume term's bound"); mass_scaled/explicit: always unbounded
+    implicit_volume_cap: float = 1.0      # implicit integrator only: a cell's volume-term stiffness at most this fraction of
+                                          # its weight keff in the system matrix (the force scaled down beyond; 0 = unbounded;
+                                          # docs/solver.md "Implicit integrator"); mass_scaled/explicit: always unbounded
     substeps: int = 0                     # sub-steps per step; 0 = automatic (explicit: stability estimate; mass_scaled: 1)
     stability_limit: float = 1.8          # automatic sub-steps keep omega_max * h below this (< 2, symplectic Euler)
     # --- soft tissue -----------------------------------------------------------------------
@@ -208,8 +208,8 @@ class Params:
         need(0 < self.fold_reach <= 1, 'fold_reach must be in (0, 1] m')
         need(0 < self.sheath_radius <= 0.05, 'sheath_radius must be in (0, 0.05] m')
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
-        need(math.isfinite(self.implicit_volume_cap) and (self.implicit_volume_cap == 0 or self.implicit_volume_cap >= 1),
-             'implicit_volume_cap must be 0 (off) or >= 1')
+        need(math.isfinite(self.implicit_volume_cap) and self.implicit_volume_cap >= 0,
+             'implicit_volume_cap must be a finite number >= 0 (0: off)')
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')
         need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')
