@@ -11,6 +11,9 @@ deformation damping's over h; the same for x, y and z), the bone-attached vertic
 xa1 - ya their motion beyond that (the skeleton's step, between the force evaluation and the solve).
 A is constant per model and h: factored once (scipy's SuperLU, no pivoting: A is SPD). ``implicit_iterations`` > 1
 repeats the correction from the last iterate (residual f(x1, v1) - M (x1 - y)/h^2): local/global iterations.
+One iteration is stable while every stiffness stays within keff; the one that grows without bound with a cell's shear,
+the volume term's, is capped for this integrator in the cell kernel (Params.implicit_volume_cap, SimModel.volume_cap:
+at most implicit_volume_cap x keff; docs/solver.md "The volume term's bound").
 
 The system is solved in its star form: one extra unknown per cell (the cell's centroid displacement u_c) with
 energy sum_c keff_c sum_i |u_i - u_c|^2, whose Schur complement on the vertices is exactly Lhat. Its factor is
