@@ -160,6 +160,45 @@ def test_bind_passed_over_off_frees_the_gastrocnemii_from_the_tibia(built):
     assert len(changed) and np.all(np.isin(changed, vertices(tm, gastro)))
 
 
+def test_unshare_passed_over_gives_the_gastrocnemii_their_own_vertices():
+    """unshare_passed_over (with bind_passed_over=False; docs/builder.md, docs/anatomy.md "The gastrocnemii and the
+    calcaneus"): no gastrocnemius vertex is bound to the tibia they pass over; where one shared a vertex with an end
+    ring bound to the tibia, its cells get a free copy at the same place and the ring keeps its anchor; every end ring
+    is anchored (on the limb with the gastrocnemius tendons, bind_passed_over=False alone left a vertex of the long
+    head's insertion ring free); no other muscle's cells change."""
+    from tissue_sim.core.builder.table import load_tissue_table
+    lab, tis = builder.default_inputs()
+    e, _ = builder.build_model(lab, tis, bind_passed_over=False)
+    u, _ = builder.build_model(lab, tis, bind_passed_over=False, unshare_passed_over=True)
+    tab = load_tissue_table(tis)['labels']
+    ends = {v['name']: (v.get('origin'), v.get('insertion')) for v in tab.values() if v['tissue'] == 'muscle'}
+    shank = u.segment_names.index('shank')
+    gastro = [u.muscle_index(n) for n in ('gastrocnemius_medialis', 'gastrocnemius_lateralis')]
+
+    def vertices(t, ms):
+        return np.unique(np.concatenate([t.cell(c) for c in np.nonzero(np.isin(t.cell_muscle, ms))[0]]))
+
+    assert np.any(e.vertex_segment[vertices(e, gastro)] == shank)
+    assert not np.any(u.vertex_segment[vertices(u, gastro)] == shank)
+    n = e.n_vertices
+    new = np.arange(n, u.n_vertices)
+    assert 0 < len(new) < 30 and np.all(u.vertex_segment[new] == -1)
+    others = [m for m in range(len(u.muscle_names)) if m not in gastro]
+    assert not np.any(np.isin(new, vertices(u, others)))
+    assert np.allclose(u.rest_positions[:n], e.rest_positions)
+    bound = np.flatnonzero(u.vertex_segment[:n] == shank)
+    d = np.linalg.norm(u.rest_positions[new][:, None] - u.rest_positions[bound][None], axis=2).min(1)
+    assert np.all(d < 1e-12), d
+    for c in np.flatnonzero(np.isin(u.cell_muscle, others)):
+        assert np.array_equal(u.cell(c), e.cell(c))
+    for name in ('biceps_femoris_long_head', 'semimembranosus', 'semitendinosus'):
+        m = u.muscle_index(name)
+        vs = vertices(u, [m])
+        z = u.rest_positions[vs, 2]
+        bot = vs[np.isclose(z, z.min())]
+        assert np.all(u.vertex_segment[bot] == u.segment_names.index(ends[name][1])), name
+
+
 def test_hamstring_end_rings_fully_bound_to_origin_and_insertion(built):
     """Every vertex of each hamstring's proximal end ring is bound to its origin segment and every vertex
     of its distal end ring to its insertion segment, the ones it shares with neighbouring muscles or the

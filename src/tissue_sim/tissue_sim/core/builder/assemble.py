@@ -41,6 +41,8 @@ DEFAULTS = {
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
     'bind_passed_over': True,  # a muscle's vertices may be bound to any segment between its origin and insertion
                                # (the shank for the gastrocnemii); False = not to one it passes over (below)
+    'unshare_passed_over': False,  # with bind_passed_over off: every end ring is anchored, and where such a muscle shares
+                               # a vertex with an end ring bound to the bone it passes over, it gets its own free copy
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
@@ -643,6 +645,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     allowed = np.ones((V, nseg), bool)
     passed = np.zeros((V, nseg), bool)               # a muscle using the vertex passes over the segment
     arises = np.zeros((V, nseg), bool)               # a muscle using the vertex arises from the segment
+    glides = {}                                      # muscle -> the segments it passes over (bind_passed_over off)
     for m, lab in enumerate(muscle_labels_used):
         o, i_ = tab[lab].get('origin'), tab[lab].get('insertion')
         span = segment_span(skel['segment_parent'], seg_names.index(o) if o else None, seg_names.index(i_) if i_ else None)
@@ -656,6 +659,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             row[[seg_names.index(o), seg_names.index(i_)]] = False
             passed[vm] |= row
             arises[vm, seg_names.index(o)] = True
+            glides[m] = row
     vseg = np.full(V, -1, np.int32)
     refused = 0
     bone_touch = {}
@@ -683,7 +687,29 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
 
     # ---------------------------------------------------------------- muscle origins and insertions
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
-                                 tab, seg_names, bonepix, vseg, warnings, pos, allowed & ~(passed & ~arises)) if s['anchor_muscles'] else {}
+                                 tab, seg_names, bonepix, vseg, warnings, pos,
+                                 allowed if s['unshare_passed_over'] else allowed & ~(passed & ~arises)) if s['anchor_muscles'] else {}
+
+    # ---------------------------------------------------------------- gliding muscles: their own vertices
+    # With unshare_passed_over (and bind_passed_over off), every end ring is anchored, and a vertex bound to
+    # a segment that a muscle using it passes over (an origin or insertion ring on that bone, shared with a
+    # gastrocnemius beside it) is split: the passing muscle's cells get a free copy at the same place, the
+    # ring keeps its anchor. The gastrocnemii lie in their own compartment and glide over the shank's
+    # muscles; one such shared vertex bound to the tibia pinned the medialis' cells below the knee, and
+    # left free, the hamstrings' insertion rings lost their anchor there (docs/anatomy.md, the gastrocnemii).
+    split = {}                                       # (muscle, vertex) -> its own vertex
+    if not s['bind_passed_over'] and s['unshare_passed_over'] and glides:
+        cmv = np.repeat(np.where(ctiss == M.TISSUE_MUSCLE, cmus_k, -1), sizes_k)
+        for e in np.flatnonzero(cmv >= 0):
+            m, v = int(cmv[e]), int(verts_k[e])
+            if vseg[v] >= 0 and m in glides and glides[m][vseg[v]]:
+                verts_k[e] = split.setdefault((m, v), V + len(split))
+        if split:
+            old = np.array([v for _, v in split], np.int64)
+            pos = np.concatenate([pos, pos[old]])
+            vseg = np.concatenate([vseg, np.full(len(old), -1, vseg.dtype)])
+            flags = np.concatenate([flags, np.full(len(old), M.VF_MUSCLE, flags.dtype)])
+            V = len(pos)
 
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
@@ -709,14 +735,17 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
                 gnames.append(name)
             groups.append((np.asarray(tris, np.int32), gnames.index(name)))
 
+    def own(mi, ring):                                   # a gliding muscle's ring: its own (split) vertices
+        return np.array([split.get((mi, int(v)), int(v)) for v in ring]) if split else ring
+
     for mi, rids, cids in chains_m:
         # a chain is split into runs of kept cells (a dropped degenerate cell opens it)
         run = []
         for ci, cid in enumerate(cids + [None]):
             if cid is not None and keep[cid]:
                 if not run:
-                    run.append(finv[rids[ci]])
-                run.append(finv[rids[ci + 1]])
+                    run.append(own(mi, finv[rids[ci]]))
+                run.append(own(mi, finv[rids[ci + 1]]))
             elif run:
                 add(geometry.chain_surface(run, pos), f'muscle/{muscle_names[mi]}')
                 run = []
