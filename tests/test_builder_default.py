@@ -215,3 +215,33 @@ def test_nothing_bound_across_the_knee_behind_it(built):
     assert np.all(d[up, 0] > 0.03), np.round(d[up][d[up, 0] <= 0.03] * 1e3)
     low = np.flatnonzero(tm.vertex_segment == thigh)
     assert d[low, 2].min() > -0.025, d[low, 2].min()
+
+
+def test_no_free_vertex_inside_a_bone_at_rest(built):
+    """bone_clearance_mm (default 0.5, docs/builder.md "Free vertices inside a bone"): no free vertex of the bundled
+    limb lies inside a bone mesh at rest; the moved ones lie 0.5 mm outside. Without it (None) 17 gastrocnemius
+    vertices lie 0.2-1.6 mm inside the tibia (measured), 3 of them deeper than the contact tests' 1-mm criterion."""
+    import trimesh
+    from tissue_sim.core.builder.bones import winding_number
+    tm, rep = built
+    lab, tis = builder.default_inputs()
+    raw, _ = builder.build_model(lab, tis, bone_clearance_mm=None)
+
+    def inside(t):
+        free = np.flatnonzero(np.asarray(t.vertex_segment) < 0)
+        out = {}
+        for b in range(len(t.bone_names)):
+            V, T = t.bone_mesh(b)
+            ins = free[winding_number(V, T, t.rest_positions[free]) > 0.5]
+            for v in ins:
+                cp = trimesh.triangles.closest_point(V[T], np.repeat(t.rest_positions[v:v + 1], len(T), axis=0))
+                out[int(v)] = float(np.linalg.norm(cp - t.rest_positions[v], axis=1).min())
+        return out
+
+    before = inside(raw)
+    assert len(before) >= 10 and max(before.values()) > 1e-3, before
+    assert inside(tm) == {}
+    moved = np.flatnonzero(np.any(tm.rest_positions != raw.rest_positions, axis=1))
+    assert set(moved.tolist()) == set(before)
+    assert np.all(np.linalg.norm(tm.rest_positions[moved] - raw.rest_positions[moved], axis=1) < 2.5e-3)
+    assert "'free_vertices_moved_out_of_bones': 17" in str(rep)
