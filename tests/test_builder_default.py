@@ -136,14 +136,14 @@ def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
 
 def test_gastrocnemii_glide_over_the_tibia(built):
     """Default (bind_passed_over False, unshare_passed_over True): no vertex of the gastrocnemii (femur ->
-    calcaneus) is bound to the tibia they pass over. bind_passed_over=True binds 30 of them (measured);
+    calcaneus) is bound to the tibia they pass over but the few it hides from them (wrapped round its top). bind_passed_over=True binds 30 of them (measured);
     bind_passed_over=False alone keeps 8 bound, every one shared with the origin ring of a muscle arising
     from the shank (soleus, peroneus longus, tibialis posterior, the long flexors and extensor hallucis), and
     leaves the hamstrings' insertion-ring vertices shared with them free. The default anchors every end
     ring and gives the gastrocnemius cells their own free copy of each shared vertex bound to the shank
     (measured 13). No other muscle's cells change."""
     from tissue_sim.core.builder.table import load_tissue_table
-    tm, _ = built
+    tm, rep = built
     lab, tis = builder.default_inputs()
     old, _ = builder.build_model(lab, tis, bind_passed_over=True)
     shared, _ = builder.build_model(lab, tis, unshare_passed_over=False)
@@ -158,14 +158,22 @@ def test_gastrocnemii_glide_over_the_tibia(built):
 
     assert np.count_nonzero(old.vertex_segment[vertices(old, gastro)] == shank) > 20
     g = vertices(shared, gastro)
-    still = g[shared.vertex_segment[g] == shank]
+    # the vertices the tibia hides from the gastrocnemii (in front of its top, docs/builder.md "Gliding muscles
+    # wrapped round a bone") are bound in every build with bind_passed_over False: measured 2
+    wrapped = vertices(tm, gastro)
+    wrapped = wrapped[tm.vertex_segment[wrapped] == shank]
+    assert 0 < len(wrapped) <= 3, wrapped
+    assert "'gliding_vertices_bound_where_wrapped': %d" % len(wrapped) in str(rep)
+    assert np.all(tm.rest_positions[wrapped, 0] > 0.0)       # in front of the knee (x anterior)
+    still = np.setdiff1d(g[shared.vertex_segment[g] == shank], wrapped)
     assert 0 < len(still) < 10 and np.all(np.isin(still, vertices(shared, from_shank))), still
     assert shared.n_vertices == old.n_vertices and np.array_equal(shared.cell_vertices, old.cell_vertices)
     changed = np.flatnonzero(shared.vertex_segment != old.vertex_segment)
     assert len(changed) and np.all(np.isin(changed, vertices(old, gastro)))
     # the default: none bound to the shank; each split copy is a free vertex of the gastrocnemii only, at
     # the place of a shank-bound end-ring vertex of a muscle on the shank
-    assert not np.any(tm.vertex_segment[vertices(tm, gastro)] == shank)
+    assert np.array_equal(np.flatnonzero(tm.vertex_segment == shank)[np.isin(np.flatnonzero(tm.vertex_segment == shank),
+                                                                             vertices(tm, gastro))], wrapped)
     n = shared.n_vertices
     new = np.arange(n, tm.n_vertices)
     assert 0 < len(new) < 20 and np.all(tm.vertex_segment[new] == -1)
@@ -242,6 +250,6 @@ def test_no_free_vertex_inside_a_bone_at_rest(built):
     assert len(before) >= 10 and max(before.values()) > 1e-3, before
     assert inside(tm) == {}
     moved = np.flatnonzero(np.any(tm.rest_positions != raw.rest_positions, axis=1))
-    assert set(moved.tolist()) == set(before)
+    assert set(before) <= set(moved.tolist())      # (without the move one more is hidden by the tibia: bound there)
     assert np.all(np.linalg.norm(tm.rest_positions[moved] - raw.rest_positions[moved], axis=1) < 2.5e-3)
-    assert "'free_vertices_moved_out_of_bones': 17" in str(rep)
+    assert "'free_vertices_moved_out_of_bones': %d" % len(moved) in str(rep) and len(moved) == 17

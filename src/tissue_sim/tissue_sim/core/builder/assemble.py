@@ -287,6 +287,49 @@ def segment_span(parent, a: int | None, b: int | None) -> np.ndarray | None:
     return np.array(pa[:pa.index(common) + 1] + pb[:pb.index(common)], dtype=np.int64)
 
 
+def _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bvo, bverts, bto, btris,
+                  reach: float = 0.1, n_samples: int = 40, near: float = 1.5e-3):
+    """Bind (in place, vseg) each free vertex of a gliding muscle that a bone of a segment it passes over hides from
+    the muscle: the horizontal line from the vertex towards the muscle's side of that bone (the direction from the
+    bone's centroid to the muscle's, both horizontal components) meets the bone within reach [m] (winding number
+    > 0.5 at one of n_samples points along it) and that lies farther than near [m] (the contact grid's spacing,
+    Params.contact_grid) from the bone: nearer, the bone contact holds it on the surface it slides round. Returns how
+    many were bound."""
+    import trimesh
+    from .bones import winding_number
+    n = 0
+    for m, row in glides.items():
+        cm = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus_k == m))
+        vm = np.unique(np.concatenate([verts_k[offsets_k[c]:offsets_k[c + 1]] for c in cm]))
+        for b in range(len(bvo) - 1):
+            sg = int(bseg[b])
+            if not row[sg] or bto[b + 1] == bto[b]:
+                continue
+            V, T = bverts[bvo[b]:bvo[b + 1]], btris[bto[b]:bto[b + 1]]
+            lo, hi = V.min(0), V.max(0)
+            free = vm[(vseg[vm] < 0) & (pos[vm, 2] >= lo[2]) & (pos[vm, 2] <= hi[2])]
+            if not len(free):
+                continue
+            d = pos[vm].mean(0) - V.mean(0)
+            d[2] = 0.0
+            if np.linalg.norm(d) < 1e-9:
+                continue
+            d /= np.linalg.norm(d)
+            f = (np.arange(1, n_samples + 1) / n_samples * reach)[None, :, None]
+            pts = (pos[free][:, None, :] + f * d[None, None, :]).reshape(-1, 3)
+            box = np.all((pts >= lo) & (pts <= hi), axis=1)
+            hit = np.zeros(len(pts), bool)
+            if box.any():
+                hit[box] = winding_number(V, T, pts[box]) > 0.5
+            for v in free[hit.reshape(len(free), n_samples).any(1)]:
+                cp = trimesh.triangles.closest_point(V[T], np.repeat(pos[v:v + 1], len(T), axis=0))
+                if np.linalg.norm(cp - pos[v], axis=1).min() <= near:
+                    continue                                # on the bone's surface: the contact slides it round
+                vseg[v] = sg
+                n += 1
+    return n
+
+
 def _out_of_bones(pos, free, bvo, bverts, bto, btris, clearance: float, rounds: int = 3):
     """(positions, count moved): every free vertex inside a bone mesh (winding number > 0.5) moved to its
     closest point on that mesh plus clearance [m] along the direction out of it; repeated (a vertex moved
@@ -835,6 +878,15 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             fib = np.array([p[len(p) // 2:].mean(0) - p[:len(p) // 2].mean(0) for p in P]).reshape(C, 3)
             fib /= np.linalg.norm(fib, axis=1, keepdims=True)
 
+    # ---------------------------------------------------------------- gliding muscles wrapped round a bone
+    # A muscle glides over a bone it passes over on its own side of it. Where its section wraps round that
+    # bone (the bone lies between one of its vertices and the muscle's side of it), that part cannot glide:
+    # left free, it is dragged across the bone by the rest of the muscle. Such a vertex is bound to the bone's
+    # segment (docs/builder.md "Gliding muscles wrapped round a bone").
+    n_wrapped = 0
+    if glides and len(bnames):
+        n_wrapped = _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bvo, bverts, bto, btris)
+
     cell_vol = vols[kc]
     tm = M.TissueModel(
         name=table['name'],
@@ -872,7 +924,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     label_vol['fat'] = float(sum(counts[l] for l in fat_labels)) * vox_m3
     checks = {'label_volume_m3': label_vol, 'breaks': breaks, 'fragments': fragments, 'bridged': [[tab[l]['name'], z] for l, z in bridged],
               'bone_touch': {tab[l]['name']: bone_touch.get(tab[l]['name'], 0) for l in bone_labels},
-              'refused_across_joint': refused, 'moved_out_of_bones': n_moved_out, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
+              'refused_across_joint': refused, 'moved_out_of_bones': n_moved_out, 'wrapped_bound': n_wrapped, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
     report = quality_report(tm, checks=checks, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
                             dropped_cells=dropped_cells, warnings=warnings, n_unshared=n_unshared,
                             n_before_sharing=len(pos0), bone_info=bone_info, build_s=build_s)
