@@ -229,8 +229,8 @@ def test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest(defau
     the kinetic energy of the last 0.5 s is below 5 % of its peak. The paper set at full activation is the slowest:
     the dimensionless Table-2 set has no damping but the cells' deformation damping (docs/solver.md "Energy"), and its
     swing's kinetic energy decays with a time constant tau of ~6.7 s on the bundled limb with the gastrocnemius
-    tendons (window peaks 132 J -> 3.5 J over 24.5 s; ~5 s before them). 5 % of the peak takes ln(20) tau ~ 20 s
-    from the peak (0.2 s), so the run is 22 s (measured 4.2 % at 22 s, 5.5 % at 20 s, 3.1 % at 24 s); the bound
+    tendons (window peaks 129 J -> 3.4 J over 24.5 s; ~5 s before them). 5 % of the peak takes ln(20) tau ~ 20 s
+    from the peak (0.2 s), so the run is 22 s (measured 4.2 % at 22 s, 5.7 % at 20 s, 3.2 % at 24 s); the bound
     stays 5 %, and in that run the largest kinetic energy of each 0.5-s window must be below the one before
     (measured: all 41 steps), so the knee is coming to rest whatever the run's length. Fails with the earlier integral
     volume term (volume_relax_time 0.005): the paper set then swings on at 20-55 J, the windows' largest energy
