@@ -136,7 +136,8 @@ def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
 
 def test_gastrocnemii_glide_over_the_tibia(built):
     """Default (bind_passed_over False, unshare_passed_over True): no vertex of the gastrocnemii (femur ->
-    calcaneus) is bound to the tibia they pass over but the few it hides from them (wrapped round its top). bind_passed_over=True binds 30 of them (measured);
+    calcaneus) is bound to the tibia they pass over but the few it hides from them (wrapped round its top).
+    bind_passed_over=True binds 30 of them (measured);
     bind_passed_over=False alone keeps 8 bound, every one shared with the origin ring of a muscle arising
     from the shank (soleus, peroneus longus, tibialis posterior, the long flexors and extensor hallucis), and
     leaves the hamstrings' insertion-ring vertices shared with them free. The default anchors every end

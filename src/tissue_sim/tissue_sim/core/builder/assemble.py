@@ -924,7 +924,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     label_vol['fat'] = float(sum(counts[l] for l in fat_labels)) * vox_m3
     checks = {'label_volume_m3': label_vol, 'breaks': breaks, 'fragments': fragments, 'bridged': [[tab[l]['name'], z] for l, z in bridged],
               'bone_touch': {tab[l]['name']: bone_touch.get(tab[l]['name'], 0) for l in bone_labels},
-              'refused_across_joint': refused, 'moved_out_of_bones': n_moved_out, 'wrapped_bound': n_wrapped, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
+              'refused_across_joint': refused,
+              'moved_out_of_bones': n_moved_out, 'wrapped_bound': n_wrapped, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
     report = quality_report(tm, checks=checks, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
                             dropped_cells=dropped_cells, warnings=warnings, n_unshared=n_unshared,
                             n_before_sharing=len(pos0), bone_info=bone_info, build_s=build_s)
