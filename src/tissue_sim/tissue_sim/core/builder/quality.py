@@ -137,6 +137,8 @@ def quality_checks(tm, vols, checks: dict) -> tuple[dict, list]:
     sec = {'volume_ratio': vol_rows, 'label_volume_cm3': {k: round(v * 1e6, 2) for k, v in checks['label_volume_m3'].items()},
            'breaks': checks['breaks'], 'fragments_left_out': checks.get('fragments', []), 'bridged_small_components': checks['bridged'], 'shear_limit': lim, 'shear': shear,
            'bone_attached_vertices': checks['bone_touch'], 'attachment_refused_across_joint': checks['refused_across_joint'],
+           'free_vertices_moved_out_of_bones': checks.get('moved_out_of_bones', 0),
+           'gliding_vertices_bound_where_wrapped': checks.get('wrapped_bound', 0),
            'sections_not_followed': checks['not_represented'],
            'warnings': warn}
     return sec, warn
