@@ -13,13 +13,14 @@ from tissue_sim.core.solver import cells as K
 two_threads = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason='needs NUMBA_NUM_THREADS >= 2')
 
 
-def _with_tasks(cells, per_task):
-    """The layout cut into tasks of per_task positions (what pack_cells' task_positions does)."""
-    g = cells.groups
-    t = np.array([(gi, j0, min(j0 + per_task, g[gi, 1])) for gi in range(g.shape[0])
-                  for j0 in range(0, g[gi, 1], per_task)], np.int64).reshape(-1, 3)
-    t.flags.writeable = False
-    return cells._replace(tasks=t)
+def _with_tasks(sim, per_task):
+    """The model's layout packed with tasks of per_task positions (pack_cells' task_positions): the cut and, with it,
+    which vertices one task forces alone (excl) and the per-vertex order of the others' slot forces (gvert/gptr/gsrc).
+    (Replacing only the tasks of the default layout leaves excl of the default cut: a vertex it calls one task's may
+    then get forces from two tasks, added in task order, not lane_forces' order.)"""
+    return K.pack_cells(sim.off, sim.cv, sim.X0, sim.cell_muscle, sim.k, sim.k_active, sim.damp_b, sim.k_volume,
+                        sim.q_tr, sim.q_ff, sim.rest_length, sim.fibre, sim.Qinv, task_positions=per_task,
+                        volume_cap=sim.volume_cap)
 
 
 def _pass(kernel, sim, cells, x, v, lam, act, threads=None, calls=3):
@@ -60,7 +61,7 @@ def deformed(default_tm):
 @pytest.mark.parametrize('per_task', [1, 3, K.TASK_POSITIONS])
 def test_parallel_pass_is_bit_identical_to_the_serial_one_for_1_and_2_threads(deformed, per_task):
     sim, x, v, lam, act = deformed
-    cells = _with_tasks(sim.cell_blocks, per_task)
+    cells = _with_tasks(sim, per_task)
     assert cells.tasks.shape[0] > cells.groups.shape[0]          # cut rings present
     serial = _pass(K.lane_forces, sim, cells, x, v, lam, act)
     assert serial[0] == -1 and np.abs(serial[1]).max() > 0 and np.all(np.isfinite(serial[1]))
@@ -73,7 +74,7 @@ def test_parallel_pass_is_bit_identical_to_the_serial_one_for_1_and_2_threads(de
 @two_threads
 def test_parallel_pass_names_the_same_bad_cell(deformed):
     sim, x, v, lam, act = deformed
-    cells = _with_tasks(sim.cell_blocks, 2)
+    cells = _with_tasks(sim, 2)
     xb = x.copy()
     worst = sim.cv[sim.off[sim.n_cells - 5]]            # a vertex of a late cell, and one of an early cell
     xb[worst] = np.nan
