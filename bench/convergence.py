@@ -198,6 +198,9 @@ def main():
     ap.add_argument('--stiffness', choices=('as-is', 'moment'), default='as-is',
                     help="'as-is': the models' own stiffness (default); 'moment' (an experiment): each cell's passive "
                          "stiffness set so that k J = c E V with c of the default model (mesh-independent)")
+    ap.add_argument('--active-length', choices=P.ACTIVE_LENGTHS, default=None,
+                    help="the active tension's rest length (Params.active_length; default: the physical set's): 'chord' or "
+                         "'path' (along each muscle's smoothed centre line)")
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
     a = ap.parse_args()
     if a.quick:
@@ -218,6 +221,8 @@ def main():
         sys.exit(f'error: --substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
     from tissue_sim.core.builder import default_model
     base = P.Params.physical(integrator=integ)
+    if a.active_length:
+        base = dataclasses.replace(base, active_length=a.active_length).validate()
     if integ == 'explicit' and mode == 'set':
         base = dataclasses.replace(base, substeps=0).validate()      # true masses: automatic sub-steps (stability)
     runs, omega1 = [], None
@@ -255,7 +260,7 @@ def main():
         pass
     out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
                          '--activate hamstrings=1)', 'integrator': integ, 'substeps_mode': mode,
-           'duration_s': a.duration, 'stiffness': a.stiffness, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
+           'duration_s': a.duration, 'stiffness': a.stiffness, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
     shrink = [d['max_deg'] for d in diffs if d]
     out['differences_shrink'] = bool(len(shrink) >= 2 and all(b < a_ for a_, b in zip(shrink, shrink[1:])))
@@ -264,6 +269,7 @@ def main():
     (od / 'convergence.json').write_text(json.dumps(out, indent=1))
     try:
         plot(runs, od / 'convergence.png', f'knee flexion, hamstrings fully active; {integ}, sub-steps {mode}'
+             + f'; active length {base.active_length}'
              + ('; stiffness per volume as the default model' if a.stiffness == 'moment' else ''))
     except Exception as e:  # report, do not hide
         print(f'plot not written ({type(e).__name__}: {e})')

@@ -24,6 +24,7 @@ MASS_MODES = ('uniform', 'density')
 STIFFNESS_MODES = ('given', 'modulus')
 VOLUME_MODES = ('actual', 'rest')
 INTEGRATORS = ('mass_scaled', 'explicit', 'implicit')
+ACTIVE_LENGTHS = ('chord', 'path')
 
 
 @dataclasses.dataclass
@@ -64,6 +65,11 @@ class Params:
     relax_rate: float = 0.998             # factor (<1) by which the stretch recovers towards its target per rate_dt
     rate_dt: float = 1e-3                 # [s] time unit of contraction_rate/relax_rate (paper: per dT)
     min_stretch: float = 0.7              # fibre stretch reached at full activation; > 0, the shortening limit
+    active_length: str = 'chord'          # the active tension's rest length L of a muscle cell: 'chord' = the distance between
+                                          # its ring centroids; 'path' = that chord projected on the muscle's centre line
+                                          # smoothed over active_path_sigma (the rings' lateral offsets are not fibre length:
+                                          # a chain under tension pulls them straight and loses force; docs/solver.md)
+    active_path_sigma: float = 0.015      # [m] the centre line's Gaussian smoothing length ('path')
     volume_stiffness: float = 1.0         # muscle volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k (0 = off; keeps
                                           # each muscle cell's volume; the earlier default, with the pressure term, was 0.5)
     volume_relax_time: float = 0.0        # [s] integral (pressure) term restoring each muscle cell's volume; 0 = off (default:
@@ -200,6 +206,9 @@ class Params:
         need(0 < self.contraction_rate <= 1, 'contraction_rate must be in (0, 1]')
         need(0 < self.relax_rate <= 1, 'relax_rate must be in (0, 1]')
         need(0.2 <= self.min_stretch <= 1, 'min_stretch must be in [0.2, 1] (a muscle cannot shorten without bound)')
+        need(self.active_length in ACTIVE_LENGTHS, f'active_length must be one of {ACTIVE_LENGTHS}')
+        need(math.isfinite(self.active_path_sigma) and 0 < self.active_path_sigma <= 0.2,
+             'active_path_sigma must be in (0, 0.2] m')
         need(len(tuple(self.gravity)) == 3, 'gravity must be 3 numbers')
         self.gravity = tuple(float(g) for g in self.gravity)
         need(0 <= self.contact_margin <= 0.01, 'contact_margin must be in [0, 0.01] m')

@@ -1,0 +1,102 @@
+"""The active tension's rest length along the muscle's centre line (`Params.active_length: path`, docs/solver.md
+"Active tension", docs/convergence.md "The active tension's rest length").
+
+A muscle cell's active tension T = a k_a n/4 max(l - lam L, 0) pulls its two ring centroids together. With
+`chord` (the default) L is the rest distance between them; the rings' centroids wander sideways from slice to slice,
+a chain under tension pulls those offsets straight and its cells end up shorter than L, delivering less than the
+calibrated force, the more the finer the slices. `path` measures L along the muscle's smoothed centre line."""
+import types
+
+import numpy as np
+import pytest
+
+from tissue_sim.core import solver
+from tissue_sim.core.solver import measures, model as M
+
+HAMSTRINGS = ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus', 'semitendinosus')
+
+
+def _zigzag_chain(n_cells=30, gap=0.01, offset=0.003, ring=6, radius=0.01):
+    """A straight muscle along z built of n_cells prisms whose rings sit alternately +-offset off the axis in x
+    (the centroid wander of a segmented muscle), plus one fat cell; the fields path_lengths reads."""
+    ang = np.linspace(0, 2 * np.pi, ring, endpoint=False)
+    rings = [np.stack([radius * np.cos(ang) + offset * (-1) ** s, radius * np.sin(ang), np.full(ring, s * gap)], 1)
+             for s in range(n_cells + 1)]
+    x = np.concatenate(rings + [rings[0] + (0.05, 0, 0), rings[1] + (0.05, 0, 0)])
+    cv, off = [], [0]
+    for c in range(n_cells):
+        cv += list(range(c * ring, (c + 1) * ring)) + list(range((c + 1) * ring, (c + 2) * ring))
+        off.append(len(cv))
+    base = (n_cells + 1) * ring
+    cv += list(range(base, base + 2 * ring))
+    off.append(len(cv))
+    tm = types.SimpleNamespace(n_muscles=1, cell_muscle=np.array([0] * n_cells + [-1]),
+                               cell_slice=np.array(list(range(n_cells)) + [0]))
+    return tm, x, np.array(off), np.array(cv)
+
+
+def test_path_length_of_a_zigzag_chain_is_its_length_along_the_axis():
+    tm, x, off, cv = _zigzag_chain()
+    chord = np.zeros(len(off) - 1)
+    measures.cell_axial_lengths(x, off, cv, chord)
+    assert np.allclose(chord[:-1], np.hypot(0.01, 0.006))          # each chord crosses the axis: 11.7 mm
+    L = M.path_lengths(tm, x, off, cv, chord, sigma=0.015)
+    assert np.allclose(L[:-1], 0.01, rtol=2e-3), L[:-1]             # along the centre line: the 10-mm gap
+    assert L[-1] == chord[-1]                                       # a fat cell keeps its chord
+    # a muscle that truly bends keeps its length: the same chain on a 60-mm-radius arc, no zigzag
+    tm, x, off, cv = _zigzag_chain(offset=0.0)
+    z = x[:, 2].copy()
+    bent = x.copy()
+    bent[:, 0] = x[:, 0] + 0.06 * (1 - np.cos(z / 0.06))
+    bent[:, 2] = 0.06 * np.sin(z / 0.06)
+    chord = np.zeros(len(off) - 1)
+    measures.cell_axial_lengths(bent, off, cv, chord)
+    L = M.path_lengths(tm, bent, off, cv, chord, sigma=0.015)
+    assert np.allclose(L[3:-4], chord[3:-4], rtol=2e-3) and np.all(L[:-1] > 0.97 * chord[:-1])   # (the ends of a
+    # 286-deg arc lose < 3 %: the smoothing holds the centre line's ends)
+
+
+def test_chord_is_the_default_and_path_only_shortens(default_tm):
+    p = solver.Params.physical()
+    assert p.active_length == 'chord'
+    a = solver.compile_model(default_tm, p)
+    b = solver.compile_model(default_tm, solver.Params.physical(active_length='path'))
+    chord = np.zeros(default_tm.n_cells)
+    measures.cell_axial_lengths(np.asarray(default_tm.rest_positions, float), a.off, a.cv, chord)
+    assert np.array_equal(a.rest_length, chord)
+    mus = np.asarray(default_tm.cell_muscle) >= 0
+    assert np.all(b.rest_length <= chord * (1 + 1e-12)) and np.all(b.rest_length >= 0.5 * chord * (1 - 1e-12))
+    assert np.array_equal(b.rest_length[~mus], chord[~mus])
+    assert 0.9 < np.median(b.rest_length[mus] / chord[mus]) < 1.0
+    with pytest.raises(ValueError, match='active_length'):
+        solver.Params.physical(active_length='fibre')
+    with pytest.raises(ValueError, match='active_path_sigma'):
+        solver.Params.physical(active_path_sigma=0.0)
+
+
+def _isometric_forces(tm, active_length):
+    """Each hamstring's active force [N] with the knee locked at 0 deg, all four fully active, after 0.3 s."""
+    p = solver.Params.physical(integrator='implicit', substeps=1, active_length=active_length)
+    sim = solver.compile_model(tm, p)
+    st, ctl = solver.make_state(sim), solver.make_control(sim)
+    ctl.joint_lock[list(tm.joint_names).index('knee_r')] = True
+    idx = [list(tm.muscle_names).index(n) for n in HAMSTRINGS]
+    ctl.activation[idx] = 1.0
+    for _ in range(300):
+        solver.step(sim, st, ctl)
+    return solver.observe(sim, st)['muscle_active_forces'][idx]
+
+
+@pytest.mark.slow
+def test_path_length_keeps_the_isometric_hamstring_forces_on_a_finer_model(default_tm):
+    """Held at 0 deg, 1x against 2x (`default_model(refine=2)`): with `chord` every hamstring delivers 9-24 % less
+    on the finer model (its chains straighten further); along the centre line within 8 %."""
+    from tissue_sim.core.builder import default_model
+    fine = default_model(refine=2)
+    rel = {}
+    for mode in ('chord', 'path'):
+        coarse_f, fine_f = _isometric_forces(default_tm, mode), _isometric_forces(fine, mode)
+        rel[mode] = np.abs(fine_f / coarse_f - 1.0)
+        print(f'\n{mode}: 1x {np.round(coarse_f)} N, 2x {np.round(fine_f)} N, |2x/1x - 1| {np.round(rel[mode], 3)}')
+    assert rel['path'].max() < 0.08, rel
+    assert rel['chord'].max() > 2 * rel['path'].max(), rel
