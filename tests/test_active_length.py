@@ -2,9 +2,9 @@
 "Active tension", docs/convergence.md "The active tension's rest length").
 
 A muscle cell's active tension T = a k_a n/4 max(l - lam L, 0) pulls its two ring centroids together. With
-`chord` (the default) L is the rest distance between them; the rings' centroids wander sideways from slice to slice,
+`chord` (the paper set's, which has no tension) L is the rest distance between them; the rings' centroids wander sideways from slice to slice,
 a chain under tension pulls those offsets straight and its cells end up shorter than L, delivering less than the
-calibrated force, the more the finer the slices. `path` measures L along the muscle's smoothed centre line."""
+calibrated force, the more the finer the slices. `path` (the physical set's) measures L along the muscle's smoothed centre line."""
 import types
 
 import numpy as np
@@ -41,7 +41,8 @@ def test_path_length_of_a_zigzag_chain_is_its_length_along_the_axis():
     measures.cell_axial_lengths(x, off, cv, chord)
     assert np.allclose(chord[:-1], np.hypot(0.01, 0.006))          # each chord crosses the axis: 11.7 mm
     L = M.path_lengths(tm, x, off, cv, chord, sigma=0.015)
-    assert np.allclose(L[:-1], 0.01, rtol=2e-3), L[:-1]             # along the centre line: the 10-mm gap
+    assert np.allclose(L[1:-2], 0.01, rtol=2e-3), L[1:-2]           # along the centre line: the 10-mm gap
+    assert L[0] == chord[0] and L[-2] == chord[-2]                  # the end gaps keep their chord
     assert L[-1] == chord[-1]                                       # a fat cell keeps its chord
     # a muscle that truly bends keeps its length: the same chain on a 60-mm-radius arc, no zigzag
     tm, x, off, cv = _zigzag_chain(offset=0.0)
@@ -56,11 +57,10 @@ def test_path_length_of_a_zigzag_chain_is_its_length_along_the_axis():
     # 286-deg arc lose < 3 %: the smoothing holds the centre line's ends)
 
 
-def test_chord_is_the_default_and_path_only_shortens(default_tm):
-    p = solver.Params.physical()
-    assert p.active_length == 'chord'
-    a = solver.compile_model(default_tm, p)
-    b = solver.compile_model(default_tm, solver.Params.physical(active_length='path'))
+def test_path_is_the_physical_sets_and_only_shortens(default_tm):
+    assert solver.Params.physical().active_length == 'path' and solver.Params.paper().active_length == 'chord'
+    a = solver.compile_model(default_tm, solver.Params.physical(active_length='chord'))
+    b = solver.compile_model(default_tm, solver.Params.physical())
     chord = np.zeros(default_tm.n_cells)
     measures.cell_axial_lengths(np.asarray(default_tm.rest_positions, float), a.off, a.cv, chord)
     assert np.array_equal(a.rest_length, chord)

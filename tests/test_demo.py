@@ -43,7 +43,7 @@ def test_demo_default_flexes_the_knee_and_writes_analysis_and_figures(tmp_path):
 
 def test_demo_motion_knob_runs_a_named_motion(tmp_path):
     """`make demo MOTION=heel_raise`: the activation node runs the named motion for its own duration
-    (1.5 s of sim time); the ankle plantarflexes (measured -42.2 deg at the end, as headless) and the
+    (1.5 s of sim time); the ankle plantarflexes (measured -50.0 deg at the end, the stop, as headless) and the
     analysis finds the ankle as the joint that moved."""
     env = dict(os.environ, TISSUE_SIM_RUNS=str(tmp_path), MOTION='heel_raise', DEMO_MARKERS='0', DEMO_TIMEOUT='240')
     env.pop('ROS_DOMAIN_ID', None)

@@ -309,8 +309,9 @@ MOTIONS = {
          'quadriceps': [(0.0, 0.0), (0.7, 0.0), (0.75, 0.6), (1.1, 0.6), (1.3, 0.0)]}),
     'heel_raise': Motion(
         'a heel raise: the triceps surae (gastrocnemii and soleus) ramp to 0.5 over 0.5 s and hold: the '
-        'ankle plantarflexes', 'ankle_r', 1.5,
-        {'triceps_surae': [(0.0, 0.0), (0.5, 0.5)]}),
+        'ankle plantarflexes; the quadriceps ramp to 0.3 with them and hold the knee extended, as standing '
+        '(the gastrocnemii cross the knee: alone they flex it ~50 deg)', 'ankle_r', 1.5,
+        {'triceps_surae': [(0.0, 0.0), (0.5, 0.5)], 'quadriceps': [(0.0, 0.0), (0.5, 0.3)]}),
     'ankle_pump': Motion(
         'an ankle pump: tibialis anterior (0.8) dorsiflexes the ankle, then the triceps surae (0.5) '
         'plantarflex it, alternating (0.7 s each, a 1.5-s period, two cycles)', 'ankle_r', 3.0,

@@ -388,7 +388,8 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
                  sigma: float, floor: float = 0.5) -> np.ndarray:
     """(C,) [m] the active tension's rest length of each muscle cell along its muscle's centre line (`active_length: path`):
     the cell's ring-centroid chord projected on the tangent of the muscle's centre line at its slice gap, at least
-    ``floor`` x the chord; fat cells keep ``chord_len``. The centre line: the mean of each gap's cell centres, slice by
+    ``floor`` x the chord; fat cells and the cells of each muscle's first and last slice gap keep ``chord_len`` (the
+    chain's line of pull into its anchored end ring, which the smoothed line cuts short). The centre line: the mean of each gap's cell centres, slice by
     slice, smoothed with a Gaussian of ``sigma`` [m] (in gap steps: sigma / the mean gap spacing) and differentiated.
     Why: the rings' centroids wander sideways from slice to slice (segmentation, each ring's own polygon), more per
     length the finer the slices; a chain of cells under tension pulls those offsets straight, shortening every cell's
@@ -419,8 +420,9 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
         else:
             continue
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-300)
-        along = np.abs(np.einsum('ij,ij->i', chord[cells], tangent[gap]))
-        out[cells] = np.maximum(along, floor * out[cells])
+        along = np.maximum(np.abs(np.einsum('ij,ij->i', chord[cells], tangent[gap])), floor * out[cells])
+        inner = (gap > 0) & (gap < line.shape[0] - 1)       # the end gaps keep their chord: there the chain turns
+        out[cells[inner]] = along[inner]                    # into its attachment, which the smoothed line cuts
     return out
 
 

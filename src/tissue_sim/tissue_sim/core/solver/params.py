@@ -143,7 +143,8 @@ class Params:
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
-                    fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3)
+                    fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3,
+                    active_length='path')
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
