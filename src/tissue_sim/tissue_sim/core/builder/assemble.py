@@ -29,6 +29,7 @@ from .sharing import share_groups
 # 1700-2878, every 25th, 540 fat cells = 45 slice gaps x 12 rays); sections='rays' is the paper's
 # cross-section method. See docs/builder.md.
 SLICE_KEYS = ('slices', 'slice_mm', 'slice_step')
+NONE_IS_A_VALUE = ('attach_mm', 'bone_clearance_mm')   # settings whose None means 'off' (not 'the default')
 DEFAULTS = {
     'slices': 46,              # this many slices evenly over the labelled extent (the paper's 46 slices)
     'slice_mm': None,          # or a slice spacing [mm] (the paper's was 25 mm over a 1178-mm stack)
@@ -135,7 +136,7 @@ def settings_with_defaults(settings: dict) -> dict:
     s = dict(DEFAULTS)
     if given:
         s.update({k: None for k in SLICE_KEYS})
-    s.update({k: v for k, v in settings.items() if v is not None or k in ('attach_mm', 'bone_clearance_mm')})
+    s.update({k: v for k, v in settings.items() if v is not None or k in NONE_IS_A_VALUE})
     for k in ('muscle_rays', 'fat_rays'):
         if int(s[k]) != s[k] or s[k] < 3:
             raise UserError(f'{k} must be an integer >= 3, got {s[k]!r}')
@@ -287,6 +288,14 @@ def segment_span(parent, a: int | None, b: int | None) -> np.ndarray | None:
     return np.array(pa[:pa.index(common) + 1] + pb[:pb.index(common)], dtype=np.int64)
 
 
+def _nearest_on_triangles(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The point of the triangles tri (T, 3, 3) nearest to p (3,) (all triangles tried: build time, few points; trimesh's
+    proximity queries would need rtree)."""
+    import trimesh
+    cp = trimesh.triangles.closest_point(tri, np.repeat(np.asarray(p, float)[None], len(tri), axis=0))
+    return cp[int(np.argmin(np.linalg.norm(cp - p, axis=1)))]
+
+
 def _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bvo, bverts, bto, btris,
                   reach: float = 0.1, n_samples: int = 40, near: float = 1.5e-3):
     """Bind (in place, vseg) each free vertex of a gliding muscle that a bone of a segment it passes over hides from
@@ -295,7 +304,6 @@ def _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bv
     > 0.5 at one of n_samples points along it) and that lies farther than near [m] (the contact grid's spacing,
     Params.contact_grid) from the bone: nearer, the bone contact holds it on the surface it slides round. Returns how
     many were bound."""
-    import trimesh
     from .bones import winding_number
     n = 0
     for m, row in glides.items():
@@ -322,8 +330,7 @@ def _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bv
             if box.any():
                 hit[box] = winding_number(V, T, pts[box]) > 0.5
             for v in free[hit.reshape(len(free), n_samples).any(1)]:
-                cp = trimesh.triangles.closest_point(V[T], np.repeat(pos[v:v + 1], len(T), axis=0))
-                if np.linalg.norm(cp - pos[v], axis=1).min() <= near:
+                if np.linalg.norm(_nearest_on_triangles(V[T], pos[v]) - pos[v]) <= near:
                     continue                                # on the bone's surface: the contact slides it round
                 vseg[v] = sg
                 n += 1
@@ -334,7 +341,6 @@ def _out_of_bones(pos, free, bvo, bverts, bto, btris, clearance: float, rounds: 
     """(positions, count moved): every free vertex inside a bone mesh (winding number > 0.5) moved to its
     closest point on that mesh plus clearance [m] along the direction out of it; repeated (a vertex moved
     into a neighbouring bone is moved again), at most rounds times."""
-    import trimesh
     from .bones import winding_number
     pos = pos.copy()
     moved = set()
@@ -352,11 +358,10 @@ def _out_of_bones(pos, free, bvo, bverts, bto, btris, clearance: float, rounds: 
             ins = box[winding_number(V, T, P[box]) > 0.5]
             tri = V[T]
             for i in ins:
-                cp = trimesh.triangles.closest_point(tri, np.repeat(P[i:i + 1], len(T), axis=0))
-                k = int(np.argmin(np.linalg.norm(cp - P[i], axis=1)))
-                d = cp[k] - P[i]
+                cp = _nearest_on_triangles(tri, P[i])
+                d = cp - P[i]
                 n = d / max(np.linalg.norm(d), 1e-12)
-                pos[free[i]] = cp[k] + clearance * n
+                pos[free[i]] = cp + clearance * n
                 moved.add(int(free[i]))
                 any_in = True
         if not any_in:

@@ -389,8 +389,9 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
     """(C,) [m] the active tension's rest length of each muscle cell along its muscle's centre line (`active_length: path`):
     the cell's ring-centroid chord projected on the tangent of the muscle's centre line at its slice gap, at least
     ``floor`` x the chord; fat cells and the cells of each muscle's first and last slice gap keep ``chord_len`` (the
-    chain's line of pull into its anchored end ring, which the smoothed line cuts short). The centre line: the mean of each gap's cell centres, slice by
-    slice, smoothed with a Gaussian of ``sigma`` [m] (in gap steps: sigma / the mean gap spacing) and differentiated.
+    chain's line of pull into its anchored end ring, which the smoothed line cuts short). The centre line: the mean of
+    each gap's cell centres, slice by slice, smoothed with a Gaussian of ``sigma`` [m] (in gap steps: sigma / the mean
+    gap spacing) and differentiated.
     Why: the rings' centroids wander sideways from slice to slice (segmentation, each ring's own polygon), more per
     length the finer the slices; a chain of cells under tension pulls those offsets straight, shortening every cell's
     chord (l / L 0.95 -> 0.92 held isometric, 1x -> 2x) and, with the tension linear in l - lam L, losing force with
@@ -412,13 +413,10 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
         _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
         count = np.bincount(gap)
         line = np.stack([np.bincount(gap, weights=centre[cells, k]) for k in range(3)], axis=1) / count[:, None]
-        if line.shape[0] >= 3:
-            spacing = float(np.mean(np.linalg.norm(np.diff(line, axis=0), axis=1)))
-            tangent = np.gradient(gaussian_filter1d(line, sigma / max(spacing, 1e-9), axis=0, mode='nearest'), axis=0)
-        elif line.shape[0] == 2:
-            tangent = np.repeat(line[1:] - line[:1], 2, axis=0)
-        else:
-            continue
+        if line.shape[0] < 3:
+            continue                                        # end gaps only
+        spacing = float(np.mean(np.linalg.norm(np.diff(line, axis=0), axis=1)))
+        tangent = np.gradient(gaussian_filter1d(line, sigma / max(spacing, 1e-9), axis=0, mode='nearest'), axis=0)
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-300)
         along = np.maximum(np.abs(np.einsum('ij,ij->i', chord[cells], tangent[gap])), floor * out[cells])
         inner = (gap > 0) & (gap < line.shape[0] - 1)       # the end gaps keep their chord: there the chain turns
