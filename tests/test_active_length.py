@@ -1,10 +1,11 @@
-"""The active tension's rest length along the muscle's centre line (`Params.active_length: path`, docs/solver.md
-"Active tension", docs/convergence.md "The active tension's rest length").
+"""The active tension's rest length along the muscle's centre line (`Params.active_length: path`; docs/solver.md
+"The tension's rest length along the muscle", docs/convergence.md "Where it stands").
 
-A muscle cell's active tension T = a k_a n/4 max(l - lam L, 0) pulls its two ring centroids together. With
-`chord` (the paper set's, which has no tension) L is the rest distance between them; the rings' centroids wander sideways from slice to slice,
-a chain under tension pulls those offsets straight and its cells end up shorter than L, delivering less than the
-calibrated force, the more the finer the slices. `path` (the physical set's) measures L along the muscle's smoothed centre line."""
+A muscle cell's active tension T = a k_a n/4 max(l - lam L, 0) pulls its two ring centroids together. With `chord`
+(the paper set's, which has no tension) L is the rest distance between them; the rings' centroids wander sideways from
+slice to slice, a chain under tension pulls those offsets straight and its cells end up shorter than L, delivering
+less than the calibrated force, the more the finer the slices. `path` (the physical set's) measures L along the
+muscle's smoothed centre line; the cells of its first and last gap keep their chord."""
 import types
 
 import numpy as np
