@@ -5,7 +5,12 @@ A muscle cell's active tension T = a k_a n/4 max(l - lam L, 0) pulls its two rin
 (the paper set's, which has no tension) L is the rest distance between them; the rings' centroids wander sideways from
 slice to slice, a chain under tension pulls those offsets straight and its cells end up shorter than L, delivering
 less than the calibrated force, the more the finer the slices. `path` (the physical set's) measures L along the
-muscle's smoothed centre line; the cells of its first and last gap keep their chord."""
+muscle's smoothed centre line; the cells of its first and last gap keep their chord.
+
+The same centre line (`measures.centre_lines`) is what a muscle's reported length is measured along with
+`Params.length_measure: centre_line` (the physical set's; docs/solver.md "Muscle length"): end ring to end ring
+through the smoothed gap centres, so that neither the rings' sideways wander nor a slack chain's kinks count as
+musculotendon length."""
 import types
 
 import numpy as np
@@ -73,6 +78,48 @@ def test_path_is_the_physical_sets_and_only_shortens(default_tm):
         solver.Params.physical(active_length='fibre')
     with pytest.raises(ValueError, match='active_path_sigma'):
         solver.Params.physical(active_path_sigma=0.0)
+
+
+def test_centre_line_length_is_the_musculotendon_length_not_the_chord_sum():
+    # a straight chain: end ring to end ring, whatever the smoothing
+    tm, x, off, cv = _zigzag_chain(offset=0.0)
+    lines = measures.centre_lines(tm, off, cv, x, 0.015)
+    assert lines.lengths(x, 1)[0] == pytest.approx(0.30, rel=1e-12)
+    # the zigzag: the chord sum counts the sideways wander (30 x 11.7 mm), the centre line does not
+    tm, x, off, cv = _zigzag_chain()
+    chord = np.zeros(len(off) - 1)
+    measures.cell_axial_lengths(x, off, cv, chord)
+    lines = measures.centre_lines(tm, off, cv, x, 0.015)
+    assert chord[:-1].sum() == pytest.approx(0.35, rel=2e-3)
+    assert lines.lengths(x, 1)[0] == pytest.approx(0.30, rel=0.01)
+    # a true bend of radius R (60 mm) keeps its length up to the smoothing's exp(-sigma^2 / 2 R^2) (3 %)
+    tm, x, off, cv = _zigzag_chain(offset=0.0)
+    z = x[:, 2].copy()
+    bent = x.copy()
+    bent[:, 0] = x[:, 0] + 0.06 * (1 - np.cos(z / 0.06))
+    bent[:, 2] = 0.06 * np.sin(z / 0.06)
+    arc = measures.centre_lines(tm, off, cv, bent, 0.015).lengths(bent, 1)[0]
+    assert 0.96 * 0.30 < arc < 0.30
+    # the map is built once at rest and applied to any positions: the bent chain measured with the straight one's map
+    # (its Gaussian's gap steps fixed by the straight spacing) agrees
+    assert measures.centre_lines(tm, off, cv, x, 0.015).lengths(bent, 1)[0] == pytest.approx(arc, rel=1e-3)
+
+
+def test_physical_set_reports_the_centre_line_length(default_tm):
+    assert solver.Params.physical().length_measure == 'centre_line' and solver.Params.paper().length_measure == 'chord'
+    sim = solver.compile_model(default_tm, solver.Params.physical())
+    chordwise = solver.compile_model(default_tm, solver.Params.physical(length_measure='chord', active_length='chord'))
+    state = solver.make_state(sim)
+    ml = solver.observe(sim, state)['muscle_lengths']
+    assert np.allclose(ml, sim.centre_lines.lengths(np.asarray(state.x), sim.n_muscles), rtol=0, atol=0)
+    mc = solver.observe(chordwise, solver.make_state(chordwise))['muscle_lengths']
+    assert np.allclose(mc, chordwise.muscle_rest_length)       # the chord sum, as the paper set reports it
+    names = list(default_tm.muscle_names)
+    lh = names.index('biceps_femoris_long_head')
+    assert 0.95 < ml[lh] / mc[lh] < 0.99                      # the long head: 388 of the chords' 400 mm
+    assert np.all(ml[mc > 0] < mc[mc > 0] * 1.001) and np.all(ml[mc > 0] > 0.5 * mc[mc > 0])
+    with pytest.raises(ValueError, match='length_measure'):
+        solver.Params.physical(length_measure='fibre')
 
 
 def _isometric_forces(tm, active_length):

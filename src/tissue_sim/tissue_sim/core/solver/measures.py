@@ -1,6 +1,8 @@
-"""Measures of a state: axial cell lengths, cell volumes, kinetic and skeleton energies (observe() reports them)."""
+"""Measures of a state: axial cell lengths, muscle centre lines, cell volumes, kinetic and skeleton energies (observe()
+reports them)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import weakref
 
@@ -25,6 +27,74 @@ def cell_axial_lengths(x, off, cv, out):
             bx += x[i, 0]; by += x[i, 1]; bz += x[i, 2]
             tx += x[j, 0]; ty += x[j, 1]; tz += x[j, 2]
         out[c] = math.sqrt((tx - bx) ** 2 + (ty - by) ** 2 + (tz - bz) ** 2) / n
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CentreLines:
+    """Every muscle's centre line as a linear map of the vertex positions (``centre_lines``): its points are
+    ``smooth @ (raw @ x)``, per muscle in order its first end ring's centroid, the mean cell centre of each slice
+    gap (Gaussian-smoothed along the muscle), its last end ring's centroid."""
+    raw: object                     # (P, V) scipy.sparse CSR: each point's unsmoothed position from the vertices
+    smooth: object                  # (P, P) scipy.sparse CSR: the Gaussian along each muscle's gap points (ends kept)
+    muscle: np.ndarray              # (P,) int32 the muscle of each point
+    gap: np.ndarray                 # (P,) int32 the point's slice gap along its muscle (-1: an end ring)
+
+    def points(self, x: np.ndarray) -> np.ndarray:
+        """(P, 3) [m] the centre lines' points at positions x."""
+        return self.smooth @ (self.raw @ x)
+
+    def lengths(self, x: np.ndarray, n_muscles: int) -> np.ndarray:
+        """(M,) [m] each muscle's centre-line length at positions x (0 for a muscle with no cells)."""
+        d = np.linalg.norm(np.diff(self.points(x), axis=0), axis=1)
+        same = self.muscle[1:] == self.muscle[:-1]
+        return np.bincount(self.muscle[1:][same], weights=d[same], minlength=n_muscles)[:n_muscles]
+
+
+def centre_lines(tm, off: np.ndarray, cv: np.ndarray, x: np.ndarray, sigma: float) -> CentreLines:
+    """Each muscle's centre line (docs/solver.md "Muscle length"): from its first end ring's centroid (the mean of the
+    bottom-ring centroids of the cells in its first slice gap) through the mean of each slice gap's cell centres to its
+    last end ring's centroid, the gap points smoothed along the muscle with a Gaussian of ``sigma`` [m] (in gap steps:
+    sigma / the mean distance between consecutive gap points at positions x; scipy's gaussian_filter1d, 'nearest'
+    ends, as a matrix). A muscle of fewer than 3 gaps is not smoothed. Linear in the positions: built once (compile_model)."""
+    from scipy import sparse
+    from scipy.ndimage import gaussian_filter1d
+    n = np.diff(off) // 2
+    rows, cols, vals, blocks, muscle, gaps = [], [], [], [], [], []
+    P = 0
+    for m in range(tm.n_muscles):
+        cells = np.flatnonzero(tm.cell_muscle == m)
+        if cells.size == 0:
+            continue
+        _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
+        G, count = int(gap.max()) + 1, np.bincount(gap)
+        for c, g in zip(cells, gap):           # gap point: the mean over the gap's cells of each cell's 2 n vertices
+            rows.append(np.full(2 * n[c], P + 1 + g))
+            cols.append(cv[off[c]:off[c + 1]])
+            vals.append(np.full(2 * n[c], 1.0 / (2 * n[c] * count[g])))
+        for row, g, ring in ((P, 0, 0), (P + G + 1, G - 1, 1)):     # end points: the bottom / top rings
+            for c in cells[gap == g]:
+                rows.append(np.full(n[c], row))
+                cols.append(cv[off[c] + ring * n[c]:off[c] + (ring + 1) * n[c]])
+                vals.append(np.full(n[c], 1.0 / (n[c] * count[g])))
+        blocks.append(G)
+        muscle.append(np.full(G + 2, m))
+        gaps.append(np.concatenate([[-1], np.arange(G), [-1]]))
+        P += G + 2
+    V = x.shape[0]
+    cat = (lambda a, dt: np.concatenate(a).astype(dt)) if rows else (lambda a, dt: np.zeros(0, dt))
+    raw = sparse.csr_matrix((cat(vals, np.float64), (cat(rows, np.int64), cat(cols, np.int64))), shape=(P, V))
+    pts = raw @ np.asarray(x, np.float64)
+    mats, start = [], 0
+    for G in blocks:
+        W = np.eye(G + 2)
+        if G >= 3:
+            line = pts[start + 1:start + 1 + G]
+            spacing = float(np.mean(np.linalg.norm(np.diff(line, axis=0), axis=1)))
+            W[1:G + 1, 1:G + 1] = gaussian_filter1d(np.eye(G), sigma / max(spacing, 1e-9), axis=0, mode='nearest')
+        mats.append(sparse.csr_matrix(W))
+        start += G + 2
+    smooth = sparse.block_diag(mats, format='csr') if mats else sparse.csr_matrix((0, 0))
+    return CentreLines(raw, smooth, cat(muscle, np.int32), cat(gaps, np.int32))
 
 
 def cell_volumes(sim, x: np.ndarray, cells: str = 'all') -> np.ndarray:

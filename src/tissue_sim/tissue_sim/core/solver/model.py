@@ -14,7 +14,7 @@ import numpy as np
 from tissue_sim.core.model import JOINT_HINGE, TISSUE_MUSCLE, TissueModel
 from tissue_sim.core.geometry import prism_volumes
 from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK
-from tissue_sim.core.solver.measures import cell_axial_lengths
+from tissue_sim.core.solver.measures import CentreLines, cell_axial_lengths, centre_lines
 from tissue_sim.core.solver.params import Params
 
 
@@ -70,6 +70,8 @@ class SimModel:
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
+    centre_lines: CentreLines       # each muscle's centre line, a linear map of the positions (observe's muscle_lengths
+                                    # with params.length_measure 'centre_line')
     free_idx: np.ndarray            # (V - A,) int32 free vertices
     att_idx: np.ndarray             # (A,) int32 bone-attached vertices, grouped by segment (ascending vertex within)
     att_seg: np.ndarray             # (A,) int32 their segments
@@ -316,6 +318,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         length_weight=_frozen(lw),
         muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
                                                minlength=tm.n_muscles)[:tm.n_muscles]),
+        centre_lines=centre_lines(tm, off, cv, rest, p.active_path_sigma),
         free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
         seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
@@ -389,34 +392,32 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
     """(C,) [m] the active tension's rest length of each muscle cell along its muscle's centre line (`active_length: path`):
     the cell's ring-centroid chord projected on the tangent of the muscle's centre line at its slice gap, at least
     ``floor`` x the chord; fat cells and the cells of each muscle's first and last slice gap keep ``chord_len`` (the
-    chain's line of pull into its anchored end ring, which the smoothed line cuts short). The centre line: the mean of
-    each gap's cell centres, slice by slice, smoothed with a Gaussian of ``sigma`` [m] (in gap steps: sigma / the mean
-    gap spacing) and differentiated.
+    chain's line of pull into its anchored end ring, which the smoothed line cuts short). The centre line
+    (measures.centre_lines, the one the muscle length is measured along): the mean of each gap's cell centres, slice
+    by slice, smoothed with a Gaussian of ``sigma`` [m], differentiated.
     Why: the rings' centroids wander sideways from slice to slice (segmentation, each ring's own polygon), more per
     length the finer the slices; a chain of cells under tension pulls those offsets straight, shortening every cell's
     chord (l / L 0.95 -> 0.92 held isometric, 1x -> 2x) and, with the tension linear in l - lam L, losing force with
     refinement. Measured along the centre line, a cell's length is what its fibres span (docs/solver.md)."""
-    from scipy.ndimage import gaussian_filter1d
     C = off.shape[0] - 1
     n = np.diff(off) // 2
     cell_of = np.repeat(np.arange(C), 2 * n)
     top = (np.arange(cv.shape[0]) - np.repeat(off[:-1], 2 * n)) >= np.repeat(n, 2 * n)
     sums = np.zeros((C, 2, 3))
     np.add.at(sums, (cell_of, top.astype(int)), x[cv])
-    ends = sums / n[:, None, None]
-    chord, centre = ends[:, 1] - ends[:, 0], ends.mean(axis=1)
+    chord = (sums[:, 1] - sums[:, 0]) / n[:, None]
+    lines = centre_lines(tm, off, cv, x, sigma)
+    pts = lines.points(x)
     out = np.array(chord_len, np.float64)
     for m in range(tm.n_muscles):
         cells = np.flatnonzero(tm.cell_muscle == m)
         if cells.size == 0:
             continue
         _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
-        count = np.bincount(gap)
-        line = np.stack([np.bincount(gap, weights=centre[cells, k]) for k in range(3)], axis=1) / count[:, None]
+        line = pts[(lines.muscle == m) & (lines.gap >= 0)]       # the smoothed gap points, in gap order
         if line.shape[0] < 3:
             continue                                        # end gaps only
-        spacing = float(np.mean(np.linalg.norm(np.diff(line, axis=0), axis=1)))
-        tangent = np.gradient(gaussian_filter1d(line, sigma / max(spacing, 1e-9), axis=0, mode='nearest'), axis=0)
+        tangent = np.gradient(line, axis=0)
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-300)
         along = np.maximum(np.abs(np.einsum('ij,ij->i', chord[cells], tangent[gap])), floor * out[cells])
         inner = (gap > 0) & (gap < line.shape[0] - 1)       # the end gaps keep their chord: there the chain turns

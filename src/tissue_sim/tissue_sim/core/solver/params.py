@@ -25,6 +25,7 @@ STIFFNESS_MODES = ('given', 'modulus')
 VOLUME_MODES = ('actual', 'rest')
 INTEGRATORS = ('mass_scaled', 'explicit', 'implicit')
 ACTIVE_LENGTHS = ('chord', 'path')
+LENGTH_MEASURES = ('chord', 'centre_line')
 
 
 @dataclasses.dataclass
@@ -69,7 +70,12 @@ class Params:
                                           # its ring centroids; 'path' = that chord projected on the muscle's centre line
                                           # smoothed over active_path_sigma (the rings' lateral offsets are not fibre length:
                                           # a chain under tension pulls them straight and loses force; docs/solver.md)
-    active_path_sigma: float = 0.015      # [m] the centre line's Gaussian smoothing length ('path')
+    active_path_sigma: float = 0.015      # [m] the muscle centre line's Gaussian smoothing length ('path', 'centre_line')
+    length_measure: str = 'chord'         # a muscle's reported length (observe's muscle_lengths, validate's moment arms):
+                                          # 'chord' = the sum over its slice gaps of the ring-centroid distances; 'centre_line'
+                                          # = the length of its centre line, end ring to end ring through the smoothed gap
+                                          # centres (the rings' sideways wander and a slack chain's kinks are not musculotendon
+                                          # length; docs/solver.md "Muscle length")
     volume_stiffness: float = 1.0         # muscle volume energy 1/2 kappa (det D - 1)^2, stiffness relative to k (0 = off; keeps
                                           # each muscle cell's volume; the earlier default, with the pressure term, was 0.5)
     volume_relax_time: float = 0.0        # [s] integral (pressure) term restoring each muscle cell's volume; 0 = off (default:
@@ -144,7 +150,7 @@ class Params:
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3,
-                    active_length='path')
+                    active_length='path', length_measure='centre_line')
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -208,6 +214,7 @@ class Params:
         need(0 < self.relax_rate <= 1, 'relax_rate must be in (0, 1]')
         need(0.2 <= self.min_stretch <= 1, 'min_stretch must be in [0.2, 1] (a muscle cannot shorten without bound)')
         need(self.active_length in ACTIVE_LENGTHS, f'active_length must be one of {ACTIVE_LENGTHS}')
+        need(self.length_measure in LENGTH_MEASURES, f'length_measure must be one of {LENGTH_MEASURES}')
         need(math.isfinite(self.active_path_sigma) and 0 < self.active_path_sigma <= 0.2,
              'active_path_sigma must be in (0, 0.2] m')
         need(len(tuple(self.gravity)) == 3, 'gravity must be 3 numbers')

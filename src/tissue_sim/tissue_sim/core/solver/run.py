@@ -16,8 +16,9 @@ from tissue_sim.core.solver.step import _run
 def observe(sim: SimModel, state: State) -> dict:
     """Outputs of the current state.
 
-    joint_positions (J,) [rad], joint_velocities (J,) [rad/s], muscle_lengths (M,) [m] (per muscle,
-    the sum over slice gaps of the mean distance between its cells' bottom- and top-ring centroids),
+    joint_positions (J,) [rad], joint_velocities (J,) [rad/s], muscle_lengths (M,) [m] (per muscle, with
+    params.length_measure 'centre_line' the length of its centre line, measures.centre_lines; 'chord': the sum over
+    slice gaps of the mean distance between its cells' bottom- and top-ring centroids),
     muscle_volumes (M,) [m^3] (sum of its cells' volumes, divergence theorem on the triangulated
     prism surface), muscle_stretch (M,) (contraction state lambda), kinetic_energy [J] (free
     vertices), elastic_energy [J] (sum 0.5 k |G - x|^2 at the last force evaluation),
@@ -36,7 +37,10 @@ def observe(sim: SimModel, state: State) -> dict:
     mus = sim.cell_muscle
     sel = mus >= 0
     mv = np.bincount(mus[sel], weights=cell_volumes(sim, state.x, 'muscle'), minlength=M)
-    ml = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)
+    if sim.params.length_measure == 'centre_line':
+        ml = sim.centre_lines.lengths(state.x, M)
+    else:
+        ml = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)
     ke = kinetic_energy(sim, state)
     mf = muscle_forces(sim, state)
     return dict(time=state.time, skeleton_energy=skeleton_energy(sim, state), step=state.step, joint_positions=state.q.copy(), joint_velocities=state.qd.copy(),
