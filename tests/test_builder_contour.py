@@ -229,14 +229,17 @@ def test_cli_strict_fails_and_writes_nothing(tmp_path, capsys):
     assert any(w.startswith('flexor: built volume') for w in d['quality_warnings'])
 
 
-def test_end_ring_beside_two_segments_binds_only_the_side_of_its_bone():
-    """A quadriceps-like muscle whose insertion ring lies around the 'upper' bone and beside a
-    patella on 'lower': only its vertices nearer the patella are fixed to 'lower' (the others would
-    swing through the upper bone in flexion)."""
-    from phantoms import _grid
+def test_end_ring_round_another_bone_binds_what_sees_its_own_bone():
+    """A quadriceps-like muscle whose insertion ring wraps round the 'upper' bone, beside a patella on 'lower': a ring
+    vertex is fixed to 'lower' when the straight line to the patella crosses no other bone (the far side would swing
+    through the upper bone in flexion), also where it lies nearer to the upper bone (the vastus lateralis' ring on the
+    femur above the patella: docs/builder.md "Muscle origins and insertions")."""
+    from phantoms import R_BONE, _grid
     lab, aff, tab = make_phantom('column')
     _, _, x, y, z = _grid()
+    r = np.hypot(x, y)
     lab[(lab == 12) & (z < 25)] = 40
+    lab[(r > R_BONE) & (r <= 22) & (z >= 20) & (z <= 30)] = 12         # at its end the muscle wraps the upper bone
     lab[(np.hypot(x - 64, y) <= 5) & (z >= 20) & (z <= 30)] = 3
     tab['labels'][3] = {'name': 'patella', 'tissue': 'bone', 'segment': 'lower'}
     tab['labels'][12] = dict(tab['labels'][12], origin='upper', insertion='lower')
@@ -247,12 +250,20 @@ def test_end_ring_beside_two_segments_binds_only_the_side_of_its_bone():
     ring = vs[np.isclose(zz, zz.min())]
     assert zz.min() == pytest.approx(0.025)
     lower = tm.segment_names.index('lower')
-    bound = ring[tm.vertex_segment[ring] == lower]
-    assert 0 < len(bound) == tm.meta['anchors']['extensor']['insertion'][1]
-    xb = tm.rest_positions[bound, 0] * 1000
-    assert np.all(np.abs(xb - 64) < np.abs(xb))           # nearer the patella than the upper bone
-    near_upper = ring[np.linalg.norm(tm.rest_positions[ring, :2], axis=1) < 0.02]
-    assert len(near_upper) and not np.any(tm.vertex_segment[near_upper] == lower)
+    bound = tm.vertex_segment[ring] == lower
+    assert 0 < bound.sum() == tm.meta['anchors']['extensor']['insertion'][1]
+    # the rule, geometrically: the segment from the vertex to the nearest patella point misses the upper bone's disc
+    p = tm.rest_positions[ring, :2] * 1000
+    c = np.array([64.0, 0.0])
+    q = c + 5.0 * (p - c) / np.linalg.norm(p - c, axis=1, keepdims=True)
+    t = np.clip(np.einsum('ij,ij->i', -p, q - p) / np.einsum('ij,ij->i', q - p, q - p), 0, 1)
+    miss = np.linalg.norm(p + t[:, None] * (q - p), axis=1)            # closest approach to the upper bone's axis
+    blocked, clear = miss < R_BONE - 1.5, miss > R_BONE + 1.5
+    behind = p[:, 0] < -R_BONE                                          # the ring's far side (measured: 2 of 11)
+    assert blocked.any() and behind.sum() >= 2
+    assert not np.any(bound[blocked]) and not np.any(bound[behind])
+    near_upper = clear & (np.linalg.norm(p, axis=1) - R_BONE < np.linalg.norm(p - c, axis=1) - 5.0)
+    assert near_upper.sum() >= 4 and np.all(bound[near_upper])        # nearer the upper bone, in sight of the patella
 
 
 def test_a_region_enclosing_a_hole_is_reported_and_keeps_its_area():

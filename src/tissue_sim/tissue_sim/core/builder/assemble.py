@@ -369,6 +369,26 @@ def _out_of_bones(pos, free, bvo, bverts, bto, btris, clearance: float, rounds: 
     return pos, len(moved)
 
 
+def _sees_own_bone(p: np.ndarray, own: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """(n,) bool: the straight line in the slice from each point p (n, 2) to the nearest pixel of its own bone (own,
+    pixel centres) does not cross another bone (other): it stays more than 0.75 pixel from every other-bone pixel,
+    beyond its first 2 pixels (a point lying on the other bone starts there)."""
+    if len(other) == 0:
+        return np.ones(len(p), bool)
+    tree_o = cKDTree(other)
+    px = float(cKDTree(own).query(own[:1], k=2)[0][0, 1]) if len(own) > 1 else float(tree_o.query(other[:1], k=2)[0][0, 1])
+    _, j = cKDTree(own).query(p)
+    ok = np.ones(len(p), bool)
+    for i, (a, b) in enumerate(zip(p, own[j])):
+        n = int(np.ceil(np.linalg.norm(b - a) / (0.5 * px)))
+        t = np.linspace(0.0, 1.0, n + 1)[:, None]
+        q = a + t * (b - a)
+        q = q[np.linalg.norm(q - a, axis=1) > 2.0 * px]
+        if len(q) and tree_o.query(q)[0].min() < 0.75 * px:
+            ok[i] = False
+    return ok
+
+
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
                        vseg, warnings, pos, allowed) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
@@ -382,10 +402,13 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
     their tension. Two guards: a shared vertex is not fixed to a segment outside the origin-insertion
     span of any muscle using it (``allowed``, (V, n_segments): nothing of a muscle is bound across a
     joint it does not cross), nor where another muscle's end ring claims it for a different segment.
-    Where bones of other segments share the ring's slice (a quadriceps ring around the femur, beside
-    the patella), only the ring vertices nearer to the segment's bone than to any other bone are fixed:
-    the rest would swing through the other bone when the joint turns (and would drag the back-of-knee
-    vertices they share with the hamstrings through the femur).
+    Where bones of other segments share the ring's slice, a ring vertex is fixed when the straight line to its
+    own segment's bone crosses no other bone (``_sees_own_bone``): a ring wrapped round the femur beside the
+    patella would swing its far side through the femur in flexion. The vastus lateralis' insertion ring lies on
+    the femur above the patella; fixed only where nearer to the patella than to the femur (an earlier rule: 3 of
+    its 11 vertices), the rest bound to the femur by proximity, the muscle passed 27-59 N of its 5,149 N to the
+    knee and its active length did not change with flexion; all 11 see the patella, and, moving with it, they go
+    at most 3.5 mm into the femur over 0-120 deg (docs/builder.md).
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
@@ -410,9 +433,7 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
                 si = seg_names.index(seg)
                 mine = np.array([tab[int(l)]['segment'] == seg for l in blab])
                 if not mine.all():
-                    d_in, _ = cKDTree(bxy[mine]).query(pos[ring, :2])
-                    d_out, _ = cKDTree(bxy[~mine]).query(pos[ring, :2])
-                    ring = ring[d_in <= d_out]
+                    ring = ring[_sees_own_bone(pos[ring, :2], bxy[mine], bxy[~mine])]
                 for v in ring.tolist():
                     proposals.setdefault(v, {})[m] = si
                 rings.append((m, lab, end, seg, si, ring))
@@ -742,6 +763,15 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         cm = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus_k == m))
         vm = np.unique(np.concatenate([verts_k[offsets_k[c]:offsets_k[c + 1]] for c in cm]))
         allowed[vm] &= row
+        # an end ring that anchor_muscle_ends fixes (its segment's bone on its slice) and the ring next to it are
+        # bound to that segment or left free, never by proximity to another bone: the end cell does not straddle
+        # a joint (the vastus medialis' end cell between its patella ring and 5 femur-bound vertices 17 mm above
+        # inverted when the knee flexed; docs/builder.md)
+        zs, up = vslice[vm], slice_z[-1] >= slice_z[0]
+        for seg, zi, step in ((o, zs.max() if up else zs.min(), -1 if up else 1), (i_, zs.min() if up else zs.max(), 1 if up else -1)):
+            if seg is not None and any(tab[int(l)]['segment'] == seg for l in np.unique(bonepix[zi][1])):
+                own = np.zeros(nseg, bool); own[seg_names.index(seg)] = True
+                allowed[vm[(zs == zi) | (zs == zi + step)]] &= own
         if not s['bind_passed_over']:
             row[[seg_names.index(o), seg_names.index(i_)]] = False
             passed[vm] |= row
