@@ -228,8 +228,9 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     k_active = np.zeros(C)
     alen = np.zeros(C)
     cell_axial_lengths(rest, off, cv, alen)
+    lines = centre_lines(tm, off, cv, rest, p.active_path_sigma)      # each muscle's centre line (measures.py)
     if p.active_length == 'path':
-        alen = path_lengths(tm, rest, off, cv, alen, p.active_path_sigma)
+        alen = path_lengths(tm, rest, off, cv, alen, p.active_path_sigma, lines=lines)
     if p.specific_tension > 0 and p.min_stretch < 1:
         k_active = active_stiffness(tm, p, vol, alen, sizes)
     # damping: fraction of critical for a vertex of mean mass on one cell spring
@@ -318,7 +319,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         length_weight=_frozen(lw),
         muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
                                                minlength=tm.n_muscles)[:tm.n_muscles]),
-        centre_lines=centre_lines(tm, off, cv, rest, p.active_path_sigma),
+        centre_lines=lines,
         free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
         seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
@@ -388,7 +389,7 @@ def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarr
 
 
 def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray, chord_len: np.ndarray,
-                 sigma: float, floor: float = 0.5) -> np.ndarray:
+                 sigma: float, floor: float = 0.5, lines: CentreLines | None = None) -> np.ndarray:
     """(C,) [m] the active tension's rest length of each muscle cell along its muscle's centre line (`active_length: path`):
     the cell's ring-centroid chord projected on the tangent of the muscle's centre line at its slice gap, at least
     ``floor`` x the chord; fat cells and the cells of each muscle's first and last slice gap keep ``chord_len`` (the
@@ -406,7 +407,7 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
     sums = np.zeros((C, 2, 3))
     np.add.at(sums, (cell_of, top.astype(int)), x[cv])
     chord = (sums[:, 1] - sums[:, 0]) / n[:, None]
-    lines = centre_lines(tm, off, cv, x, sigma)
+    lines = lines if lines is not None else centre_lines(tm, off, cv, x, sigma)   # (compile_model's, built at x)
     pts = lines.points(x)
     out = np.array(chord_len, np.float64)
     for m in range(tm.n_muscles):
