@@ -91,10 +91,9 @@ def test_one_pass_per_step_follows_the_sub_stepped_explicit_motion(stiffness):
 def test_stable_at_one_ms_with_one_sub_step_where_the_explicit_schemes_diverge(default_tm):
     """The physical set at its own step (1 ms), one sub-step: explicit diverges (it needs ~40 sub-steps; measured at
     step 2); implicit flexes the knee towards its 120-deg stop with the true masses. (Every fibre at its optimum at
-    rest, rest_fibre_length 1.0: the stronger drive. mass_scaled at one sub-step, which buys its stability with added
-    mass, diverged here at step 887 when the knee reached its stop until the vastus lateralis' insertion ring was fixed
-    to the patella; it now survives, and is not part of this test.) With the physical set's hamstring sheath
-    (implicit.sheath_correct)."""
+    rest, rest_fibre_length 1.0: the stronger drive. mass_scaled at one sub-step buys its stability with added mass:
+    measured, it survives this run, knee at its stop, so it is not part of this test.) With the physical set's
+    hamstring sheath (implicit.sheath_correct)."""
     sim = solver.compile_model(default_tm, solver.Params.physical(integrator='explicit', substeps=1, rest_fibre_length=1.0))
     with pytest.raises(solver.DivergenceError):
         _run(sim, 1500)

@@ -404,11 +404,10 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
     joint it does not cross), nor where another muscle's end ring claims it for a different segment.
     Where bones of other segments share the ring's slice, a ring vertex is fixed when the straight line to its
     own segment's bone crosses no other bone (``_sees_own_bone``): a ring wrapped round the femur beside the
-    patella would swing its far side through the femur in flexion. The vastus lateralis' insertion ring lies on
-    the femur above the patella; fixed only where nearer to the patella than to the femur (an earlier rule: 3 of
-    its 11 vertices), the rest bound to the femur by proximity, the muscle passed 27-59 N of its 5,149 N to the
-    knee and its active length did not change with flexion; all 11 see the patella, and, moving with it, they go
-    at most 3.5 mm into the femur over 0-120 deg (docs/builder.md).
+    patella would swing its far side through the femur in flexion. Why not "only where nearer to the segment's bone
+    than to any other": the vastus lateralis' insertion ring lies on the femur above the patella, and that rule fixes
+    3 of its 11 vertices (the muscle then passes 27-59 N of its 5,149 N to the knee); all 11 see the patella, and,
+    moving with it, they go at most 3.5 mm into the femur over 0-120 deg (docs/builder.md).
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the

@@ -32,14 +32,14 @@ def observe(sim: SimModel, state: State) -> dict:
     muscle_passive_forces; 0 in the paper set: muscle.muscle_forces), fibre_lengths (M,) normalised fibre lengths,
     passive_energy [J] of the passive fibre force (0 when off)."""
     M = sim.n_muscles
-    alen = np.empty(sim.n_cells)
-    cell_axial_lengths(state.x, sim.off, sim.cv, alen)
     mus = sim.cell_muscle
     sel = mus >= 0
     mv = np.bincount(mus[sel], weights=cell_volumes(sim, state.x, 'muscle'), minlength=M)
     if sim.params.length_measure == 'centre_line':
         ml = sim.centre_lines.lengths(state.x, M)
     else:
+        alen = np.empty(sim.n_cells)
+        cell_axial_lengths(state.x, sim.off, sim.cv, alen)
         ml = np.bincount(mus[sel], weights=(alen * sim.length_weight)[sel], minlength=M)
     ke = kinetic_energy(sim, state)
     mf = muscle_forces(sim, state)
