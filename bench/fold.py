@@ -1,10 +1,10 @@
 """Fold-contact benchmark (docs/contact.md "Tissue-tissue contact in the fold"), bundled model: solver steps/s with no
-contact, bone contact, and bone + fold contact (the physical set's: the flexion side and the 1-mm hamstring sheath) in
+contact, bone contact, and bone + fold contact (the physical set's: the flexion side and its 1-mm sheath) in
 the same run (paper and physical sets), and with --hold the passive
 hamstrings held at 0/30/60/90/120 deg (physical set, neither fold nor sheath, and the physical set's): their length change, semitendinosus's summed
 cell lengths, free vertices > 1 mm inside a bone and inverted cells; with --validate DIR, `tissue-sim validate -o DIR`
 on the physical set with the fold on (fold_contact 'knee'; --side-only: fold_plane False; --sheath R: the hamstrings
-in a sheath of radius R [m]) instead.
+in a sheath of radius R [m] above the knee, --below: below it too) instead.
 
     .venv/bin/python bench/fold.py [--seconds 6] [--hold]
     .venv/bin/python bench/fold.py --implicit      (the physical set under mass_scaled and implicit, side by side)
@@ -41,7 +41,9 @@ def chain_length(tm, x, m):
 
 
 def hold(tm, fold, settle=0.5, angles=(0, 30, 60, 90, 120), **kw):
-    sim = solver.compile_model(tm, solver.Params.physical(fold_contact=fold, sheath_group='hamstrings' if fold else '', **kw))
+    phys = solver.Params.physical()
+    sheath = dict(sheath_group=phys.sheath_group, sheath_below=phys.sheath_below) if fold else dict(sheath_group='', sheath_below='')
+    sim = solver.compile_model(tm, solver.Params.physical(fold_contact=fold, **sheath, **kw))
     print(f"integrator {sim.params.integrator}, {sim.n_substeps} sub-step(s)")
     names = list(tm.muscle_names)
     mi = [names.index(n) for n in HAM]
@@ -112,7 +114,7 @@ def validate(out_dir, side_only, sheath, below, rest):
         if sheath:
             kw.setdefault('sheath_group', 'hamstrings')
             kw.setdefault('sheath_radius', sheath)
-            kw.setdefault('sheath_below', below)
+            kw.setdefault('sheath_below', 'hamstrings' if below else '')
         return physical(cls, **kw)
     solver.Params.physical = classmethod(with_fold)
     from tissue_sim.cli import main as cli
@@ -141,8 +143,10 @@ def main():
     print(f'{"set":10s} {"no contact":>11s} {"bone":>9s} {"bone+fold":>10s} {"cost both":>10s} {"fold":>6s}   (steps/s per CPU s)')
     for preset in ('paper', 'physical'):
         P = getattr(solver.Params, preset)
-        none = dict(fold_contact='', sheath_group='')
-        fold = dict(fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3)   # the physical set's
+        phys = solver.Params.physical()
+        none = dict(fold_contact='', sheath_group='', sheath_below='')
+        fold = dict(fold_contact='knee', fold_plane=False, sheath_group=phys.sheath_group, sheath_below=phys.sheath_below,
+                    sheath_radius=phys.sheath_radius)   # the physical set's
         sims = [solver.compile_model(tm, P(bone_contact=False, **none)), solver.compile_model(tm, P(bone_contact=True, **none)),
                 solver.compile_model(tm, P(bone_contact=True, **fold))]
         best, _ = B.steps_per_s(sims, a.seconds)

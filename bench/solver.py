@@ -430,7 +430,7 @@ def ab_rates(tm, rounds, seconds):
     Prints each round, the median rates and ratio, and the load average."""
     from tissue_sim.core.solver.step import _run
     confs = (('mass_scaled', {}), ('implicit', dict(integrator='implicit', substeps=1)),
-             ('implicit, no sheath', dict(integrator='implicit', substeps=1, sheath_group='')))
+             ('implicit, no sheath', dict(integrator='implicit', substeps=1, sheath_group='', sheath_below='')))
     runs = []
     for name, kw in confs:
         sim = solver.compile_model(tm, solver.Params.physical(threads=1, **kw))

@@ -14,8 +14,9 @@ sub-step's start, the broad phase's records) are a ``ContactWork`` owned by the 
 
 Stage 4a, before it, ``fold_contact``: the tissue-tissue contact in the fold of each hinge named in
 ``Params.fold_contact`` (flexion-side tissue kept behind the axis and, with ``fold_plane``, on its side of the plane
-bisecting the two segments) and the sheath of ``Params.sheath_group`` (a retinaculum holding a muscle group near its
-rest line above the hinge); docs/contact.md "Tissue-tissue contact in the fold, and the hamstring sheath".
+bisecting the two segments) and the sheath of ``Params.sheath_group`` and ``Params.sheath_below`` (a retinaculum
+holding muscles near their rest lines above and below the hinge); docs/contact.md "Tissue-tissue contact in the fold,
+and the sheath".
 """
 from __future__ import annotations
 
@@ -38,7 +39,7 @@ its (parent, child) segments f_seg (K, 2) int32, f_geo (K, 9) = rest joint centr
 flexion), rest frame; its vertices f_idx[f_off[k]:f_off[k+1]] (int32), their side f_side (+1 proximal, -1 distal)
 and lowest allowed signed distance to the bisector plane f_floor [m] and to their segment's plane through the axis
 normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_plane; off: only the flexion side).
-The sheath (``sheath_group``), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
+The sheath (``sheath_group`` above, ``sheath_below`` below), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
 positions s_X (N, 3) [m] and side s_side (+1: held in the parent's frame, above the hinge; -1: the child's, below),
 kept within s_r (1,) [m] of their rest line along n0 in that segment's frame."""
 ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats')
@@ -661,24 +662,28 @@ SHEATH_FROM = 0.01      # [m] the sheath holds a group's vertices from this heig
 
 
 def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment,
-                    below: bool = False) -> dict:
+                    below: str = '') -> dict:
     """The sheath's constants (s_off, s_idx, s_X, s_r; ContactGrids) for the folding hinges in fold (fold_vertices):
-    per hinge, the free vertices of the cells of the muscles of group `group` (a muscle group or name; '' none)
-    whose rest height above the hinge centre along n0 is in [SHEATH_FROM, reach] (the part of the thigh above the knee:
-    the chain may bend over the condyles below it), held in the parent's frame (side +1); with below, also those
-    from SHEATH_FROM to reach below it, held in the child's frame (side -1)."""
+    per hinge, the free vertices of the cells of the muscles of `group` (muscle groups or names, comma-separated; ''
+    none) whose rest height above the hinge centre along n0 is in [SHEATH_FROM, reach] (the part of the thigh above the
+    knee: the chain may bend over the condyles below it), held in the parent's frame (side +1); and those of the
+    muscles of `below` from SHEATH_FROM to reach below it, held in the child's frame (side -1)."""
     vs = np.asarray(vertex_segment)
-    names = [g.strip() for g in str(group).split(',') if g.strip()]
-    mus = [m for m in range(len(tm.muscle_names)) if tm.muscle_groups[m] in names or tm.muscle_names[m] in names]
-    cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
-    cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
-                     if len(cells) else np.zeros(0, np.int64))
-    cand = cand[vs[cand] < 0]
+
+    def free_vertices(spec):
+        names = [g.strip() for g in str(spec).split(',') if g.strip()]
+        mus = [m for m in range(len(tm.muscle_names)) if tm.muscle_groups[m] in names or tm.muscle_names[m] in names]
+        cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
+        cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
+                         if len(cells) else np.zeros(0, np.int64))
+        return cand[vs[cand] < 0]
+    cand = np.union1d(free_vertices(group), free_vertices(below))
+    held = {1.0: np.isin(cand, free_vertices(group)), -1.0: np.isin(cand, free_vertices(below))}
     off, idx, side = [0], [], []
     for k in range(len(fold['f_seg'])):
         c0, n0 = fold['f_geo'][k, :3], fold['f_geo'][k, 3:6]
         hgt = (rest[cand] - c0) @ n0
-        sel = (np.abs(hgt) >= SHEATH_FROM) & (np.abs(hgt) <= reach) & ((hgt > 0) | bool(below))
+        sel = (np.abs(hgt) >= SHEATH_FROM) & (np.abs(hgt) <= reach) & np.where(hgt > 0, held[1.0], held[-1.0])
         idx.append(cand[sel].astype(np.int32))
         side.append(np.where(hgt[sel] > 0, 1.0, -1.0))
         off.append(off[-1] + int(sel.sum()))

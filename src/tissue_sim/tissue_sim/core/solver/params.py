@@ -125,7 +125,8 @@ class Params:
     fold_plane: bool = True               # the fold's bisector plane (False: only the flexion side, no tissue crosses to the front)
     sheath_group: str = ''                # muscle group(s)/names held in a sheath above each folding hinge (a retinaculum, e.g. 'hamstrings'; '' none)
     sheath_radius: float = 3e-3           # [m] how far a sheathed vertex may leave its rest line along the segment, across it
-    sheath_below: bool = False            # the sheath also below the hinge, in the child segment's frame
+    sheath_below: str = ''                # muscle group(s)/names held in the sheath below each folding hinge too, in the child
+                                          # segment's frame ('' none)
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
@@ -149,7 +150,8 @@ class Params:
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
-                    fold_contact='knee', fold_plane=False, sheath_group='hamstrings', sheath_radius=1e-3,
+                    fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
+                    sheath_below='sartorius,gracilis', sheath_radius=1e-3,
                     active_length='path', length_measure='centre_line')
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
@@ -164,8 +166,11 @@ class Params:
         # fold_contact knee without the plane, a 1-mm hamstring sheath above the knee (docs/contact.md): held passively
         # the hamstrings shorten with flexion (semitendinosus -49 mm at 90 deg, was -0.1; OpenSim -70), `tissue-sim
         # validate`: 57 of 338 signs wrong (70 without), 9 of 24 hamstring moment arms within 25 % (8), every hamstring
-        # >= 60 % of Fmax (semimembranosus 53 -> 70 %); the plane (fold_plane) and the sheath below the knee were
-        # measured and left off: the active knee then stops short of 120 deg
+        # >= 60 % of Fmax (semimembranosus 53 -> 70 %); the plane (fold_plane) and the hamstrings' sheath below the knee were
+        # measured and left off: the active knee then stops short of 120 deg; sartorius and gracilis (the pes anserinus)
+        # in the sheath above and below the knee, as the fascia holds them behind the medial condyle: active alone,
+        # sartorius no longer pulls straight in front of it and lengthens from 0 to 10 deg (+6.2 mm, an extensor; now
+        # -1.8 mm), `tissue-sim validate`: 22 wrong signs (23)
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
         # falls as the knee flexes, and full co-contraction at 30 deg gives 18.4 N m/rad against the passive knee's 8.8
