@@ -20,6 +20,8 @@ Kinds:
   tendon     column whose flexor becomes a thin tendon (r 4 mm) beside its belly above z = 0, with no
              overlap between them on neighbouring slices (semitendinosus in the bundled limb)
   gap        column whose flexor is absent between z = -10 and z = 10 (a real break of the label)
+  fragment   column whose flexor is absent between z = -60 and z = -40 and below it only a thin disc (r 4 mm):
+             a small piece cut off from the belly (< 1 % of the muscle's volume)
   limb       a synthetic lower limb of the paper's size (hip at z = 0 down to z = -1125 mm; 6 bones,
              28 muscles on thigh and shank, fat), 1.5 mm pixels, 2.5 mm slices: benchmark input
              used by bench/build.py while the bundled anatomy is absent (make_limb_phantom()).
@@ -108,8 +110,10 @@ def make_phantom(kind: str = 'column'):
         flex = np.where(z < 0, flex, np.hypot(x + X_MUS, y - 32) <= 4)
     elif kind == 'gap':
         flex = flex & (np.abs(z) > 10)
+    elif kind == 'fragment':
+        flex = np.where(z < -60, np.hypot(x + X_MUS, y) <= 4, flex) & ~((z >= -60) & (z < -40))
     elif kind != 'column':
-        raise ValueError(f'unknown phantom kind {kind!r} (column, tapered, two_bones, split, cshape, tendon, gap)')
+        raise ValueError(f'unknown phantom kind {kind!r} (column, tapered, two_bones, split, cshape, tendon, gap, fragment)')
     lab[flex & ~bone] = 11
     return lab, affine, _table(kind)
 

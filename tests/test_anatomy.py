@@ -110,9 +110,10 @@ def test_muscle_volumes_match_physiology(data):
 
 def _tendon_gaps(data):
     """The knee-crossing muscles continue below their bellies as tendons (own label) that lie on a shank
-    bone (tibia, fibula, patella) in a run of slices at least 20 mm long below the knee centre (the
-    hamstrings, gracilis, sartorius) or on the patella (quadriceps), so a model builder attaches them to
-    the shank; tendons are small (< 15 cm^3); the bellies are partitioned around them."""
+    bone (tibia, fibula) in a run of slices at least 20 mm long reaching 30 mm below the knee centre (the
+    hamstrings, gracilis, sartorius), so a model builder attaches them to the shank, or on the patella's upper half
+    (the quadriceps: they insert on its base and upper borders, muscles.PATELLA_ATTACH_FRACTION); tendons are small
+    (< 15 cm^3); the bellies are partitioned around them."""
     lab, labels = data['lab'], data['labels']
     knee_z = _joint(data, 'knee_r')['centre'][2] * 1000
     dz = abs(data['img'].affine[2, 2])
@@ -120,20 +121,26 @@ def _tendon_gaps(data):
     bones = {v['name']: k for k, v in labels.items() if v['tissue'] == 'bone'}
     need = {n: ('tibia', 'fibula') for n in HAMSTRINGS | {'gracilis', 'semitendinosus', 'sartorius'}}
     need.update({n: ('patella',) for n in ('rectus_femoris', 'vastus_lateralis', 'vastus_medialis')})
+    on_patella = [data['S'][k] for k in np.nonzero((lab == bones['patella']).any(axis=(0, 1)))[0]]
+    patella_mid = (max(on_patella) + min(on_patella)) / 2
     gap_list = []
     for name, on in need.items():
         lbl = byname[name]
         t = labels[lbl]['tendon']
-        assert 0.1 < t['volume_cm3'] < 15.0, (name, t)  # the fan onto the bone makes it up to ~2 cm^2
-        touch, gaps = [], 0
+        touch, gaps, zs = [], 0, []
         for k in range(t['slices'][0], t['slices'][1] + 1):
             m = lab[..., k] == lbl
             gaps += not m.any()   # a slice where other muscles leave no fat on its path
+            zs.append(data['S'][k])
             if (ndimage.binary_dilation(m) & np.isin(lab[..., k], [bones[b] for b in on])).any():
                 touch.append(data['S'][k])
         gap_list.append((name, gaps))
-        assert len(touch) * dz >= 20, (name, touch)
-        if on != ('patella',):
+        if on == ('patella',):
+            assert 0.0 < t['volume_cm3'] < 15.0 and touch, (name, t, touch)
+            assert min(zs) >= patella_mid - dz, (name, min(zs), patella_mid)
+        else:
+            assert 0.1 < t['volume_cm3'] < 15.0, (name, t)  # the fan onto the bone makes it up to ~2 cm^2
+            assert len(touch) * dz >= 20, (name, touch)
             assert min(touch) < knee_z - 30, (name, min(touch))  # reaches below the joint line
     return gap_list
 

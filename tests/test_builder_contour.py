@@ -157,6 +157,22 @@ def test_a_real_break_is_an_error_naming_the_muscle_and_slices():
     assert any('flexor breaks between slices 3 and 5' in w for w in rep['quality']['warnings'])
 
 
+def test_a_small_piece_cut_off_is_left_out_with_a_warning_and_max_fragment_0_makes_it_a_break():
+    """A piece of a muscle cut off from its belly by slices without its label and holding at most max_fragment (1 %)
+    of its volume is left out, named in a warning and in quality.fragments_left_out; the rest is one chain. With
+    max_fragment 0 the same labels are a break: the error names the muscle and the slices."""
+    lab, aff, tab = make_phantom('fragment')
+    tm, rep = build_model((lab, aff), tab, **P)
+    (f,) = rep['quality']['fragments_left_out']
+    assert (f['muscle'], f['label'], f['from_slice'], f['to_slice']) == ('flexor', 11, 0, 1) and 0 < f['share'] <= 0.01
+    assert any('flexor' in w and 'left out' in w for w in rep['warnings'])
+    assert rep['quality']['breaks'] == []
+    m = tm.muscle_index('flexor')
+    assert sorted(set(tm.cell_slice[tm.cell_muscle == m].tolist())) == list(range(3, len(tm.slice_z) - 1))
+    with pytest.raises(UserError, match=r'muscle flexor \(label 11\) breaks between slices 1 and 3'):
+        build_model((lab, aff), tab, max_fragment=0, **P)
+
+
 def test_a_muscle_not_crossing_the_knee_is_not_bound_across_it():
     """extensor: origin and insertion on 'upper'; it touches the bone below the knee too, but none of
     its vertices is bound to 'lower' (nothing of a muscle is bound across a joint it does not cross)."""

@@ -58,6 +58,7 @@ BONES = [  # label, name, OpenSim body, meshes, segment
 BODY_SEGMENT = {'pelvis': 'thigh', 'femur_r': 'thigh', 'patella_r': 'patella', 'tibia_r': 'shank',
                 'talus_r': 'foot', 'calcn_r': 'foot', 'toes_r': 'foot'}
 MUSCLE_LABEL0 = 11
+PATELLA_LABEL = next(b[0] for b in BONES if b[1] == 'patella')
 BEHIND_LABELS = (1, 3)     # femur, tibia (behind_bones: MU.BEHIND_BONES lie behind their centroid)
 FAT_LABEL = 40
 
@@ -355,7 +356,8 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
     the disc is swept from the path point to the nearest pixel of its insertion bone (a capsule that
     overlaps the bone by 1.5 mm), so the tendon both continues the one above and lies on the bone.  A tendon takes only soft tissue at least 2 mm inside the skin and no other tendon;
     the muscles are then partitioned around it (they never lose volume to it).  The tendon ends when it
-    has touched its bone over MU.TENDON_ATTACH_MM (or at the lower end of that bone).
+    has touched its bone over MU.TENDON_ATTACH_MM (or at the lower end of that bone; on the patella, at
+    MU.PATELLA_ATTACH_FRACTION of its height from the top).
     ``lab`` holds the bones only.  Returns ({slice: [(muscle index, mask), ...]}, {muscle: [slices]}).
     """
     K = lab.shape[2]
@@ -363,6 +365,8 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
     r = MU.TENDON_RADIUS_MM
     masks, out = {}, {}
     taken = {}
+    on_patella = np.nonzero((lab == PATELLA_LABEL).any(axis=(0, 1)))[0]
+    patella_floor = s_mm[on_patella.min()] - MU.PATELLA_ATTACH_FRACTION * (s_mm[on_patella.min()] - s_mm[on_patella.max()])
     for m, t in enumerate(table):
         if t['name'] not in MU.TENDONS:
             continue
@@ -371,7 +375,8 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
         z_ins = path[-1, 2]
         k0 = int(np.nonzero(area[m] > 0)[0].max()) + 1      # first slice below the belly
         touched, ks, k, seen = 0, [], k0, False
-        while k < K and touched * SLICE_MM < MU.TENDON_ATTACH_MM and s_mm[k] > z_ins - 60.0:
+        floor = patella_floor if tuple(targets) == (PATELLA_LABEL,) else -np.inf
+        while k < K and touched * SLICE_MM < MU.TENDON_ATTACH_MM and s_mm[k] > z_ins - 60.0 and s_mm[k] >= floor:
             s = s_mm[k]
             c = path_point_at(path, s)[:2] if s >= z_ins else path[-1, :2]
             c = np.array([c[0] - R0, c[1] - A0])

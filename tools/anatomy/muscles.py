@@ -116,6 +116,14 @@ TENDON_GAP_MM = 1.0
 TENDON_RADIUS_MM = 5.0    # disc of ~0.8 cm^2 (larger than real hamstring tendons, ~0.2-0.5 cm^2, so the
                           # model builder's 12-ray polygon and 10 mm^2 component threshold keep it)
 TENDON_ATTACH_MM = 25.0   # length over which the tendon lies on its bone at the insertion
+# A tendon inserting on the patella (label 2; the quadriceps) lies on it no lower than this fraction of the patella's
+# height from its top: the quadriceps tendon inserts on the base of the patella and the upper part of its borders and
+# anterior surface (Gray's Anatomy, 41st ed., ch. 80; the vastus medialis' lowest fibres on the upper half of the
+# medial border; the source model's insertion points vasmed_r-P3 and vaslat_r-P3 8 and 10 mm below its top).  Without it the vastus
+# medialis' tendon, the lowest, ran on for TENDON_ATTACH_MM down to 4 mm below the knee centre (the patella's lower
+# third), a model's insertion ring there swung behind the knee with the patella's tilt in deep flexion and its length
+# stopped growing from 90 deg (7 moment-arm signs wrong; docs/anatomy.md "The moving patella").
+PATELLA_ATTACH_FRACTION = 0.5
 TENDON_SNAP_MM = 15.0     # from this far above the insertion point the tendon is moved onto the bone
 
 # Muscles whose fleshy origin runs up along a bone above the first point of their OpenSim path (a path
