@@ -161,7 +161,7 @@ def test_passive_hamstrings_held_at_90_deg_shorten(default_tm):
     set (the fold's flexion side and the 1-mm hamstring sheath above the knee), no activation, the knee locked and moved
     at 200 deg/s to 90 deg and held 1 s: along each muscle's centre line (the physical set's `length_measure`) every
     hamstring shortens within 30 % of OpenSim's 46 / 30 / 58 / 70 mm (long head, short head, semimembranosus,
-    semitendinosus; measured 41.2, 30.0, 49.4, 53.1 mm). The sum of the cells' chords (`length_measure: chord`) counts
+    semitendinosus; measured 40.1, 27.6, 49.4, 53.0 mm). The sum of the cells' chords (`length_measure: chord`) counts
     a kinked chain's zigzag as length: with the sheath semitendinosus' chord sum shortens by > 40 mm (measured 48.6),
     without it by less than a fifth of that (3.9 mm: its slack chain buckles round the condyle, docs/contact.md), while
     its centre line shortens by 39.7 mm either way."""
