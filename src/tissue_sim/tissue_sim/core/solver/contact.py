@@ -677,8 +677,9 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
         cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
                          if len(cells) else np.zeros(0, np.int64))
         return cand[vs[cand] < 0]
-    cand = np.union1d(free_vertices(group), free_vertices(below))
-    held = {1.0: np.isin(cand, free_vertices(group)), -1.0: np.isin(cand, free_vertices(below))}
+    up, down = free_vertices(group), free_vertices(below)
+    cand = np.union1d(up, down)
+    held = {1.0: np.isin(cand, up), -1.0: np.isin(cand, down)}
     off, idx, side = [0], [], []
     for k in range(len(fold['f_seg'])):
         c0, n0 = fold['f_geo'][k, :3], fold['f_geo'][k, 3:6]
