@@ -240,6 +240,22 @@ def test_muscles_present_where_bellies_cross(data):
     assert not missing, f'muscle absent from slices its belly crosses: {missing}'
 
 
+def test_squeezed_muscle_shares_its_place():
+    """The partition's rule for a muscle squeezed out of a slice (its seed shared with a neighbour's): it takes the
+    pixels nearest its seed but leaves the neighbour at least half of its own. Taken wholly (the rule before), the
+    neighbour kept only what the squeezed one did not take, or nothing: on the bundled limb 4 slices changed with the
+    rule (403 voxels), e.g. the gastrocnemii at the joint line, lateralis 298 and medialis 694 mm^2 at S -402.5 mm,
+    now 496 each; with the gastrocnemii changed, the tibialis anterior vanished from a slice."""
+    import generate
+    n = np.arange(10.0)
+    D = np.stack([n ** 2, n ** 2, (9 - n) ** 2])         # muscles 0 and 1: the same seed at pixel 0; muscle 2 at 9
+    best = np.array([0] * 5 + [2] * 5)
+    generate.give_squeezed(best, D, np.array([5.0, 5.0, 5.0]))
+    have = np.bincount(best, minlength=3)
+    assert have.tolist() == [3, 4, 3], have
+    assert best[:2].tolist() == [1, 1]                     # the nearest of its neighbour's pixels
+
+
 def _circumference_cm(mask):
     c = max(measure.find_contours(mask.astype(float), 0.5), key=len)
     return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum()) / 10.0

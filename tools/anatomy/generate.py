@@ -305,14 +305,31 @@ def partition(region, seeds_px, targets, iters=400):
             if err <= max(2.0, 0.01 * len(idx)):
                 break
         w += (2.0 / (1.0 + it / 50.0)) * (tgt - a) / np.pi
-    # a muscle squeezed out (its seed shared with or overrun by a neighbour) takes the pixels
-    # nearest its seeds
-    for m in np.nonzero(np.bincount(best, minlength=M) == 0)[0]:
-        near = np.argsort(D[m], kind='stable')[:max(int(round(tgt[m])), 1)]
-        best[near] = m
+    give_squeezed(best, D, tgt)
     out = np.full(region.shape, -1, int)
     out[idx[:, 0], idx[:, 1]] = best
     return merge_fragments(out, M)
+
+
+def give_squeezed(best, D, tgt):
+    """A muscle squeezed out of the partition (best: the owner of each region pixel; its seed shared with or
+    overrun by a neighbour) takes the pixels nearest its seeds (rows of D), up to its target, leaving each muscle it
+    takes them from at least half of its own: two muscles whose seeds coincide share the place (taken wholly,
+    the first squeezed one left the other absent from the slice). In place."""
+    M = len(D)
+    for m in np.nonzero(np.bincount(best, minlength=M) == 0)[0]:
+        have = np.bincount(best, minlength=M)
+        keep = np.ceil(have / 2.0)
+        want = max(int(round(tgt[m])), 1)
+        for p in np.argsort(D[m], kind='stable'):
+            o = best[p]
+            if have[o] - 1 >= keep[o]:
+                best[p] = m
+                have[o] -= 1
+                have[m] += 1
+                if have[m] >= want:
+                    break
+    return best
 
 
 def merge_fragments(part, M):

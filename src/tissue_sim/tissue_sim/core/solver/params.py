@@ -170,7 +170,9 @@ class Params:
         # measured and left off: the active knee then stops short of 120 deg; sartorius and gracilis (the pes anserinus)
         # in the sheath above and below the knee, as the fascia holds them behind the medial condyle: active alone,
         # sartorius no longer pulls straight in front of it and lengthens from 0 to 10 deg (+6.2 mm, an extensor; now
-        # -1.8 mm), `tissue-sim validate`: 22 wrong signs (23)
+        # -1.8 mm), `tissue-sim validate`: 22 wrong signs (23); on the limb regenerated with the partition rule for a
+        # squeezed-out muscle (tools/anatomy/README.md) sartorius stays a flexor without it too (-1.0 mm), and the sheath
+        # takes its active moment arm at 0 deg from +6.0 to +10.0 mm, gracilis' from +3.4 to +5.4 (OpenSim +12.0, +21.7)
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
         # falls as the knee flexes, and full co-contraction at 30 deg gives 18.4 N m/rad against the passive knee's 8.8
