@@ -478,21 +478,23 @@ def stage_times(tm, iterations, reps=None):
     lam, act = st.lam.copy(), np.full(sim.n_muscles, 0.5)
     R, t = st.seg_R.copy(), st.seg_t.copy()
     no_lock = np.zeros(sim.n_joints, np.bool_)
+    wr = np.zeros((sim.n_segments, 6))
 
     def skel():
         q, qd = st.q.copy(), st.qd.copy()
         SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z, R, t,
-                         scratch.skel_work, no_lock, st.q.copy(), np.zeros(sim.n_joints), scratch.tau_pe)
+                         scratch.skel_work, no_lock, st.q.copy(), np.zeros(sim.n_joints), scratch.tau_pe,
+                         st.contact_wrench)
 
     def contact():
         xn[:] = x; vn[:] = v
         SK.forward_kinematics(st.q, sk, cw.R0, cw.t0)
-        CT.fold_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw)
-        CT.bone_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw)
+        CT.fold_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw, tissue.inv_den, wr)
+        CT.bone_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw, tissue.inv_den, wr)
 
     def sheath():
         xn[:] = x
-        IM.sheath_correct(h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, 1e9)
+        IM.sheath_correct(h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, 1e9, wr)
 
     stages = [
         ('prediction y = x + h v', lambda: IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)),

@@ -128,7 +128,7 @@ def test_kick(physical_sim):
 def test_heel_raise(physical_sim):
     """Triceps surae ramped to 0.5: the ankle plantarflexes (measured -50.0 deg at 1.5 s, the stop, beyond the relaxed
     foot's passive equilibrium, -36 deg (test_solver_default_model.py)); the quadriceps at 0.3 hold the knee (measured
-    at most 2.1 deg; without them the gastrocnemii, crossing it, flex it 52.7 deg)."""
+    at most 0.1 deg; without them the gastrocnemii, crossing it, flex it 50.0 deg)."""
     run = _run(physical_sim, 'heel_raise')
     a = run[0][:, _joint(physical_sim, 'ankle_r')]
     k = run[0][:, _joint(physical_sim, 'knee_r')]

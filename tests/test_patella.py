@@ -198,7 +198,7 @@ def test_coupling_virtual_work_equals_finite_differences(psim):
         f[i] = fv
         lt = np.zeros(2)
         SK.skeleton_step(1e-4, st.q, st.qd, f, st.x, sk, psim.att_idx, psim.att_seg, 0.0, 0.3, 1.0, st.seg_R, st.seg_t,
-                         np.zeros((2, 10)), np.array([True, False]), st.q.copy(), lt, np.zeros(2))
+                         np.zeros((2, 10)), np.array([True, False]), st.q.copy(), lt, np.zeros(2), np.zeros((psim.n_segments, 6)))
         np.testing.assert_allclose(-lt[0], fv @ (xp - xm) / (2 * e), rtol=1e-6, atol=1e-9)
 
 
@@ -215,7 +215,7 @@ def test_coupled_segment_energy_is_conserved(psim):
     E0, E, qs = skeleton_energy(s2, st), [], []
     for n in range(20000):
         SK.skeleton_step(1e-4, st.q, st.qd, f, st.x, sk, psim.att_idx, psim.att_seg, 0.0, 0.3, 1.0, st.seg_R, st.seg_t,
-                         np.zeros((2, 10)), np.zeros(2, bool), st.q.copy(), np.zeros(2), np.zeros(2))
+                         np.zeros((2, 10)), np.zeros(2, bool), st.q.copy(), np.zeros(2), np.zeros(2), np.zeros((psim.n_segments, 6)))
         if n % 500 == 0:
             E.append(skeleton_energy(s2, st))
             qs.append(st.q[0])
@@ -286,7 +286,7 @@ def test_joint_torques_equal_the_kernels(psim):
     lt = np.zeros(2)
     sk = psim.skeleton._replace(gravity=np.zeros(3))
     SK.skeleton_step(1e-4, st.q, st.qd, f, st.x, sk, psim.att_idx, psim.att_seg, 0.0, 0.3, 1.0, st.seg_R, st.seg_t,
-                     np.zeros((2, 10)), np.array([True, False]), st.q.copy(), lt, np.zeros(2))
+                     np.zeros((2, 10)), np.array([True, False]), st.q.copy(), lt, np.zeros(2), np.zeros((psim.n_segments, 6)))
     np.testing.assert_allclose(tau[0], -lt[0], rtol=1e-9)
     on_patella = psim.att_idx[psim.att_seg == 2]
     assert abs(joint_torques(psim, st, f, on_patella)[0]) > 0           # the patella's share is not zero

@@ -49,9 +49,12 @@ def _stage_both(sim, x, v, R, t):
     xr, vr = x.copy(), v.copy()
     work = C.work(cg, sim.n_segments)
     work.R0[:], work.t0[:] = R, t
-    C.fold_contact(1e-3, x, v, R, t, cg, work)
-    reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3)
+    m = np.full(len(x), 1e-3)
+    wr, wrr = np.zeros((sim.n_segments, 6)), np.zeros((sim.n_segments, 6))
+    C.fold_contact(1e-3, x, v, R, t, cg, work, 1.0 / m, wr)
+    reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3, m, wrr)
     assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
+    assert np.allclose(wr, wrr, rtol=1e-12, atol=1e-12)
 
 def test_fold_vertices_are_the_flexion_side_within_reach():
     """On the knee phantom (hamstring column 4 cm behind the hinge, quadriceps 4 cm in front, flexion moves the shank
@@ -101,9 +104,18 @@ def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity(
     ke0 = 0.5 * np.sum(v * v)
     work = C.work(cg, sim.n_segments)
     work.R0[:], work.t0[:] = R, t
-    hits = C.fold_contact(1e-3, x, v, R, t, cg, work)
-    reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3)
+    m = np.full(len(x), 2e-3)
+    wr, wrr = np.zeros((sim.n_segments, 6)), np.zeros((sim.n_segments, 6))
+    v_in = v.copy()
+    hits = C.fold_contact(1e-3, x, v, R, t, cg, work, 1.0 / m, wr)
+    reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3, m, wrr)
     assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
+    assert np.allclose(wr, wrr, rtol=1e-12, atol=1e-12)
+    # the segments take the reaction of every velocity change: their summed force is minus the tissue's momentum
+    # change over the sub-step, and its moment likewise
+    dp = m[:, None] * (v - v_in)
+    assert np.allclose(wr[:, :3].sum(0), -dp.sum(0) / 1e-3, atol=1e-9)
+    assert np.allclose(wr[:, 3:].sum(0), -np.cross(x, dp).sum(0) / 1e-3, atol=1e-9)
     assert np.allclose(x[prox[2]], [0.0, 0.0, 0.05])
     if not plane:
         assert hits == 1

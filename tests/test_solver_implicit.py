@@ -178,9 +178,10 @@ def test_a_fine_model_is_stable_at_one_ms_with_one_iteration(settings):
 @pytest.mark.slow
 def test_the_demo_motion_agrees_with_mass_scaled(default_tm):
     """The demo's motion (physical set, hamstrings ramped 0 -> 1 over 8 s, 10 s), the same physics in both (the
-    sheath in both): the implicit knee trajectory within 1.5 deg of mass_scaled's. Measured: 1.02 deg at worst
-    (t ~ 1.9 s), both ending at the 120-deg stop (with the hamstrings' sheath alone 1.10 deg; without the sheath in
-    either: 0.44 deg, both at 113.9-114.0)."""
+    sheath and the contact's reaction on the skeleton in both): the implicit knee trajectory within 2.5 deg of
+    mass_scaled's. Measured: 2.17 deg at worst (t = 8.45 s, as the knee nears the 120-deg stop at ~25 deg/s: the
+    mass_scaled knee 0.1 s behind, its contact reactions carrying its added tissue mass), both ending at the stop
+    (1.02 deg, at ~1.9 s, before the contact gave the skeleton its reaction; docs/solver.md)."""
     q = {}
     for name, params in (('mass_scaled', solver.Params.physical()), ('implicit', _implicit())):
         sim = solver.compile_model(default_tm, params)
@@ -189,7 +190,7 @@ def test_the_demo_motion_agrees_with_mass_scaled(default_tm):
     d = np.abs(q['implicit'] - q['mass_scaled'])
     print(f"max diff {d.max():.2f} deg at frame {int(d.argmax())}; end {q['mass_scaled'][-1]:.1f} / {q['implicit'][-1]:.1f} deg")
     assert q['mass_scaled'][-1] >= 105.0
-    assert d.max() < 1.5
+    assert d.max() < 2.5
 
 
 def test_the_implicit_physical_set_keeps_the_sheath():

@@ -50,14 +50,16 @@ def test_the_lock_balances_a_known_external_torque():
     qd = np.zeros(sim.n_joints)
     ok = SK.skeleton_step(1e-3, q, qd, f, state.x, sim.skeleton, sim.att_idx, sim.att_seg, 0.0, 0.5, 1.0,
                           state.seg_R, state.seg_t, np.zeros((sim.n_joints, 8 + sim.n_joints)),
-                          np.array([True]), np.array([np.radians(40.0)]), lock_tau, np.zeros(1))
+                          np.array([True]), np.array([np.radians(40.0)]), lock_tau, np.zeros(1),
+                          np.zeros((sim.n_segments, 6)))
     assert ok
     assert lock_tau[0] == pytest.approx(-tau_ext, rel=1e-9)
     assert q[0] == np.radians(40.0) and qd[0] == 0.0
     # unlocked, the same torque accelerates the knee and no lock torque is reported
     q2, qd2 = state.q.copy(), np.zeros(1)
     SK.skeleton_step(1e-3, q2, qd2, f, state.x, sim.skeleton, sim.att_idx, sim.att_seg, 0.0, 0.5, 1.0,
-                     state.seg_R.copy(), state.seg_t.copy(), np.zeros((1, 9)), np.array([False]), np.zeros(1), lock_tau, np.zeros(1))
+                     state.seg_R.copy(), state.seg_t.copy(), np.zeros((1, 9)), np.array([False]), np.zeros(1), lock_tau, np.zeros(1),
+                     np.zeros((sim.n_segments, 6)))
     assert lock_tau[0] == 0.0 and np.sign(qd2[0]) == np.sign(tau_ext)
 
 

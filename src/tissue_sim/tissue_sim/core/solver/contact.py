@@ -284,11 +284,26 @@ PROJECTIONS = 4         # at most this many projections of a vertex per grid and
 PROJECTION_TOL = 1e-6   # [m] a projected vertex this close below its floor is done
 
 
+@njit(cache=True, inline='always')
+def _react(wr, s, share, x, i, m_h, dvx, dvy, dvz):
+    """The reaction on segment s of a contact's velocity change dv of vertex i (now at x[i]): the vertex's momentum
+    changed by m dv in the sub-step (m = 1/inv_den, the mass the integrator gives it), so the segment (or, share 0.5
+    each, the two segments whose bisector plane it was) takes the force -share m dv / h at x[i]: wr[s] += (force [N],
+    its moment about the world origin [N m]). m_h = m / h."""
+    fx, fy, fz = -share * m_h * dvx, -share * m_h * dvy, -share * m_h * dvz
+    wr[s, 0] += fx
+    wr[s, 1] += fy
+    wr[s, 2] += fz
+    wr[s, 3] += x[i, 1] * fz - x[i, 2] * fy
+    wr[s, 4] += x[i, 2] * fx - x[i, 0] * fz
+    wr[s, 5] += x[i, 0] * fy - x[i, 1] * fx
+
+
 @njit(cache=True, fastmath={'contract'}, inline='always')
-def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0):
+def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den, wr):
     """Vertex i inside grid b's box (rest-frame point p, grid coordinates g; s the segment): project
     it out when it is closer than its floor, again from where that put it while it is still below it
-    (at most PROJECTIONS times), and fix its velocity with the last normal. Returns a lower bound of
+    (at most PROJECTIONS times), and fix its velocity with the last normal (the segment takes the reaction, _react). Returns a lower bound of
     (sampled distance - floor) before the projection, for the broad phase, and whether it was projected."""
     nx, ny, nz = cg.g_dims[b, 0], cg.g_dims[b, 1], cg.g_dims[b, 2]
     lim = cg.floor[i]
@@ -341,20 +356,24 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0):
             vt = math.sqrt(tx * tx + ty * ty + tz * tz)
             keep = max(0.0, 1.0 - mu * (-vn) / vt) if vt > 0.0 else 0.0
             tx *= keep; ty *= keep; tz *= keep
-        v[i, 0] = bx + tx
-        v[i, 1] = by + ty
-        v[i, 2] = bz + tz
+        nvx, nvy, nvz = bx + tx, by + ty, bz + tz
+        _react(wr, s, 1.0, x, i, 1.0 / (inv_den[i] * h), nvx - v[i, 0], nvy - v[i, 1], nvz - v[i, 2])
+        v[i, 0] = nvx
+        v[i, 1] = nvy
+        v[i, 2] = nvz
     return d_first - lim, True
 
 
 @njit(cache=True, fastmath={'contract'})
-def bone_contact(h, x, v, seg_R, seg_t, cg, cw):
+def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
     """Stage 4 of the step: project every free vertex closer to a bone than its floor (the margin)
     back onto it along the distance gradient, in place on (x, v) (the positions and velocities the
     integration just wrote); its velocity relative to the bone loses its inward normal part (and,
     with friction mu, up to mu x that much of its tangential part). The bone's velocity at the vertex
-    comes from the segment pose at the sub-step's start (cw.R0, cw.t0) and now (seg_R, seg_t). Grid by
-    grid, vertices in ascending order. cg: ContactGrids (constants), cw: ContactWork. Returns the contacts made.
+    comes from the segment pose at the sub-step's start (cw.R0, cw.t0) and now (seg_R, seg_t). The bone takes the
+    reaction: wr (S, 6) += each velocity change's -m dv / h at the vertex and its moment (_react; inv_den (V,) the
+    integrator's 1/m), which the next sub-step's skeleton step applies. Grid by grid, vertices in ascending order.
+    cg: ContactGrids (constants), cw: ContactWork. Returns the contacts made.
 
     Broad phase, per grid b and vertex: a record, the rest-frame point qc[b, i] where the vertex was
     last tested and a slack (a lower bound there of the grid's sampled distance above the vertex's
@@ -409,7 +428,7 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw):
             pz = r02 * dx + r12 * dy + r22 * dz
             gx, gy, gz = (px - ox) * ih, (py - oy) * ih, (pz - oz) * ih
             if gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= mx and gy <= my and gz <= mz:
-                d, hit = _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0)
+                d, hit = _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den, wr)
                 hits += hit
             else:                       # outside the box: a lower bound of the distance to it
                 d, hit = max(max(-gx, gx - mx), max(max(-gy, gy - my), max(-gz, gz - mz))) / ih, False
@@ -467,12 +486,12 @@ def _sheath_push(x, seg_R, seg_t, cg, ii, ps, n0x, n0y, n0z, out):
 
 
 @njit(cache=True, fastmath={'contract'})
-def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo):
+def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo, inv_den, wr):
     """The sheath of folding hinge k (a retinaculum: docs/contact.md): each of its vertices i, taken to its segment's
     rest frame (p = R^T (x - t); the parent p_seg for side +1, the child c_seg for -1), keeps its offset from its rest position X_i across n0 within s_r: beyond
     it, the offset is scaled back to s_r (the axial part kept: the vertex slides freely along the segment), and its
     outward velocity relative to the segment (whose motion over the sub-step comes from its pose at the start,
-    cw.R0 cw.t0, and now) is removed. Returns the vertices moved."""
+    cw.R0 cw.t0, and now) is removed, the segment taking the reaction (_react). Returns the vertices moved."""
     hits = 0
     ih = 1.0 / h
     o = np.empty(6)
@@ -494,6 +513,7 @@ def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo):
         x[i, 2] += push * uz
         vn = (v[i, 0] - bx) * ux + (v[i, 1] - by) * uy + (v[i, 2] - bz) * uz
         if vn > 0.0:
+            _react(wr, ps, 1.0, x, i, 1.0 / (inv_den[i] * h), -vn * ux, -vn * uy, -vn * uz)
             v[i, 0] -= vn * ux
             v[i, 1] -= vn * uy
             v[i, 2] -= vn * uz
@@ -521,15 +541,33 @@ def sheath_offsets(x, seg_R, seg_t, cg, d):
 
 
 @njit(cache=True, fastmath={'contract'})
-def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
+def sheath_reaction(x, cg, ks, sd, wr):
+    """The reaction of the implicit integrator's sheath correction (implicit.sheath_correct) after its solve: a
+    sheathed vertex i that was beyond the radius (sd[i, :3] its way back d, sd[i, 3:] its position before the
+    correction) was held by the force g = k_s (d - w) (w = x[i] - sd[i, 3:], k_s = ks[i]: A w = g on its row of
+    A' w = k_s d); its segment (the parent above the hinge, the child below) takes -g at x[i] (_react, into wr)."""
+    for k in range(cg.f_seg.shape[0]):
+        for ii in range(cg.s_off[k], cg.s_off[k + 1]):
+            i = cg.s_idx[ii]
+            if sd[i, 0] == 0.0 and sd[i, 1] == 0.0 and sd[i, 2] == 0.0:
+                continue
+            seg = cg.f_seg[k, 0] if cg.s_side[ii] > 0.0 else cg.f_seg[k, 1]
+            _react(wr, seg, 1.0, x, i, ks[i], sd[i, 0] - (x[i, 0] - sd[i, 3]), sd[i, 1] - (x[i, 1] - sd[i, 4]),
+                   sd[i, 2] - (x[i, 2] - sd[i, 5]))
+
+
+@njit(cache=True, fastmath={'contract'})
+def fold_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
     """Stage 4a of the step, the tissue-tissue contact in the fold of each folding hinge (docs/contact.md), in place
     on (x, v): while the hinge is flexed, a fold vertex i of side s (+1 proximal, -1 distal) must keep
     s n . (x_i - c) >= floor_i, n the unit normal of the plane through the hinge axis that bisects the two segments'
     long axes (n ~ R_p n0 + R_c n0). A vertex below its floor moves onto it along its own segment's long axis
     (s R_side n0 s, so that thigh tissue is pushed up the thigh and calf tissue down the calf, not round the bone;
     along s n where cos(theta/2) < FOLD_MIN_COS), and its velocity relative to the plane loses its inward normal
-    part (the plane's rate at x from its pose at the sub-step's start, cw.R0 cw.t0, and now). Returns the
-    projections made. reference.fold_stage is the same stage in numpy."""
+    part (the plane's rate at x from its pose at the sub-step's start, cw.R0 cw.t0, and now). The plane's owners take
+    the reaction (_react into wr, inv_den the integrator's 1/m): the bisector plane moves as the mean of the two
+    segments' motions at x (its angular velocity is their mean, its axis common to both), so each takes half; the
+    flexion-side plane, its own segment. Returns the projections made. reference.fold_stage is the same stage in numpy."""
     K = cg.f_seg.shape[0]
     if K == 0:
         return 0
@@ -540,7 +578,7 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
     for k in range(K):
         ps, cs = cg.f_seg[k, 0], cg.f_seg[k, 1]
         geo = cg.f_geo[k]
-        hits += _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, cs, geo)
+        hits += _sheath(h, x, v, seg_R, seg_t, cg, cw, k, ps, cs, geo, inv_den, wr)
         if _fold_plane(seg_R, seg_t, ps, cs, geo, pl) <= 0.0:
             continue                            # straight or hyperextended: no fold
         _fold_plane(cw.R0, cw.t0, ps, cs, geo, p0)
@@ -568,6 +606,9 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
             # the vertex's rate of s phi: s (n . v + plane rate at x); inward: remove it along n
             vn = s * (nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2] + ax * x[i, 0] + ay * x[i, 1] + az * x[i, 2] + bq)
             if vn < 0.0:
+                m_h = 1.0 / (inv_den[i] * h)
+                _react(wr, ps, 0.5, x, i, m_h, -vn * s * nx, -vn * s * ny, -vn * s * nz)
+                _react(wr, cs, 0.5, x, i, m_h, -vn * s * nx, -vn * s * ny, -vn * s * nz)
                 v[i, 0] -= vn * s * nx
                 v[i, 1] -= vn * s * ny
                 v[i, 2] -= vn * s * nz
@@ -598,6 +639,7 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw):
                 vn = (ex * v[i, 0] + ey * v[i, 1] + ez * v[i, 2] + ((ex - fx) * x[i, 0] + (ey - fy) * x[i, 1]
                                                                     + (ez - fz) * x[i, 2]) * ih + eb)
                 if vn < 0.0:
+                    _react(wr, seg, 1.0, x, i, 1.0 / (inv_den[i] * h), -vn * ex, -vn * ey, -vn * ez)
                     v[i, 0] -= vn * ex
                     v[i, 1] -= vn * ey
                     v[i, 2] -= vn * ez

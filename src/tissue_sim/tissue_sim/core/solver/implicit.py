@@ -50,7 +50,7 @@ iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free 
 weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
 star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative).
 The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [N/m] k_s of each vertex
-(sheath_weights), sd (V, 3) scratch (each sheathed vertex's way back), the factor of A' = A + diag(ks) in the same
+(sheath_weights), sd (V, 6) scratch (each sheathed vertex's way back, its position before the correction), the factor of A' = A + diag(ks) in the same
 star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
 s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form."""
 
@@ -243,11 +243,11 @@ def make(sim, h: float) -> Implicit:
         keep = np.concatenate([reg, nf + np.flatnonzero(touch)])
         s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsr()[keep][:, keep].tocsc())
         s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
-        sheath = (ks, np.zeros((V, 3)), s_rows, sLs.indptr, sLs.indices, sLs.data.copy(), 1.0 / sd_,
+        sheath = (ks, np.zeros((V, 6)), s_rows, sLs.indptr, sLs.indices, sLs.data.copy(), 1.0 / sd_,
                   np.zeros((keep.size, 3)))
         sU = _transposed(sLs)
     else:
-        sheath = (e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
+        sheath = (e_f, np.zeros((0, 6)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
         sU = (e_p, e_i, e_f)
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
@@ -387,17 +387,21 @@ def _solve_sheath(imp, xk):
 
 
 @njit(cache=True)
-def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2):
+def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2, wr):
     """The sheath with the implicit integrator (Params.sheath_group; docs/solver.md "Implicit integrator"), after the
     last iteration: the sheathed vertices beyond their radius at xn (contact.sheath_offsets, in the segments' new
     poses) are moved back onto it and the tissue follows them, xn_free += A'^-1 (k_s d), A' = A + diag(k_s) (k_s =
     SHEATH_STIFFNESS x a vertex's diagonal: the sheathed vertices held where the correction puts them, the rest of
     each cell following as the constant system says); v1 = (xn - x)/h. Stage 4's projection (contact._sheath) then
-    finds them on the radius within ~1/SHEATH_STIFFNESS of their way back. Returns how many vertices are too fast
-    or not finite (0 with nothing beyond the radius: nothing done)."""
+    finds them on the radius within ~1/SHEATH_STIFFNESS of their way back. The segments take the reaction of the
+    force that held each sheathed vertex (contact.sheath_reaction, into wr (S, 6)). Returns how many vertices are too
+    fast or not finite (0 with nothing beyond the radius: nothing done)."""
     if imp.sd.shape[0] == 0 or CT.sheath_offsets(xn, seg_R, seg_t, cg, imp.sd) == 0:
         return 0
+    for i in cg.s_idx:
+        imp.sd[i, 3], imp.sd[i, 4], imp.sd[i, 5] = xn[i, 0], xn[i, 1], xn[i, 2]
     _solve_sheath(imp, xn)
+    CT.sheath_reaction(xn, cg, imp.ks, imp.sd, wr)
     nfast = 0                   # (the velocities of the region's vertices: the others did not move)
     ih = 1.0 / h
     for i in imp.s_row_v:

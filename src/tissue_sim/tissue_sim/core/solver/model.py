@@ -157,6 +157,8 @@ class State:
                                     # (+ about the joint axis, the direction q grows; 0 where not locked)
     activation: np.ndarray = None   # (M,) activation state in [0, 1] (Params.activation_time > 0: it follows the commanded
                                     # excitation with first-order dynamics; otherwise it is the last command)
+    contact_wrench: np.ndarray = None   # (S, 6) the contact's reaction on each segment in the last sub-step (force [N],
+                                    # its moment about the world origin [N m]), applied in the next sub-step (docs/contact.md)
     step: int = 0
     time: float = 0.0               # [s]
     x_back: np.ndarray = None       # double buffers (internal)
@@ -507,7 +509,7 @@ def make_state(sim: SimModel) -> State:
                lam=np.ones(max(sim.n_muscles, 0)), cell_energy=np.zeros(C), pressure=np.zeros(C),
                cell_length=np.zeros(C), muscle_length=np.full(max(sim.n_muscles, 0), -1.0),
                muscle_velocity=np.zeros(max(sim.n_muscles, 0)), joint_lock_torque=np.zeros(J),
-               activation=np.zeros(max(sim.n_muscles, 0)),
+               activation=np.zeros(max(sim.n_muscles, 0)), contact_wrench=np.zeros((S, 6)),
                x_back=np.empty((V, 3)), v_back=np.empty((V, 3)))
     SK.coupled_coordinates(st.q, st.qd, sim.skeleton)
     return st
@@ -540,6 +542,8 @@ def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
     state.x[a] = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[a]) + state.seg_t[s]
     state.muscle_length[:] = -1.0        # a jump, not a motion: the force-velocity estimate starts again
     state.muscle_velocity[:] = 0.0
+    if state.contact_wrench is not None:
+        state.contact_wrench[:] = 0.0    # (the last sub-step's contact reaction belongs to the old pose)
     return state
 
 

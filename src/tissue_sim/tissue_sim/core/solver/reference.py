@@ -111,6 +111,8 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         state.joint_lock_torque = np.zeros(J)
     if state.activation is None:
         state.activation = np.zeros(sim.n_muscles)
+    if state.contact_wrench is None:
+        state.contact_wrench = np.zeros((sim.n_segments, 6))
     u = a                             # the commands: excitations when activation dynamics is on
     fl_on = p.force_length and p.specific_tension > 0
     pe_on = p.passive_force_length and p.specific_tension > 0
@@ -155,11 +157,14 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.muscle_velocity[seen] += h / (p.fv_filter_time + h) * (
                 (length - state.muscle_length)[seen] / h - state.muscle_velocity[seen])
             state.muscle_length[:] = length
-        # 2. skeleton: joint torques from the forces on the bone-attached vertices and tau_pe, joint dynamics (a locked
-        # hinge is driven to its target, its torque in state.joint_lock_torque), poses
+        # 2. skeleton: joint torques from the forces on the bone-attached vertices, tau_pe and the last sub-step's contact
+        # reaction (state.contact_wrench), joint dynamics (a locked hinge is driven to its target, its torque in
+        # state.joint_lock_torque), poses
         SK.skeleton_step(h, state.q, state.qd, f, y, sim.skeleton, sim.att_idx, sim.att_seg,
                          p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
-                         np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque, tau_pe)
+                         np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque, tau_pe,
+                         state.contact_wrench)
+        state.contact_wrench[:] = 0.0      # (applied: the sheath correction and stage 4 write this sub-step's)
         # 3. soft tissue: symplectic Euler for the free vertices (implicit: implicit.py's correction of y, its
         # local/global iterations from the forces at the last iterate), the bone-attached ones follow their segment
         i, s = sim.att_idx, sim.att_seg
@@ -176,16 +181,18 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
                 state.x[free] = IM.reference_solve(sim, h, f, state.x, y, np.zeros_like(state.x))
                 state.v[:] = (state.x - x_old) / h
             if sim.contact.s_idx.size:        # the sheath (docs/solver.md "Implicit integrator": the sheath)
-                sheath_correction(sim, h, state.x, state.seg_R, state.seg_t)
+                sheath_correction(sim, h, state.x, state.seg_R, state.seg_t, state.contact_wrench)
                 state.v[:] = (state.x - x_old) / h
         else:
             state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
             state.x[free] += h * state.v[free]
             state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
         # 4. fold contact (Params.fold_contact), then bone contact: free vertices closer to a bone than their floor are
-        # projected out (Params.bone_contact)
-        fold_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h)
-        contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h)
+        # projected out (Params.bone_contact); the segments take the reaction of each velocity change, for the next sub-step
+        if sim.contact.g_seg.size or sim.contact.f_seg.size:
+            m = np.divide(1.0, inv_den, out=np.zeros_like(inv_den), where=inv_den > 0)
+            fold_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h, m, state.contact_wrench)
+            contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h, m, state.contact_wrench)
         state.f[:] = f
     state.quat[:] = rotation_quaternions(R)
     state.step += 1
@@ -252,15 +259,24 @@ def grid_sample(cg, b, P):
     return np.where(inside, value, np.inf), grad * inside[:, None]
 
 
-def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
+def react(wr, s, share, x, m, dv, h):
+    """Segment s takes the reaction of the velocity changes dv (N, 3) of vertices at x (N, 3) with masses m (N,) (the
+    integrator's 1/inv_den), share of it (0.5: a bisector plane's two segments): wr[s] += (sum of F = -share m dv / h,
+    sum of x x F) (contact._react)."""
+    F = -share * m[:, None] * dv / h
+    wr[s, :3] += F.sum(axis=0)
+    wr[s, 3:] += np.cross(x, F).sum(axis=0)
+
+
+def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h, m=None, wr=None):
     """Stage 4, bone contact (docs/contact.md), in place on the positions and velocities stage 3 wrote: grid by grid
     (cg: the SimModel's ContactGrids; none: nothing), every free vertex whose sampled distance d is below its floor
     moves by (floor - d) along the grid's gradient direction n (world frame), again from there while it is still
     below (by more than contact.PROJECTION_TOL; at most contact.PROJECTIONS times), and its velocity relative to the
     bone (whose velocity there is (x - (R0 p + t0)) / h, p the vertex in the bone's rest frame before the projection,
     R0 t0 the pose at the sub-step's start) loses its inward part along the last n; with friction mu its tangential
-    part shrinks by mu x that. No broad phase: every vertex is tested every sub-step (contact.bone_contact gives the
-    same result faster)."""
+    part shrinks by mu x that; the bone takes the reaction (react, with the masses m (V,) into wr (S, 6); None: not
+    recorded). No broad phase: every vertex is tested every sub-step (contact.bone_contact gives the same result faster)."""
     free = cg.free_idx
     floor, mu = cg.floor[free], cg.par[1]
     for b, s in enumerate(cg.g_seg):
@@ -289,7 +305,10 @@ def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
         vt = np.linalg.norm(tang, axis=1)
         keep = np.maximum(0.0, 1.0 - mu * -vn / np.where(vt > 0, vt, 1.0)) if mu > 0 else np.ones_like(vn)
         keep = np.where((vt > 0) | (mu == 0), keep, 0.0)
-        v[i] = np.where((vn < 0)[:, None], v_bone + keep[:, None] * tang, v[i])
+        v_new = np.where((vn < 0)[:, None], v_bone + keep[:, None] * tang, v[i])
+        if wr is not None:
+            react(wr, s, 1.0, x[i], m[i], v_new - v[i], h)
+        v[i] = v_new
 
 
 def fold_plane(cg, k, seg_R, seg_t):
@@ -323,29 +342,41 @@ def sheath_offsets(cg, k, x, seg_R, seg_t):
     return out_
 
 
-def sheath_correction(sim, h, x, seg_R, seg_t):
+def sheath_correction(sim, h, x, seg_R, seg_t, wr=None):
     """The implicit integrator's sheath correction (implicit.sheath_correct, docs/solver.md "Implicit integrator"):
     the sheathed vertices beyond the radius moved back onto it and the tissue of implicit.sheath_region following
     them, A' w = r with A' = A + diag(k_s) (implicit.sheath_weights) over that region (the rest held) and r = k_s times
-    each one's way back (implicit.reference_sheath_solve: scipy's solve of the written-out system). In place on x."""
+    each one's way back (implicit.reference_sheath_solve: scipy's solve of the written-out system). In place on x.
+    The segment of each sheathed vertex moved takes the reaction of the force that held it, k_s (d - w) (w: how far
+    the solve moved it), into wr (S, 6) (None: not recorded; contact.sheath_reaction)."""
     cg = sim.contact
     d = np.zeros_like(x)
+    held = []
     for k in range(cg.f_seg.shape[0]):
-        for i, _, _, push, u in sheath_offsets(cg, k, x, seg_R, seg_t):
+        for i, _, seg, push, u in sheath_offsets(cg, k, x, seg_R, seg_t):
             d[i] = push[:, None] * u
+            held.append((i, seg))
     if np.any(d):
+        x0 = x.copy()
         x[sim.inv_mass > 0] += IM.reference_sheath_solve(sim, h, d)
+        if wr is not None:
+            ks = IM.sheath_weights(sim, h)
+            for i, seg in held:
+                react(wr, seg, 1.0, x[i], ks[i], d[i] - (x[i] - x0[i]), 1.0)
 
 
-def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
+def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h, m=None, wr=None):
     """Stage 4a, the fold contact (docs/contact.md), in place on the positions and velocities stage 3 wrote: for each
     folding hinge k while it is flexed, its vertices i (side s: +1 proximal, -1 distal) with s n . (x_i - c) below their
     floor move onto it along their own segment's proximal direction times s (n the unit normal of the plane through
     the axis bisecting the segments, c a point of the axis; along s n where that direction's s n-component is below
     contact.FOLD_MIN_COS), and their velocity loses the inward part of s (n . v + the plane's rate at x), the plane's
     rate from its pose at the sub-step's start (R0, t0) and now; then each keeps to the flexion side of its own
-    segment's plane through the axis (below). First, whatever the angle, the sheath (Params.sheath_group). contact.fold_contact is
-    the same stage compiled."""
+    segment's plane through the axis (below). First, whatever the angle, the sheath (Params.sheath_group). Each velocity
+    change's reaction (react, masses m (V,), into wr (S, 6); None: not recorded) goes to the segment whose plane or
+    sheath made it, half to each of the two for the bisector plane. contact.fold_contact is the same stage compiled."""
+    if wr is None:
+        m, wr = np.zeros(len(x)), np.zeros((int(np.max(cg.f_seg, initial=0)) + 1, 6))
     for k in range(cg.f_seg.shape[0]):
         # the sheath: its vertices keep their offset across n0 from their rest position, in the parent's rest frame,
         # within s_r (scaled back onto it, the axial part kept); their outward velocity relative to the parent goes
@@ -353,7 +384,9 @@ def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
             v_seg = (x[i] - (p @ R0[ps].T + t0[ps])) / h
             x[i] += push[:, None] * u
             vn = np.sum((v[i] - v_seg) * u, axis=1)
-            v[i] -= np.maximum(vn, 0.0)[:, None] * u
+            dv = -np.maximum(vn, 0.0)[:, None] * u
+            react(wr, ps, 1.0, x[i], m[i], dv, h)
+            v[i] += dv
         n, c, up_p, up_c, flex = fold_plane(cg, k, seg_R, seg_t)
         if flex <= 0:
             continue
@@ -370,7 +403,10 @@ def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
         x[i] += ((lim - phi) / dn)[:, None] * d
         rate = ((x[i] - c) @ n - (x[i] - c_start) @ n_start) / h      # the plane's own rate of n . (x - c) at x
         vn = s * (v[i] @ n + rate)
-        v[i] -= np.where(vn < 0, vn * s, 0.0)[:, None] * n
+        dv = -np.where(vn < 0, vn * s, 0.0)[:, None] * n
+        for seg in cg.f_seg[k]:
+            react(wr, seg, 0.5, x[i], m[i], dv, h)
+        v[i] += dv
         # the flexion side: each vertex keeps e_own . (x - c) >= its floor (e_own: the flexion direction e in its own
         # segment's pose), moved along e_own, its velocity relative to that plane losing its inward part
         e = cg.f_geo[k, 6:]
@@ -383,7 +419,9 @@ def fold_stage(cg, x, v, seg_R, seg_t, R0, t0, h):
             i, lim, w = i[hit], lim[hit], w[hit]
             x[i] += (lim - w)[:, None] * E
             vn = v[i] @ E + ((x[i] - c) @ E - (x[i] - c_start) @ E_start) / h
-            v[i] -= np.minimum(vn, 0.0)[:, None] * E
+            dv = -np.minimum(vn, 0.0)[:, None] * E
+            react(wr, seg, 1.0, x[i], m[i], dv, h)
+            v[i] += dv
 
 
 def rotation_quaternions(R: np.ndarray) -> np.ndarray:

@@ -118,13 +118,14 @@ def _cross(a, b, out):
 
 @njit(cache=True)
 def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh, limit_zeta, seg_R, seg_t, work,
-                  lock, target, lock_tau, tau_ext):
+                  lock, target, lock_tau, tau_ext, wext):
     """One step of the skeleton (a tree of rigid segments, hinge, fixed or coupled joints, fixed root).
 
     tau_j = a_j . sum over attached vertices of segments below joint j of (x - p_j) x f (the
     tissue's reaction on the bone), plus tau_ext[j] [N m] (J,): torques given in joint space (the passive fibre force,
-    muscle.passive_torques; a coupled joint's entry is not used). Joint-space mass matrix M from segment masses/inertias by
-    Jacobians; bias (Coriolis, centrifugal, gravity) by recursive Newton-Euler with qdd = 0;
+    muscle.passive_torques; a coupled joint's entry is not used), plus the wrench wext (S, 6) on each segment (force
+    [N], its moment about the world origin [N m]: the contact's reaction, State.contact_wrench). Joint-space mass
+    matrix M from segment masses/inertias by Jacobians; bias (Coriolis, centrifugal, gravity) by recursive Newton-Euler with qdd = 0;
     range limits as an implicit stiff, critically damped end stop (no jolt). Symplectic Euler:
     qd += h qdd, q += h qd; then forward kinematics. Returns False if qdd is not finite.
 
@@ -197,6 +198,10 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
             k += 1
         Fs[s, 0] += f0; Fs[s, 1] += f1; Fs[s, 2] += f2
         Ns[s, 0] += n0; Ns[s, 1] += n1; Ns[s, 2] += n2
+    for s in range(S):
+        for r in range(3):
+            Fs[s, r] += wext[s, r]
+            Ns[s, r] += wext[s, 3 + r]
     # recursive Newton-Euler, qdd = 0, base acceleration -g (gravity), forward pass
     w = np.zeros((S, 3))
     al = np.zeros((S, 3))

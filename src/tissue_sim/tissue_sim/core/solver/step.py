@@ -46,7 +46,7 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
-                                'muscle_length muscle_velocity joint_lock_torque activation')   # the State's arrays (xb, vb: back buffers)
+                                'muscle_length muscle_velocity joint_lock_torque activation contact_wrench')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
                                 'fmax path_muscle path_data path_powers path_coef path_shift l_rest')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
@@ -129,9 +129,12 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0; a_st[:] = scratch.act0
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
-            # 2. skeleton: joint torques from the forces on bone-attached vertices and the passive fibre force, joint dynamics
+            # 2. skeleton: joint torques from the forces on bone-attached vertices, the passive fibre force and the last
+            # sub-step's contact reaction (stage 4), joint dynamics
             ok = SK.skeleton_step(h, q, qd, f, xe, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
-                                  st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque, scratch.tau_pe)
+                                  st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque, scratch.tau_pe,
+                                  st.contact_wrench)
+            st.contact_wrench[:] = 0.0    # (applied: stage 3's sheath correction and stage 4 write this sub-step's)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
             if imp.on:             # implicit Euler: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
                 fast = IM.integrate(h, x, v, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
@@ -144,7 +147,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                         break
                     fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
-                    fast = IM.sheath_correct(h, x, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2)
+                    fast = IM.sheath_correct(h, x, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
             else:
                 fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
                                     st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
@@ -157,11 +160,12 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 return swaps
             # 4. bone contact: free vertices closer to a bone than the margin are projected out, their inward
             # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
-            # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane)
+            # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane);
+            # each velocity change's reaction goes to the segment that made it, for the next sub-step's skeleton step
             if cgrid.g_seg.shape[0] > 0 or cgrid.f_seg.shape[0] > 0:
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
-                CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork)
-                CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork)
+                CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
+                CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
             x, xb = xb, x
             v, vb = vb, v
             swaps += 1
@@ -277,9 +281,11 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
         state.joint_lock_torque = np.zeros(sim.n_joints)
     if state.activation is None:
         state.activation = np.zeros(sim.n_muscles)
+    if state.contact_wrench is None:
+        state.contact_wrench = np.zeros((sim.n_segments, 6))
     st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
           state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
-          state.muscle_velocity, state.joint_lock_torque, state.activation)   # (the fields of Arrays)
+          state.muscle_velocity, state.joint_lock_torque, state.activation, state.contact_wrench)   # (the fields of Arrays)
     if lock is None:
         lock, target = ws.no_lock
     run = advance
