@@ -34,7 +34,7 @@ def _run_both(x, v, quat, lam, act, pressure, vol_gain, volume_actual, csr, cell
     q = q * np.where(q[:, 3:] < 0, -1.0, 1.0)
     new = (bad, f, q, p, e, ln)
     ns = SimpleNamespace(off=off, cv=cv, X0=X0, Qinv=Qinv, fibre=fibre, cell_muscle=cell_muscle, k=k, k_active=k_active,
-                         damp_b=damp_b, k_volume=k_volume, rest_length=rest_length,
+                         damp_b=damp_b, k_volume=k_volume, rest_length=rest_length, k_enclosed=np.zeros(off.size - 1),
                          volume_cap=np.zeros(off.size - 1) if volume_cap is None else volume_cap)
     rp = pressure.copy()
     rf, re, rln, R = reference.cell_forces(ns, padded(ns), x, v, lam, act, rp, vol_gain, volume_actual)

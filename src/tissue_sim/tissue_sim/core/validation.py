@@ -244,7 +244,8 @@ class _Forces:
             s = self.sim
             keep = (s.cell_muscle == muscle).astype(float)
             self._cells[muscle] = dataclasses.replace(s, k=s.k * keep, k_active=s.k_active * keep,
-                                                      k_volume=s.k_volume * keep, damp_b=s.damp_b * keep)
+                                                      k_volume=s.k_volume * keep, k_enclosed=s.k_enclosed * keep,
+                                                      damp_b=s.damp_b * keep)
         return self._cells[muscle]
 
     def __call__(self, state, act, muscle=None) -> np.ndarray:

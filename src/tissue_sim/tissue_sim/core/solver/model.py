@@ -68,6 +68,8 @@ class SimModel:
                                     # force is scaled down (implicit integrator: kvol x the bound = implicit_volume_cap x keff;
                                     # 0 = none)
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
+    k_enclosed: np.ndarray          # (C,) [J] stiffness of the volume energy on the enclosed volume (volume_measure 'enclosed':
+                                    # k_volume, which the cell kernel then leaves out; 0 = off; volume.enclosed_forces)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
     centre_lines: CentreLines       # each muscle's centre line, a linear map of the positions (observe's muscle_lengths
@@ -313,11 +315,24 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     bsum = np.zeros(V)
     np.add.at(bsum, cv, np.repeat(damp_b, sizes))
     q_ff = np.einsum('ci,cij,cj->c', fib, Q, fib)
+    contact = CT.build(tm, p, rest, vs)          # bone signed-distance grids (stage 4; none when off)
+    # volume_measure 'enclosed': the muscle cells' volume energy on their enclosed volume (volume.py), except cells with a
+    # vertex the fold contact or the sheath projects (a projection moves single vertices of a ring; held against the
+    # enclosed volume they diverged, docs/solver.md "Volume"): those, and fat, keep the affine measure
+    k_enc = np.zeros(C)
+    if p.volume_measure == 'enclosed':
+        held = np.zeros(V, bool)
+        held[contact.f_idx] = True
+        held[contact.s_idx] = True
+        touched = np.zeros(C, bool)
+        np.logical_or.at(touched, cell_of_k, held[cv])
+        k_enc = np.where(muscle & ~touched, k_volume, 0.0)
     sim_kw = dict(
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
         Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(q_ff), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), volume_cap=_frozen(volume_cap), cell_sign=_frozen(sign),
+        k_enclosed=_frozen(k_enc),
         length_weight=_frozen(lw),
         muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
                                                minlength=tm.n_muscles)[:tm.n_muscles]),
@@ -332,9 +347,10 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
         **coupling_spline(tm),
         skeleton=None,
-        cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b, k_volume, tr, q_ff, alen, fib, Qinv,
+        cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b,
+                                  np.where(k_enc > 0, 0.0, k_volume), tr, q_ff, alen, fib, Qinv,
                                   volume_cap=volume_cap))
-    sim_kw['contact'] = CT.build(tm, p, rest, vs)          # bone signed-distance grids (stage 4; none when off)
+    sim_kw['contact'] = contact
     sim_kw['skeleton'] = SK.Skeleton(*(sim_kw[n] for n in SK.Skeleton._fields))
     c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0
     sim = SimModel(damp_rate=c_max, **sim_kw)

@@ -23,6 +23,7 @@ DAMPING_MODES = ('deformation', 'velocity', 'none')
 MASS_MODES = ('uniform', 'density')
 STIFFNESS_MODES = ('given', 'modulus')
 VOLUME_MODES = ('actual', 'rest')
+VOLUME_MEASURES = ('affine', 'enclosed')
 INTEGRATORS = ('mass_scaled', 'explicit', 'implicit')
 ACTIVE_LENGTHS = ('chord', 'path')
 LENGTH_MEASURES = ('chord', 'centre_line')
@@ -80,6 +81,9 @@ class Params:
                                           # each muscle cell's volume; the earlier default, with the pressure term, was 0.5)
     volume_relax_time: float = 0.0        # [s] integral (pressure) term restoring each muscle cell's volume; 0 = off (default:
                                           # it is not conservative and kept the paper set swinging; 0.005 = the earlier term)
+    volume_measure: str = 'affine'        # what the volume energies (volume_stiffness, volume_stiffness_fat) hold: 'affine' = the
+                                          # determinant of each cell's best-fit affine map (the earlier term), 'enclosed' = the
+                                          # volume its closed surface encloses (core/solver/volume.py, docs/solver.md "Volume")
     volume_mode: str = 'actual'           # muscle cross-section: 'actual' = 1/sqrt(current fibre stretch), 'rest' = 1/sqrt(lambda)
     max_contraction_velocity: float = 0.0 # [1/s] Hill force-velocity of the active tension: v_max in rest lengths per second
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
@@ -201,6 +205,7 @@ class Params:
         need(self.integrator in INTEGRATORS, f'integrator must be one of {INTEGRATORS}')
         need(self.damping in DAMPING_MODES, f'damping must be one of {DAMPING_MODES}')
         need(self.volume_mode in VOLUME_MODES, f'volume_mode must be one of {VOLUME_MODES}')
+        need(self.volume_measure in VOLUME_MEASURES, f'volume_measure must be one of {VOLUME_MEASURES}')
         for name in ('vertex_mass', 'density_muscle', 'density_fat', 'k_muscle', 'k_fat', 'youngs_muscle',
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')

@@ -60,11 +60,13 @@ def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_a
     T = R @ F                                                    # goal G_i = c + T X0_i
     gap = np.einsum('cij,cpj->cpi', T, pad.X0) - r               # G_i - x_i
     f = cells.k[:, None, None] * gap
-    # volume energy 1/2 kv (det D - 1)^2 (+ the integral term): force g cof(D) Qinv X0_i
+    # volume energy 1/2 kv (det D - 1)^2 (+ the integral term): force g cof(D) Qinv X0_i (the cells whose volume energy
+    # is on their enclosed volume instead, k_enclosed > 0: enclosed_forces, below)
     J = np.linalg.det(D)
-    g = -cells.k_volume * (J - 1.0)
+    kv = np.where(cells.k_enclosed > 0, 0.0, cells.k_volume)
+    g = -kv * (J - 1.0)
     pressure += vol_gain * g
-    g = np.where(cells.k_volume > 0, g + pressure, 0.0)
+    g = np.where(kv > 0, g + pressure, 0.0)
     cof = np.stack([np.cross(D[:, 1], D[:, 2]), np.cross(D[:, 2], D[:, 0]), np.cross(D[:, 0], D[:, 1])], axis=1)
     grad = np.einsum('cij,cpj->cpi', cof @ cells.Qinv, pad.X0)          # grad det D: one row per vertex
     # the implicit integrator's bound (volume_cap > 0): beyond it the force scaled by volume_cap / |grad det D|^2
@@ -87,10 +89,54 @@ def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_a
     ka = np.where(mus, act[np.maximum(cells.cell_muscle, 0)] if act.size else 0.0, 0.0) * cells.k_active * 0.25 * n
     pull = (ka * stretch * 2.0 / (n * np.where(ln > 0, ln, 1.0)))[:, None] * u            # on each bottom vertex
     f += np.where(pad.bottom[..., None], 1.0, -1.0) * pull[:, None] * m
-    energy = 0.5 * cells.k * (gap * gap * m).sum((1, 2)) + 0.5 * cells.k_volume * (J - 1) ** 2 + 0.5 * ka * stretch ** 2
+    energy = 0.5 * cells.k * (gap * gap * m).sum((1, 2)) + 0.5 * kv * (J - 1) ** 2 + 0.5 * ka * stretch ** 2
     out = np.zeros_like(x)
     np.add.at(out, pad.idx[pad.mask], f[pad.mask])
+    if np.any(cells.k_enclosed > 0):
+        fe, ee = enclosed_forces(cells, x)
+        out += fe
+        energy = energy + ee
     return out, energy, ln, R
+
+
+def enclosed_forces(cells, x):
+    """The volume energy on the enclosed volume (Params.volume_measure 'enclosed'; volume.enclosed_forces is the same
+    compiled): per cell with k_enclosed > 0, V = its sign x the prism volume of core.geometry.prism_volumes (caps as
+    fans about the ring centroids, side quads as four triangles about their centroids), E = 1/2 k (V/V0 - 1)^2 and
+    the force -k (V/V0 - 1) / V0 dV/dx, dV/dx from d(a . b x c) = (b x c, c x a, a x b) per triangle, each centroid's
+    share going to its vertices. Returns (forces (V, 3), energies (C,))."""
+    f, energy = np.zeros_like(x), np.zeros(len(cells.k_enclosed))
+    sizes = np.diff(cells.off)
+    on = cells.k_enclosed > 0
+    for size in np.unique(sizes[on]):
+        cs = np.flatnonzero(on & (sizes == size))
+        n = size // 2
+        idx = cells.cv[cells.off[cs][:, None] + np.arange(size)]
+        P = x[idx] - x[idx[:, :1]]                                   # (c, 2n, 3), about the first vertex
+        B, T = P[:, :n], P[:, n:]
+        Bn, Tn = np.roll(B, -1, axis=1), np.roll(T, -1, axis=1)
+        cb, ct = B.mean(1, keepdims=True) + 0 * B, T.mean(1, keepdims=True) + 0 * T
+        qc = (B + Bn + Tn + T) / 4.0
+        gB, gBn, gT, gTn = (np.zeros_like(B) for _ in range(4))
+        gcb, gct, gq = np.zeros_like(B), np.zeros_like(T), np.zeros_like(B)
+        V = np.zeros(len(cs))
+        for w, (a, ga), (b, gb), (c, gc) in (
+                (-1.0, (cb, gcb), (B, gB), (Bn, gBn)), (1.0, (ct, gct), (T, gT), (Tn, gTn)),
+                (1.0, (qc, gq), (B, gB), (Bn, gBn)), (1.0, (qc, gq), (Bn, gBn), (Tn, gTn)),
+                (1.0, (qc, gq), (Tn, gTn), (T, gT)), (1.0, (qc, gq), (T, gT), (B, gB))):
+            V += w * np.einsum('cij,cij->c', a, np.cross(b, c))
+            ga += w * np.cross(b, c)
+            gb += w * np.cross(c, a)
+            gc += w * np.cross(a, b)
+        gB += np.roll(gBn, 1, axis=1) + gq / 4.0 + np.roll(gq, 1, axis=1) / 4.0 + gcb.sum(1, keepdims=True) / n
+        gT += np.roll(gTn, 1, axis=1) + gq / 4.0 + np.roll(gq, 1, axis=1) / 4.0 + gct.sum(1, keepdims=True) / n
+        sign, v0, k = cells.cell_sign[cs], cells.rest_volume[cs], cells.k_enclosed[cs]
+        V = sign * V / 6.0
+        e = V / v0 - 1.0
+        energy[cs] = 0.5 * k * e * e
+        w = (-k * e / v0 * sign / 6.0)[:, None, None]
+        np.add.at(f, idx, w * np.concatenate([gB, gT], axis=1))
+    return f, energy
 
 
 def reference_step(sim: SimModel, state: State, activation, dt: float | None = None, joint_lock=None,

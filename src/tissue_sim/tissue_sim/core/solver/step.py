@@ -34,7 +34,7 @@ def _drop_stale_advance_cache() -> None:
 
 _drop_stale_advance_cache()
 from tissue_sim.core.solver import cells as CK, integration as IK, skeleton as SK  # noqa: E402
-from tissue_sim.core.solver import contact as CT, implicit as IM, muscle as MU  # noqa: E402
+from tissue_sim.core.solver import contact as CT, implicit as IM, muscle as MU, volume as VO  # noqa: E402
 from tissue_sim.core.solver.model import Control, DivergenceError, SimModel, State, substeps_for  # noqa: E402
 
 CAUSE_CELL_FORCE = 1        # non-finite or absurd elastic force in a cell
@@ -48,11 +48,12 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
                                 'muscle_length muscle_velocity joint_lock_torque activation contact_wrench')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
-                                'fmax path_muscle path_data path_powers path_coef path_shift l_rest')
+                                'fmax path_muscle path_data path_powers path_coef path_shift l_rest off cv cell_sign rest_volume '
+                                'k_enclosed')
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 pe_curve')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
-                                 'fibre path_mono path_dmono path_len path_dlen part_l tau_pe')
+                                 'fibre path_mono path_dmono path_len path_dlen part_l tau_pe enc_energy')
 
 
 _cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: cells.lane_forces_par)
@@ -121,6 +122,9 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
                                      num.fl_gamma, act_t)
             bad = _cell_pass(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            if tissue.k_enclosed.shape[0] > 0:
+                VO.enclosed_forces(xe, f, tissue.off, tissue.cv, tissue.cell_sign, tissue.rest_volume, tissue.k_enclosed,
+                                   scratch.enc_energy)
             if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
                                    num.fv_alpha, scratch.muscle_sums)
@@ -145,6 +149,9 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                     if _cell_pass(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
+                    if tissue.k_enclosed.shape[0] > 0:
+                        VO.enclosed_forces(xb, f, tissue.off, tissue.cv, tissue.cell_sign, tissue.rest_volume,
+                                           tissue.k_enclosed, scratch.enc_energy)
                     fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
                     fast = IM.sheath_correct(h, x, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
@@ -170,6 +177,8 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             v, vb = vb, v
             swaps += 1
     CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
+    if tissue.k_enclosed.shape[0] > 0:      # (the enclosed-volume energy of the last force evaluation)
+        st.cell_energy[:] += scratch.enc_energy
     return swaps
 
 
@@ -243,7 +252,9 @@ class Workspace:
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
                         np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0),
-                        MU.muscle_constants(sim)[0], *MU.path_constants(sim))   # the force-length's constants (muscle.py)
+                        MU.muscle_constants(sim)[0], *MU.path_constants(sim),   # the force-length's constants (muscle.py)
+                        sim.off, sim.cv, sim.cell_sign.astype(np.float64), sim.rest_volume,
+                        sim.k_enclosed if np.any(sim.k_enclosed > 0) else np.zeros(0))
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
@@ -257,7 +268,8 @@ class Workspace:
         pw = MU.PathWork(M, sim.tissue.path_muscle.size, sim.tissue.path_powers.shape)
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.zeros(M),
-                          MU.fibre_state(sim, sim.j_rest)[0].copy(), pw[0], pw[1], pw[2], pw[3], pw[4], np.zeros(J))
+                          MU.fibre_state(sim, sim.j_rest)[0].copy(), pw[0], pw[1], pw[2], pw[3], pw[4], np.zeros(J),
+                          np.zeros(sim.n_cells))
         return cells, tissue, sim.skeleton, num, scratch, (sim.contact, self.contact)
 
 
