@@ -13,7 +13,7 @@ import numpy as np
 
 from tissue_sim.core.model import JOINT_HINGE, TISSUE_MUSCLE, TissueModel
 from tissue_sim.core.geometry import prism_volumes
-from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK
+from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK, volume as VO
 from tissue_sim.core.solver.measures import CentreLines, cell_axial_lengths, centre_lines
 from tissue_sim.core.solver.params import Params
 
@@ -69,7 +69,8 @@ class SimModel:
                                     # 0 = none)
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     k_enclosed: np.ndarray          # (C,) [J] stiffness of the volume energy on the enclosed volume (volume_measure 'enclosed':
-                                    # k_volume, which the cell kernel then leaves out; 0 = off; volume.enclosed_forces)
+                                    # k_volume of the muscle cells but thin ones, which the cell kernel then leaves out; 0 = off;
+                                    # volume.enclosed_forces)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
     centre_lines: CentreLines       # each muscle's centre line, a linear map of the positions (observe's muscle_lengths
@@ -315,18 +316,11 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     bsum = np.zeros(V)
     np.add.at(bsum, cv, np.repeat(damp_b, sizes))
     q_ff = np.einsum('ci,cij,cj->c', fib, Q, fib)
-    contact = CT.build(tm, p, rest, vs)          # bone signed-distance grids (stage 4; none when off)
-    # volume_measure 'enclosed': the muscle cells' volume energy on their enclosed volume (volume.py), except cells with a
-    # vertex the fold contact or the sheath projects (a projection moves single vertices of a ring; held against the
-    # enclosed volume they diverged, docs/solver.md "Volume"): those, and fat, keep the affine measure
+    # volume_measure 'enclosed': the muscle cells' volume energy on their enclosed volume (volume.py), except thin cells
+    # (tendons: rest ring radius below volume.THIN_RADIUS), which keep the affine measure with fat (docs/solver.md)
     k_enc = np.zeros(C)
     if p.volume_measure == 'enclosed':
-        held = np.zeros(V, bool)
-        held[contact.f_idx] = True
-        held[contact.s_idx] = True
-        touched = np.zeros(C, bool)
-        np.logical_or.at(touched, cell_of_k, held[cv])
-        k_enc = np.where(muscle & ~touched, k_volume, 0.0)
+        k_enc = np.where(muscle & (VO.ring_radii(rest, off, cv) >= VO.THIN_RADIUS), k_volume, 0.0)
     sim_kw = dict(
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
@@ -350,7 +344,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b,
                                   np.where(k_enc > 0, 0.0, k_volume), tr, q_ff, alen, fib, Qinv,
                                   volume_cap=volume_cap))
-    sim_kw['contact'] = contact
+    sim_kw['contact'] = CT.build(tm, p, rest, vs)          # bone signed-distance grids (stage 4; none when off)
     sim_kw['skeleton'] = SK.Skeleton(*(sim_kw[n] for n in SK.Skeleton._fields))
     c_max = float(np.max(bsum * inv_mass)) + p.velocity_damping if V else 0.0
     sim = SimModel(damp_rate=c_max, **sim_kw)

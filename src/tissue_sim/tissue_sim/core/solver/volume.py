@@ -2,11 +2,26 @@
 E_c = 1/2 kvol_c (V_c / V0_c - 1)^2, V_c the signed volume of the cell's closed surface as core.geometry.prism_volumes
 defines it (each ring cap a fan about its centroid, each side quad four triangles about its centroid), its force the
 exact gradient -kvol (V/V0 - 1) / V0 dV/dx_i. A prism deformed unevenly (half its vertices bound, the other half
-moved) keeps the determinant of its best-fit affine map but not its volume; this energy holds the volume itself."""
+moved) keeps the determinant of its best-fit affine map but not its volume; this energy holds the volume itself.
+Thin cells (tendons, whose rings are ~5-mm discs: rest ring radius below THIN_RADIUS) keep the affine measure: held on
+their enclosed volume, the semitendinosus' tendon cells behind the knee, their rings splayed by the fold and sheath
+projections, and the soleus' above the calcaneus drove runs to diverge (docs/solver.md "What the volume energy holds")."""
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+
+THIN_RADIUS = 6e-3      # [m] cells whose rest bottom ring's mean radius is below this keep the affine measure (tendons)
+
+
+def ring_radii(rest, off, cv) -> np.ndarray:
+    """(C,) [m] the mean distance of each cell's bottom-ring vertices (the first half of its vertices) from their centroid."""
+    out = np.zeros(len(off) - 1)
+    for c in range(len(off) - 1):
+        ring = rest[cv[off[c]:off[c] + (off[c + 1] - off[c]) // 2]]
+        out[c] = np.linalg.norm(ring - ring.mean(0), axis=1).mean()
+    return out
 
 
 @njit(cache=True, inline='always')
