@@ -256,6 +256,27 @@ def test_squeezed_muscle_shares_its_place():
     assert best[:2].tolist() == [1, 1]                     # the nearest of its neighbour's pixels
 
 
+def test_gastrocnemius_heads_behind_the_condyles(data):
+    """The gastrocnemii arise from the posterior femoral condyles and pass behind the knee (Gray's Anatomy, ch. 83;
+    the source model wraps them over cylinders there): from 13 mm above to 20 mm below the knee centre each head has
+    a full section (>= 800 mm^2) whose centroid lies at least 15 mm behind the knee centre (muscles.WRAPPED_SEEDS,
+    the bellies from 0.93 limb units, generate.py's fat thickness behind the condyles). Seeded on the straight line
+    through the condyles they started 5-12 mm above the knee centre and went round the condyles' sides (the medialis
+    78-92 mm^2 at 4-12 mm below it, centred 4 mm in front)."""
+    lab, A = data['lab'], data['img'].affine
+    knee = _joint(data, 'knee_r')['centre']
+    kA, kS = knee[0] * 1000, knee[2] * 1000
+    ids = {v['name']: int(k) for k, v in _muscles(data).items()}
+    bad = []
+    for name in MU.WRAPPED_SEEDS:
+        for k in np.flatnonzero((data['S'] > kS - 20) & (data['S'] < kS + 13)):
+            ij = np.argwhere(lab[..., k] == ids[name])
+            behind = kA - (ij[:, 1].mean() + A[1, 3]) if len(ij) else 0.0
+            if len(ij) < 800 or behind < 15:
+                bad.append((name, round(float(data['S'][k] - kS), 1), len(ij), round(float(behind), 1)))
+    assert not bad, f'(muscle, S - knee [mm], area [mm^2], centroid behind the knee centre [mm]): {bad}'
+
+
 def _circumference_cm(mask):
     c = max(measure.find_contours(mask.astype(float), 0.5), key=len)
     return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum()) / 10.0

@@ -137,7 +137,7 @@ def test_no_vertex_bound_across_a_joint_its_muscles_do_not_cross(built):
 def test_gastrocnemii_glide_over_the_tibia(built):
     """Default (bind_passed_over False, unshare_passed_over True): no vertex of the gastrocnemii (femur ->
     calcaneus) is bound to the tibia they pass over but the few it hides from them (wrapped round its top).
-    bind_passed_over=True binds 30 of them (measured);
+    bind_passed_over=True binds 14 of them (measured; 30 on the limb before the gastrocnemii's heads behind the condyles);
     bind_passed_over=False alone keeps 8 bound, every one shared with the origin ring of a muscle arising
     from the shank (soleus, peroneus longus, tibialis posterior, the long flexors and extensor hallucis), and
     leaves the hamstrings' insertion-ring vertices shared with them free. The default anchors every end
@@ -157,7 +157,7 @@ def test_gastrocnemii_glide_over_the_tibia(built):
     def vertices(t, ms):
         return np.unique(np.concatenate([t.cell(c) for c in np.nonzero(np.isin(t.cell_muscle, ms))[0]]))
 
-    assert np.count_nonzero(old.vertex_segment[vertices(old, gastro)] == shank) > 20
+    assert np.count_nonzero(old.vertex_segment[vertices(old, gastro)] == shank) > 10
     g = vertices(shared, gastro)
     # the vertices the tibia hides from the gastrocnemii (in front of its top, docs/builder.md "Gliding muscles
     # wrapped round a bone") are bound in every build with bind_passed_over False: measured 2
@@ -179,10 +179,14 @@ def test_gastrocnemii_glide_over_the_tibia(built):
     new = np.arange(n, tm.n_vertices)
     assert 0 < len(new) < 20 and np.all(tm.vertex_segment[new] == -1)
     assert not np.any(np.isin(new, vertices(tm, [m for m in range(len(tm.muscle_names)) if m not in gastro])))
-    assert np.allclose(tm.rest_positions[:n], shared.rest_positions)
+    # the same places, but where a vertex is free in one build and bound in the other: the free one may have been
+    # moved out of the bone it lay in (bone_clearance_mm; measured: one gastrocnemius lateralis copy, 0.65 mm)
+    same = tm.vertex_segment[:n] == shared.vertex_segment
+    assert np.allclose(tm.rest_positions[:n][same], shared.rest_positions[same])
+    assert np.all(np.linalg.norm(tm.rest_positions[:n][~same] - shared.rest_positions[~same], axis=1) < 1e-3)
     bound = np.flatnonzero(tm.vertex_segment[:n] == shank)
     d = np.linalg.norm(tm.rest_positions[new][:, None] - tm.rest_positions[bound][None], axis=2).min(1)
-    assert np.all(d < 1e-12), d
+    assert np.count_nonzero(d > 1e-12) <= 2 and np.all(d < 1e-3), d
     for c in np.flatnonzero(~np.isin(tm.cell_muscle, gastro)):
         assert np.array_equal(tm.cell(c), shared.cell(c))
 
@@ -228,10 +232,11 @@ def test_nothing_bound_across_the_knee_behind_it(built):
 
 def test_no_free_vertex_inside_a_bone_at_rest(built):
     """bone_clearance_mm (default 0.5, docs/builder.md "Free vertices inside a bone"): no free vertex of the bundled
-    limb lies inside a bone mesh at rest; the moved ones lie 0.5 mm outside. Without it (None) 17 gastrocnemius
-    vertices lie 0.2-1.6 mm inside the tibia (measured), 3 of them deeper than the contact tests' 1-mm criterion, and
-    2 vasti vertices next to their end rings (free by the end-ring rule, docs/builder.md; one each of the lateralis and
-    medialis) lie on the femur: 19 moved."""
+    limb lies inside a bone mesh at rest; the moved ones lie 0.5 mm outside. Without it (None) 4 gastrocnemius
+    vertices lie 0.15-1.9 mm inside the tibia (measured), and 7 vasti vertices next to their end rings (free by the
+    end-ring rule, docs/builder.md; the vastus medialis' 5 free insertion-ring vertices up to 2.4 mm and one more of
+    it, one of the lateralis) in the femur, 4 of the 11 deeper than the contact tests' 1-mm criterion: 12 moved (17
+    gastrocnemius and 2 vasti vertices, 19 moved, on the limb before the gastrocnemii's heads behind the condyles)."""
     import trimesh
     from tissue_sim.core.builder.bones import winding_number
     tm, rep = built
@@ -254,5 +259,5 @@ def test_no_free_vertex_inside_a_bone_at_rest(built):
     assert inside(tm) == {}
     moved = np.flatnonzero(np.any(tm.rest_positions != raw.rest_positions, axis=1))
     assert set(before) <= set(moved.tolist())      # (without the move one more is hidden by the tibia: bound there)
-    assert np.all(np.linalg.norm(tm.rest_positions[moved] - raw.rest_positions[moved], axis=1) < 2.5e-3)
-    assert "'free_vertices_moved_out_of_bones': %d" % len(moved) in str(rep) and len(moved) == 19
+    assert np.all(np.linalg.norm(tm.rest_positions[moved] - raw.rest_positions[moved], axis=1) < 3.0e-3)
+    assert "'free_vertices_moved_out_of_bones': %d" % len(moved) in str(rep) and len(moved) == 12

@@ -194,10 +194,10 @@ def test_physical_without_force_velocity_is_stable(default_tm):
     assert vmax < 25.0, vmax                     # m/s (measured 5.4; max_speed 50)
 
 
-def assert_energy_settles(t, e, ke, w=50):
-    """From 1 s on, in windows of w samples (0.5 s of 10-ms samples): no window's largest total energy e above the
-    previous one's or the first one's by more than 1 % of the peak kinetic energy ke, and the last window's kinetic
-    energy below 5 % of its peak."""
+def assert_energy_settles(t, e, ke, w=100):
+    """From 1 s on, in windows of w samples (1 s of 10-ms samples, longer than the knee's swing): no window's largest
+    total energy e above the previous one's or the first one's by more than 1 % of the peak kinetic energy ke, and the
+    last window's kinetic energy below 5 % of its peak."""
     settled = np.flatnonzero(t >= 1.0)[0]
     wins = e[settled:settled + (len(e) - settled) // w * w].reshape(-1, w).max(axis=1)
     tol = 0.01 * ke.max()
@@ -224,15 +224,16 @@ def test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest(defau
                                                                           preset, activation, duration):
     """Issue 19: a passive elastic model under constant activation must not keep or gain energy. Once the
     activation has settled (t >= 1 s: the contraction state reaches its target within ~0.2 s of a change),
-    the largest total energy of each 0.5-s window (longer than the knee's ~0.45-s swing) never exceeds the
+    the largest total energy of each 1-s window (longer than the knee's swing, ~0.55 s: with 0.5-s windows, shorter
+    than the swing on this limb, the explicit step's bounded energy oscillation made the second window's sampled
+    largest energy 4.0 J, 0.05 %, above the first's, then every one below the one before) never exceeds the
     previous window's by more than 1 % of the run's peak kinetic energy, nor the first settled window's; and
-    the kinetic energy of the last 0.5 s is below 5 % of its peak. The paper set at full activation is the slowest:
+    the kinetic energy of the last second is below 5 % of its peak. The paper set at full activation is the slowest:
     the dimensionless Table-2 set has no damping but the cells' deformation damping (docs/solver.md "Energy"), and its
-    swing's kinetic energy decays with a time constant tau of ~6.7 s on the bundled limb with the gastrocnemius
-    tendons (window peaks 129 J -> 3.4 J over 24.5 s; ~5 s before them). 5 % of the peak takes ln(20) tau ~ 20 s
-    from the peak (0.2 s), so the run is 22 s (measured 4.2 % at 22 s, 5.7 % at 20 s, 3.2 % at 24 s); the bound
-    stays 5 %, and in that run the largest kinetic energy of each 0.5-s window must be below the one before
-    (measured: all 41 steps), so the knee is coming to rest whatever the run's length. Fails with the earlier integral
+    swing's kinetic energy decays with a time constant tau of ~6.9 s on the bundled limb (0.5-s window peaks 207 J ->
+    9.8 J over 21 s). 5 % of the peak takes ln(20) tau ~ 20 s from the peak (0.2 s), so the run is 22 s (measured
+    4.2 % in its last 0.5 s); the bound stays 5 %, and in that run the largest kinetic energy of each 0.5-s window
+    must be below the one before (measured: all 41 steps), so the knee is coming to rest whatever the run's length. Fails with the earlier integral
     volume term (volume_relax_time 0.005): the paper set then swings on at 20-55 J, the windows' largest energy
     rising by up to 8.5 J."""
     sim = default_sim if preset == 'paper' else physical_sim

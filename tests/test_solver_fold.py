@@ -159,7 +159,7 @@ def test_fast_step_matches_the_reference_step_with_the_fold():
 def test_the_fold_never_gains_energy(default_tm, activation, sheath):
     """The bundled model, physical set with the fold on (and a 1-mm sheath on the hamstrings): the energy criterion of
     test_solver_default_model.test_constant_activation_never_gains_energy_and_the_knee_comes_to_rest (hamstrings
-    fully active for 0.5 s, then constant; 5 s): no 0.5-s window's largest total energy above the previous one's or
+    fully active for 0.5 s, then constant; 5 s): no 1-s window's largest total energy above the previous one's or
     the first settled one's by more than 1 % of the peak kinetic energy, and the last 0.5 s below 5 % of it."""
     from test_solver_default_model import _energy_run, assert_energy_settles
     sim = solver.compile_model(default_tm, solver.Params.physical(fold_contact='knee', sheath_group=sheath,
@@ -173,10 +173,11 @@ def test_passive_hamstrings_held_at_90_deg_shorten(default_tm):
     set (the fold's flexion side and the 1-mm hamstring sheath above the knee), no activation, the knee locked and moved
     at 200 deg/s to 90 deg and held 1 s: along each muscle's centre line (the physical set's `length_measure`) every
     hamstring shortens within 30 % of OpenSim's 46 / 30 / 58 / 70 mm (long head, short head, semimembranosus,
-    semitendinosus; measured 40.6, 27.8, 49.4, 53.0 mm). The sum of the cells' chords (`length_measure: chord`) counts
-    a kinked chain's zigzag as length: with the sheath semitendinosus' chord sum shortens by > 40 mm (measured 48.6),
-    without it by less than a fifth of that (4.3 mm: its slack chain buckles round the condyle, docs/contact.md), while
-    its centre line shortens by 40.7 mm either way."""
+    semitendinosus; measured 40.6, 28.7, 49.5, 52.9 mm). The sum of the cells' chords (`length_measure: chord`) counts
+    a kinked chain's zigzag as length: with the sheath semitendinosus' chord sum shortens by > 40 mm (measured 49.8),
+    without it by less than 30 % of that (13.1 mm; 4.3 on the limb before the gastrocnemii's heads behind the
+    condyles: its slack chain buckles round the condyle, docs/contact.md), while its centre line shortens by more than
+    30 mm either way."""
     names = list(default_tm.muscle_names)
     idx = [names.index(n) for n in ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus',
                                     'semitendinosus')]
@@ -190,7 +191,7 @@ def test_passive_hamstrings_held_at_90_deg_shorten(default_tm):
         centre[sheath] = 1e3 * (sim.centre_lines.lengths(st.x, sim.n_muscles)[idx] - L0)
     opensim = np.array([-46.0, -30.0, -58.0, -70.0])
     assert np.all(np.abs(centre['hamstrings'] / opensim - 1) < 0.3), centre
-    assert chord['hamstrings'][3] < -40 and abs(chord[''][3]) < 0.2 * abs(chord['hamstrings'][3]), chord
+    assert chord['hamstrings'][3] < -40 and abs(chord[''][3]) < 0.3 * abs(chord['hamstrings'][3]), chord
     assert centre[''][3] < -30, centre
 
 

@@ -505,6 +505,10 @@ def build(out_dir: Path, verbose=True, behind_bones=True):
             lab[..., k][m & (lab[..., k] == 0)] = label
     # muscles
     table = fibres.add_rest_fibre_lengths(muscle_table(model), p2s / 'Model_Pose2Sim_muscles_flex.osim')
+    for t in table:   # MU.WRAPPED_SEEDS: seeded on the path as OpenSim wraps it (the gastrocnemii behind the condyles)
+        if t['name'] in MU.WRAPPED_SEEDS:
+            wp = paths.wrapped_points(p2s / 'Model_Pose2Sim_muscles_flex.osim', t['parts'])
+            t['paths'] = [model_to_ras_mm(os_to_model(wp[p])) for p in t['parts']]
     area, seeds = slice_targets(table, s_mm, SLICE_MM, knee_m[2] * 1000, ankle_m[2] * 1000)
     origin_along_bone(table, seeds, lab, s_mm, R0, A0)
     skins = leg_masks(q, tri_body, reg, s_mm, grid, lab)
@@ -542,7 +546,15 @@ def build(out_dir: Path, verbose=True, behind_bones=True):
         edt = ndimage.distance_transform_edt(sk)
         present = [m for m in range(len(table)) if area[m, k] > 0]
         need = area[present, k].sum()
-        cand = np.sort(edt[sk & ~bone & ~tendon])[::-1]
+        # behind_bones (default): where the muscles of MU.BEHIND_BONES are the only ones (the knee), the space in
+        # front of the femur/tibia section's centroid is not theirs (fat), and the fat's thickness is chosen in the
+        # space behind it, so that their sections fill the space behind the condyles
+        knee_bones = np.isin(lab[..., k], BEHIND_LABELS)
+        behind = np.ones_like(bone)
+        if (behind_bones and present and knee_bones.any()
+                and all(table[m]['name'] in MU.BEHIND_BONES for m in present)):
+            behind = jj <= np.argwhere(knee_bones)[:, 1].mean()
+        cand = np.sort(edt[sk & ~bone & ~tendon & behind])[::-1]
         if need >= 1 and len(cand):
             n_need = int(min(round(need), len(cand)))
             t = cand[n_need - 1] if n_need > 0 else cand[0]
@@ -550,7 +562,7 @@ def build(out_dir: Path, verbose=True, behind_bones=True):
         else:
             t = FAT_MAX_MM
         fat_t[k] = t
-        region = (edt > t) & ~bone & ~tendon
+        region = (edt > t) & ~bone & ~tendon & behind
         sl = lab[..., k]
         sl[sk & ~bone] = FAT_LABEL
         for m, tm in tendons.get(k, []):
@@ -565,11 +577,7 @@ def build(out_dir: Path, verbose=True, behind_bones=True):
             comp, nc = ndimage.label(region)
             seeded = {comp[p] for pts in sp for p in pts}
             region &= np.isin(comp, list(seeded))
-            # behind_bones (default): where the muscles of MU.BEHIND_BONES are the only ones (the knee),
-            # the space in front of the femur/tibia section's centroid is not theirs: fat
-            knee_bones = np.isin(sl, BEHIND_LABELS)
-            if behind_bones and knee_bones.any() and all(table[m]['name'] in MU.BEHIND_BONES for m in present):
-                region &= jj <= np.argwhere(knee_bones)[:, 1].mean()
+            if not behind.all():
                 sp = [[p for p in pts if region[p]] or pts for pts in sp]
             part = partition(region, sp, area[present, k])
             for n, m in enumerate(present):

@@ -43,8 +43,10 @@ MUSCLES = [
     # behind the knee axis) and its active knee moment arm at 0 deg was 13.8 mm against the source model's 31.2 (docs/anatomy.md)
     ('semimembranosus', ('semimem',), 'hamstrings', (0.35, 0.88)),
     ('semitendinosus', ('semiten',), 'hamstrings', (0.15, 0.72)),
-    ('gastrocnemius_medialis', ('gasmed',), 'triceps_surae', (0.97, 1.55)),
-    ('gastrocnemius_lateralis', ('gaslat',), 'triceps_surae', (0.98, 1.47)),
+    # gastrocnemii: the bellies start at 0.93 limb units, 27 mm above the knee centre, about where the source model's
+    # origins on the posterior condyles are (27 and 29 mm above it), seeded on the wrapped path (WRAPPED_SEEDS)
+    ('gastrocnemius_medialis', ('gasmed',), 'triceps_surae', (0.93, 1.55)),
+    ('gastrocnemius_lateralis', ('gaslat',), 'triceps_surae', (0.93, 1.47)),
     ('soleus', ('soleus',), 'triceps_surae', (1.15, 1.85)),
     ('tibialis_anterior', ('tibant',), 'ankle_dorsiflexors', (1.08, 1.70)),
     ('extensor_digitorum_longus', ('edl',), 'ankle_dorsiflexors', (1.08, 1.80)),
@@ -107,6 +109,11 @@ TENDON_OFFSET_MM = {
 # fascia space, round the condyles into the front of the knee (medialis' section centred 30 mm in front
 # of the femur's at S -405 mm), so their origin rings lie in front of the knee axis.
 BEHIND_BONES = ('gastrocnemius_medialis', 'gastrocnemius_lateralis')
+# Muscles seeded on their path as the source model wraps it at rest (paths.wrapped_points: OpenSim's current path,
+# wrap arcs included) instead of the straight lines between their path points: the gastrocnemii's two points (femoral
+# origin, calcaneus) join through the condyles 3 mm in front of the knee centre; the source model takes them behind
+# the condyles over its wrap cylinders (Gastroc_at_condyles_r, GasLat/GasMed_at_shank_r).
+WRAPPED_SEEDS = ('gastrocnemius_medialis', 'gastrocnemius_lateralis')
 # Tendons that run along a bone of the segment they leave (tibialis anterior on the anterior tibia)
 # keep this gap to bone above their insertion: a tendon glides over the bone; bound to it, its active
 # cells would be squeezed between bound vertices.  Where such a tendon's path crosses a bone that

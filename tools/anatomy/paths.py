@@ -82,6 +82,43 @@ def sample(osim_path, poses_deg, arms=False):
     return props, L, R
 
 
+def wrapped_points(osim_path, parts, arc_points=8):
+    """{part: (n, 3) [m]} each muscle part's path in the rest pose (every coordinate 0) as OpenSim wraps it: its path
+    points and, over each wrap surface, the wrapped arc (arc_points samples of PathWrapPoint.getWrapPath), in the
+    femur_r frame (osim.load's frame), origin to insertion."""
+    osm, kept = fibres._opensim()
+    out = {}
+    with kept():
+        osm.Logger.setLevelString('warn')
+        model = osm.Model(str(osim_path))
+        state = model.initSystem()
+        for c in model.getCoordinateSet():
+            if not c.get_locked():
+                c.setValue(state, 0.0, False)
+        model.assemble(state)
+        model.realizePosition(state)
+        femur = model.getBodySet().get('femur_r')
+        ground = model.getGround()
+        mus = model.getMuscles()
+        for part in parts:
+            path = mus.get(part + '_r').getGeometryPath().getCurrentPath(state)
+            pts = []
+            for i in range(path.getSize()):
+                pp = path.get(i)
+                wp = osm.PathWrapPoint.safeDownCast(pp)
+                if wp is not None and i + 1 < path.getSize() and osm.PathWrapPoint.safeDownCast(path.get(i + 1)):
+                    arc = wp.getWrapPath(state)            # in the wrap object's body frame
+                    body = wp.getParentFrame()
+                    n = arc.getSize()
+                    for j in np.linspace(0, n - 1, min(arc_points, n)).round().astype(int):
+                        g = body.findStationLocationInGround(state, arc.get(int(j)))
+                        pts.append(ground.findStationLocationInAnotherFrame(state, g, femur))
+                    continue
+                pts.append(ground.findStationLocationInAnotherFrame(state, pp.getLocationInGround(state), femur))
+            out[part] = np.array([[v.get(k) for k in range(3)] for v in pts])
+    return out
+
+
 def powers(crossed):
     """Exponent rows (T, 2) of the monomials of total degree <= DEGREE in the crossed coordinates (bool (2,))."""
     rows = [e for e in itertools.product(range(DEGREE + 1), repeat=len(COORDINATES))

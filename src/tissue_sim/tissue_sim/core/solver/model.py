@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from tissue_sim.core.model import JOINT_HINGE, TISSUE_MUSCLE, TissueModel
+from tissue_sim.core.model import JOINT_COUPLED, JOINT_HINGE, TISSUE_MUSCLE, TissueModel
 from tissue_sim.core.geometry import prism_volumes
 from tissue_sim.core.solver import cells as CK, contact as CT, skeleton as SK, volume as VO
 from tissue_sim.core.solver.measures import CentreLines, cell_axial_lengths, centre_lines
@@ -310,17 +310,23 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
             seg_mass[s], seg_com[s], seg_I[s] = mt, com, I
     inv_mass = np.where(vs >= 0, 0.0, 1.0 / mass)
     # summed stiffness and damping of each vertex's cells (the mass_scaled integrator's masses)
+    # volume_measure 'enclosed': the muscle cells' volume energy on their enclosed volume (volume.py), except thin cells
+    # (tendons: rest ring radius below volume.THIN_RADIUS) and cells bound to a coupled joint's segment (the patella),
+    # which keep the affine measure with fat; under the implicit integrator every cell keeps it (the enclosed energy's
+    # stiffness is not in its prefactored system: its force, explicit there, diverged at 1 ms; docs/solver.md "What the
+    # volume energy holds")
+    k_enc = np.zeros(C)
+    if p.volume_measure == 'enclosed' and p.integrator != 'implicit':
+        coupled = np.zeros(S + 1, bool)                 # (index S: a free vertex, vertex_segment -1)
+        coupled[np.asarray(tm.joint_child)[np.asarray(tm.joint_type) == JOINT_COUPLED]] = True
+        on_coupled = np.bincount(np.repeat(np.arange(C), sizes), weights=coupled[vs[cv]], minlength=C) > 0
+        k_enc = np.where(muscle & ~on_coupled & (VO.ring_radii(rest, off, cv) >= VO.THIN_RADIUS), k_volume, 0.0)
     kcell = (k + k_active) * (1.0 + np.where(k_volume > 0, vol_rel, 0.0))
     kappa = np.zeros(V)
     np.add.at(kappa, cv, np.repeat(kcell, sizes))
     bsum = np.zeros(V)
     np.add.at(bsum, cv, np.repeat(damp_b, sizes))
     q_ff = np.einsum('ci,cij,cj->c', fib, Q, fib)
-    # volume_measure 'enclosed': the muscle cells' volume energy on their enclosed volume (volume.py), except thin cells
-    # (tendons: rest ring radius below volume.THIN_RADIUS), which keep the affine measure with fat (docs/solver.md)
-    k_enc = np.zeros(C)
-    if p.volume_measure == 'enclosed':
-        k_enc = np.where(muscle & (VO.ring_radii(rest, off, cv) >= VO.THIN_RADIUS), k_volume, 0.0)
     sim_kw = dict(
         tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),

@@ -83,7 +83,8 @@ class Params:
                                           # it is not conservative and kept the paper set swinging; 0.005 = the earlier term)
     volume_measure: str = 'affine'        # what the volume energies (volume_stiffness, volume_stiffness_fat) hold: 'affine' = the
                                           # determinant of each cell's best-fit affine map (the earlier term), 'enclosed' = the
-                                          # volume its closed surface encloses (core/solver/volume.py, docs/solver.md "Volume")
+                                          # volume its closed surface encloses (core/solver/volume.py, docs/solver.md "Volume"; the
+                                          # physical set's; under integrator 'implicit' every cell holds the affine measure)
     volume_mode: str = 'actual'           # muscle cross-section: 'actual' = 1/sqrt(current fibre stretch), 'rest' = 1/sqrt(lambda)
     max_contraction_velocity: float = 0.0 # [1/s] Hill force-velocity of the active tension: v_max in rest lengths per second
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
@@ -156,7 +157,7 @@ class Params:
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
                     sheath_below='sartorius,gracilis', sheath_radius=1e-3,
-                    active_length='path', length_measure='centre_line')
+                    active_length='path', length_measure='centre_line', volume_measure='enclosed')
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
