@@ -17,7 +17,8 @@ process per configuration (the thread counts alternate, best of 3 windows each),
 on the default model and, with --refine R (the bundled limb built R times finer, builder.default_model(refine=R))
 or --fine FILE, on a finer model; with each configuration's peak resident memory (its own process:
 resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only (what `make bench` runs). --ab N:
-only the physical set, mass_scaled beside implicit (both with the hamstring sheath) and implicit without it, N
+only the physical set, mass_scaled (affine and enclosed volume) beside implicit (all with the hamstring sheath) and
+implicit without it, N
 alternating rounds (ab_rates): the ratio the issue's target is about, on a shared machine. --stages I: the implicit
 step's stages timed one by one (stage_times; --refine R: on the refined limb), where its time goes.
 
@@ -254,13 +255,17 @@ def main():
     phys, r_phys = solver_rate(solver.Params.physical(), 100)
     print(f'numba solver, physical params (make demo)    : {r_phys:9.0f} steps/s  ({phys.n_substeps} sub-steps per '
           f'step; real-time factor {r_phys * phys.params.dt:.2f})')
+    _, r_phys_aff = solver_rate(solver.Params.physical(volume_measure='affine'), 100)
+    print(f'numba solver, physical params, affine volume : {r_phys_aff:9.0f} steps/s  (volume_measure affine, the '
+          f'implicit rows\' measure: the enclosed volume costs {100 * (1 - r_phys / r_phys_aff):.1f} %)')
     _, r_phys_nofat = solver_rate(solver.Params.physical(volume_stiffness_fat=0.0), 100)
     print(f'numba solver, physical params, no fat volume : {r_phys_nofat:9.0f} steps/s  (volume_stiffness_fat 0: the '
           f'fat volume term costs {100 * (1 - r_phys / r_phys_nofat):.1f} %)')
     isim, r_imp = solver_rate(solver.Params.physical(integrator='implicit', substeps=1), 100)
     ifac = implicit_factor(isim)
     print(f'numba solver, physical params, implicit      : {r_imp:9.0f} steps/s  (1 sub-step of 1 ms, one solve: '
-          f'{r_imp / r_phys:.2f}x the mass_scaled row; factor {ifac["unknowns"]} unknowns, {ifac["entries"]:,} entries)')
+          f'{r_imp / r_phys_aff:.2f}x the affine mass_scaled row, {r_imp / r_phys:.2f}x the enclosed one; factor '
+          f'{ifac["unknowns"]} unknowns, {ifac["entries"]:,} entries)')
     _, r_imp2 = solver_rate(solver.Params.physical(integrator='implicit', substeps=1, implicit_iterations=2), 100)
     print(f'numba solver, physical params, implicit x2   : {r_imp2:9.0f} steps/s  (2 local/global iterations)')
     # plain numpy: reference_step, the same physics and integrator as the paper-set step (exact rotations by SVD)
@@ -288,11 +293,12 @@ def main():
                real_time_factor=round(r_chunk * p.dt, 2), steps_per_s_explicit=round(r_explicit),
                explicit_substeps=xsim.n_substeps, physical_steps_per_s=round(r_phys),
                physical_substeps=phys.n_substeps, physical_real_time_factor=round(r_phys * phys.params.dt, 2),
-               physical_no_fat_volume_steps_per_s=round(r_phys_nofat),
+               physical_no_fat_volume_steps_per_s=round(r_phys_nofat), physical_affine_steps_per_s=round(r_phys_aff),
                numpy_steps_per_s=round(r_numpy, 1), speedup_vs_numpy=round(r_step / r_numpy, 1), numpy_agreement_m=agree,
                target_steps_per_s=10000, target_met=bool(r_chunk >= 10000), steps_per_s_chunked_wall=round(r_chunk_wall),
                physical_implicit_steps_per_s=round(r_imp), physical_implicit2_steps_per_s=round(r_imp2),
-               implicit_speedup=round(r_imp / r_phys, 2), implicit_factor=ifac,
+               implicit_speedup=round(r_imp / r_phys_aff, 2), implicit_speedup_vs_enclosed=round(r_imp / r_phys, 2),
+               implicit_factor=ifac,
                cpu_load_1min=round(os.getloadavg()[0], 2), timing='per CPU second of this process, one thread')
     if args.fine:
         out['fine'] = fine_model(args.fine, solver_rate)
@@ -423,13 +429,15 @@ def scaling_child(spec):
 
 
 def ab_rates(tm, rounds, seconds):
-    """--ab N: the physical set under mass_scaled (4 sub-steps) and under implicit (1 sub-step; both with the set's
-    hamstring sheath, the implicit one with its correction solve), and implicit without the sheath (what the correction
-    costs), full hamstring activation, 100-step chunks, one thread: N rounds, each configuration one window of
+    """--ab N: the physical set under mass_scaled (4 sub-steps) with the affine volume measure, the one the implicit
+    integrator holds (the ratio's reference: the same physics), and with the set's enclosed measure, and under implicit
+    (1 sub-step; all with the set's hamstring sheath, the implicit one with its correction solve), and implicit without
+    the sheath (what the correction costs), full hamstring activation, 100-step chunks, one thread: N rounds, each configuration one window of
     `seconds` in turn (steps per CPU second, best of rate()'s 3 sub-windows), so load changes hit all of them alike.
     Prints each round, the median rates and ratio, and the load average."""
     from tissue_sim.core.solver.step import _run
-    confs = (('mass_scaled', {}), ('implicit', dict(integrator='implicit', substeps=1)),
+    confs = (('mass_scaled', dict(volume_measure='affine')), ('mass_scaled, enclosed', {}),
+             ('implicit', dict(integrator='implicit', substeps=1)),
              ('implicit, no sheath', dict(integrator='implicit', substeps=1, sheath_group='', sheath_below='')))
     runs = []
     for name, kw in confs:
@@ -568,10 +576,13 @@ def markdown_table(out: dict) -> str:
             ('paper set, `integrator: explicit`', f'{out["steps_per_s_explicit"]:,}', f'{out["explicit_substeps"]} sub-steps, true masses'),
             ('physical set (`make demo`)', f'{out["physical_steps_per_s"]:,}',
              f'{out["physical_substeps"]} sub-steps; real-time factor {out["physical_real_time_factor"]}'),
+            ('physical set, `volume_measure: affine`', f'{out["physical_affine_steps_per_s"]:,}',
+             'the implicit integrator\'s volume measure'),
             ('physical set without the fat volume term', f'{out["physical_no_fat_volume_steps_per_s"]:,}',
              '`volume_stiffness_fat: 0` (the paper set has none)'),
             ('physical set, `integrator: implicit`', f'{out["physical_implicit_steps_per_s"]:,}',
-             f'1 sub-step, one solve ({out["implicit_factor"]["entries"]:,} factor entries); {out["implicit_speedup"]}x the row above'),
+             f'1 sub-step, one solve ({out["implicit_factor"]["entries"]:,} factor entries); {out["implicit_speedup"]}x the '
+             f'affine row, {out["implicit_speedup_vs_enclosed"]}x the `make demo` row'),
             ('physical set, implicit, 2 iterations', f'{out["physical_implicit2_steps_per_s"]:,}', ''),
             ('plain numpy `reference_step`, paper set', f'{out["numpy_steps_per_s"]:,}',
              f'`step()` is {out["speedup_vs_numpy"]}x faster; positions agree to {out["numpy_agreement_m"]:.0e} m after 20 steps')]

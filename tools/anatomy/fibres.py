@@ -42,19 +42,26 @@ def normalised_fibre_length(path_length, tendon_slack, optimal, pennation):
     return math.sqrt(max(path_length - tendon_slack, 0.0) ** 2 + h * h) / optimal
 
 
+def rest_pose(osm, osim_path):
+    """(model, state) of the source model with every unlocked coordinate 0 (the bundled limb's rest pose), assembled
+    and realized to position; call inside _opensim()'s environment guard."""
+    osm.Logger.setLevelString('warn')
+    model = osm.Model(str(osim_path))
+    state = model.initSystem()
+    for c in model.getCoordinateSet():
+        if not c.get_locked():
+            c.setValue(state, 0.0, False)
+    model.assemble(state)
+    model.realizePosition(state)
+    return model, state
+
+
 def part_rest_fibre_lengths(osim_path) -> dict:
     """{OpenSim muscle name without '_r': (normalised rest fibre length, Fmax [N])} of the right leg's muscles at
     every coordinate 0."""
     osm, kept = _opensim()
     with kept():
-        osm.Logger.setLevelString('warn')
-        model = osm.Model(str(osim_path))
-        state = model.initSystem()
-        for c in model.getCoordinateSet():
-            if not c.get_locked():
-                c.setValue(state, 0.0, False)
-        model.assemble(state)
-        model.realizePosition(state)
+        model, state = rest_pose(osm, osim_path)
         out = {}
         muscles = model.getMuscles()
         for i in range(muscles.getSize()):

@@ -89,14 +89,7 @@ def wrapped_points(osim_path, parts, arc_points=8):
     osm, kept = fibres._opensim()
     out = {}
     with kept():
-        osm.Logger.setLevelString('warn')
-        model = osm.Model(str(osim_path))
-        state = model.initSystem()
-        for c in model.getCoordinateSet():
-            if not c.get_locked():
-                c.setValue(state, 0.0, False)
-        model.assemble(state)
-        model.realizePosition(state)
+        model, state = fibres.rest_pose(osm, osim_path)
         femur = model.getBodySet().get('femur_r')
         ground = model.getGround()
         mus = model.getMuscles()

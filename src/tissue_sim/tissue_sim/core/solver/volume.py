@@ -24,18 +24,6 @@ def ring_radii(rest, off, cv) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline='always')
-def _tri(g, a, b, c, P, w):
-    """Add w x the gradient of a . (b x c) (points P[a], P[b], P[c]) to g rows a, b, c; returns w a . (b x c)."""
-    ax, ay, az = P[a, 0], P[a, 1], P[a, 2]
-    bx, by, bz = P[b, 0], P[b, 1], P[b, 2]
-    cx, cy, cz = P[c, 0], P[c, 1], P[c, 2]
-    g[a, 0] += w * (by * cz - bz * cy); g[a, 1] += w * (bz * cx - bx * cz); g[a, 2] += w * (bx * cy - by * cx)
-    g[b, 0] += w * (cy * az - cz * ay); g[b, 1] += w * (cz * ax - cx * az); g[b, 2] += w * (cx * ay - cy * ax)
-    g[c, 0] += w * (ay * bz - az * by); g[c, 1] += w * (az * bx - ax * bz); g[c, 2] += w * (ax * by - ay * bx)
-    return w * (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx))
-
-
 @njit(cache=True)
 def enclosed_forces(x, f, off, cv, sign, v0, kvol, energy):
     """f[i] += -kvol (V/V0 - 1) / V0 dV/dx_i for every cell with kvol > 0 (V = sign x the prism volume of its rings:
@@ -44,8 +32,8 @@ def enclosed_forces(x, f, off, cv, sign, v0, kvol, energy):
     nmax = 0
     for c in range(C):
         nmax = max(nmax, off[c + 1] - off[c])
-    P = np.empty((nmax + nmax // 2 + 2 + 1, 3))        # ring vertices, then quad centroids, the two cap centroids
-    g = np.empty((nmax + nmax // 2 + 2 + 1, 3))
+    P = np.empty((nmax, 3))
+    g = np.empty((nmax, 3))
     for c in range(C):
         k = kvol[c]
         energy[c] = 0.0
@@ -59,43 +47,51 @@ def enclosed_forces(x, f, off, cv, sign, v0, kvol, energy):
         for j in range(m):
             i = cv[o + j]
             P[j, 0], P[j, 1], P[j, 2] = x[i, 0] - rx, x[i, 1] - ry, x[i, 2] - rz
-        cb, ct = m + n, m + n + 1
-        for r in range(3):
-            sb = 0.0
-            st = 0.0
-            for j in range(n):
-                sb += P[j, r]
-                st += P[n + j, r]
-            P[cb, r] = sb / n
-            P[ct, r] = st / n
-        for j in range(n):
-            jn = (j + 1) % n
-            for r in range(3):
-                P[m + j, r] = 0.25 * (P[j, r] + P[jn, r] + P[n + jn, r] + P[n + j, r])
-        g[:m + n + 2] = 0.0
-        V = 0.0
+            g[j, 0] = 0.0; g[j, 1] = 0.0; g[j, 2] = 0.0
         s6 = sign[c] / 6.0
-        for j in range(n):
-            jn = (j + 1) % n
-            V += _tri(g, cb, j, jn, P, -s6)                       # bottom cap, normal -z
-            V += _tri(g, ct, n + j, n + jn, P, s6)                # top cap, normal +z
-            q = m + j
-            V += _tri(g, q, j, jn, P, s6)                         # the side quad about its centroid
-            V += _tri(g, q, jn, n + jn, P, s6)
-            V += _tri(g, q, n + jn, n + j, P, s6)
-            V += _tri(g, q, n + j, j, P, s6)
-        # the centroids' gradients go to their vertices
-        for j in range(n):
-            jn = (j + 1) % n
-            q = m + j
-            for r in range(3):
-                gq = 0.25 * g[q, r]
-                g[j, r] += gq; g[jn, r] += gq; g[n + jn, r] += gq; g[n + j, r] += gq
-        for r in range(3):
-            gb, gt = g[cb, r] / n, g[ct, r] / n
+        V = 0.0
+        # the caps, fans about their centroids z: sum_j z . (v_j x v_j+1) = z . S; d/dv_k = S/n + z x (v_k-1 - v_k+1)
+        for cap in range(2):
+            b0 = cap * n
+            w = s6 if cap else -s6                      # bottom cap normal -z, top +z
+            zx = zy = zz = 0.0
             for j in range(n):
-                g[j, r] += gb
-                g[n + j, r] += gt
+                zx += P[b0 + j, 0]; zy += P[b0 + j, 1]; zz += P[b0 + j, 2]
+            zx /= n; zy /= n; zz /= n
+            sx = sy = sz = 0.0
+            for j in range(n):
+                a, b = b0 + j, b0 + (j + 1) % n
+                sx += P[a, 1] * P[b, 2] - P[a, 2] * P[b, 1]
+                sy += P[a, 2] * P[b, 0] - P[a, 0] * P[b, 2]
+                sz += P[a, 0] * P[b, 1] - P[a, 1] * P[b, 0]
+            V += w * (zx * sx + zy * sy + zz * sz)
+            for j in range(n):
+                a = b0 + j
+                p, q = b0 + (j - 1) % n, b0 + (j + 1) % n
+                dx, dy, dz = P[p, 0] - P[q, 0], P[p, 1] - P[q, 1], P[p, 2] - P[q, 2]
+                g[a, 0] += w * (sx / n + zy * dz - zz * dy)
+                g[a, 1] += w * (sy / n + zz * dx - zx * dz)
+                g[a, 2] += w * (sz / n + zx * dy - zy * dx)
+        # the side quads (a, b, c, d) = (j, j+1, n+j+1, n+j), four triangles about their centroid q: q . X / 6 with
+        # X = (c - a) x (d - b); d/da = X/4 - u x q, d/dc = X/4 + u x q (u = d - b), d/db = X/4 - q x w, d/dd = X/4 + q x w
+        # (w = c - a)
+        for j in range(n):
+            jn = (j + 1) % n
+            a, b, cc, d = j, jn, n + jn, n + j
+            wx, wy, wz = P[cc, 0] - P[a, 0], P[cc, 1] - P[a, 1], P[cc, 2] - P[a, 2]
+            ux, uy, uz = P[d, 0] - P[b, 0], P[d, 1] - P[b, 1], P[d, 2] - P[b, 2]
+            qx = 0.25 * (P[a, 0] + P[b, 0] + P[cc, 0] + P[d, 0])
+            qy = 0.25 * (P[a, 1] + P[b, 1] + P[cc, 1] + P[d, 1])
+            qz = 0.25 * (P[a, 2] + P[b, 2] + P[cc, 2] + P[d, 2])
+            Xx, Xy, Xz = wy * uz - wz * uy, wz * ux - wx * uz, wx * uy - wy * ux
+            V += s6 * (qx * Xx + qy * Xy + qz * Xz)
+            uqx, uqy, uqz = uy * qz - uz * qy, uz * qx - ux * qz, ux * qy - uy * qx
+            qwx, qwy, qwz = qy * wz - qz * wy, qz * wx - qx * wz, qx * wy - qy * wx
+            hx, hy, hz = 0.25 * Xx, 0.25 * Xy, 0.25 * Xz
+            g[a, 0] += s6 * (hx - uqx); g[a, 1] += s6 * (hy - uqy); g[a, 2] += s6 * (hz - uqz)
+            g[cc, 0] += s6 * (hx + uqx); g[cc, 1] += s6 * (hy + uqy); g[cc, 2] += s6 * (hz + uqz)
+            g[b, 0] += s6 * (hx - qwx); g[b, 1] += s6 * (hy - qwy); g[b, 2] += s6 * (hz - qwz)
+            g[d, 0] += s6 * (hx + qwx); g[d, 1] += s6 * (hy + qwy); g[d, 2] += s6 * (hz + qwz)
         e = V / v0[c] - 1.0
         energy[c] = 0.5 * k * e * e
         w = -k * e / v0[c]
