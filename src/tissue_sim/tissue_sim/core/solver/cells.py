@@ -56,6 +56,78 @@ def update_contraction(lam, act, log_c, log_r, lam_min_full, h_over_ref):
             lam[m] = min(lam[m] * math.exp(-log_r * h_over_ref), target)
 
 
+# ------------------------------------------------------------------------------------ partly bound end rings
+EndRings = collections.namedtuple('EndRings', 'cell top free_off free bound_off bound')
+EndRings.__doc__ = """The muscles' end rings that are partly bound to a bone across a joint from the muscle's other end
+(end_rings; Params.end_ring_pull 'bound'): per ring its cell, top (1: the cell's top ring, 0: its bottom ring), and its
+free and bound vertices (CSR: free[free_off[e]:free_off[e + 1]], bound[bound_off[e]:bound_off[e + 1]])."""
+
+
+def end_rings(cell_muscle, cell_slice, off, cv, vertex_segment) -> EndRings:
+    """The end rings end_ring_shift acts on: of every muscle, the bottom rings of its cells in its lowest slice gap and
+    the top rings of those in its highest, where a ring has bound and free vertices, all the bound ones on one segment,
+    and no vertex of the muscle's other end is bound to that segment (the ring passes the muscle's force across a joint:
+    the vastus medialis' insertion ring on the patella, 6 of 11 vertices bound; a ring whose other end is on the same
+    bone moves nothing and is left as it is)."""
+    cell_muscle, cell_slice = np.asarray(cell_muscle), np.asarray(cell_slice)
+    n = np.diff(off) // 2
+    rows = []
+    for m in np.unique(cell_muscle[cell_muscle >= 0]):
+        cells = np.flatnonzero(cell_muscle == m)
+        ends = []
+        for top, sl in ((0, cell_slice[cells].min()), (1, cell_slice[cells].max())):
+            rings = [(c, cv[off[c] + top * n[c]:off[c] + (top + 1) * n[c]]) for c in cells[cell_slice[cells] == sl]]
+            ends.append((top, rings, {int(s) for _, r in rings for s in vertex_segment[r] if s >= 0}))
+        for (top, rings, segs), (_, _, other) in ((ends[0], ends[1]), (ends[1], ends[0])):
+            for c, r in rings:
+                seg = vertex_segment[r]
+                bound = seg >= 0
+                if 0 < bound.sum() < r.size and len(set(seg[bound].tolist())) == 1 and int(seg[bound][0]) not in other:
+                    rows.append((c, top, r[~bound], r[bound]))
+    csr = lambda k: (np.concatenate([[0], np.cumsum([len(t[k]) for t in rows])]).astype(np.int64),   # noqa: E731
+                     np.concatenate([t[k] for t in rows]).astype(np.int64) if rows else np.zeros(0, np.int64))
+    return EndRings(np.array([t[0] for t in rows], np.int64), np.array([t[1] for t in rows], np.int64), *csr(2), *csr(3))
+
+
+@njit(cache=True)
+def end_ring_shift(x, f, off, cv, cell_muscle, k_active, rest_length, cell, top, free_off, free, bound_off, bound,
+                   lam, act):
+    """On each partly bound end ring (EndRings), the active tension's pull on its free vertices moves to its bound ones:
+    f[free] -= p, f[bound] += p n_free / n_bound, p the pull the cell kernel puts on each vertex of that ring (bottom
+    ring +t u, top ring -t u; t = a kact n/4 max(l - lam L, 0) 2 / (n l), u the cell's bottom-to-top ring-centroid
+    vector, l = |u|: cells.lane_forces' tension). The net force on the ring is unchanged; the free vertices keep their
+    cell's elastic and volume forces. Without it a muscle's tension pulls the free part of such a ring along the muscle,
+    held only by the cell's soft shape matching, and the muscle slackens (docs/solver.md "Partly bound end rings")."""
+    for e in range(cell.shape[0]):
+        c = cell[e]
+        o = off[c]
+        n = off[c + 1] - o
+        half = n // 2
+        bx = by = bz = tx = ty = tz = 0.0
+        for j in range(half):
+            i = cv[o + j]
+            bx += x[i, 0]; by += x[i, 1]; bz += x[i, 2]
+        for j in range(half, n):
+            i = cv[o + j]
+            tx += x[i, 0]; ty += x[i, 1]; tz += x[i, 2]
+        ux, uy, uz = (tx - bx) / half, (ty - by) / half, (tz - bz) / half
+        ln = math.sqrt(ux * ux + uy * uy + uz * uz)
+        m = cell_muscle[c]
+        a, kact = act[m], k_active[c]
+        stretch = ln - lam[m] * rest_length[c]
+        if not (kact > 0.0 and a > 0.0 and stretch > 0.0 and ln > 0.0):
+            continue
+        t = (a * kact * 0.25 * n) * stretch * 2.0 / (n * ln) * (-1.0 if top[e] else 1.0)
+        px, py, pz = t * ux, t * uy, t * uz
+        for k in range(free_off[e], free_off[e + 1]):
+            i = free[k]
+            f[i, 0] -= px; f[i, 1] -= py; f[i, 2] -= pz
+        w = (free_off[e + 1] - free_off[e]) / (bound_off[e + 1] - bound_off[e])
+        for k in range(bound_off[e], bound_off[e + 1]):
+            i = bound[k]
+            f[i, 0] += w * px; f[i, 1] += w * py; f[i, 2] += w * pz
+
+
 # ------------------------------------------------------------------------------------ force-velocity
 FV_HILL_A = 0.25            # Hill's a / F0: curvature of the shortening branch (Hill 1938)
 FV_SLOPE = 1.0 + 1.0 / FV_HILL_A    # d f_v / d vn at vn = 0 (5): the lengthening branch has the same slope (C1)

@@ -70,7 +70,8 @@ class SimModel:
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     k_enclosed: np.ndarray          # (C,) [J] stiffness of the volume energy on the enclosed volume (volume_measure 'enclosed':
                                     # k_volume of the muscle cells but thin ones, which the cell kernel then leaves out; 0 = off;
-                                    # volume.enclosed_forces)
+                                    # volume.enclosed_lanes)
+    end_rings: CK.EndRings          # the muscles' end rings partly bound across a joint (end_ring_pull 'bound'; none otherwise)
     length_weight: np.ndarray       # (C,) weight of the cell's axial length in its muscle's length
     muscle_rest_length: np.ndarray  # (M,) [m] each muscle's length at rest (sum of length_weight x rest axial length)
     centre_lines: CentreLines       # each muscle's centre line, a linear map of the positions (observe's muscle_lengths
@@ -309,7 +310,6 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
             I += np.einsum('i,ijk->jk', mv, (r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])
             seg_mass[s], seg_com[s], seg_I[s] = mt, com, I
     inv_mass = np.where(vs >= 0, 0.0, 1.0 / mass)
-    # summed stiffness and damping of each vertex's cells (the mass_scaled integrator's masses)
     # volume_measure 'enclosed': the muscle cells' volume energy on their enclosed volume (volume.py), except thin cells
     # (tendons: rest ring radius below volume.THIN_RADIUS) and cells bound to a coupled joint's segment (the patella),
     # which keep the affine measure with fat; under the implicit integrator every cell keeps it (the enclosed energy's
@@ -321,6 +321,9 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         coupled[np.asarray(tm.joint_child)[np.asarray(tm.joint_type) == JOINT_COUPLED]] = True
         on_coupled = np.bincount(np.repeat(np.arange(C), sizes), weights=coupled[vs[cv]], minlength=C) > 0
         k_enc = np.where(muscle & ~on_coupled & (VO.ring_radii(rest, off, cv) >= VO.THIN_RADIUS), k_volume, 0.0)
+    # end_ring_pull 'bound': the end rings whose free vertices' share of the tension acts on their bound ones
+    ends = CK.end_rings(tm.cell_muscle if p.end_ring_pull == 'bound' else np.full(C, -1), tm.cell_slice, off, cv, vs)
+    # summed stiffness and damping of each vertex's cells (the mass_scaled integrator's masses)
     kcell = (k + k_active) * (1.0 + np.where(k_volume > 0, vol_rel, 0.0))
     kappa = np.zeros(V)
     np.add.at(kappa, cv, np.repeat(kcell, sizes))
@@ -332,7 +335,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
         Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(q_ff), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
         k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), volume_cap=_frozen(volume_cap), cell_sign=_frozen(sign),
-        k_enclosed=_frozen(k_enc),
+        k_enclosed=_frozen(k_enc), end_rings=CK.EndRings(*(_frozen(a) for a in ends)),
         length_weight=_frozen(lw),
         muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
                                                minlength=tm.n_muscles)[:tm.n_muscles]),

@@ -24,6 +24,7 @@ MASS_MODES = ('uniform', 'density')
 STIFFNESS_MODES = ('given', 'modulus')
 VOLUME_MODES = ('actual', 'rest')
 VOLUME_MEASURES = ('affine', 'enclosed')
+END_RING_PULLS = ('ring', 'bound')
 INTEGRATORS = ('mass_scaled', 'explicit', 'implicit')
 ACTIVE_LENGTHS = ('chord', 'path')
 LENGTH_MEASURES = ('chord', 'centre_line')
@@ -85,6 +86,10 @@ class Params:
                                           # determinant of each cell's best-fit affine map (the earlier term), 'enclosed' = the
                                           # volume its closed surface encloses (core/solver/volume.py, docs/solver.md "Volume"; the
                                           # physical set's; under integrator 'implicit' every cell holds the affine measure)
+    end_ring_pull: str = 'ring'           # the active tension on a muscle's end ring that is partly bound to a bone across a joint
+                                          # from its other end: 'ring' = on every vertex of the ring (the paper: its free part
+                                          # is pulled along the muscle), 'bound' = the free vertices' share on the bound ones
+                                          # (cells.end_ring_shift; the physical set's; docs/solver.md "Partly bound end rings")
     volume_mode: str = 'actual'           # muscle cross-section: 'actual' = 1/sqrt(current fibre stretch), 'rest' = 1/sqrt(lambda)
     max_contraction_velocity: float = 0.0 # [1/s] Hill force-velocity of the active tension: v_max in rest lengths per second
                                           # (physical: 10, Zajac 1989); 0 = off (the paper: no force-velocity property)
@@ -157,7 +162,8 @@ class Params:
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
                     sheath_below='sartorius,gracilis', sheath_radius=1e-3,
-                    active_length='path', length_measure='centre_line', volume_measure='enclosed')
+                    active_length='path', length_measure='centre_line', volume_measure='enclosed',
+                    end_ring_pull='bound')
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms
@@ -207,6 +213,7 @@ class Params:
         need(self.damping in DAMPING_MODES, f'damping must be one of {DAMPING_MODES}')
         need(self.volume_mode in VOLUME_MODES, f'volume_mode must be one of {VOLUME_MODES}')
         need(self.volume_measure in VOLUME_MEASURES, f'volume_measure must be one of {VOLUME_MEASURES}')
+        need(self.end_ring_pull in END_RING_PULLS, f'end_ring_pull must be one of {END_RING_PULLS}')
         for name in ('vertex_mass', 'density_muscle', 'density_fat', 'k_muscle', 'k_fat', 'youngs_muscle',
                      'youngs_fat', 'rate_dt', 'max_speed'):
             need(getattr(self, name) > 0, f'{name} must be > 0')

@@ -96,11 +96,18 @@ def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_a
         fe, ee = enclosed_forces(cells, x)
         out += fe
         energy = energy + ee
+    er = cells.end_rings
+    for e, (c, top) in enumerate(zip(er.cell, er.top)):    # end_ring_pull 'bound': on a partly bound end ring the
+        free = er.free[er.free_off[e]:er.free_off[e + 1]]   # tension's pull on its free vertices acts on its bound ones
+        bound = er.bound[er.bound_off[e]:er.bound_off[e + 1]]
+        p = (-1.0 if top else 1.0) * pull[c]
+        out[free] -= p
+        out[bound] += p * len(free) / len(bound)
     return out, energy, ln, R
 
 
 def enclosed_forces(cells, x):
-    """The volume energy on the enclosed volume (Params.volume_measure 'enclosed'; volume.enclosed_forces is the same
+    """The volume energy on the enclosed volume (Params.volume_measure 'enclosed'; volume.enclosed_lanes is the same
     compiled): per cell with k_enclosed > 0, V = its sign x the prism volume of core.geometry.prism_volumes (caps as
     fans about the ring centroids, side quads as four triangles about their centroids), E = 1/2 k (V/V0 - 1)^2 and
     the force -k (V/V0 - 1) / V0 dV/dx, dV/dx from d(a . b x c) = (b x c, c x a, a x b) per triangle, each centroid's

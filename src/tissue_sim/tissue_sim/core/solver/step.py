@@ -24,7 +24,7 @@ def _drop_stale_advance_cache() -> None:
     here = Path(__file__).resolve()
     try:
         newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py',
-                                                                 'muscle.py', 'implicit.py'))
+                                                                 'muscle.py', 'implicit.py', 'volume.py'))
         for f in (here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'):     # advance and _advance
             if f.stat().st_mtime < newest:
                 f.unlink(missing_ok=True)
@@ -48,12 +48,13 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
                                 'muscle_length muscle_velocity joint_lock_torque activation contact_wrench')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
-                                'fmax path_muscle path_data path_powers path_coef path_shift l_rest off cv cell_sign rest_volume '
-                                'k_enclosed')
+                                'fmax path_muscle path_data path_powers path_coef path_shift l_rest enc_size enc_start enc_cell '
+                                'enc_s6 enc_v0 enc_k enc_idx off cv cell_muscle k_active rest_length end_cell end_top end_free_off end_free '
+                                'end_bound_off end_bound')     # enc_*: volume.Enclosed; end_*: cells.EndRings
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 pe_curve')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
-                                 'fibre path_mono path_dmono path_len path_dlen part_l tau_pe enc_energy')
+                                 'fibre path_mono path_dmono path_len path_dlen part_l tau_pe enc_p enc_gb enc_gt enc_t enc_energy')
 
 
 _cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: cells.lane_forces_par)
@@ -122,9 +123,14 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
                                      num.fl_gamma, act_t)
             bad = _cell_pass(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
-            if tissue.k_enclosed.shape[0] > 0:
-                VO.enclosed_forces(xe, f, tissue.off, tissue.cv, tissue.cell_sign, tissue.rest_volume, tissue.k_enclosed,
-                                   scratch.enc_energy)
+            if tissue.enc_size.shape[0] > 0:
+                VO.enclosed_lanes(xe, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
+                                  tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
+                                  scratch.enc_energy)
+            if tissue.end_cell.shape[0] > 0:
+                CK.end_ring_shift(xe, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
+                                  tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
+                                  tissue.end_bound_off, tissue.end_bound, lam, act_t)
             if num.fv_on:
                 CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
                                    num.fv_alpha, scratch.muscle_sums)
@@ -149,9 +155,14 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                     if _cell_pass(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
-                    if tissue.k_enclosed.shape[0] > 0:
-                        VO.enclosed_forces(xb, f, tissue.off, tissue.cv, tissue.cell_sign, tissue.rest_volume,
-                                           tissue.k_enclosed, scratch.enc_energy)
+                    if tissue.enc_size.shape[0] > 0:
+                        VO.enclosed_lanes(xb, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6,
+                                          tissue.enc_v0, tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb,
+                                          scratch.enc_gt, scratch.enc_t, scratch.enc_energy)
+                    if tissue.end_cell.shape[0] > 0:
+                        CK.end_ring_shift(xb, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active,
+                                          tissue.rest_length, tissue.end_cell, tissue.end_top, tissue.end_free_off,
+                                          tissue.end_free, tissue.end_bound_off, tissue.end_bound, lam, act_t)
                     fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
                     fast = IM.sheath_correct(h, x, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
@@ -177,7 +188,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             v, vb = vb, v
             swaps += 1
     CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
-    if tissue.k_enclosed.shape[0] > 0:      # (the enclosed-volume energy of the last force evaluation)
+    if tissue.enc_size.shape[0] > 0:        # (the enclosed-volume energy of the last force evaluation)
         st.cell_energy[:] += scratch.enc_energy
     return swaps
 
@@ -248,13 +259,13 @@ class Workspace:
         cells = sim.cell_blocks
         mcells = np.flatnonzero(sim.cell_muscle >= 0).astype(np.int32)
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length
+        enc = VO.pack_enclosed(sim.off, sim.cv, sim.cell_sign, sim.rest_volume, sim.k_enclosed)
         tissue = Tissue(sim.rest, sim.inv_denominator(h), sim.att_idx, sim.att_seg,
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
                         np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0),
                         MU.muscle_constants(sim)[0], *MU.path_constants(sim),   # the force-length's constants (muscle.py)
-                        sim.off, sim.cv, sim.cell_sign.astype(np.float64), sim.rest_volume,
-                        sim.k_enclosed if np.any(sim.k_enclosed > 0) else np.zeros(0))
+                        *enc, sim.off, sim.cv, sim.cell_muscle, sim.k_active, sim.rest_length, *sim.end_rings)
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
@@ -269,7 +280,7 @@ class Workspace:
         scratch = Scratch(CK.cell_work(cells), np.zeros((max(J, 1), 8 + J)), np.empty(J), np.empty(J), np.empty(M),
                           np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.empty(M), np.zeros(M),
                           MU.fibre_state(sim, sim.j_rest)[0].copy(), pw[0], pw[1], pw[2], pw[3], pw[4], np.zeros(J),
-                          np.zeros(sim.n_cells))
+                          *VO.enclosed_work(enc), np.zeros(sim.n_cells))
         return cells, tissue, sim.skeleton, num, scratch, (sim.contact, self.contact)
 
 
