@@ -114,7 +114,9 @@ def test_patella_stays_in_the_femoral_groove(tm, sim):
     """On the bone meshes over 0-120 deg: the patella's centre (mean of its mesh vertices) 8-20 mm from
     the femur's surface (its thickness is ~20 mm: it rides on the trochlea, then the condyles), the
     nearest femur point in the middle 30-70 % of the condyles' medio-lateral width (the groove and the
-    intercondylar notch), the centre in front of the knee axis and at most 5 % of the patella's mesh
+    intercondylar notch), the centre at most 5 mm behind the knee axis (the source model's path puts it 2.9 mm behind
+    the hinge's fitted centre at 120 deg, 5.6 mm behind the walker knee's instantaneous centre there; in front of it
+    to 110 deg) and at most 5 % of the patella's mesh
     vertices inside the femur, none deeper than 5 mm (measured: at most 3 of 72, 4.1 mm deep at 60 deg; the
     pose is the source model's to 0.01 mm, so its meshes overlap alike). (Rigid with the
     shank, as before, the centre was 31 mm below the femur at 120 deg, behind the knee axis.)"""
@@ -144,7 +146,7 @@ def test_patella_stays_in_the_femoral_groove(tm, sim):
         assert 0.008 < d[0] < 0.020, f'{deg} deg: patella centre {d[0] * 1e3:.1f} mm from the femur'
         frac = (cp[0, 1] - ylo) / (yhi - ylo)
         assert 0.3 < frac < 0.7, f'{deg} deg: nearest femur point at {frac:.2f} of the condyles\' width'
-        assert c[0] > centre[0], f'{deg} deg: patella centre behind the knee axis'
+        assert c[0] > centre[0] - 0.005, f'{deg} deg: patella centre {1e3 * (centre[0] - c[0]):.1f} mm behind the knee axis'
         inside = winding_number(FV, FT, P) > 0.5
         assert inside.sum() <= 0.05 * len(P), f'{deg} deg: {inside.sum()} patella vertices inside the femur'
         if inside.any():

@@ -668,7 +668,8 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
     }
     with open(out_dir / 'tissues.yaml', 'w') as fh:
         yaml.safe_dump(tissues, fh, sort_keys=False, default_flow_style=None, width=110)
-    write_joints(out_dir, model, knee_m, ankle_m)
+    write_joints(out_dir, model, knee_m, ankle_m,
+                 package_dir('Pose2Sim') / 'OpenSim_Setup' / 'Model_Pose2Sim_muscles_flex.osim')
     paths.write(tissues, paths.fit(package_dir('Pose2Sim') / 'OpenSim_Setup' / 'Model_Pose2Sim_muscles_flex.osim'), out_dir)
 
 
@@ -686,7 +687,34 @@ DE_LEVA_MALE = {  # mass fraction, COM from proximal (fraction of length), radii
 ANKLE_RANGE_DEG = (-50.0, 20.0)
 
 
-def write_joints(out_dir, model, knee_m, ankle_m):
+KNEE_FIT_DEG = np.arange(0.0, 121.0, 10.0)   # knee angles [deg] the hinge centre is fitted over (the limb's range)
+
+
+def knee_hinge_centre(osim_path, axis, knee_m):
+    """The fixed centre on the hinge axis (model frame, m) that best reproduces the source model's knee motion: the
+    walker knee turns the tibia about its flexion axis and translates it with the angle (its coupled coordinates), so
+    its frame origin (knee_m) is not the centre of that motion. Least squares over KNEE_FIT_DEG of the tibia's origin
+    and the ankle centre (talus_r) as osim.load places them: p(q) = R(q) (p0 - c) + c is linear in c, (I - R) c = p - R
+    p0; along the axis (where it does not matter) the centre stays at knee_m's. Measured over 0-120 deg: the tibia's
+    origin and the ankle centre within 13.6 mm (RMS 5.7 mm) of the walker knee's with it, 17.5 mm (RMS 8.1 mm) about the
+    frame origin (5.3 mm behind it); what is left is the walker knee's coupled secondary rotations, which a hinge leaves
+    out."""
+    from scipy.spatial.transform import Rotation
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    rows, rhs, p0 = [], [], None
+    for deg in KNEE_FIT_DEG:
+        B = osim.load(osim_path, coords={'knee_angle_r': np.radians(deg)})['bodies']
+        p = np.array([os_to_model(B[b]['T'][:3, 3]) for b in ('tibia_r', 'talus_r')])
+        p0 = p if p0 is None else p0
+        R = Rotation.from_rotvec(a * np.radians(deg)).as_matrix()
+        for q0, q in zip(p0, p):
+            rows.append(np.eye(3) - R)
+            rhs.append(q - R @ q0)
+    c = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
+    return c + ((np.asarray(knee_m, float) - c) @ a) * a
+
+
+def write_joints(out_dir, model, knee_m, ankle_m, osim_path):
     B = model['bodies']
     mass_total = sum(b['mass'] for b in B.values())
     hip = np.zeros(3)
@@ -731,9 +759,11 @@ def write_joints(out_dir, model, knee_m, ankle_m):
         'source': ('segment masses, centres of mass and radii of gyration: de Leva P. (1996) Adjustments '
                    'to Zatsiorsky-Seluyanov\'s segment inertia parameters. J Biomech 29(9):1223-1230, '
                    'Table 4 (male), applied to the Rajagopal 2016 generic model (total mass '
-                   f'{mass_total:.2f} kg) with segment lengths between its joint centres; knee axis, '
-                   'centre and range: OpenSim Rajagopal 2016 walker_knee_r as shipped in pose2sim 0.10.49 '
-                   '(range 0-155 deg there; the original Rajagopal range 0-120 deg is used as the limit); '
+                   f'{mass_total:.2f} kg) with segment lengths between its joint centres; knee axis '
+                   'and range: OpenSim Rajagopal 2016 walker_knee_r as shipped in pose2sim 0.10.49 (range 0-155 deg '
+                   'there; the original Rajagopal range 0-120 deg is used as the limit), its centre the point on that '
+                   'axis that best reproduces the walker knee\'s tibia and ankle positions over 0-120 deg (least '
+                   'squares, every 10 deg: the walker knee also translates the tibia with the angle); '
                    'ankle (talocrural) axis and centre: OpenSim Rajagopal 2016 ankle_r (pose2sim 0.10.49, '
                    'range -60..60 deg there), positive = dorsiflexion as OpenSim ankle_angle_r; limit '
                    '-50 (plantarflexion) .. +20 deg (dorsiflexion), the normal active range of motion of '
@@ -744,7 +774,8 @@ def write_joints(out_dir, model, knee_m, ankle_m):
         'joints': [
             {'name': 'hip_r', 'type': 'fixed', 'parent': None, 'child': 'thigh', 'centre': [0.0, 0.0, 0.0]},
             {'name': 'knee_r', 'type': 'hinge', 'parent': 'thigh', 'child': 'shank',
-             'axis': [round(float(v), 6) for v in axis], 'centre': [round(float(v), 5) for v in knee_m],
+             'axis': [round(float(v), 6) for v in axis],
+             'centre': [round(float(v), 5) for v in knee_hinge_centre(osim_path, axis, knee_m)],
              'range_deg': [0.0, 120.0], 'rest_deg': 0.0,
              'opensim_range_deg': [round(float(rng[0]), 2), round(float(rng[1]), 2)]},
             {'name': 'ankle_r', 'type': 'hinge', 'parent': 'shank', 'child': 'foot',
