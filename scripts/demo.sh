@@ -189,7 +189,8 @@ summary = {
     'final_knee_angle_rad': round(float(js_last[0].position[0]), 5),
     'final_knee_angle_deg': round(float(js_last[0].position[0]) * 57.29577951308232, 2),
     'joint': js_last[0].name[0],
-    'final_joint_angles_deg': {n: round(float(p) * 57.29577951308232, 2) for n, p in zip(js_last[0].name, js_last[0].position)},
+    'final_joint_angles_deg': {n: round(float(p) * 57.29577951308232, 2) for n, p in zip(js_last[0].name, js_last[0].position)
+                               if not n.endswith(('_tx', '_ty', '_tz'))},     # (a path's translations are metres)
     'marker_encode_publish_ms_mean': float(dvals.get('marker_ms_mean', 'nan')),
     'diagnostics_level': ord(diag[0].status[0].level) if diag[0] else None,   # 0 OK, 1 WARN, 2 ERROR
     'diagnostics_message': diag[0].status[0].message if diag[0] else '',

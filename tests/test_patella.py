@@ -175,7 +175,7 @@ def knee_with_patella(patella_mass=0.5):
         joint_axis=np.vstack([tm.joint_axis, [[0.0, 1.0, 0.0]]]), joint_centre=np.vstack([tm.joint_centre, [[0.05, 0, 0.0]]]),
         joint_range=np.vstack([tm.joint_range, [[0, rows[:, 1].max()]]]), joint_rest=np.append(tm.joint_rest, 0.0),
         joint_driver=np.array([-1, 0], np.int32), coupling_offsets=np.array([0, 0, len(rows)], np.int64),
-        coupling_table=rows,
+        coupling_table=rows, joint_path_offsets=np.zeros(3, np.int64), joint_path_axes=np.zeros((2, 2, 3)),
         path_powers=np.column_stack([tm.path_powers, np.zeros(len(tm.path_powers), np.int32)])).validate()
 
 

@@ -89,9 +89,13 @@ def test_urdf_kinematics_equal_the_solver_segment_poses(tm, knee_deg):
     if knee_deg > 0:   # flexion moves the shank behind and up relative to extension, and the patella
         assert not np.allclose(fk['shank'][0], np.eye(3))
         assert not np.allclose(fk['patella'][0], np.eye(3))
-    # the coupled patella: three translations and a rotation, all named in /joint_states
-    assert names == ['knee_r', 'ankle_r', 'patellofemoral_r_tx', 'patellofemoral_r_ty', 'patellofemoral_r_tz',
-                     'patellofemoral_r']
+    # the knee's path (three translations, the hinge, two secondary rotations) and the coupled patella (three
+    # translations and a rotation), all named in /joint_states
+    # (the hinges' own coordinates first, as the solver orders them: position[0] is the knee angle)
+    assert names == ['knee_r', 'ankle_r', 'knee_r_tx', 'knee_r_ty', 'knee_r_tz', 'knee_r_r2', 'knee_r_r3',
+                     'patellofemoral_r_tx', 'patellofemoral_r_ty', 'patellofemoral_r_tz', 'patellofemoral_r']
+    if knee_deg > 30:       # the walker knee's axial rotation of the tibia is in the URDF's chain
+        assert abs(pos[names.index('knee_r_r3')]) > math.radians(5.0)
 
 
 def test_tf_tree_composes_to_the_link_poses(tm):

@@ -108,6 +108,19 @@ def test_targets_follow_the_data(reference):
     assert flipped['peak_torque']['pass'] is False                # 200 N m: above the adult range
     rows = bad['hamstring_moment_arms']['rows']
     assert len(rows) == 3 * 2 * 4 and all(r['rel_error'] == pytest.approx(0.3) for r in rows)
+    # a moment arm within the holds' resolution has no sign: a muscle whose length does not change with the knee is
+    # wrong at every angle where the source model's is beyond the resolution, and not decided where it is within it
+    flat = _fake_result(reference, 1.0, 0.7, [100.0, 120.0, 90.0, 50.0, 10.0])
+    name = next(iter(flat['muscles']))
+    sref = np.asarray(flat['muscles'][name]['opensim_moment_arm'])
+    ref = np.abs(sref)
+    flat['muscles'][name]['passive_moment_arm'] = list(1e-4 * np.sign(sref))               # 0.1 mm, the right sign
+    flat['moment_arm_resolution'] = {'value': 1e-3}
+    ev = V.evaluate(flat)['moment_arm_signs']
+    assert ev['pass'] is False and len(ev['wrong']) == int(np.sum(ref > 1e-3)) > 0
+    assert ev['undecided'] == 2 * int(np.sum(ref <= 1e-3)) and ev['resolution_mm']['passive'] == pytest.approx(1.0)
+    flat['moment_arm_resolution'] = {'value': 0.0}                                                   # without it: all "right"
+    assert V.evaluate(flat)['moment_arm_signs']['pass'] is True
 
 
 def _locked_hold(sim, state, ctrl, j, n):

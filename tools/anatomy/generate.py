@@ -714,6 +714,52 @@ def knee_hinge_centre(osim_path, axis, knee_m):
     return c + ((np.asarray(knee_m, float) - c) @ a) * a
 
 
+KNEE_PATH_DEG = np.arange(0.0, 125.1, 5.0)   # knee angles [deg] of the knee's path table (the limb's range and 5 beyond)
+
+
+def _axis_angle(axis, angle):
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_rotvec(np.asarray(axis, float) * angle).as_matrix()
+
+
+def knee_path(osim_path, kj, axis, centre):
+    """The walker knee's motion as a hinge with a path (joints.yaml ``path``, docs/anatomy.md "Where the hinge is"): the
+    secondary axes b1, b2 (rotation2, rotation3 of walker_knee_r in the model frame, unit, 6 decimals) and per angle q of
+    KNEE_PATH_DEG the rows [q, phi2, phi3 (deg), dx, dy, dz (m)] such that the tibia's rest point X (model frame) is at
+    Rot(axis, q) Rot(b1, phi2) Rot(b2, phi3) (X - c) + c + d, c the hinge centre, as osim.load poses it. The rotation is
+    decomposed in the stored (rounded) axes; returns (axes, rows, the largest residual of that decomposition [rad])."""
+    def unit(v):
+        v = np.round(np.asarray(v, float), 6)
+        return v / np.linalg.norm(v)
+    sp = {ta.get('name'): ta for ta in kj['element'].find('SpatialTransform')}
+    E = kj['P'][:3, :3]
+    b1 = unit(os_to_model(E @ osim._vec(sp['rotation2'], 'axis')))
+    b2 = unit(os_to_model(E @ osim._vec(sp['rotation3'], 'axis')))
+    a, c = unit(axis), np.asarray(centre, float)
+    S = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])      # os_to_model as a matrix
+    poses = []
+    for deg in KNEE_PATH_DEG:
+        T = osim.load(osim_path, coords={'knee_angle_r': np.radians(deg)})['bodies']['tibia_r']['T']
+        poses.append((S @ T[:3, :3] @ S.T, S @ T[:3, 3]))
+    R0, t0 = poses[0]
+    rows, worst = [], 0.0
+    for deg, (R, t) in zip(KNEE_PATH_DEG, poses):
+        Rr = R @ R0.T                                   # rest -> q: x = Rr X + tr
+        tr = t - Rr @ t0
+        M = _axis_angle(a, np.radians(deg)).T @ Rr
+        u = M @ b2
+        phi2 = np.arctan2(np.cross(b1, b2) @ u, b2 @ u)
+        R3 = _axis_angle(b1, phi2).T @ M
+        u = R3 @ b1
+        phi3 = np.arctan2(np.cross(b2, b1) @ u, b1 @ u)
+        Rf = _axis_angle(a, np.radians(deg)) @ _axis_angle(b1, phi2) @ _axis_angle(b2, phi3)
+        worst = max(worst, float(np.abs(Rf - Rr).max()))
+        d = tr + Rr @ c - c
+        rows.append([float(deg), round(float(np.degrees(phi2)), 6), round(float(np.degrees(phi3)), 6)]
+                    + [round(float(v), 7) for v in d])
+    return [[float(v) for v in b1], [float(v) for v in b2]], rows, worst
+
+
 def write_joints(out_dir, model, knee_m, ankle_m, osim_path):
     B = model['bodies']
     mass_total = sum(b['mass'] for b in B.values())
@@ -755,6 +801,10 @@ def write_joints(out_dir, model, knee_m, ankle_m, osim_path):
     ank_os = osim.transform_axis(aj, 'rotation1', 'ankle_angle_r')
     ank_axis = os_to_model(B[aj['parent']]['T'][:3, :3] @ aj['P'][:3, :3] @ ank_os)
     ank_rng = np.degrees(aj['ranges']['ankle_angle_r'])
+    knee_c = knee_hinge_centre(osim_path, axis, knee_m)
+    knee_axes, knee_rows, knee_resid = knee_path(osim_path, kj, axis, np.round(knee_c, 5))
+    if knee_resid > 1e-5:
+        raise SystemExit(f'error: the walker knee does not decompose into the path rotations (residual {knee_resid:.2g})')
     joints = {
         'source': ('segment masses, centres of mass and radii of gyration: de Leva P. (1996) Adjustments '
                    'to Zatsiorsky-Seluyanov\'s segment inertia parameters. J Biomech 29(9):1223-1230, '
@@ -763,7 +813,9 @@ def write_joints(out_dir, model, knee_m, ankle_m, osim_path):
                    'and range: OpenSim Rajagopal 2016 walker_knee_r as shipped in pose2sim 0.10.49 (range 0-155 deg '
                    'there; the original Rajagopal range 0-120 deg is used as the limit), its centre the point on that '
                    'axis that best reproduces the walker knee\'s tibia and ankle positions over 0-120 deg (least '
-                   'squares, every 10 deg: the walker knee also translates the tibia with the angle); '
+                   'squares, every 10 deg: the walker knee also translates the tibia with the angle), its path the '
+                   'walker knee\'s coupled motion (its rotation2 and rotation3 axes, the angles about them and the '
+                   'offset of the hinge centre every 5 deg over 0-125 deg, from its SimmSplines); '
                    'ankle (talocrural) axis and centre: OpenSim Rajagopal 2016 ankle_r (pose2sim 0.10.49, '
                    'range -60..60 deg there), positive = dorsiflexion as OpenSim ankle_angle_r; limit '
                    '-50 (plantarflexion) .. +20 deg (dorsiflexion), the normal active range of motion of '
@@ -775,9 +827,11 @@ def write_joints(out_dir, model, knee_m, ankle_m, osim_path):
             {'name': 'hip_r', 'type': 'fixed', 'parent': None, 'child': 'thigh', 'centre': [0.0, 0.0, 0.0]},
             {'name': 'knee_r', 'type': 'hinge', 'parent': 'thigh', 'child': 'shank',
              'axis': [round(float(v), 6) for v in axis],
-             'centre': [round(float(v), 5) for v in knee_hinge_centre(osim_path, axis, knee_m)],
+             'centre': [round(float(v), 5) for v in knee_c],
              'range_deg': [0.0, 120.0], 'rest_deg': 0.0,
-             'opensim_range_deg': [round(float(rng[0]), 2), round(float(rng[1]), 2)]},
+             'opensim_range_deg': [round(float(rng[0]), 2), round(float(rng[1]), 2)],
+             'path': {'axes': knee_axes, 'table_columns': ['angle_deg', 'angle2_deg', 'angle3_deg', 'dx', 'dy', 'dz'],
+                      'table': knee_rows}},
             {'name': 'ankle_r', 'type': 'hinge', 'parent': 'shank', 'child': 'foot',
              'axis': [round(float(v), 6) for v in ank_axis], 'centre': [round(float(v), 5) for v in ankle_m],
              'range_deg': list(ANKLE_RANGE_DEG), 'rest_deg': 0.0,

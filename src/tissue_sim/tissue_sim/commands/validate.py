@@ -28,6 +28,9 @@ def add_arguments(p):
                    help='instead: the passive knee moment (tissue + passive fibre force, no activation) held at each angle '
                         '(default 0:120:15, settle 0.5 s) against the source model with passive fibre force on and '
                         'Riener & Edrich 1999; writes passive_<params>.json and .png')
+    p.add_argument('--kinematics', action='store_true',
+                   help='instead: the source model\'s own moment arms with its walker knee and with the plain hinge of the '
+                        'paper set (no elastic model); writes kinematics.json and .png')
     p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
     p.add_argument('--quiet', action='store_true', help='print only the targets')
 
@@ -53,8 +56,12 @@ def run(args) -> int:
             con.print(f'  holding the knee: {kind} ...')
             last[0] = kind
 
+    if args.passive and args.kinematics:
+        raise UserError('--passive and --kinematics: choose one')
     if args.passive:
         return _run_passive(args, con, out, V, progress)
+    if args.kinematics:
+        return _run_kinematics(args, con, out, V, angles)
     try:
         res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, progress=progress)
     except V.ValidationError as e:
@@ -77,6 +84,35 @@ def _write(out, stem, res, jsonable, plot):
     except OSError as e:
         raise UserError(f'{out}: cannot write ({e})') from None
     return jpath, ppath
+
+
+def _run_kinematics(args, con, out, V, angles):
+    t0 = time.perf_counter()
+    try:
+        res = V.run_kinematics(angles, osim_path=args.osim)
+    except V.ValidationError as e:
+        raise UserError(str(e)) from None
+    res['wall_s'] = round(time.perf_counter() - t0, 1)
+    jpath, ppath = _write(out, 'kinematics', res, V.jsonable, V.plot_kinematics)
+    from rich.table import Table
+    t = Table(title='source model moment arms [mm] (+ flexor): walker knee / plain hinge (the paper set\'s knee)')
+    shown = [i for i, a in enumerate(res['angles_deg']) if a % 30 == 0] or list(range(len(res['angles_deg'])))
+    t.add_column('muscle')
+    for i in shown:                                     # (every angle is in the JSON)
+        t.add_column(f'{res["angles_deg"][i]:g}°', justify='right')
+    for name, d in res['muscles'].items():
+        t.add_row(name, *(f'{d["walker_moment_arm"][i] * 1e3:+.1f} / {d["hinge_moment_arm"][i] * 1e3:+.1f}' for i in shown))
+    if not args.quiet:
+        con.print(t)
+    n_out = sum(not r['within_tolerance'] for r in res['hamstrings'])
+    con.print(f'the plain hinge changes {len(res["sign_changes"])} moment-arm signs: '
+              + (', '.join(f'{c["muscle"]} {c["angle_deg"]:g}°' for c in res['sign_changes']) or 'none'))
+    con.print(f'target hamstrings on the plain hinge: {n_out} of {len(res["hamstrings"])} outside ±'
+              f'{V.MOMENT_ARM_TOLERANCE:.0%} of the walker knee\'s: '
+              + ', '.join(f'{r["muscle"]} {r["angle_deg"]:g}° {r["rel_difference"]:+.0%}' for r in res['hamstrings']
+                          if not r['within_tolerance']))
+    con.print(f'wrote {jpath} and {ppath} ({res["wall_s"]} s)')
+    return 0
 
 
 def _run_passive(args, con, out, V, progress):
@@ -141,7 +177,9 @@ def _print(con, res, quiet):
     mark = {True: '[green]PASS[/]', False: '[red]FAIL[/]', None: '[yellow]n/a[/]'}
     ms = tg['moment_arm_signs']
     con.print(f'{mark[ms["pass"]]} every knee muscle\'s moment arm has the source model\'s sign '
-              f'({len(ms["wrong"])} wrong (muscle, mode, angle))')
+              f'({len(ms["wrong"])} wrong (muscle, mode, angle); resolution of the holds, passive / hamstrings / others: '
+              + ' / '.join(f'{v:.1f}' for v in ms['resolution_mm'].values()) + ' mm'
+              + (f', {ms["undecided"]} where the source model\'s is within it' if ms.get('undecided') else '') + ')')
     hm = tg['hamstring_moment_arms']
     nbad = sum(not r['pass'] for r in hm['rows'])
     con.print(f'{mark[hm["pass"]]} hamstring moment arms within ±{hm["tolerance"]:.0%} of the source model at 0/30/60/90° '

@@ -40,6 +40,12 @@ Skeleton (a tree; nothing may assume a single joint)
   [rad], angle [rad], dx, dy, dz [m]) interpolated by a cubic spline: a rest point p of the child goes
   to Rot(axis, angle) (p - centre) + centre + d in its parent's frame (axis and centre: the joint's).
   Its coordinate (q) is the angle; its range is the table's angle range.
+* A hinge may have a path (the knee: the source model's walker knee): a table
+  ``joint_path_table[joint_path_offsets[j]:joint_path_offsets[j + 1]]`` of rows (q [rad], angle 2 [rad],
+  angle 3 [rad], dx, dy, dz [m]) interpolated by a cubic spline, and two secondary axes ``joint_path_axes[j]``
+  (unit, parent's rest frame): a rest point p of the child goes to Rot(axis, q - rest) Rot(axes[0], angle 2)
+  Rot(axes[1], angle 3) (p - centre) + centre + d, each axis taken in the frame the rotations before it have
+  turned (an OpenSim CustomJoint with one coordinate). The solver follows it with ``Params.joint_paths``.
 * The pose of a segment is a rigid transform applied to *rest* coordinates: a point p_rest on the
   segment is at ``R_s @ p_rest + t_s``; at rest every segment has R = I, t = 0.
 
@@ -212,6 +218,10 @@ class TissueModel(TissueTopology):
     joint_driver: np.ndarray = None     # (J,) int32 driving hinge of a coupled joint, -1 otherwise
     coupling_offsets: np.ndarray = None     # (J+1,) int64 rows of each joint in coupling_table
     coupling_table: np.ndarray = None   # (N, 5) float64 rows (driver [rad], angle [rad], dx, dy, dz [m])
+    # hinges with a path (see the module docstring); None = none
+    joint_path_offsets: np.ndarray = None   # (J+1,) int64 rows of each hinge in joint_path_table
+    joint_path_table: np.ndarray = None     # (N, 6) float64 rows (q [rad], angle 2, angle 3 [rad], dx, dy, dz [m])
+    joint_path_axes: np.ndarray = None      # (J, 2, 3) float64 the secondary rotation axes (unit; zeros without a path)
 
     muscle_rest_fibre_length: np.ndarray = None   # (M,) float64 normalised fibre length in the rest pose (tissue table's
                                                   # rest_fibre_length); None / absent from a file: 1.0 each
@@ -229,6 +239,9 @@ class TissueModel(TissueTopology):
         for name, default in (('joint_driver', lambda: np.full(J, -1, np.int32)),
                               ('coupling_offsets', lambda: np.zeros(J + 1, np.int64)),
                               ('coupling_table', lambda: np.zeros((0, 5))),
+                              ('joint_path_offsets', lambda: np.zeros(J + 1, np.int64)),
+                              ('joint_path_table', lambda: np.zeros((0, 6))),
+                              ('joint_path_axes', lambda: np.zeros((J, 2, 3))),
                               ('muscle_rest_fibre_length', lambda: np.ones(len(self.muscle_names))),
                               ('path_muscle', lambda: np.zeros(0, np.int32)), ('path_data', lambda: np.zeros((0, 4))),
                               ('path_powers', lambda: np.zeros((0, J), np.int32)),
@@ -335,6 +348,20 @@ class TissueModel(TissueTopology):
              and self.coupling_offsets[0] == 0 and self.coupling_offsets[-1] == len(self.coupling_table)
              and np.all(np.diff(self.coupling_offsets) >= 0), 'coupling arrays inconsistent')
         need(np.all(np.isfinite(self.coupling_table)), 'coupling_table has non-finite values')
+        need(self.joint_path_offsets.shape == (J + 1,) and self.joint_path_table.ndim == 2
+             and self.joint_path_table.shape[1] == 6 and self.joint_path_axes.shape == (J, 2, 3)
+             and self.joint_path_offsets[0] == 0 and self.joint_path_offsets[-1] == len(self.joint_path_table)
+             and np.all(np.diff(self.joint_path_offsets) >= 0), 'joint path arrays inconsistent')
+        need(np.all(np.isfinite(self.joint_path_table)) and np.all(np.isfinite(self.joint_path_axes)),
+             'joint path arrays have non-finite values')
+        for j in range(J):
+            rows = self.joint_path_table[self.joint_path_offsets[j]:self.joint_path_offsets[j + 1]]
+            if len(rows):
+                need(self.joint_type[j] == JOINT_HINGE, f'joint {self.joint_names[j]!r}: only a hinge may have a path')
+                need(len(rows) >= 4 and np.all(np.diff(rows[:, 0]) > 0),
+                     f'hinge {self.joint_names[j]!r}: its path needs >= 4 rows in increasing coordinate')
+                need(np.allclose(np.linalg.norm(self.joint_path_axes[j], axis=1), 1.0, atol=1e-6),
+                     f'hinge {self.joint_names[j]!r}: its path axes must be unit vectors')
         for j in range(J):
             rows = self.coupling_table[self.coupling_offsets[j]:self.coupling_offsets[j + 1]]
             if self.joint_type[j] == JOINT_COUPLED:
@@ -413,8 +440,9 @@ class TissueModel(TissueTopology):
                         'cell_slice', 'skin_quads', 'skin_quad_cell', 'surface_triangles', 'surface_group',
                         'bone_segment', 'bone_vertex_offsets', 'bone_triangle_offsets', 'bone_triangles',
                         'segment_parent', 'joint_type', 'joint_parent', 'joint_child', 'joint_driver',
-                        'coupling_offsets', 'path_muscle', 'path_powers'}
+                        'coupling_offsets', 'path_muscle', 'path_powers', 'joint_path_offsets'}
         optional = {'joint_driver', 'coupling_offsets', 'coupling_table',      # a model without coupled joints
+                    'joint_path_offsets', 'joint_path_table', 'joint_path_axes',  # no hinge with a path
                     'muscle_rest_fibre_length',                             # a file written before the field: 1.0
                     'path_muscle', 'path_data', 'path_powers', 'path_coef'}  # no muscle paths
         kw = {}

@@ -12,7 +12,10 @@ of three prismatic joints ``<joint>_tx``, ``_ty``, ``_tz`` along the model axes 
 ``<joint>_tx`` ... between them) and a revolute joint ``<joint>`` about its axis: exact for any table
 (a URDF ``mimic`` is linear, and the patella's path is not). ``/joint_states`` carries their values
 (:func:`joint_states`); the simulator's own TF publishes the patella directly under the thigh (the
-same pose).
+same pose). A hinge with a path (the knee; core/model.py) is the same chain of three prismatic joints (its offset d)
+followed by the revolute joint ``<joint>`` about its axis and two revolute joints ``<joint>_r2``, ``<joint>_r3`` about
+its secondary axes (each in the frame the joints before it have turned, as the path's rotations compose), exact
+for any path; ``/joint_states`` carries them too.
 
 Bone meshes are written as binary STL, in their link's frame, and referenced by
 ``package://<package>/<mesh_dir>/<bone>.stl``. Inertial elements carry each segment's mass, centre of
@@ -50,6 +53,29 @@ def _fmt(vals) -> str:
 def _origin(xyz, R=None) -> str:
     rpy = (0.0, 0.0, 0.0) if R is None else Rotation.from_matrix(R).as_euler('xyz')   # URDF: fixed axes x, y, z
     return f'<origin xyz="{_fmt(xyz)}" rpy="{_fmt(rpy)}"/>'
+
+
+def _limits(rows):
+    """(lower, upper) per column of a path's table: its range + 10 % (the spline between rows, the end stop)."""
+    pad = 0.1 * np.ptp(rows, axis=0) + 1e-4
+    return rows.min(0) - pad, rows.max(0) + pad
+
+
+def _translations(out: list, jname: str, parent: str, xyz, lo, hi) -> str:
+    """Append a path's three prismatic joints ``<jname>_tx/_ty/_tz`` along the model axes (massless links of the
+    same names; the first at xyz in the parent link) to out; returns the last link's name."""
+    prev = parent
+    for k, ax in enumerate('xyz'):
+        link = f'{jname}_t{ax}'
+        out += [f'  <link name={quoteattr(link)}/>',
+                f'  <joint name={quoteattr(link)} type="prismatic">',
+                f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(link)}/>',
+                f'    {_origin(xyz if k == 0 else (0.0, 0.0, 0.0))}',
+                f'    <axis xyz="{_fmt(np.eye(3)[k])}"/>',
+                f'    <limit lower="{lo[k]:.9g}" upper="{hi[k]:.9g}" effort="1000" velocity="1"/>',
+                '  </joint>']
+        prev = link
+    return prev
 
 
 def robot_description(tm, package: str = 'tissue_sim', mesh_dir: str = 'meshes', robot_name: str | None = None) -> str:
@@ -90,7 +116,27 @@ def robot_description(tm, package: str = 'tissue_sim', mesh_dir: str = 'meshes',
         j = jchild[s]
         jname, pname = tm.joint_names[j], tm.segment_names[parent]
         xyz = origins[s] - origins[parent]
-        if tm.joint_type[j] == M.JOINT_HINGE:
+        if tm.joint_type[j] == M.JOINT_HINGE and len(path_rows(tm, j)):
+            lo_c, hi_c = _limits(path_rows(tm, j))
+            prev = _translations(out, jname, pname, xyz, lo_c[3:], hi_c[3:])
+            axis = np.asarray(tm.joint_axis[j], float)
+            R0 = Rotation.from_rotvec(-float(tm.joint_rest[j]) * axis).as_matrix()
+            lo, hi = (float(v) for v in tm.joint_range[j])
+            chain = [(jname, axis, R0, lo, hi)]
+            for k, suffix in ((1, '_r2'), (2, '_r3')):
+                chain.append((jname + suffix, np.asarray(tm.joint_path_axes[j, k - 1], float), None, lo_c[k], hi_c[k]))
+            for i, (name_, ax_, R_, lo_, hi_) in enumerate(chain):
+                child = seg if i == len(chain) - 1 else name_ + '_link'
+                if child != seg:
+                    out.append(f'  <link name={quoteattr(child)}/>')
+                out += [f'  <joint name={quoteattr(name_)} type="revolute">',
+                        f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(child)}/>',
+                        f'    {_origin((0.0, 0.0, 0.0), R_)}',
+                        f'    <axis xyz="{_fmt(ax_)}"/>',
+                        f'    <limit lower="{lo_:.9g}" upper="{hi_:.9g}" effort="1000" velocity="20"/>',
+                        '  </joint>']
+                prev = child
+        elif tm.joint_type[j] == M.JOINT_HINGE:
             axis = np.asarray(tm.joint_axis[j], float)
             # at the coordinate joint_rest the child is in its rest pose
             R0 = Rotation.from_rotvec(-float(tm.joint_rest[j]) * axis).as_matrix()
@@ -102,21 +148,8 @@ def robot_description(tm, package: str = 'tissue_sim', mesh_dir: str = 'meshes',
                     f'    <limit lower="{lo:.9g}" upper="{hi:.9g}" effort="1000" velocity="20"/>',
                     '  </joint>']
         elif tm.joint_type[j] == M.JOINT_COUPLED:
-            rows = coupling_rows(tm, j)
-            pad = 0.1 * np.ptp(rows, axis=0) + 1e-4          # limits: the table's range + 10 % (spline, end stop)
-            lo_c, hi_c = rows.min(0) - pad, rows.max(0) + pad
-            prev = pname
-            for ch, ax in ((1, 'x'), (2, 'y'), (3, 'z')):
-                link = f'{jname}_t{ax}'
-                unit = np.eye(3)[ch - 1]
-                out += [f'  <link name={quoteattr(link)}/>',
-                        f'  <joint name={quoteattr(link)} type="prismatic">',
-                        f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(link)}/>',
-                        f'    {_origin(xyz if ch == 1 else (0.0, 0.0, 0.0))}',
-                        f'    <axis xyz="{_fmt(unit)}"/>',
-                        f'    <limit lower="{lo_c[ch]:.9g}" upper="{hi_c[ch]:.9g}" effort="1000" velocity="1"/>',
-                        '  </joint>']
-                prev = link
+            lo_c, hi_c = _limits(coupling_rows(tm, j))
+            prev = _translations(out, jname, pname, xyz, lo_c[1:4], hi_c[1:4])
             out += [f'  <joint name={quoteattr(jname)} type="revolute">',
                     f'    <parent link={quoteattr(prev)}/>', f'    <child link={quoteattr(seg)}/>',
                     f'    {_origin((0.0, 0.0, 0.0))}',
@@ -136,30 +169,45 @@ def coupling_rows(tm, j: int) -> np.ndarray:
     return np.asarray(tm.coupling_table[tm.coupling_offsets[j]:tm.coupling_offsets[j + 1], 1:5], float)
 
 
+def path_rows(tm, j: int) -> np.ndarray:
+    """(K, 6) the path of hinge j as the skeleton's channels (angle about its axis [rad], the two secondary angles
+    [rad], dx, dy, dz [m]); (0, 6) for a hinge without a path."""
+    t = np.asarray(tm.joint_path_table[tm.joint_path_offsets[j]:tm.joint_path_offsets[j + 1]], float)
+    return np.concatenate([t[:, :1] - float(tm.joint_rest[j]), t[:, 1:]], axis=1)
+
+
 def joint_states(sim, q, qd) -> tuple[list, list, list]:
-    """(names, positions, velocities) of the URDF's movable joints for solver coordinates q, qd: a hinge
-    is itself; a coupled joint is its three translations (``<joint>_tx/_ty/_tz`` [m, m/s], the spline at
-    its driver's coordinate) and its angle (``<joint>``). sim: the compiled model (its coupling splines)."""
-    from tissue_sim.core.solver.skeleton import coupled_eval
+    """(names, positions, velocities) of the URDF's movable joints for solver coordinates q, qd: first every hinge,
+    in the model's order (its own coordinate), then the joints of the paths: a hinge's path its three translations
+    (``<joint>_tx/_ty/_tz`` [m, m/s]) and its secondary angles (``<joint>_r2``, ``_r3``), a coupled joint its three
+    translations and its angle (``<joint>``), the splines at their coordinate. sim: the compiled model (its splines);
+    with ``Params.joint_paths`` off a hinge's path joints stay at 0, as the solver then has them."""
+    from tissue_sim.core.solver.skeleton import CHANNELS, coupled_eval, has_path
     tm = sim.tissue
     names, pos, vel = [], [], []
-    ev = np.empty((4, 3))
+    extra = ([], [], [])
+    ev = np.empty((CHANNELS, 3))
     for j, name in enumerate(tm.joint_names):
-        if tm.joint_type[j] == M.JOINT_COUPLED:
-            d = int(tm.joint_driver[j])
-            coupled_eval(j, float(q[d]), sim.skeleton, ev)
-            for ch, ax in ((1, 'x'), (2, 'y'), (3, 'z')):
-                names.append(f'{name}_t{ax}')
-                pos.append(float(ev[ch, 0]))
-                vel.append(float(ev[ch, 1] * qd[d]))
-            names.append(name)
-            pos.append(float(ev[0, 0]))
-            vel.append(float(ev[0, 1] * qd[d]))
-        else:
+        coupled = tm.joint_type[j] == M.JOINT_COUPLED
+        if tm.joint_type[j] == M.JOINT_HINGE:
             names.append(name)
             pos.append(float(q[j]))
             vel.append(float(qd[j]))
-    return names, pos, vel
+            if not len(path_rows(tm, j)):
+                continue
+        elif not coupled:
+            continue
+        d = int(tm.joint_driver[j]) if coupled else j
+        if coupled or has_path(j, sim.skeleton):
+            coupled_eval(j, float(q[d]), sim.skeleton, ev)
+        else:
+            ev[:] = 0.0
+        chans = [(3, '_tx'), (4, '_ty'), (5, '_tz')] + ([(0, '')] if coupled else [(1, '_r2'), (2, '_r3')])
+        for ch, suffix in chans:
+            extra[0].append(name + suffix)
+            extra[1].append(float(ev[ch, 0]))
+            extra[2].append(float(ev[ch, 1] * qd[d]))
+    return names + extra[0], pos + extra[1], vel + extra[2]
 
 
 def bone_meshes_in_link_frames(tm) -> dict:

@@ -50,6 +50,8 @@ def _import_opensim():
     so the C-level environment children inherit is restored too)."""
     with _environment_kept():
         import opensim
+        if hasattr(opensim.Logger, 'removeFileSink'):
+            opensim.Logger.removeFileSink()         # no opensim.log in the working directory
     return opensim
 
 
@@ -140,7 +142,7 @@ def knee_muscles(tm, tissue_table: dict) -> list:
 
 
 # ------------------------------------------------------------------------------------- OpenSim
-def opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: dict) -> dict:
+def opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: dict, log_level: str = 'warn') -> dict:
     """The source model at each knee angle (other coordinates at their defaults).
 
     Per muscle (merged OpenSim parts: lengths and moment arms weighted by Fmax, forces summed):
@@ -151,16 +153,16 @@ def opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: d
     ``active_fraction`` (active fibre force along the tendon / Fmax), ``norm_fibre_length``, and
     ``torque`` [N m] = sum of moment arm x force over the knee muscles."""
     with _environment_kept():       # opensim's side effects on the environment undone (_import_opensim)
-        return _opensim_reference(osim_path, muscles, angles_deg, active_sets)
+        return _opensim_reference(osim_path, muscles, angles_deg, active_sets, log_level)
 
 
-def _opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: dict) -> dict:
+def _opensim_reference(osim_path, muscles: list, angles_deg: list, active_sets: dict, log_level: str = 'warn') -> dict:
     try:
         osim = _import_opensim()
     except ImportError:
         raise ValidationError('the OpenSim reference needs the opensim package (pip install --no-deps -r '
                               'requirements/validation.txt)') from None
-    osim.Logger.setLevelString('warn')         # not its per-load [info] lines
+    osim.Logger.setLevelString(log_level)      # not its per-load [info] lines
     model = osim.Model(str(osim_path))
     state = model.initSystem()
     coord = model.getCoordinateSet().get(OSIM_COORDINATE)
@@ -296,7 +298,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
     dt = sim.params.dt
     cur = math.degrees(state.q[j])
     res = {k: [] for k in ('length', 'torque', 'torque_static', 'muscle_force', 'muscle_torque', 'tension',
-                           'kinetic_energy')}
+                           'kinetic_energy', 'all_lengths')}
     res['diverged'] = None
     for a_i, deg in enumerate(angles_deg):
         n_ramp = int(math.ceil(abs(deg - cur) / ramp_speed / dt))
@@ -322,6 +324,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
                     res[k].append(nan)
                 for k in ('length', 'muscle_force', 'muscle_torque', 'tension'):
                     res[k].append([nan] * nm)
+                res['all_lengths'].append([nan] * sim.n_muscles)
             break
         cur = deg
         obs = solver.observe(sim, state)
@@ -339,6 +342,7 @@ def hold_sweep(sim, muscles: list, angles_deg: list, active: list, settle: float
         ten = _active_tension(sim, state)
         res['tension'].append([float(ten[km.index]) for km in muscles])
         res['length'].append([float(obs['muscle_lengths'][km.index]) for km in muscles])
+        res['all_lengths'].append([float(v) for v in obs['muscle_lengths']])
         res['kinetic_energy'].append(float(obs['kinetic_energy']))
         if progress:
             progress(deg)
@@ -351,26 +355,31 @@ def excursion_moment_arm(lengths, angles_deg) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------- the whole comparison
+def _inputs(angles_deg, osim_path, model) -> tuple:
+    """(angles [deg] (default 0-120 every 10), the source model's path (checked), the TissueModel (default: the
+    bundled limb), its knee muscles) of a comparison."""
+    import yaml
+
+    from tissue_sim.core.builder import default_inputs, default_model
+    angles = list(angles_deg) if angles_deg is not None else [float(a) for a in range(0, 121, 10)]
+    osim_path = Path(osim_path) if osim_path else source_model_path()
+    if not osim_path.is_file():
+        raise ValidationError(f'source model not found: {osim_path}')
+    tm = model if model is not None else default_model()
+    return angles, osim_path, tm, knee_muscles(tm, yaml.safe_load(Path(default_inputs()[1]).read_text()))
+
+
 def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
                    osim_path=None, model=None, progress=None) -> dict:
     """Everything docs/validation.md reports, as one JSON-able dict (see ``evaluate`` for the targets)."""
-    import yaml
-
     from tissue_sim.core import solver
-    from tissue_sim.core.builder import default_inputs, default_model
     if params not in ('physical', 'paper'):
         raise ValidationError(f'--params {params!r}: expected physical or paper')
     if not (settle > 0 and math.isfinite(settle)):
         raise ValidationError(f'--settle {settle}: must be a positive number of seconds')
     if not (ramp_speed > 0 and math.isfinite(ramp_speed)):
         raise ValidationError(f'--ramp-speed {ramp_speed}: must be a positive number of deg/s')
-    angles = list(angles_deg) if angles_deg is not None else [float(a) for a in range(0, 121, 10)]
-    osim_path = Path(osim_path) if osim_path else source_model_path()
-    if not osim_path.is_file():
-        raise ValidationError(f'source model not found: {osim_path}')
-    tm = model if model is not None else default_model()
-    table = yaml.safe_load(Path(default_inputs()[1]).read_text())
-    muscles = knee_muscles(tm, table)
+    angles, osim_path, tm, muscles = _inputs(angles_deg, osim_path, model)
     hams = [km.name for km in muscles if km.name in HAMSTRINGS]
     others = [km.name for km in muscles if km.name not in HAMSTRINGS]
     active_sets = {'hamstrings': hams, 'others': others}
@@ -416,8 +425,30 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
                             for row in runs['hamstrings']['muscle_torque']],
         'opensim_hamstrings_active': ref['active']['hamstrings']['torque'],
         'kinetic_energy': {k: r['kinetic_energy'] for k, r in runs.items()}}
+    out['moment_arm_resolution'] = moment_arm_resolution(runs, muscles, angles, list(tm.muscle_names))
     out['diverged'] = {k: r['diverged'] for k, r in runs.items()}      # None, or where a sweep diverged (then NaN on)
     out['targets'] = evaluate(out)
+    return out
+
+
+def moment_arm_resolution(runs: dict, muscles: list, angles, names) -> dict:
+    """What a moment arm measured by each sweep's holds resolves: per sweep {``value`` [m/rad], ``muscle``,
+    ``angle_deg``}, the largest |-dL/dtheta| (excursion_moment_arm) of the muscles that do not cross the knee (no knee
+    moment arm at all) over that sweep's angles and where it occurs. The tissue near the joint, and the tissue the
+    active muscles pull on, deforms with the angle, so their lengths change a little; a knee muscle's moment arm within
+    its sweep's value has no sign (evaluate)."""
+    knee = {km.index for km in muscles}
+    others = [m for m in range(len(names)) if m not in knee]
+    out = {}
+    for key, r in runs.items():
+        best = {'value': 0.0, 'muscle': None, 'angle_deg': None}
+        L = np.asarray(r.get('all_lengths', []), float)
+        if L.ndim == 2 and L.shape[0] >= 2 and others:
+            ma = np.abs(excursion_moment_arm(L[:, others], angles))
+            if np.any(np.isfinite(ma)):
+                a, m = np.unravel_index(np.nanargmax(ma), ma.shape)
+                best = {'value': float(ma[a, m]), 'muscle': names[others[m]], 'angle_deg': angles[a]}
+        out[key] = best
     return out
 
 
@@ -435,14 +466,26 @@ def evaluate(res: dict) -> dict:
     angles = res['angles_deg']
     mus = res['muscles']
     t = {}
-    # 1. sign of every knee muscle's moment arm at every angle, passive and active
-    bad = []
+    # 1. sign of every knee muscle's moment arm at every angle, passive and active; a moment arm within the holds'
+    # resolution (moment_arm_resolution) has no sign; where the source model's is within it too, the sign is not decided
+    reso = res.get('moment_arm_resolution', {})
+
+    def resolution(sweep):          # per sweep (run_validation), or one {'value': v} for all
+        return float(reso.get('value', reso.get(sweep, {}).get('value', 0.0)))
+    bad, undecided = [], 0
     for name, d in mus.items():
         for mode in ('passive', 'active'):
+            res_r = resolution('passive' if mode == 'passive' else d.get('active_set', 'hamstrings'))
             for a, ours, ref in zip(angles, d[f'{mode}_moment_arm'], d['opensim_moment_arm']):
-                if np.sign(ours) != np.sign(ref):       # (a zero moment arm has neither sign)
-                    bad.append(f'{name} {mode} {a:g} deg: {ours * 1e3:+.1f} vs {ref * 1e3:+.1f} mm')
-    t['moment_arm_signs'] = {'pass': not bad, 'wrong': bad}
+                if abs(ref) <= res_r:
+                    undecided += 1
+                    continue
+                sign = np.sign(ours) if abs(ours) > res_r else 0.0     # (NaN: a diverged sweep, no sign)
+                if sign != np.sign(ref):
+                    below = ' (within the resolution: no sign)' if abs(ours) <= res_r else ''
+                    bad.append(f'{name} {mode} {a:g} deg: {ours * 1e3:+.1f}{below} vs {ref * 1e3:+.1f} mm')
+    t['moment_arm_signs'] = {'pass': not bad, 'wrong': bad, 'undecided': undecided,
+                             'resolution_mm': {k: resolution(k) * 1e3 for k in ('passive', 'hamstrings', 'others')}}
     # 2. hamstrings within +-25 % at 0, 30, 60, 90 deg
     rows, ok, missing = [], True, [a for a in TARGET_ANGLES if _at(angles, angles, a) is None]
     for name in TARGET_HAMSTRINGS:
@@ -778,6 +821,94 @@ def plot_passive(res: dict, path) -> None:
     bx.set_ylim(-150.0, 100.0)                      # (the uncalibrated curves leave it: thousands of N m)
     bx.set_xlabel('ankle dorsiflexion [deg]'); bx.set_ylabel('passive ankle moment [N m] (+ dorsiflexing)')
     bx.legend(fontsize=7); bx.set_title('passive fibres at the ankle, knee 0')
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------- the knee's kinematics
+WALKER_KNEE = 'walker_knee_r'
+WALKER_SECONDARY = ('rotation2', 'rotation3', 'translation1', 'translation2', 'translation3')
+
+
+def hinge_source_model(osim_path, centre_model, out_path) -> Path:
+    """Write a copy of the source model whose walker knee is the plain hinge the paper set uses: its secondary
+    rotations and translations (WALKER_SECONDARY) constant 0, rotation1 (knee_angle_r about the walker frame's x axis,
+    the bundled knee's axis) about centre_model (model frame, m: the bundled knee's hinge centre), both of the joint's
+    offset frames moved there (the tibia's rest pose unchanged: the two frames are aligned at 0)."""
+    import xml.etree.ElementTree as ET
+    tree = ET.parse(osim_path)
+    joint = next((j for j in tree.getroot().iter('CustomJoint') if j.get('name') == WALKER_KNEE), None)
+    if joint is None:
+        raise ValidationError(f'{osim_path}: no CustomJoint {WALKER_KNEE!r}')
+    for ta in joint.iter('TransformAxis'):
+        if ta.get('name') in WALKER_SECONDARY:
+            for fn in [c for c in ta if c.tag not in ('coordinates', 'axis')]:
+                ta.remove(fn)
+            const = ET.SubElement(ta, 'Constant', name='function')
+            ET.SubElement(const, 'value').text = '0'
+            ta.find('coordinates').text = ''
+    c = np.asarray(centre_model, float)
+    c_os = np.array([c[0], c[2], -c[1]])              # model (x ant, y left, z up) -> OpenSim femur (x ant, y up, z right)
+    frames = {f.get('name'): f for f in joint.iter('PhysicalOffsetFrame')}
+    parent = frames[joint.find('socket_parent_frame').text.strip()]
+    delta = c_os - np.array([float(v) for v in parent.find('translation').text.split()])
+    for f in frames.values():
+        t = f.find('translation')
+        t.text = ' '.join(repr(float(v)) for v in np.array([float(v) for v in t.text.split()]) + delta)
+    tree.write(out_path)
+    return Path(out_path)
+
+
+def run_kinematics(angles_deg=None, osim_path=None, model=None) -> dict:
+    """What the knee's kinematics alone do to the moment arms (docs/validation.md "The knee's kinematics"): the source
+    model's own muscle paths (wrapping included) evaluated with its walker knee and with the walker knee replaced by
+    the plain hinge of the paper set (``hinge_source_model``): per knee muscle the moment arm (computeMomentArm) with
+    each; the angles where the hinge changes its sign; the target hamstrings' (hinge - walker) / |walker| at the issue's
+    angles. No elastic model is run."""
+    import tempfile
+    angles, osim_path, tm, muscles = _inputs(angles_deg, osim_path, model)
+    j = list(tm.joint_names).index(KNEE_JOINT)
+    with tempfile.TemporaryDirectory() as tmp:
+        hinge = hinge_source_model(osim_path, tm.joint_centre[j], Path(tmp) / 'hinge.osim')
+        walker_ref = opensim_reference(osim_path, muscles, angles, {})
+        hinge_ref = opensim_reference(hinge, muscles, angles, {}, log_level='error')   # (its bone meshes are not found
+                                                                                       # from the temporary folder)
+    out = {'angles_deg': angles, 'osim': str(osim_path), 'hinge_centre_m': [float(v) for v in tm.joint_centre[j]],
+           'hinge_axis': [float(v) for v in tm.joint_axis[j]], 'muscles': {}, 'sign_changes': [], 'hamstrings': []}
+    for km in muscles:
+        w = np.asarray(walker_ref['muscles'][km.name]['moment_arm'])
+        h = np.asarray(hinge_ref['muscles'][km.name]['moment_arm'])
+        out['muscles'][km.name] = {'walker_moment_arm': list(w), 'hinge_moment_arm': list(h)}
+        for a, x, y in zip(angles, w, h):
+            if np.sign(x) != np.sign(y):
+                out['sign_changes'].append({'muscle': km.name, 'angle_deg': a, 'walker_mm': x * 1e3, 'hinge_mm': y * 1e3})
+        if km.name in TARGET_HAMSTRINGS:
+            for a in TARGET_ANGLES:
+                x, y = _at(angles, w, a), _at(angles, h, a)
+                if x is not None:
+                    out['hamstrings'].append({'muscle': km.name, 'angle_deg': a, 'walker_mm': x * 1e3, 'hinge_mm': y * 1e3,
+                                              'rel_difference': (y - x) / abs(x),
+                                              'within_tolerance': bool(abs(y - x) <= MOMENT_ARM_TOLERANCE * abs(x))})
+    return out
+
+
+def plot_kinematics(res: dict, path) -> None:
+    """Moment arms of the knee muscles in the source model, walker knee (solid) against the plain hinge (dashed)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    for k, (name, d) in enumerate(res['muscles'].items()):
+        ax = axes[0] if name in HAMSTRINGS else axes[1]
+        c = f'C{k % 10}'
+        ax.plot(res['angles_deg'], np.asarray(d['walker_moment_arm']) * 1e3, '-', color=c, label=name)
+        ax.plot(res['angles_deg'], np.asarray(d['hinge_moment_arm']) * 1e3, '--', color=c)
+    for ax, title in zip(axes, ('hamstrings', 'the other knee muscles')):
+        ax.axhline(0.0, color='k', lw=0.5)
+        ax.set_xlabel('knee flexion [deg]'); ax.set_ylabel('moment arm [mm] (+ flexor)')
+        ax.set_title(f'source model, {title}: walker knee (solid), plain hinge (dashed)', fontsize=9)
+        ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -240,17 +240,46 @@ def _coupling(j: dict, w: str):
     ax = _vec(j.get('axis'), 3, f'{w} axis')
     if np.linalg.norm(ax) < 1e-9:
         raise UserError(f'{w}: axis must be non-zero')
-    cols = j.get('table_columns', ['driver_deg', 'angle_deg', 'dx', 'dy', 'dz'])
-    if list(cols) != ['driver_deg', 'angle_deg', 'dx', 'dy', 'dz']:
-        raise UserError(f'{w}: table_columns must be [driver_deg, angle_deg, dx, dy, dz], got {cols!r}')
-    tab = j.get('table')
-    if not isinstance(tab, list) or len(tab) < 4:
-        raise UserError(f'{w}: a coupled joint needs a "table" of at least 4 rows [driver_deg, angle_deg, dx, dy, dz]')
-    rows = np.array([_vec(r, 5, f'{w} table row {i}') for i, r in enumerate(tab)])
-    if np.any(np.diff(rows[:, 0]) <= 0):
-        raise UserError(f'{w}: table rows must be in strictly increasing driver angle')
+    rows = _table_rows(j, COUPLING_COLUMNS, w, 'a coupled joint', 'table')
     rows[:, :2] = np.radians(rows[:, :2])
     return ax / np.linalg.norm(ax), np.array([rows[:, 1].min(), rows[:, 1].max()]), rows
+
+
+PATH_COLUMNS = ['angle_deg', 'angle2_deg', 'angle3_deg', 'dx', 'dy', 'dz']
+COUPLING_COLUMNS = ['driver_deg', 'angle_deg', 'dx', 'dy', 'dz']
+
+
+def _table_rows(d: dict, columns: list, w: str, what: str, key: str) -> np.ndarray:
+    """(K, len(columns)) the rows of a joint's spline table (d's ``table_columns``, which must be columns, and
+    ``table``: at least 4 rows, the first column strictly increasing), as given (degrees, metres)."""
+    cols = d.get('table_columns', columns)
+    if list(cols) != columns:
+        raise UserError(f'{w}: {key} table_columns must be {columns}, got {cols!r}')
+    tab = d.get('table')
+    if not isinstance(tab, list) or len(tab) < 4:
+        raise UserError(f'{w}: {what} needs a "table" of at least 4 rows {columns}')
+    rows = np.array([_vec(r, len(columns), f'{w} {key} row {i}') for i, r in enumerate(tab)])
+    if np.any(np.diff(rows[:, 0]) <= 0):
+        raise UserError(f'{w}: {key} rows must be in strictly increasing {columns[0]}')
+    return rows
+
+
+def _hinge_path(path, axis, w: str):
+    """(axes (2, 3), rows (K, 6) in SI: q [rad], angle 2, angle 3 [rad], dx, dy, dz [m]) of a hinge's ``path``
+    (docs/FORMATS.md): ``axes`` (the two secondary rotation axes), ``table_columns`` [angle_deg, angle2_deg,
+    angle3_deg, dx, dy, dz] and ``table`` (rows in increasing angle)."""
+    if not isinstance(path, dict):
+        raise UserError(f'{w}: "path" must be a mapping with axes, table_columns and table')
+    axes = path.get('axes')
+    if not isinstance(axes, list) or len(axes) != 2:
+        raise UserError(f'{w}: path axes must be a list of 2 axes (3 numbers each)')
+    ax = np.array([_vec(a, 3, f'{w} path axis {i}') for i, a in enumerate(axes)])
+    if np.any(np.linalg.norm(ax, axis=1) < 1e-9):
+        raise UserError(f'{w}: path axes must be non-zero')
+    ax = ax / np.linalg.norm(ax, axis=1)[:, None]
+    rows = _table_rows(path, PATH_COLUMNS, w, 'a path', 'path table')
+    rows[:, :3] = np.radians(rows[:, :3])
+    return ax, rows
 
 
 def load_joints(src) -> dict:
@@ -306,6 +335,7 @@ def load_joints(src) -> dict:
         raise UserError(f'{where}: "joints" must be a list')
     jn, jt, jp, jc, ja, jctr, jr, jrest = [], [], [], [], [], [], [], []
     couplings = {}                                   # joint index -> (driver name, table rows)
+    paths = {}                                       # hinge index -> (secondary axes, table rows)
     root_joint = None
     for i, j in enumerate(joints):
         if not isinstance(j, dict) or not isinstance(j.get('name'), str):
@@ -335,6 +365,8 @@ def load_joints(src) -> dict:
             rng = _vec(j.get('range_deg', [-180, 180]), 2, f'{w} range_deg')
             if rng[0] > rng[1]:
                 raise UserError(f'{w}: range_deg lower > upper')
+            if j.get('path') is not None:
+                paths[len(jn)] = _hinge_path(j['path'], ax, w)
         elif typ == 'coupled':
             ax, rng, rows = _coupling(j, w)
             couplings[len(jn)] = (j.get('driver'), rows)
@@ -361,7 +393,15 @@ def load_joints(src) -> dict:
             driver[k] = jn.index(dname)
             ctab.append(rows)
         coff.append(coff[-1] + (len(couplings[k][1]) if k in couplings else 0))
+    poff, ptab, pax = [0], [], np.zeros((J, 2, 3))
+    for k in range(J):
+        if k in paths:
+            pax[k], rows = paths[k]
+            ptab.append(rows)
+        poff.append(poff[-1] + (len(paths[k][1]) if k in paths else 0))
     return {
+        'joint_path_offsets': np.array(poff, np.int64), 'joint_path_axes': pax,
+        'joint_path_table': np.concatenate(ptab) if ptab else np.zeros((0, 6)),
         'joint_driver': driver, 'coupling_offsets': np.array(coff, np.int64),
         'coupling_table': np.concatenate(ctab) if ctab else np.zeros((0, 5)),
         'source': str(data.get('source', '')), 'root_joint': root_joint,

@@ -700,7 +700,7 @@ def fold_vertices(tm, joints: str, reach: float, margin: float, rest: np.ndarray
                 f_floor=cat(floor, np.float64), f_wfloor=cat(wfloor, np.float64))
 
 
-SHEATH_FROM = 0.01      # [m] the sheath holds a group's vertices from this height above the hinge centre (along n0) up
+SHEATH_FROM = 0.005     # [m] the sheath holds a group's vertices from this height above the hinge centre (along n0) up
 
 
 def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment,

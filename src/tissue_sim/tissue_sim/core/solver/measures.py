@@ -10,8 +10,8 @@ import numpy as np
 from numba import njit
 
 from tissue_sim.core.geometry import prism_volumes
-from tissue_sim.core.model import JOINT_COUPLED
-from tissue_sim.core.solver.skeleton import coupled_eval
+from tissue_sim.core.model import JOINT_COUPLED, JOINT_HINGE
+from tissue_sim.core.solver.skeleton import joint_jacobians
 
 
 
@@ -132,25 +132,23 @@ def kinetic_energy(sim, state) -> float:
 
 def joint_torques(sim, state, f: np.ndarray, idx=None) -> np.ndarray:
     """(J,) [N m] generalized force on each hinge of forces f (V, 3) on bone-attached vertices (idx: which;
-    default all), by virtual work as the skeleton kernel applies them: a hinge j gets a_j . (x - p_j) x f
-    from the vertices of the segments it moves; the driver of a coupled joint gets (W x (x - P) + R_p d') . f
-    from the vertices of its child (docs/solver.md "Coupled joints"). 0 for a fixed or coupled joint."""
+    default all), by virtual work as the skeleton kernel applies them: a hinge j gets (W_j x (x - P_j) + D_j) . f
+    (a plain hinge: a_j . (x - p_j) x f) from the vertices of the segments it moves; the driver of a coupled joint gets
+    (W x (x - P) + R_p d') . f from the vertices of its child (skeleton.joint_jacobians; docs/solver.md "Skeleton").
+    0 for a fixed or coupled joint."""
     idx = sim.att_idx if idx is None else np.asarray(idx)
     seg = sim.vertex_segment[idx]
     x, F = state.x[idx], f[idx]
     tau = np.zeros(sim.n_joints)
-    ev = np.empty((4, 3))
+    W, P, D = joint_jacobians(state.q, sim.skeleton, state.seg_R, state.seg_t)
     for j in range(sim.n_joints):
-        Rp, tp = state.seg_R[sim.j_parent[j]], state.seg_t[sim.j_parent[j]]
-        a = Rp @ sim.j_axis[j]
         if sim.j_type[j] == JOINT_COUPLED:
-            sel = seg == sim.j_child[j]
-            coupled_eval(j, state.q[sim.j_driver[j]], sim.skeleton, ev)
-            P = Rp @ (sim.j_centre[j] + ev[1:, 0]) + tp
-            tau[sim.j_driver[j]] += float(np.sum((np.cross(a * ev[0, 1], x[sel] - P) + Rp @ ev[1:, 1]) * F[sel]))
-        elif sim.j_type[j] == 1:
-            sel = sim.anc[j][seg]
-            tau[j] += float(a @ np.cross(x[sel] - (Rp @ sim.j_centre[j] + tp), F[sel]).sum(0))
+            sel, k = seg == sim.j_child[j], sim.j_driver[j]
+        elif sim.j_type[j] == JOINT_HINGE:
+            sel, k = sim.anc[j][seg], j
+        else:
+            continue
+        tau[k] += float(W[j] @ np.cross(x[sel] - P[j], F[sel]).sum(0) + D[j] @ F[sel].sum(0))
     return tau
 
 
@@ -159,29 +157,19 @@ def skeleton_energy(sim, state) -> float:
     when params.attached_mass_to_segment), potential relative to the rest pose."""
     e = 0.0
     S, J = sim.n_segments, sim.n_joints
-    a = np.empty((J, 3))
-    p = np.empty((J, 3))
-    for j in range(J):
-        Rp, tp = state.seg_R[sim.j_parent[j]], state.seg_t[sim.j_parent[j]]
-        a[j] = Rp @ sim.j_axis[j]
-        p[j] = Rp @ sim.j_centre[j] + tp
+    W, P, D = joint_jacobians(state.q, sim.skeleton, state.seg_R, state.seg_t)
     for s in range(S):
         com = state.seg_R[s] @ sim.seg_com[s] + state.seg_t[s]
         w = np.zeros(3)
         v = np.zeros(3)
         for j in range(J):
-            if sim.anc[j, s]:
-                w += a[j] * state.qd[j]
-                v += np.cross(a[j], com - p[j]) * state.qd[j]
+            if sim.j_type[j] == JOINT_HINGE and sim.anc[j, s]:
+                w += W[j] * state.qd[j]
+                v += (np.cross(W[j], com - P[j]) + D[j]) * state.qd[j]
         j = sim.seg_joint[s]
-        if j >= 0 and sim.j_type[j] == JOINT_COUPLED:       # + the coupling's motion (skeleton.coupled_eval)
-            Rp, tp = state.seg_R[sim.j_parent[j]], state.seg_t[sim.j_parent[j]]
-            ev = np.empty((4, 3))
-            coupled_eval(j, state.q[sim.j_driver[j]], sim.skeleton, ev)
-            W = Rp @ sim.j_axis[j] * ev[0, 1]
-            P = Rp @ (sim.j_centre[j] + ev[1:, 0]) + tp
-            w += W * state.qd[sim.j_driver[j]]
-            v += (np.cross(W, com - P) + Rp @ ev[1:, 1]) * state.qd[sim.j_driver[j]]
+        if j >= 0 and sim.j_type[j] == JOINT_COUPLED:       # + the coupling's motion
+            w += W[j] * state.qd[sim.j_driver[j]]
+            v += (np.cross(W[j], com - P[j]) + D[j]) * state.qd[sim.j_driver[j]]
         Iw = state.seg_R[s] @ sim.seg_inertia[s] @ state.seg_R[s].T
         e += 0.5 * sim.seg_mass[s] * v @ v + 0.5 * w @ Iw @ w - sim.seg_mass[s] * sim.gravity @ (com - sim.seg_com[s])
     return float(e)

@@ -98,7 +98,8 @@ class SimModel:
     j_driver: np.ndarray            # (J,) int32 driving hinge of a coupled joint, -1 otherwise
     cp_off: np.ndarray              # (J+1,) int64 each coupled joint's knots in cp_x
     cp_x: np.ndarray                # (N,) [rad] knots (driver coordinate)
-    cp_c: np.ndarray                # (N, 4, 4) cubic coefficients per knot interval and channel (coupling_spline)
+    cp_c: np.ndarray                # (N, SK.CHANNELS, 4) cubic coefficients per knot interval and channel (coupling_spline)
+    j_sec: np.ndarray               # (J, 2, 3) secondary rotation axes of a hinge with a path (coupling_spline)
     skeleton: SK.Skeleton           # the skeleton arrays above (seg_* ... gravity) as the skeleton kernels read them
     cell_blocks: CK.CellLayout      # the cells again, as the cell kernel reads them: rings, chains, SIMD lanes (pack_cells)
     contact: CT.ContactGrids        # bone contact: a signed-distance grid per segment with bones, each free vertex's floor
@@ -348,7 +349,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         j_type=_frozen(tm.joint_type, np.uint8), j_axis=_frozen(tm.joint_axis, np.float64),
         j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
         j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
-        **coupling_spline(tm),
+        **coupling_spline(tm, p.joint_paths),
         skeleton=None,
         cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b,
                                   np.where(k_enc > 0, 0.0, k_volume), tr, q_ff, alen, fib, Qinv,
@@ -362,24 +363,40 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     return dataclasses.replace(sim, n_substeps=int(n_sub), omega_max=float(w))
 
 
-def coupling_spline(tm: TissueModel) -> dict:
-    """The coupled joints' tables as the skeleton kernel reads them (j_driver, cp_off, cp_x, cp_c): per
-    coupled joint a cubic spline (scipy CubicSpline, not-a-knot ends) through the rows of its table, in
-    the driver's coordinate, channels angle, dx, dy, dz; cp_c[i, ch] = coefficients of 1, t, t^2, t^3 on
-    the interval from knot i (t = coordinate - knot)."""
+def coupling_spline(tm: TissueModel, joint_paths: bool = True) -> dict:
+    """The paths as the skeleton kernel reads them (j_driver, cp_off, cp_x, cp_c, j_sec): per coupled joint, and per
+    hinge with a path when joint_paths (else it is a plain hinge), a cubic spline (scipy CubicSpline, not-a-knot ends)
+    through the rows of its table in its coordinate (a coupled joint's driver's, a hinge's own), channels
+    (skeleton.CHANNELS) angle about the joint's axis, the two secondary angles, dx, dy, dz; cp_c[i, ch] = coefficients of
+    1, t, t^2, t^3 on the interval from knot i (t = coordinate - knot). A coupled joint's table (driver, angle, dx, dy,
+    dz) has no secondary angles; a hinge's path (q, angle 2, angle 3, dx, dy, dz) no first angle (it is q - rest)."""
     from scipy.interpolate import CubicSpline
     J = tm.n_joints
-    off = np.asarray(tm.coupling_offsets, np.int64)
-    tab = np.asarray(tm.coupling_table, np.float64)
-    cp_c = np.zeros((len(tab), 4, 4))
+    off, knots, coef = [0], [], []
+    coff, ctab = np.asarray(tm.coupling_offsets, np.int64), np.asarray(tm.coupling_table, np.float64)
+    poff, ptab = np.asarray(tm.joint_path_offsets, np.int64), np.asarray(tm.joint_path_table, np.float64)
     for j in range(J):
-        rows = tab[off[j]:off[j + 1]]
-        if len(rows) == 0:
-            continue
-        cs = CubicSpline(rows[:, 0], rows[:, 1:5], axis=0)
-        cp_c[off[j]:off[j + 1] - 1] = np.transpose(cs.c[::-1], (1, 2, 0))     # (4, K-1, 4) -> (K-1, ch, power)
-    return dict(j_driver=_frozen(tm.joint_driver, np.int32), cp_off=_frozen(off), cp_x=_frozen(tab[:, 0].copy()),
-                cp_c=_frozen(cp_c))
+        rows = np.zeros((0, 1 + SK.CHANNELS))
+        if tm.joint_type[j] == JOINT_COUPLED and coff[j + 1] > coff[j]:
+            c = ctab[coff[j]:coff[j + 1]]
+            rows = np.zeros((len(c), 1 + SK.CHANNELS))
+            rows[:, :2], rows[:, 4:7] = c[:, :2], c[:, 2:5]
+        elif tm.joint_type[j] == JOINT_HINGE and joint_paths and poff[j + 1] > poff[j]:
+            c = ptab[poff[j]:poff[j + 1]]
+            rows = np.zeros((len(c), 1 + SK.CHANNELS))
+            rows[:, 0], rows[:, 2:7] = c[:, 0], c[:, 1:6]
+        cc = np.zeros((len(rows), SK.CHANNELS, 4))
+        if len(rows):
+            cs = CubicSpline(rows[:, 0], rows[:, 1:], axis=0)
+            cc[:-1] = np.transpose(cs.c[::-1], (1, 2, 0))      # (4, K-1, CH) -> (K-1, CH, power)
+        knots.append(rows[:, 0])
+        coef.append(cc)
+        off.append(off[-1] + len(rows))
+    cp_x = np.concatenate(knots) if knots else np.zeros(0)
+    cp_c = np.concatenate(coef) if coef else np.zeros((0, SK.CHANNELS, 4))
+    sec = np.asarray(tm.joint_path_axes, np.float64).reshape(J, 2, 3)
+    return dict(j_driver=_frozen(tm.joint_driver, np.int32), cp_off=_frozen(np.array(off, np.int64)),
+                cp_x=_frozen(cp_x.astype(np.float64)), cp_c=_frozen(cp_c), j_sec=_frozen(sec))
 
 
 def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarray, sizes: np.ndarray) -> np.ndarray:

@@ -119,6 +119,10 @@ class Params:
     gravity: tuple = (0.0, 0.0, 0.0)      # [m/s^2] model frame, e.g. (0, 0, -9.81) standing; off in both presets (the paper's figures;
                                           # the isometric validation and the dynamometry it compares with exclude the limb's weight)
     fixed_root: bool = True               # the root segment (thigh) is fixed to the world
+    joint_paths: bool = False             # a hinge with a path in the joints file (the knee: the source model's walker knee)
+                                          # follows it: its child also turns about two secondary axes and translates with
+                                          # the angle; False: every hinge is a plain hinge about its axis and centre (the
+                                          # paper's knee; docs/solver.md "Skeleton")
     attached_mass_to_segment: bool = True # bone-attached vertices' masses join their segment's inertia
     joint_damping: float = 20.0           # [N m s/rad] passive viscous damping of every hinge (implicit)
     limit_omega_dt: float = 1.0           # end-stop natural frequency x h (stiffness relative to the joint's inertia; implicit)
@@ -163,7 +167,7 @@ class Params:
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
                     sheath_below='sartorius,gracilis', sheath_radius=1e-3,
                     active_length='path', length_measure='centre_line', volume_measure='enclosed',
-                    end_ring_pull='bound')
+                    end_ring_pull='bound', joint_paths=True)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
         # vertices get heavier; docs/solver.md gives the added mass). stability_limit 1.4, not 1.8: the mass
         # scaling budgets each muscle cell's volume term at its rest stiffness; in cells a contraction deforms

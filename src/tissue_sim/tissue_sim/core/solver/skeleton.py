@@ -4,7 +4,12 @@ dynamics (docs/solver.md "Skeleton"). numba; the model's skeleton arrays come as
 A coupled joint (the patellofemoral joint) has no degree of freedom: its child (a leaf segment) is posed
 relative to its parent by a cubic spline of its driver hinge's coordinate (``coupled_eval``); its
 coordinate q is the spline's angle. Its segment's inertia, gravity and tissue forces enter the driver's
-equation through the coupling Jacobian (virtual work), see ``skeleton_step``."""
+equation through the coupling Jacobian (virtual work), see ``skeleton_step``.
+
+A hinge may have a path (the knee: the source model's walker knee, docs/solver.md "Skeleton"): besides its
+rotation q - rest about its axis, its child turns about two more axes and translates by splines of q, as an
+OpenSim CustomJoint with one coordinate does. Its child's velocity per unit qd is then W x (x - P) + D with W, P,
+D functions of q (``path_frame``, ``joint_jacobians``) instead of the plain hinge's a x (x - p)."""
 from __future__ import annotations
 
 import collections
@@ -14,19 +19,25 @@ import numpy as np
 from numba import njit
 
 Skeleton = collections.namedtuple('Skeleton', 'seg_order seg_parent seg_joint seg_mass seg_com seg_inertia j_parent '
-                                  'j_child j_type j_axis j_centre j_rest j_range anc gravity j_driver cp_off cp_x cp_c')
-# j_driver (J,) int32: driving hinge of a coupled joint (-1 otherwise); cp_off (J+1,) int64: its knots in cp_x;
-# cp_x (N,) driver coordinates of the knots [rad]; cp_c (N, 4, 4): per knot interval, per channel (angle [rad],
-# dx, dy, dz [m]) the cubic's coefficients of 1, t, t^2, t^3 with t = coordinate - knot (a joint's last row unused)
+                                  'j_child j_type j_axis j_centre j_rest j_range anc gravity j_driver cp_off cp_x cp_c '
+                                  'j_sec')
+# j_driver (J,) int32: driving hinge of a coupled joint (-1 otherwise); cp_off (J+1,) int64: the knots in cp_x of a
+# coupled joint or of a hinge with a path (none for a plain hinge); cp_x (N,) coordinates of the knots [rad] (the
+# driver's, the hinge's own); cp_c (N, CHANNELS, 4): per knot interval, per channel (angle about j_axis [rad], angle
+# about j_sec[j, 0], angle about j_sec[j, 1] [rad], dx, dy, dz [m]) the cubic's coefficients of 1, t, t^2, t^3 with
+# t = coordinate - knot (a joint's last row unused); a hinge's angle about j_axis is q - rest (channel 0 unused), a
+# coupled joint's secondary angles are 0; j_sec (J, 2, 3): the secondary rotation axes (unit, parent's rest frame)
 
 HINGE = 1
 COUPLED = 2
+CHANNELS = 6            # spline channels of a path: angle about j_axis, the two secondary angles, dx, dy, dz
 
 
 @njit(cache=True)
 def coupled_eval(j, th, sk, out):
-    """Coupled joint j at driver coordinate th: out[ch, 0..2] = value, first and second derivative in th of
-    the channels (angle [rad], dx, dy, dz [m]); beyond the table a straight line with the end slope."""
+    """The path of joint j (a coupled joint or a hinge with a path) at coordinate th (its driver's, the hinge's own):
+    out[ch, 0..2] = value, first and second derivative in th of the channels (CHANNELS: angle about j_axis, the two
+    secondary angles [rad], dx, dy, dz [m]); beyond the table a straight line with the end slope."""
     o0, o1 = sk.cp_off[j], sk.cp_off[j + 1]
     x = sk.cp_x
     ext = 0.0
@@ -42,7 +53,7 @@ def coupled_eval(j, th, sk, out):
         while k < o1 - 2 and th >= x[k + 1]:
             k += 1
         t = th - x[k]
-    for ch in range(4):
+    for ch in range(CHANNELS):
         c0, c1, c2, c3 = sk.cp_c[k, ch, 0], sk.cp_c[k, ch, 1], sk.cp_c[k, ch, 2], sk.cp_c[k, ch, 3]
         v = c0 + t * (c1 + t * (c2 + t * c3))
         d1 = c1 + t * (2.0 * c2 + 3.0 * t * c3)
@@ -58,7 +69,7 @@ def coupled_eval(j, th, sk, out):
 @njit(cache=True)
 def coupled_coordinates(q, qd, sk):
     """Set each coupled joint's coordinate (its angle) and velocity from its driver's."""
-    ev = np.empty((4, 3))
+    ev = np.empty((CHANNELS, 3))
     for j in range(q.shape[0]):
         if sk.j_type[j] == COUPLED:
             d = sk.j_driver[j]
@@ -79,13 +90,63 @@ def axis_angle_mat(ax, ang, R):
 
 
 @njit(cache=True)
+def has_path(j, sk):
+    """True when hinge j has a path (its child turns about secondary axes and translates with its coordinate)."""
+    return sk.j_type[j] == HINGE and sk.cp_off[j + 1] > sk.cp_off[j]
+
+
+@njit(cache=True)
+def path_frame(j, th, sk, ev, Rl, w1, w2):
+    """Hinge j with a path at its coordinate th: ev (CHANNELS, 3) = its channels (coupled_eval), Rl (3, 3) = its child's
+    rotation in the parent's rest frame, Rot(a, th - rest) Rot(b1, phi_1) Rot(b2, phi_2) (a = j_axis, b = j_sec: each
+    axis taken in the frame the rotations before it have turned, as an OpenSim CustomJoint's), w1 (3,) = the child's
+    angular velocity per unit rate of th and w2 (3,) = dw1/dth, both in the parent's rest frame. The child's point at
+    rest X is at Rl (X - c) + c + d (c = j_centre, d = channels 3-5)."""
+    coupled_eval(j, th, sk, ev)
+    a, b1, b2 = sk.j_axis[j], sk.j_sec[j, 0], sk.j_sec[j, 1]
+    R1 = np.empty((3, 3))
+    R2 = np.empty((3, 3))
+    R3 = np.empty((3, 3))
+    axis_angle_mat(a, th - sk.j_rest[j], R1)
+    axis_angle_mat(b1, ev[1, 0], R2)
+    axis_angle_mat(b2, ev[2, 0], R3)
+    R12 = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            R12[r, c] = R1[r, 0] * R2[0, c] + R1[r, 1] * R2[1, c] + R1[r, 2] * R2[2, c]
+    for r in range(3):
+        for c in range(3):
+            Rl[r, c] = R12[r, 0] * R3[0, c] + R12[r, 1] * R3[1, c] + R12[r, 2] * R3[2, c]
+    u2 = np.empty(3)
+    u3 = np.empty(3)
+    for r in range(3):
+        u2[r] = R1[r, 0] * b1[0] + R1[r, 1] * b1[1] + R1[r, 2] * b1[2]
+        u3[r] = R12[r, 0] * b2[0] + R12[r, 1] * b2[1] + R12[r, 2] * b2[2]
+    f2, f3, g2, g3 = ev[1, 1], ev[2, 1], ev[1, 2], ev[2, 2]
+    # w1 = a + u2 phi_1' + u3 phi_2'; w2 = a x u2 phi_1' + u2 phi_1'' + (a + u2 phi_1') x u3 phi_2' + u3 phi_2''
+    v = np.empty(3)
+    for r in range(3):
+        w1[r] = a[r] + u2[r] * f2 + u3[r] * f3
+        v[r] = a[r] + u2[r] * f2
+    c1 = np.empty(3)
+    c2 = np.empty(3)
+    _cross(a, u2, c1)
+    _cross(v, u3, c2)
+    for r in range(3):
+        w2[r] = c1[r] * f2 + u2[r] * g2 + c2[r] * f3 + u3[r] * g3
+
+
+@njit(cache=True)
 def forward_kinematics(q, sk, seg_R, seg_t):
     """Pose (R_s, t_s) of every non-root segment from the joint coordinates q; a point p_rest of
     segment s is at R_s p_rest + t_s. Joint j rotates its child by q_j - rest_j about its rest axis
-    through its rest centre, then the parent's pose applies. sk.seg_order lists parents first."""
+    through its rest centre (a hinge with a path, a coupled joint: by its path's rotations and offset, path_frame),
+    then the parent's pose applies. sk.seg_order lists parents first."""
     seg_order, seg_joint, j_parent, j_axis, j_centre, j_rest = sk.seg_order, sk.seg_joint, sk.j_parent, sk.j_axis, sk.j_centre, sk.j_rest
     Rj = np.empty((3, 3))
-    ev = np.empty((4, 3))
+    ev = np.empty((CHANNELS, 3))
+    w1 = np.empty(3)
+    w2 = np.empty(3)
     for s in seg_order:
         j = seg_joint[s]
         if j < 0:
@@ -95,7 +156,10 @@ def forward_kinematics(q, sk, seg_R, seg_t):
         if sk.j_type[j] == COUPLED:       # coupled: angle and offset d from the driver's coordinate
             coupled_eval(j, q[sk.j_driver[j]], sk, ev)
             axis_angle_mat(j_axis[j], ev[0, 0], Rj)
-            ox, oy, oz = ev[1, 0], ev[2, 0], ev[3, 0]
+            ox, oy, oz = ev[3, 0], ev[4, 0], ev[5, 0]
+        elif has_path(j, sk):             # a hinge with a path: three rotations and an offset from its coordinate
+            path_frame(j, q[j], sk, ev, Rj, w1, w2)
+            ox, oy, oz = ev[3, 0], ev[4, 0], ev[5, 0]
         else:
             axis_angle_mat(j_axis[j], q[j] - j_rest[j], Rj)
         cx, cy, cz = j_centre[j, 0], j_centre[j, 1], j_centre[j, 2]
@@ -140,7 +204,7 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
     Newton-Euler wrench (inertia, gravity) and mass enter its driver's row through the coupling Jacobian;
     after the step its coordinate follows the driver's (coupled_coordinates)."""
     seg_order, seg_parent, seg_joint, seg_mass, seg_com, seg_inertia, j_parent, j_child, j_type, j_axis, j_centre, \
-        j_rest, j_range, anc, gravity, j_driver, cp_off, cp_x, cp_c = sk
+        j_rest, j_range, anc, gravity, j_driver, cp_off, cp_x, cp_c, j_sec = sk
     S = seg_mass.shape[0]
     J = q.shape[0]
     # world axes and centres of the joints, world COM and inertia of the segments (current pose)
@@ -167,20 +231,40 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
     # coupled joints at the current pose: per unit driver velocity the child's angular velocity W = A phi'
     # and the velocity of a point x, W x (x - P) + D (A: world axis, P: world position of the moved centre,
     # D = R_p d'); second derivatives A phi'' and R_p d'' for the velocity-product accelerations
+    # (a hinge with a path the same with W = R_p w1, A phi'' = R_p w2: path_frame; its own coordinate drives it).
+    # jw[j]: the Jacobian of hinge j per unit qd_j: (W, P, D) = (a, p, 0) for a plain hinge, cw[j, :9] with a path
     cw = np.zeros((J, 15))
-    ev = np.empty((4, 3))
+    jw = np.zeros((J, 9))
+    ev = np.empty((CHANNELS, 3))
+    Rl = np.empty((3, 3))
+    w1 = np.empty(3)
+    w2 = np.empty(3)
+    pathed = np.zeros(J, np.bool_)
     for j in range(J):
-        if j_type[j] != COUPLED:
-            continue
         p = j_parent[j]
-        coupled_eval(j, q[j_driver[j]], sk, ev)
+        if j_type[j] == COUPLED:
+            coupled_eval(j, q[j_driver[j]], sk, ev)
+            for r in range(3):
+                cw[j, r] = a[j, r] * ev[0, 1]
+                cw[j, 9 + r] = a[j, r] * ev[0, 2]
+        elif has_path(j, sk):
+            pathed[j] = True
+            path_frame(j, q[j], sk, ev, Rl, w1, w2)
+            for r in range(3):
+                cw[j, r] = seg_R[p, r, 0] * w1[0] + seg_R[p, r, 1] * w1[1] + seg_R[p, r, 2] * w1[2]
+                cw[j, 9 + r] = seg_R[p, r, 0] * w2[0] + seg_R[p, r, 1] * w2[1] + seg_R[p, r, 2] * w2[2]
+        else:
+            for r in range(3):
+                jw[j, r] = a[j, r]
+                jw[j, 3 + r] = pj[j, r]
+            continue
         for r in range(3):
-            cw[j, r] = a[j, r] * ev[0, 1]
-            cw[j, 3 + r] = (seg_R[p, r, 0] * (j_centre[j, 0] + ev[1, 0]) + seg_R[p, r, 1] * (j_centre[j, 1] + ev[2, 0])
-                            + seg_R[p, r, 2] * (j_centre[j, 2] + ev[3, 0]) + seg_t[p, r])
-            cw[j, 6 + r] = seg_R[p, r, 0] * ev[1, 1] + seg_R[p, r, 1] * ev[2, 1] + seg_R[p, r, 2] * ev[3, 1]
-            cw[j, 9 + r] = a[j, r] * ev[0, 2]
-            cw[j, 12 + r] = seg_R[p, r, 0] * ev[1, 2] + seg_R[p, r, 1] * ev[2, 2] + seg_R[p, r, 2] * ev[3, 2]
+            cw[j, 3 + r] = (seg_R[p, r, 0] * (j_centre[j, 0] + ev[3, 0]) + seg_R[p, r, 1] * (j_centre[j, 1] + ev[4, 0])
+                            + seg_R[p, r, 2] * (j_centre[j, 2] + ev[5, 0]) + seg_t[p, r])
+            cw[j, 6 + r] = seg_R[p, r, 0] * ev[3, 1] + seg_R[p, r, 1] * ev[4, 1] + seg_R[p, r, 2] * ev[5, 1]
+            cw[j, 12 + r] = seg_R[p, r, 0] * ev[3, 2] + seg_R[p, r, 1] * ev[4, 2] + seg_R[p, r, 2] * ev[5, 2]
+        for r in range(9):
+            jw[j, r] = cw[j, r]
     # tissue wrench per segment (force, moment about the world origin), summed up the tree
     Fs = np.zeros((S, 3))
     Ns = np.zeros((S, 3))
@@ -220,10 +304,10 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
                 acom[s, r] = -gravity[r]
             continue
         p = j_parent[j]
-        if j_type[j] == COUPLED:
+        if j_type[j] == COUPLED or pathed[j]:
             # w = w_p + W qd, alpha = alpha_p + w_p x W qd + A phi'' qd^2; COM: the parent's material point there,
             # + 2 w_p x v_rel + a_rel (v_rel = (W x r + D) qd, a_rel = (A phi'' x r + W x (W x r) + R_p d'') qd^2)
-            th = qd[j_driver[j]]
+            th = qd[j_driver[j]] if j_type[j] == COUPLED else qd[j]
             for r in range(3):
                 tmp[r] = cw[j, r] * th                                # W qd
                 w[s, r] = w[p, r] + tmp[r]
@@ -298,29 +382,32 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
     rhs = work[0:J, 6 + J]
     for j in range(J):
         c = j_child[j]
-        # moment about p_j: N - p_j x F
-        _cross(pj[j], Fs[c], tmp)
-        _cross(pj[j], Fb[c], tmp2)
+        # moment about P_j: W . (N - P_j x F) + D . F (a plain hinge: a . (N - p_j x F))
+        _cross(jw[j, 3:6], Fs[c], tmp)
+        _cross(jw[j, 3:6], Fb[c], tmp2)
         tau = 0.0
         bias = 0.0
         for r in range(3):
-            tau += a[j, r] * (Ns[c, r] - tmp[r])
-            bias += a[j, r] * (Nb[c, r] - tmp2[r])
+            tau += jw[j, r] * (Ns[c, r] - tmp[r]) + jw[j, 6 + r] * Fs[c, r]
+            bias += jw[j, r] * (Nb[c, r] - tmp2[r]) + jw[j, 6 + r] * Fb[c, r]
         rhs[j] = tau + tau_ext[j] - bias - joint_damping * qd[j]   # viscous joint damping, implicit (M += h c below)
         for k in range(J):
             acc = 0.0
             for s in range(S):
                 if anc[j, s] and anc[k, s]:
                     for r in range(3):
-                        d0 = com[s, r] - pj[j, r]
+                        d0 = com[s, r] - jw[j, 3 + r]
                         tmp[r] = d0
-                    _cross(a[j], tmp, tmp2)      # J_v column of j at COM of s
+                    _cross(jw[j, 0:3], tmp, tmp2)      # J_v column of j at COM of s: W x (com - P) + D
                     for r in range(3):
-                        tmp[r] = com[s, r] - pj[k, r]
-                    _cross(a[k], tmp, vk)
+                        tmp2[r] += jw[j, 6 + r]
+                        tmp[r] = com[s, r] - jw[k, 3 + r]
+                    _cross(jw[k, 0:3], tmp, vk)
+                    for r in range(3):
+                        vk[r] += jw[k, 6 + r]
                     acc += seg_mass[s] * (tmp2[0] * vk[0] + tmp2[1] * vk[1] + tmp2[2] * vk[2])
                     for r in range(3):
-                        acc += a[j, r] * (Iw[s, r, 0] * a[k, 0] + Iw[s, r, 1] * a[k, 1] + Iw[s, r, 2] * a[k, 2])
+                        acc += jw[j, r] * (Iw[s, r, 0] * jw[k, 0] + Iw[s, r, 1] * jw[k, 1] + Iw[s, r, 2] * jw[k, 2])
             M[j, k] = acc
     # coupled joints: the child's tissue wrench, inertia and gravity on the driver d by virtual work:
     # tau_d += W . (N - P x F) + D . F (tissue), bias likewise; M: the coupling column J_d += (W x (com - P) + D, W)
@@ -351,11 +438,11 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
             if not anc[k, c]:
                 continue
             for r in range(3):
-                d[r] = com[c, r] - pj[k, r]
-            _cross(a[k], d, vk)
+                d[r] = com[c, r] - jw[k, 3 + r]
+            _cross(jw[k, 0:3], d, vk)
             acc = 0.0
             for r in range(3):
-                acc += seg_mass[c] * tmp[r] * vk[r] + Iwv[r] * a[k, r]
+                acc += seg_mass[c] * tmp[r] * (vk[r] + jw[k, 6 + r]) + Iwv[r] * jw[k, r]
             M[dr, k] += acc
             M[k, dr] += acc
     # --- joint lock (begin): save the locked rows (the lock torque is M_j. qdd - rhs_j), prescribe their qdd
@@ -447,3 +534,32 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
     coupled_coordinates(q, qd, sk)
     forward_kinematics(q, sk, seg_R, seg_t)
     return True
+
+
+def joint_jacobians(q, sk, seg_R, seg_t):
+    """(W, P, D), each (J, 3), in the world at the pose (seg_R, seg_t) of coordinates q: the velocity of a point x of
+    joint j's child per unit rate of its coordinate (a hinge's own; a coupled joint's driver's, j_driver) is
+    W[j] x (x - P[j]) + D[j], its angular velocity W[j] (a plain hinge: its world axis, centre and 0; the numpy twin of
+    what skeleton_step computes; zeros for a fixed joint). For measures (measures.joint_torques, skeleton_energy)."""
+    J = len(q)
+    W, P, D = np.zeros((J, 3)), np.zeros((J, 3)), np.zeros((J, 3))
+    ev = np.empty((CHANNELS, 3))
+    Rl, w1, w2 = np.empty((3, 3)), np.empty(3), np.empty(3)
+    for j in range(J):
+        p = sk.j_parent[j]
+        Rp, tp = seg_R[p], seg_t[p]
+        if sk.j_type[j] == COUPLED:
+            coupled_eval(j, q[sk.j_driver[j]], sk, ev)
+            W[j] = (Rp @ sk.j_axis[j]) * ev[0, 1]
+        elif has_path(j, sk):
+            path_frame(j, q[j], sk, ev, Rl, w1, w2)
+            W[j] = Rp @ w1
+        elif sk.j_type[j] == HINGE:
+            W[j] = Rp @ sk.j_axis[j]
+            P[j] = Rp @ sk.j_centre[j] + tp
+            continue
+        else:
+            continue
+        P[j] = Rp @ (sk.j_centre[j] + ev[3:6, 0]) + tp
+        D[j] = Rp @ ev[3:6, 1]
+    return W, P, D
