@@ -29,6 +29,46 @@ def cell_axial_lengths(x, off, cv, out):
         out[c] = math.sqrt((tx - bx) ** 2 + (ty - by) ** 2 + (tz - bz) ** 2) / n
 
 
+@njit(cache=True)
+def prism_volumes_compiled(x, off, cv, out):
+    """out[c] = the signed volume [m^3] of cell c at positions x: geometry.prism_volumes (the one definition, numpy:
+    each cap a fan about its ring's centroid, each side quad four triangles about the quad's centroid, coordinates
+    relative to the cell's centroid) compiled, one cell at a time (observe() calls it every frame;
+    tests/test_realtime.py checks it against the definition)."""
+    for c in range(off.shape[0] - 1):
+        a0 = off[c]
+        n = (off[c + 1] - a0) // 2
+        rx = ry = rz = 0.0
+        for t in range(2 * n):
+            i = cv[a0 + t]
+            rx += x[i, 0]; ry += x[i, 1]; rz += x[i, 2]
+        rx /= 2 * n; ry /= 2 * n; rz /= 2 * n
+        bx = by = bz = tx = ty = tz = 0.0
+        for t in range(n):
+            i, j = cv[a0 + t], cv[a0 + n + t]
+            bx += x[i, 0] - rx; by += x[i, 1] - ry; bz += x[i, 2] - rz
+            tx += x[j, 0] - rx; ty += x[j, 1] - ry; tz += x[j, 2] - rz
+        bx /= n; by /= n; bz /= n; tx /= n; ty /= n; tz /= n
+        v = 0.0
+        for t in range(n):
+            u = t + 1 if t + 1 < n else 0
+            i0, i1, j0, j1 = cv[a0 + t], cv[a0 + u], cv[a0 + n + t], cv[a0 + n + u]
+            b0x, b0y, b0z = x[i0, 0] - rx, x[i0, 1] - ry, x[i0, 2] - rz
+            b1x, b1y, b1z = x[i1, 0] - rx, x[i1, 1] - ry, x[i1, 2] - rz
+            t0x, t0y, t0z = x[j0, 0] - rx, x[j0, 1] - ry, x[j0, 2] - rz
+            t1x, t1y, t1z = x[j1, 0] - rx, x[j1, 1] - ry, x[j1, 2] - rz
+            qx, qy, qz = (b0x + b1x + t1x + t0x) / 4.0, (b0y + b1y + t1y + t0y) / 4.0, (b0z + b1z + t1z + t0z) / 4.0
+            # caps: -cb . (B x Bn) + ct . (T x Tn); side: qc . (B x Bn + Bn x Tn + Tn x T + T x B)
+            cbx, cby, cbz = b0y * b1z - b0z * b1y, b0z * b1x - b0x * b1z, b0x * b1y - b0y * b1x
+            ctx, cty, ctz = t0y * t1z - t0z * t1y, t0z * t1x - t0x * t1z, t0x * t1y - t0y * t1x
+            v += -(bx * cbx + by * cby + bz * cbz) + (tx * ctx + ty * cty + tz * ctz)
+            v += qx * cbx + qy * cby + qz * cbz
+            v += qx * (b1y * t1z - b1z * t1y) + qy * (b1z * t1x - b1x * t1z) + qz * (b1x * t1y - b1y * t1x)
+            v += qx * (t1y * t0z - t1z * t0y) + qy * (t1z * t0x - t1x * t0z) + qz * (t1x * t0y - t1y * t0x)
+            v += qx * (t0y * b0z - t0z * b0y) + qy * (t0z * b0x - t0x * b0z) + qz * (t0x * b0y - t0y * b0x)
+        out[c] = v / 6.0
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class CentreLines:
     """Every muscle's centre line as a linear map of the vertex positions (``centre_lines``): its points are
@@ -104,9 +144,13 @@ def cell_volumes(sim, x: np.ndarray, cells: str = 'all') -> np.ndarray:
     muscle cells' only, (number of muscle cells,) in cell order (each cell's volume is computed alone: the same
     values as the whole array's; observe() needs no others, and the fat cells are a third of the work)."""
     if cells == 'all':
-        return prism_volumes(x, sim.off, sim.cv) * sim.cell_sign
-    sel, off, cv = _muscle_layout(sim)
-    return prism_volumes(x, off, cv) * sim.cell_sign[sel]
+        off, cv, sign = sim.off, sim.cv, sim.cell_sign
+    else:
+        sel, off, cv = _muscle_layout(sim)
+        sign = sim.cell_sign[sel]
+    out = np.empty(len(off) - 1)
+    prism_volumes_compiled(np.ascontiguousarray(x, np.float64), off, cv, out)
+    return out * sign
 
 
 _LAYOUTS = weakref.WeakKeyDictionary()      # SimModel -> (muscle cells, their offsets, their vertices)
