@@ -115,11 +115,11 @@ def test_targets_follow_the_data(reference):
     sref = np.asarray(flat['muscles'][name]['opensim_moment_arm'])
     ref = np.abs(sref)
     flat['muscles'][name]['passive_moment_arm'] = list(1e-4 * np.sign(sref))               # 0.1 mm, the right sign
-    flat['moment_arm_resolution'] = {'value': 1e-3}
+    flat['moment_arm_resolution'] = {k: {'value': 1e-3} for k in ('passive', 'hamstrings', 'others')}
     ev = V.evaluate(flat)['moment_arm_signs']
     assert ev['pass'] is False and len(ev['wrong']) == int(np.sum(ref > 1e-3)) > 0
     assert ev['undecided'] == 2 * int(np.sum(ref <= 1e-3)) and ev['resolution_mm']['passive'] == pytest.approx(1.0)
-    flat['moment_arm_resolution'] = {'value': 0.0}                                                   # without it: all "right"
+    flat['moment_arm_resolution'] = {k: {'value': 0.0} for k in ('passive', 'hamstrings', 'others')}                                                   # without it: all "right"
     assert V.evaluate(flat)['moment_arm_signs']['pass'] is True
 
 

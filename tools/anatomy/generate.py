@@ -717,11 +717,6 @@ def knee_hinge_centre(osim_path, axis, knee_m):
 KNEE_PATH_DEG = np.arange(0.0, 125.1, 5.0)   # knee angles [deg] of the knee's path table (the limb's range and 5 beyond)
 
 
-def _axis_angle(axis, angle):
-    from scipy.spatial.transform import Rotation
-    return Rotation.from_rotvec(np.asarray(axis, float) * angle).as_matrix()
-
-
 def knee_path(osim_path, kj, axis, centre):
     """The walker knee's motion as a hinge with a path (joints.yaml ``path``, docs/anatomy.md "Where the hinge is"): the
     secondary axes b1, b2 (rotation2, rotation3 of walker_knee_r in the model frame, unit, 6 decimals) and per angle q of
@@ -746,13 +741,13 @@ def knee_path(osim_path, kj, axis, centre):
     for deg, (R, t) in zip(KNEE_PATH_DEG, poses):
         Rr = R @ R0.T                                   # rest -> q: x = Rr X + tr
         tr = t - Rr @ t0
-        M = _axis_angle(a, np.radians(deg)).T @ Rr
+        M = osim._rot(a, np.radians(deg)).T @ Rr
         u = M @ b2
         phi2 = np.arctan2(np.cross(b1, b2) @ u, b2 @ u)
-        R3 = _axis_angle(b1, phi2).T @ M
+        R3 = osim._rot(b1, phi2).T @ M
         u = R3 @ b1
         phi3 = np.arctan2(np.cross(b2, b1) @ u, b1 @ u)
-        Rf = _axis_angle(a, np.radians(deg)) @ _axis_angle(b1, phi2) @ _axis_angle(b2, phi3)
+        Rf = osim._rot(a, np.radians(deg)) @ osim._rot(b1, phi2) @ osim._rot(b2, phi3)
         worst = max(worst, float(np.abs(Rf - Rr).max()))
         d = tr + Rr @ c - c
         rows.append([float(deg), round(float(np.degrees(phi2)), 6), round(float(np.degrees(phi3)), 6)]

@@ -193,7 +193,7 @@ def joint_states(sim, q, qd) -> tuple[list, list, list]:
             names.append(name)
             pos.append(float(q[j]))
             vel.append(float(qd[j]))
-            if not len(path_rows(tm, j)):
+            if tm.joint_path_offsets[j + 1] == tm.joint_path_offsets[j]:      # a plain hinge
                 continue
         elif not coupled:
             continue

@@ -470,8 +470,8 @@ def evaluate(res: dict) -> dict:
     # resolution (moment_arm_resolution) has no sign; where the source model's is within it too, the sign is not decided
     reso = res.get('moment_arm_resolution', {})
 
-    def resolution(sweep):          # per sweep (run_validation), or one {'value': v} for all
-        return float(reso.get('value', reso.get(sweep, {}).get('value', 0.0)))
+    def resolution(sweep):          # per sweep (run_validation's moment_arm_resolution)
+        return float(reso.get(sweep, {}).get('value', 0.0))
     bad, undecided = [], 0
     for name, d in mus.items():
         for mode in ('passive', 'active'):

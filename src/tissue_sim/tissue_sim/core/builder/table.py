@@ -264,7 +264,7 @@ def _table_rows(d: dict, columns: list, w: str, what: str, key: str) -> np.ndarr
     return rows
 
 
-def _hinge_path(path, axis, w: str):
+def _hinge_path(path, w: str):
     """(axes (2, 3), rows (K, 6) in SI: q [rad], angle 2, angle 3 [rad], dx, dy, dz [m]) of a hinge's ``path``
     (docs/FORMATS.md): ``axes`` (the two secondary rotation axes), ``table_columns`` [angle_deg, angle2_deg,
     angle3_deg, dx, dy, dz] and ``table`` (rows in increasing angle)."""
@@ -366,7 +366,7 @@ def load_joints(src) -> dict:
             if rng[0] > rng[1]:
                 raise UserError(f'{w}: range_deg lower > upper')
             if j.get('path') is not None:
-                paths[len(jn)] = _hinge_path(j['path'], ax, w)
+                paths[len(jn)] = _hinge_path(j['path'], w)
         elif typ == 'coupled':
             ax, rng, rows = _coupling(j, w)
             couplings[len(jn)] = (j.get('driver'), rows)

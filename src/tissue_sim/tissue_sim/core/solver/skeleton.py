@@ -9,7 +9,7 @@ equation through the coupling Jacobian (virtual work), see ``skeleton_step``.
 A hinge may have a path (the knee: the source model's walker knee, docs/solver.md "Skeleton"): besides its
 rotation q - rest about its axis, its child turns about two more axes and translates by splines of q, as an
 OpenSim CustomJoint with one coordinate does. Its child's velocity per unit qd is then W x (x - P) + D with W, P,
-D functions of q (``path_frame``, ``joint_jacobians``) instead of the plain hinge's a x (x - p)."""
+D functions of q (``path_frame``, ``joint_motion``) instead of the plain hinge's a x (x - p)."""
 from __future__ import annotations
 
 import collections
@@ -137,6 +137,41 @@ def path_frame(j, th, sk, ev, Rl, w1, w2):
 
 
 @njit(cache=True)
+def joint_motion(j, q, sk, seg_R, seg_t, ev, Rl, w1, w2, out):
+    """Joint j's motion at coordinates q and the pose (seg_R, seg_t), per unit rate of its coordinate (a hinge's own,
+    a coupled joint's driver's): out[0:3] = its child's angular velocity W, out[3:6] a point P and out[6:9] the
+    offset rate D such that a point x of the child moves at W x (x - P) + D, out[9:12] = dW/dq and out[12:15] = dD/dq
+    (the velocity-product accelerations' terms), all in the world; a plain hinge (or a fixed joint): (a, p, 0, 0, 0),
+    its world axis and centre. ev, Rl, w1, w2: scratch (path_frame's)."""
+    p = sk.j_parent[j]
+    ax, c = sk.j_axis[j], sk.j_centre[j]
+    for r in range(9, 15):
+        out[r] = 0.0
+    if sk.j_type[j] == COUPLED:
+        coupled_eval(j, q[sk.j_driver[j]], sk, ev)
+        for r in range(3):
+            a = seg_R[p, r, 0] * ax[0] + seg_R[p, r, 1] * ax[1] + seg_R[p, r, 2] * ax[2]
+            out[r] = a * ev[0, 1]
+            out[9 + r] = a * ev[0, 2]
+    elif has_path(j, sk):
+        path_frame(j, q[j], sk, ev, Rl, w1, w2)
+        for r in range(3):
+            out[r] = seg_R[p, r, 0] * w1[0] + seg_R[p, r, 1] * w1[1] + seg_R[p, r, 2] * w1[2]
+            out[9 + r] = seg_R[p, r, 0] * w2[0] + seg_R[p, r, 1] * w2[1] + seg_R[p, r, 2] * w2[2]
+    else:
+        for r in range(3):
+            out[r] = seg_R[p, r, 0] * ax[0] + seg_R[p, r, 1] * ax[1] + seg_R[p, r, 2] * ax[2]
+            out[3 + r] = seg_R[p, r, 0] * c[0] + seg_R[p, r, 1] * c[1] + seg_R[p, r, 2] * c[2] + seg_t[p, r]
+            out[6 + r] = 0.0
+        return
+    for r in range(3):
+        out[3 + r] = (seg_R[p, r, 0] * (c[0] + ev[3, 0]) + seg_R[p, r, 1] * (c[1] + ev[4, 0])
+                      + seg_R[p, r, 2] * (c[2] + ev[5, 0]) + seg_t[p, r])
+        out[6 + r] = seg_R[p, r, 0] * ev[3, 1] + seg_R[p, r, 1] * ev[4, 1] + seg_R[p, r, 2] * ev[5, 1]
+        out[12 + r] = seg_R[p, r, 0] * ev[3, 2] + seg_R[p, r, 1] * ev[4, 2] + seg_R[p, r, 2] * ev[5, 2]
+
+
+@njit(cache=True)
 def forward_kinematics(q, sk, seg_R, seg_t):
     """Pose (R_s, t_s) of every non-root segment from the joint coordinates q; a point p_rest of
     segment s is at R_s p_rest + t_s. Joint j rotates its child by q_j - rest_j about its rest axis
@@ -228,43 +263,20 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
                     for l in range(3):
                         acc += seg_R[s, r, k] * seg_inertia[s, k, l] * seg_R[s, c, l]
                 Iw[s, r, c] = acc
-    # coupled joints at the current pose: per unit driver velocity the child's angular velocity W = A phi'
-    # and the velocity of a point x, W x (x - P) + D (A: world axis, P: world position of the moved centre,
-    # D = R_p d'); second derivatives A phi'' and R_p d'' for the velocity-product accelerations
-    # (a hinge with a path the same with W = R_p w1, A phi'' = R_p w2: path_frame; its own coordinate drives it).
-    # jw[j]: the Jacobian of hinge j per unit qd_j: (W, P, D) = (a, p, 0) for a plain hinge, cw[j, :9] with a path
+    # every joint's motion at the current pose (joint_motion): per unit rate of its coordinate (a coupled joint's
+    # driver's) the child's angular velocity W, the point P and offset rate D of its velocity W x (x - P) + D, and
+    # their rates A phi'' and R_p d'' for the velocity-product accelerations; jw[j] = (W, P, D): (a, p, 0) for a
+    # plain hinge
     cw = np.zeros((J, 15))
-    jw = np.zeros((J, 9))
     ev = np.empty((CHANNELS, 3))
     Rl = np.empty((3, 3))
     w1 = np.empty(3)
     w2 = np.empty(3)
     pathed = np.zeros(J, np.bool_)
     for j in range(J):
-        p = j_parent[j]
-        if j_type[j] == COUPLED:
-            coupled_eval(j, q[j_driver[j]], sk, ev)
-            for r in range(3):
-                cw[j, r] = a[j, r] * ev[0, 1]
-                cw[j, 9 + r] = a[j, r] * ev[0, 2]
-        elif has_path(j, sk):
-            pathed[j] = True
-            path_frame(j, q[j], sk, ev, Rl, w1, w2)
-            for r in range(3):
-                cw[j, r] = seg_R[p, r, 0] * w1[0] + seg_R[p, r, 1] * w1[1] + seg_R[p, r, 2] * w1[2]
-                cw[j, 9 + r] = seg_R[p, r, 0] * w2[0] + seg_R[p, r, 1] * w2[1] + seg_R[p, r, 2] * w2[2]
-        else:
-            for r in range(3):
-                jw[j, r] = a[j, r]
-                jw[j, 3 + r] = pj[j, r]
-            continue
-        for r in range(3):
-            cw[j, 3 + r] = (seg_R[p, r, 0] * (j_centre[j, 0] + ev[3, 0]) + seg_R[p, r, 1] * (j_centre[j, 1] + ev[4, 0])
-                            + seg_R[p, r, 2] * (j_centre[j, 2] + ev[5, 0]) + seg_t[p, r])
-            cw[j, 6 + r] = seg_R[p, r, 0] * ev[3, 1] + seg_R[p, r, 1] * ev[4, 1] + seg_R[p, r, 2] * ev[5, 1]
-            cw[j, 12 + r] = seg_R[p, r, 0] * ev[3, 2] + seg_R[p, r, 1] * ev[4, 2] + seg_R[p, r, 2] * ev[5, 2]
-        for r in range(9):
-            jw[j, r] = cw[j, r]
+        joint_motion(j, q, sk, seg_R, seg_t, ev, Rl, w1, w2, cw[j])
+        pathed[j] = has_path(j, sk)
+    jw = cw[:, 0:9]
     # tissue wrench per segment (force, moment about the world origin), summed up the tree
     Fs = np.zeros((S, 3))
     Ns = np.zeros((S, 3))
@@ -539,27 +551,11 @@ def skeleton_step(h, q, qd, f, x, sk, att_idx, att_seg, joint_damping, limit_wh,
 def joint_jacobians(q, sk, seg_R, seg_t):
     """(W, P, D), each (J, 3), in the world at the pose (seg_R, seg_t) of coordinates q: the velocity of a point x of
     joint j's child per unit rate of its coordinate (a hinge's own; a coupled joint's driver's, j_driver) is
-    W[j] x (x - P[j]) + D[j], its angular velocity W[j] (a plain hinge: its world axis, centre and 0; the numpy twin of
-    what skeleton_step computes; zeros for a fixed joint). For measures (measures.joint_torques, skeleton_energy)."""
+    W[j] x (x - P[j]) + D[j], its angular velocity W[j] (joint_motion, as skeleton_step uses it; a plain hinge: its
+    world axis, centre and 0). For measures (measures.joint_torques, skeleton_energy)."""
     J = len(q)
-    W, P, D = np.zeros((J, 3)), np.zeros((J, 3)), np.zeros((J, 3))
-    ev = np.empty((CHANNELS, 3))
-    Rl, w1, w2 = np.empty((3, 3)), np.empty(3), np.empty(3)
+    out = np.zeros((J, 15))
+    ev, Rl, w1, w2 = np.empty((CHANNELS, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
     for j in range(J):
-        p = sk.j_parent[j]
-        Rp, tp = seg_R[p], seg_t[p]
-        if sk.j_type[j] == COUPLED:
-            coupled_eval(j, q[sk.j_driver[j]], sk, ev)
-            W[j] = (Rp @ sk.j_axis[j]) * ev[0, 1]
-        elif has_path(j, sk):
-            path_frame(j, q[j], sk, ev, Rl, w1, w2)
-            W[j] = Rp @ w1
-        elif sk.j_type[j] == HINGE:
-            W[j] = Rp @ sk.j_axis[j]
-            P[j] = Rp @ sk.j_centre[j] + tp
-            continue
-        else:
-            continue
-        P[j] = Rp @ (sk.j_centre[j] + ev[3:6, 0]) + tp
-        D[j] = Rp @ ev[3:6, 1]
-    return W, P, D
+        joint_motion(j, np.asarray(q, np.float64), sk, seg_R, seg_t, ev, Rl, w1, w2, out[j])
+    return out[:, 0:3], out[:, 3:6], out[:, 6:9]
