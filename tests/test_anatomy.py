@@ -396,3 +396,4 @@ def test_regenerates(tmp_path, data):
     ends = lambda labels: {k: (v.get('segment'), *(v[e]['segment'] for e in ('origin', 'insertion') if e in v))  # noqa: E731
                            for k, v in labels.items()}
     assert ends(t_new) == ends(data['labels'])
+    assert {k: v.get('via_points') for k, v in t_new.items()} == {k: v.get('via_points') for k, v in data['labels'].items()}

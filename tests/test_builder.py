@@ -1,6 +1,8 @@
 """Model builder on analytic phantoms (tests/phantoms.py): exact counts, volumes, sharing, attachment."""
 import math
 
+import re
+
 import numpy as np
 import pytest
 
@@ -382,6 +384,42 @@ def test_muscle_origin_and_insertion_fix_the_end_rings():
     assert np.array_equal(tm.rest_positions, plain.rest_positions)
     changed = np.flatnonzero(tm.vertex_segment != plain.vertex_segment)
     assert set(changed) <= set(top) | set(bot) and len(changed) > 0
+
+
+def test_via_points_fix_the_ring_nearest_each():
+    """builder via_points: the flexor's ring on the slice nearest each via point is fixed to the via point's segment
+    (both sides of the knee here), a via point beyond the muscle's slices is listed, not bound; off (the default and
+    the paper's rule) the table's via points change nothing."""
+    lab, aff, tab = _anchored_table()
+    tab['labels'][11]['via_points'] = [{'segment': 'upper', 'at_m': [-0.035, 0.0, 0.061]},
+                                       {'segment': 'lower', 'at_m': [-0.035, 0.0, -0.052]},
+                                       {'segment': 'lower', 'at_m': [-0.035, 0.0, -5.0]}]
+    off, _ = build_model((lab, aff), tab, **P)
+    tm, rep = build_model((lab, aff), tab, **P, via_points=True)
+    assert off.meta['anchors'] == {'flexor': {'origin': ['upper', 10], 'insertion': ['lower', 10]}}
+    a = tm.meta['anchors']['flexor']
+    assert a['via 0'] == ['upper', 10] and a['via 1'] == ['lower', 10] and a['vias_beyond_slices'] == [2]
+    m = tm.muscle_index('flexor')
+    cells = np.flatnonzero(tm.cell_muscle == m)
+    vs = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells]))
+    z = tm.rest_positions[vs, 2]
+    for at, seg in ((0.061, 'upper'), (-0.052, 'lower')):
+        zr = z[np.argmin(abs(z - at))]
+        ring = vs[np.isclose(z, zr)]
+        assert len(ring) == 10 and np.all(tm.vertex_segment[ring] == tm.segment_names.index(seg)), (at, seg)
+    changed = np.flatnonzero(tm.vertex_segment != off.vertex_segment)
+    assert 0 < len(changed) <= 20 and np.array_equal(tm.rest_positions, off.rest_positions)
+
+
+@pytest.mark.parametrize('bad,msg', [([{'segment': 'pelvis', 'at_m': [0, 0, 0]}], "via point segment 'pelvis' is not in"),
+                                     ([{'segment': 'lower', 'at_m': [0, 0]}], 'via_points[0] needs "segment" and "at_m"'),
+                                     ({'segment': 'lower'}, 'via_points must be a list')])
+def test_bad_via_points_are_a_clear_error(bad, msg):
+    from tissue_sim.errors import UserError
+    lab, aff, tab = _anchored_table()
+    tab['labels'][11]['via_points'] = bad
+    with pytest.raises(UserError, match=re.escape(msg)):
+        build_model((lab, aff), tab, **P, via_points=True)
 
 
 def test_anchor_is_refused_across_a_joint():

@@ -130,10 +130,13 @@ def muscle_table(model):
                       / MU.SPECIFIC_TENSION for p in parts))
         paths = [model_to_ras_mm(os_to_model(model['muscles'][p]['points'])) for p in parts]
         first = model['muscles'][parts[0]]['bodies']
+        vias = [(b, os_to_model(pt)) for p in parts for b, pt in zip(model['muscles'][p]['bodies'][1:-1],
+                                                                    np.asarray(model['muscles'][p]['points'])[1:-1])
+                if b in BODY_SEGMENT]
         table.append({'name': name, 'parts': parts, 'group': group, 'belly': belly,
                       'origin_body': first[0], 'insertion_body': first[-1],
                       'max_isometric_force': F, 'volume': V,
-                      'optimal_fibre_length': V * MU.SPECIFIC_TENSION / F, 'paths': paths})
+                      'optimal_fibre_length': V * MU.SPECIFIC_TENSION / F, 'paths': paths, 'vias': vias})
     return table
 
 
@@ -647,6 +650,9 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
             'origin': {'segment': BODY_SEGMENT[t['origin_body']], 'body': t['origin_body']},
             'insertion': PAT.insertion(t['name'], {'segment': BODY_SEGMENT[t['insertion_body']], 'body': t['insertion_body']}),
         }
+        if t['vias']:   # the source model's intermediate path points at rest (builder setting via_points)
+            labels[lbl]['via_points'] = [{'segment': BODY_SEGMENT[b], 'body': b, 'at_m': [round(float(x), 5) for x in p]}
+                                         for b, p in t['vias']]
         if m in tendon_slices:  # output slices run upwards: original slice k is K - 1 - k
             ks = [lab.shape[2] - 1 - k for k in tendon_slices[m]]
             labels[lbl]['tendon'] = {

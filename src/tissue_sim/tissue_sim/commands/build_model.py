@@ -31,6 +31,9 @@ def add_arguments(p):
     g.add_argument('--attach-mm', type=float, default=D['attach_mm'], help='bone attachment distance [mm] (default: one pixel)')
     g.add_argument('--no-anchor-muscles', dest='anchor_muscles', action='store_false',
                    help="do not fix muscle end rings to their origin/insertion segments (only bone-touching vertices, as the paper's section 2.4)")
+    g.add_argument('--via-points', action='store_true',
+                   help="also fix each muscle's ring nearest each of its via points (tissues.yaml via_points: the source "
+                        "model's intermediate path points) to the via point's segment (docs/builder.md \"Via points\")")
     g.add_argument('--min-area-mm2', type=float, default=D['min_area_mm2'], help='drop smaller components [mm^2] (default %(default)s)')
     g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
     g.add_argument('--sections', choices=('contour', 'rays'), default=D['sections'],
@@ -58,7 +61,7 @@ def add_arguments(p):
 def _settings(args) -> dict:
     return {'slices': args.slices, 'slice_mm': args.slice_mm, 'slice_step': args.slice_step, 'muscle_rays': args.muscle_rays,
             'fat_rays': args.fat_rays, 'share_mm': args.share_mm, 'attach_mm': args.attach_mm, 'anchor_muscles': args.anchor_muscles,
-            'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit, 'ray_origin': args.ray_origin,
+            'via_points': args.via_points, 'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit, 'ray_origin': args.ray_origin,
             'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing, 'sections': args.sections,
             'allow_broken': args.allow_broken, 'shear_limit': args.shear_limit, 'refine': args.refine,
             'max_fragment': args.max_fragment}

@@ -31,6 +31,9 @@ def add_arguments(p):
     p.add_argument('--kinematics', action='store_true',
                    help='instead: the source model\'s own moment arms with its walker knee and with the plain hinge of the '
                         'paper set (no elastic model); writes kinematics.json and .png')
+    p.add_argument('--via-points', action='store_true',
+                   help='the bundled limb built with the builder setting via_points (each muscle\'s ring at each of the source '
+                        'model\'s via points fixed to their bones; docs/builder.md "Via points")')
     p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
     p.add_argument('--quiet', action='store_true', help='print only the targets')
 
@@ -58,12 +61,19 @@ def run(args) -> int:
 
     if args.passive and args.kinematics:
         raise UserError('--passive and --kinematics: choose one')
+    if args.via_points and args.kinematics:
+        raise UserError('--via-points and --kinematics: --kinematics evaluates the source model only')
+    model = None
+    if args.via_points:
+        from tissue_sim.core.builder import default_model
+        model = default_model(via_points=True)
     if args.passive:
-        return _run_passive(args, con, out, V, progress)
+        return _run_passive(args, con, out, V, progress, model)
     if args.kinematics:
         return _run_kinematics(args, con, out, V, angles)
     try:
-        res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, progress=progress)
+        res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, model=model,
+                               progress=progress)
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
@@ -115,13 +125,13 @@ def _run_kinematics(args, con, out, V, angles):
     return 0
 
 
-def _run_passive(args, con, out, V, progress):
+def _run_passive(args, con, out, V, progress, model=None):
     angles = None if args.angles == '0:120:10' else V.parse_angles(args.angles)
     settle = 0.5 if args.settle == 1.0 else args.settle
     t0 = time.perf_counter()
     try:
         res = V.run_passive_validation(args.params, angles, settle, args.ramp_speed, osim_path=args.osim,
-                                       progress=progress)
+                                       model=model, progress=progress)
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)

@@ -42,6 +42,8 @@ DEFAULTS = {
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
     'bind_passed_over': False,  # False: a muscle's vertices are not bound to a segment it passes over (the shank
                                # for the gastrocnemii; below); True = to any segment between its origin and insertion
+    'via_points': False,       # also fix the ring nearest each of a muscle's via points (the source model's
+                               # intermediate path points, tissues.yaml) to the via point's segment, as its end rings
     'unshare_passed_over': True,  # with bind_passed_over off: where such a muscle shares a vertex with the end
                                # ring of a muscle arising from the bone it passes over, it gets its own free copy
     'bone_clearance_mm': 0.5,  # a free vertex inside a bone mesh at rest is moved out to this distance from its
@@ -390,7 +392,7 @@ def _sees_own_bone(p: np.ndarray, own: np.ndarray, other: np.ndarray) -> np.ndar
 
 
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
-                       vseg, warnings, pos, allowed) -> dict:
+                       vseg, warnings, pos, allowed, vias: bool = False) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
     attachments from anatomy atlases, section 4.2), in place on ``vseg``.
@@ -408,10 +410,15 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
     than to any other": the vastus lateralis' insertion ring lies on the femur above the patella, and that rule fixes
     3 of its 11 vertices (the muscle then passes 27-59 N of its 5,149 N to the knee); all 11 see the patella, and,
     moving with it, they go at most 3.5 mm into the femur over 0-120 deg (docs/builder.md).
+    With ``vias``, the ring on the muscle's slice nearest each of its via points (tissues.yaml ``via_points``: where
+    the source model holds the path to a bone between its ends) is fixed to the via point's segment by the same
+    rules; a via point beyond the muscle's slices (on a tendon the labels do not reach) is skipped and listed
+    (``vias_beyond_slices``; docs/builder.md "Via points").
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
-    joint, so it is left free and a warning says so. Returns {muscle: {end: [segment, n_vertices]}}."""
+    joint, so it is left free and a warning says so. Returns {muscle: {end: [segment, n_vertices]}}, end 'origin',
+    'insertion' or 'via k' (k the via point's index)."""
     out = {}
     up = slice_z[-1] >= slice_z[0]
     proposals = {}                                   # vertex -> {muscle: segment}
@@ -422,8 +429,18 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
             continue
         vs = np.unique(np.concatenate([verts[offsets[c]:offsets[c + 1]] for c in cells]))
         zs = vslice[vs]
-        for end, zi in (('origin', zs.max() if up else zs.min()), ('insertion', zs.min() if up else zs.max())):
-            seg = tab[lab].get(end)
+        ends = [('origin', zs.max() if up else zs.min(), tab[lab].get('origin')),
+                ('insertion', zs.min() if up else zs.max(), tab[lab].get('insertion'))]
+        if vias:
+            zu = np.unique(zs)
+            lo, hi = sorted((slice_z[zu.min()], slice_z[zu.max()]))
+            for k, (seg, at) in enumerate(tab[lab].get('via_points', [])):
+                zi = zu[np.argmin(np.abs(slice_z[zu] - at[2]))]
+                if not lo <= at[2] <= hi:      # on a tendon beyond the labelled muscle (the ankle's retinacula)
+                    out.setdefault(tab[lab]['name'], {}).setdefault('vias_beyond_slices', []).append(k)
+                elif all((zi, seg) != (z_, s_) for _, z_, s_ in ends):
+                    ends.append((f'via {k}', zi, seg))
+        for end, zi, seg in ends:
             if seg is None:
                 continue
             ring = vs[zs == zi]
@@ -804,7 +821,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ---------------------------------------------------------------- muscle origins and insertions
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
                                  tab, seg_names, bonepix, vseg, warnings, pos,
-                                 allowed if s['unshare_passed_over'] else allowed & ~(passed & ~arises)) if s['anchor_muscles'] else {}
+                                 allowed if s['unshare_passed_over'] else allowed & ~(passed & ~arises),
+                                 vias=s['via_points']) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- gliding muscles: their own vertices
     # With unshare_passed_over (and bind_passed_over off), every end ring is anchored, and a vertex bound to

@@ -4,7 +4,8 @@
 
     {'name': str, 'base': Path | None,
      'labels': {label: {'name', 'tissue', 'segment', 'group', 'max_isometric_force',
-                        'optimal_fibre_length', 'rest_fibre_length', 'stiffness_scale', 'mesh'}},
+                        'optimal_fibre_length', 'rest_fibre_length', 'stiffness_scale', 'mesh',
+                        'origin', 'insertion', 'via_points'}},
      'skeleton': {...}}   # from load_joints
 
 All coordinates of the joints file are model frame metres (REP-103), angles in degrees in the file,
@@ -136,6 +137,22 @@ def load_tissue_table(src) -> dict:
             if not isinstance(seg, str) or not seg:
                 raise UserError(f'{w} ({name}): {end} must be a segment name or a mapping with "segment", got {a!r}')
             out[end] = seg
+        vias = ent.get('via_points')               # the source model's intermediate path points (docs/FORMATS.md)
+        out['via_points'] = []
+        if vias is not None:
+            if tissue != 'muscle' or not isinstance(vias, list):
+                raise UserError(f'{w} ({name}): via_points must be a list of {{segment, at_m: [x, y, z]}} on a muscle')
+            for k, vp in enumerate(vias):
+                at = vp.get('at_m') if isinstance(vp, dict) else None
+                seg = vp.get('segment') if isinstance(vp, dict) else None
+                try:
+                    at = [float(x) for x in at]
+                except (TypeError, ValueError):
+                    at = None
+                if not isinstance(seg, str) or not seg or at is None or len(at) != 3 or not all(map(math.isfinite, at)):
+                    raise UserError(f'{w} ({name}): via_points[{k}] needs "segment" and "at_m": 3 finite numbers [m], '
+                                    f'got {vp!r}')
+                out['via_points'].append((seg, np.array(at)))
         labels[lab] = out
     kinds = [e['tissue'] for e in labels.values()]
     if 'fat' not in kinds:
@@ -156,6 +173,10 @@ def load_tissue_table(src) -> dict:
         if e['tissue'] == 'bone' and e['segment'] not in segs:
             raise UserError(f'{where}: label {lab} ({e["name"]}): segment {e["segment"]!r} is not in the joints file '
                             f'(has {", ".join(skel["segment_names"])})')
+        for seg, _ in e.get('via_points', []):
+            if seg not in segs:
+                raise UserError(f'{where}: label {lab} ({e["name"]}): via point segment {seg!r} is not in the joints file '
+                                f'(has {", ".join(skel["segment_names"])})')
         for end in ('origin', 'insertion'):
             if e.get(end) is not None and e[end] not in segs:
                 raise UserError(f'{where}: label {lab} ({e["name"]}): {end} segment {e[end]!r} is not in the joints file '
