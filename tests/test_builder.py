@@ -388,25 +388,30 @@ def test_muscle_origin_and_insertion_fix_the_end_rings():
 
 def test_via_points_fix_the_ring_nearest_each():
     """builder via_points: the flexor's ring on the slice nearest each via point is fixed to the via point's segment
-    (both sides of the knee here), a via point beyond the muscle's slices is listed, not bound; off (the default and
-    the paper's rule) the table's via points change nothing."""
+    (two on the upper segment here); a via point beyond the muscle's slices, off its section, or whose ring fixed to
+    the lower segment would turn the cell joining it to the free ring above inside out within the knee's range is
+    listed, not bound; off (the paper's rule: only the end rings) the table's via points change nothing."""
     lab, aff, tab = _anchored_table()
     tab['labels'][11]['via_points'] = [{'segment': 'upper', 'at_m': [-0.035, 0.0, 0.061]},
                                        {'segment': 'lower', 'at_m': [-0.035, 0.0, -0.052]},
-                                       {'segment': 'lower', 'at_m': [-0.035, 0.0, -5.0]}]
-    off, _ = build_model((lab, aff), tab, **P)
-    tm, rep = build_model((lab, aff), tab, **P, via_points=True)
+                                       {'segment': 'lower', 'at_m': [-0.035, 0.0, -5.0]},
+                                       {'segment': 'lower', 'at_m': [0.035, 0.0, -0.052]},
+                                       {'segment': 'upper', 'at_m': [-0.035, 0.0, 0.03]}]
+    off, _ = build_model((lab, aff), tab, **P, via_points=False)
+    tm, rep = build_model((lab, aff), tab, **P)
     assert off.meta['anchors'] == {'flexor': {'origin': ['upper', 10], 'insertion': ['lower', 10]}}
     a = tm.meta['anchors']['flexor']
-    assert a['via 0'] == ['upper', 10] and a['via 1'] == ['lower', 10] and a['vias_beyond_slices'] == [2]
+    assert a['via 0'] == ['upper', 10] and a['via 4'] == ['upper', 10] and 'via 1' not in a
+    assert a['vias_inside_out'] == [1]           # the lower ring turned 120 deg against the free ring above it
+    assert a['vias_beyond_slices'] == [2]
+    assert a['vias_off_section'] == [3]          # across the bone from the flexor: its section does not hold it
     m = tm.muscle_index('flexor')
     cells = np.flatnonzero(tm.cell_muscle == m)
     vs = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells]))
     z = tm.rest_positions[vs, 2]
-    for at, seg in ((0.061, 'upper'), (-0.052, 'lower')):
-        zr = z[np.argmin(abs(z - at))]
-        ring = vs[np.isclose(z, zr)]
-        assert len(ring) == 10 and np.all(tm.vertex_segment[ring] == tm.segment_names.index(seg)), (at, seg)
+    for at in (0.061, 0.03):
+        ring = vs[np.isclose(z, z[np.argmin(abs(z - at))])]
+        assert len(ring) == 10 and np.all(tm.vertex_segment[ring] == tm.segment_names.index('upper')), at
     changed = np.flatnonzero(tm.vertex_segment != off.vertex_segment)
     assert 0 < len(changed) <= 20 and np.array_equal(tm.rest_positions, off.rest_positions)
 
@@ -419,7 +424,16 @@ def test_bad_via_points_are_a_clear_error(bad, msg):
     lab, aff, tab = _anchored_table()
     tab['labels'][11]['via_points'] = bad
     with pytest.raises(UserError, match=re.escape(msg)):
-        build_model((lab, aff), tab, **P, via_points=True)
+        build_model((lab, aff), tab, **P)
+
+
+@pytest.mark.parametrize('setting,msg', [({'via_mm': -1.0}, 'via_mm must be a number >= 0'),
+                                         ({'via_points': 'yes'}, 'via_points must be true or false')])
+def test_bad_via_settings_are_a_clear_error(setting, msg):
+    from tissue_sim.errors import UserError
+    lab, aff, tab = _anchored_table()
+    with pytest.raises(UserError, match=msg):
+        build_model((lab, aff), tab, **P, **setting)
 
 
 def test_anchor_is_refused_across_a_joint():

@@ -211,7 +211,8 @@ def test_hamstring_end_rings_fully_bound_to_origin_and_insertion(built):
         origin, insertion = ends[name]
         assert np.all(tm.vertex_segment[top] == tm.segment_names.index(origin)), name
         assert np.all(tm.vertex_segment[bot] == tm.segment_names.index(insertion)), name
-        assert tm.meta['anchors'][name] == {'origin': [origin, len(top)], 'insertion': [insertion, len(bot)]}
+        fixed = {k: v for k, v in tm.meta['anchors'][name].items() if k in ('origin', 'insertion')}
+        assert fixed == {'origin': [origin, len(top)], 'insertion': [insertion, len(bot)]}
 
 
 def test_nothing_bound_across_the_knee_behind_it(built):
@@ -235,8 +236,9 @@ def test_no_free_vertex_inside_a_bone_at_rest(built):
     limb lies inside a bone mesh at rest; the moved ones lie 0.5 mm outside. Without it (None) 4 gastrocnemius
     vertices lie 0.15-1.9 mm inside the tibia (measured), and 7 vasti vertices next to their end rings (free by the
     end-ring rule, docs/builder.md; the vastus medialis' 5 free insertion-ring vertices up to 2.4 mm and one more of
-    it, one of the lateralis) in the femur, 4 of the 11 deeper than the contact tests' 1-mm criterion: 12 moved (17
-    gastrocnemius and 2 vasti vertices, 19 moved, on the limb before the gastrocnemii's heads behind the condyles)."""
+    it, one of the lateralis) in the femur, 4 of the 11 deeper than the contact tests' 1-mm criterion, and 2 of tensor
+    fasciae latae's iliotibial tract in the lateral femoral condyle (1.2 mm): 14 moved (12 on the limb before the tract;
+    19 before the gastrocnemii's heads behind the condyles)."""
     import trimesh
     from tissue_sim.core.builder.bones import winding_number
     tm, rep = built
@@ -260,4 +262,4 @@ def test_no_free_vertex_inside_a_bone_at_rest(built):
     moved = np.flatnonzero(np.any(tm.rest_positions != raw.rest_positions, axis=1))
     assert set(before) <= set(moved.tolist())      # (without the move one more is hidden by the tibia: bound there)
     assert np.all(np.linalg.norm(tm.rest_positions[moved] - raw.rest_positions[moved], axis=1) < 3.0e-3)
-    assert "'free_vertices_moved_out_of_bones': %d" % len(moved) in str(rep) and len(moved) == 12
+    assert "'free_vertices_moved_out_of_bones': %d" % len(moved) in str(rep) and len(moved) == 14

@@ -173,9 +173,9 @@ def test_passive_hamstrings_held_at_90_deg_shorten(default_tm):
     set (the fold's flexion side and the 1-mm hamstring sheath above the knee), no activation, the knee locked and moved
     at 200 deg/s to 90 deg and held 1 s: along each muscle's centre line (the physical set's `length_measure`) every
     hamstring shortens within 30 % of OpenSim's 46 / 30 / 58 / 70 mm (long head, short head, semimembranosus,
-    semitendinosus; measured 36.8, 25.5, 56.0, 60.8 mm). The sum of the cells' chords (`length_measure: chord`) counts
-    a kinked chain's zigzag as length: with the sheath semitendinosus' chord sum shortens by > 40 mm (measured 57.2),
-    without it by less than 30 % of that (11.3 mm: its slack chain buckles round the condyle, docs/contact.md), while its centre line shortens by more than
+    semitendinosus; measured 37.5, 25.7, 56.0, 60.8 mm). The sum of the cells' chords (`length_measure: chord`) counts
+    a kinked chain's zigzag as length: with the sheath semitendinosus' chord sum shortens by > 40 mm (measured 56.8),
+    without it by less than 30 % of that (11.2 mm: its slack chain buckles round the condyle, docs/contact.md), while its centre line shortens by more than
     30 mm either way."""
     names = list(default_tm.muscle_names)
     idx = [names.index(n) for n in ('biceps_femoris_long_head', 'biceps_femoris_short_head', 'semimembranosus',

@@ -187,7 +187,7 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     (['--ramp-speed', 'nan'], '--ramp-speed'),
     (['--osim', 'missing.osim'], 'no such file'),
     (['--passive', '--kinematics'], 'choose one'),
-    (['--via-points', '--kinematics'], 'evaluates the source model only'),
+    (['--no-via-points', '--kinematics'], 'evaluates the source model only'),
 ])
 def test_bad_arguments_one_line_exit_2(tmp_path, capsys, argv, msg):
     out = tmp_path / 'out'
@@ -198,17 +198,17 @@ def test_bad_arguments_one_line_exit_2(tmp_path, capsys, argv, msg):
     assert not out.exists()                                       # nothing written
 
 
-def test_validate_via_points_validates_the_via_point_build(tmp_path, capsys):
-    """--via-points: the bundled limb built with via_points (semitendinosus' ring at the source model's tibial via
-    point P2 fixed to the shank), and the JSON says which build it measured."""
+def test_validate_no_via_points_validates_the_ends_only_build(tmp_path, capsys):
+    """The default build fixes tensor fasciae latae's iliotibial tract to the femur at the source model's via point
+    on the lateral epicondyle; --no-via-points validates the build without via points, and the JSON says which build
+    it measured."""
     from tissue_sim.core.builder import default_model
-    tm = default_model(via_points=True)
-    assert tm.meta['anchors']['semitendinosus']['via 0'] == ['shank', 11]
-    assert 'via 0' not in default_model().meta['anchors']['semitendinosus']
+    assert default_model().meta['anchors']['tensor_fasciae_latae']['via 1'] == ['thigh', 11]
+    assert 'via 1' not in default_model(via_points=False).meta['anchors']['tensor_fasciae_latae']
     out = tmp_path / 'v'
-    assert main(['validate', '-o', str(out), '--via-points', '--angles', '0,60', '--settle', '0.2', '--quiet']) == 0
+    assert main(['validate', '-o', str(out), '--no-via-points', '--angles', '0,60', '--settle', '0.2', '--quiet']) == 0
     res = json.loads((out / 'validation_physical.json').read_text())
-    assert res['via_points'] is True and len(res['torque']['hamstrings_active']) == 2
+    assert res['via_points'] is False and len(res['torque']['hamstrings_active']) == 2
 
 
 def test_output_must_be_a_folder(tmp_path, capsys):

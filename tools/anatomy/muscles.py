@@ -72,8 +72,12 @@ MUSCLES = [
 # anterior on the medial cuneiform and first metatarsal base: label 6 (foot bone), the Rajagopal
 # insertions on calcn_r.  Without them these bellies end 60-130 mm above the ankle with no link to
 # the foot and cannot move it.  The gastrocnemii's tendons (GASTROCNEMIUS_TENDONS, below) are added by
-# generate.py unless --no-gastrocnemius-tendons.
+# generate.py unless --no-gastrocnemius-tendons.  Tensor fasciae latae: its iliotibial tract, on the source model's path
+# from the belly over the lateral femoral epicondyle (a via point on the femur) to the tibia (Gerdy's tubercle; the
+# Rajagopal insertion on tibia_r), as a tendon of the same disc; the builder's via_points fix its ring at the
+# epicondyle to the femur, so only the tract below it crosses the knee, in front of the axis (docs/anatomy.md).
 TENDONS = {
+    'tensor_fasciae_latae': (3,),
     'biceps_femoris_long_head': (4, 3),
     'biceps_femoris_short_head': (4, 3),
     'semimembranosus': (3,),

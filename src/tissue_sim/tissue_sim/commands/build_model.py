@@ -1,6 +1,8 @@
 """`tissue-sim build-model`: labelled slices + tissue table -> model file (paper section 2)."""
 from __future__ import annotations
 
+import argparse
+
 import json
 import sys
 from pathlib import Path
@@ -31,9 +33,10 @@ def add_arguments(p):
     g.add_argument('--attach-mm', type=float, default=D['attach_mm'], help='bone attachment distance [mm] (default: one pixel)')
     g.add_argument('--no-anchor-muscles', dest='anchor_muscles', action='store_false',
                    help="do not fix muscle end rings to their origin/insertion segments (only bone-touching vertices, as the paper's section 2.4)")
-    g.add_argument('--via-points', action='store_true',
-                   help="also fix each muscle's ring nearest each of its via points (tissues.yaml via_points: the source "
-                        "model's intermediate path points) to the via point's segment (docs/builder.md \"Via points\")")
+    g.add_argument('--via-points', action=argparse.BooleanOptionalAction, default=D['via_points'],
+                   help="fix each muscle's ring nearest each of its via points (tissues.yaml via_points: the source model's "
+                        "intermediate path points) to the via point's segment (default on; --no-via-points: only the end "
+                        "rings, as the paper; docs/builder.md \"Via points\")")
     g.add_argument('--min-area-mm2', type=float, default=D['min_area_mm2'], help='drop smaller components [mm^2] (default %(default)s)')
     g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
     g.add_argument('--sections', choices=('contour', 'rays'), default=D['sections'],

@@ -31,9 +31,9 @@ def add_arguments(p):
     p.add_argument('--kinematics', action='store_true',
                    help='instead: the source model\'s own moment arms with its walker knee and with the plain hinge of the '
                         'paper set (no elastic model); writes kinematics.json and .png')
-    p.add_argument('--via-points', action='store_true',
-                   help='the bundled limb built with the builder setting via_points (each muscle\'s ring at each of the source '
-                        'model\'s via points fixed to their bones; docs/builder.md "Via points")')
+    p.add_argument('--no-via-points', dest='via_points', action='store_false',
+                   help='the bundled limb built without the builder setting via_points (only the muscles\' end rings fixed to '
+                        'their bones, as the paper; docs/builder.md "Via points")')
     p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
     p.add_argument('--quiet', action='store_true', help='print only the targets')
 
@@ -61,12 +61,12 @@ def run(args) -> int:
 
     if args.passive and args.kinematics:
         raise UserError('--passive and --kinematics: choose one')
-    if args.via_points and args.kinematics:
-        raise UserError('--via-points and --kinematics: --kinematics evaluates the source model only')
+    if not args.via_points and args.kinematics:
+        raise UserError('--no-via-points and --kinematics: --kinematics evaluates the source model only')
     model = None
-    if args.via_points:
+    if not args.via_points:
         from tissue_sim.core.builder import default_model
-        model = default_model(via_points=True)
+        model = default_model(via_points=False)
     if args.passive:
         return _run_passive(args, con, out, V, progress, model)
     if args.kinematics:

@@ -42,8 +42,9 @@ DEFAULTS = {
                                # vertices touching bone are fixed (the paper's section 2.4 rule alone)
     'bind_passed_over': False,  # False: a muscle's vertices are not bound to a segment it passes over (the shank
                                # for the gastrocnemii; below); True = to any segment between its origin and insertion
-    'via_points': False,       # also fix the ring nearest each of a muscle's via points (the source model's
-                               # intermediate path points, tissues.yaml) to the via point's segment, as its end rings
+    'via_points': True,        # also fix the ring nearest each of a muscle's via points (the source model's
+                               # intermediate path points, tissues.yaml) to the via point's segment, as its end rings,
+    'via_mm': 3.0,             # ... where the ring's section holds the via point (inside, or this close to its outline)
     'unshare_passed_over': True,  # with bind_passed_over off: where such a muscle shares a vertex with the end
                                # ring of a muscle arising from the bone it passes over, it gets its own free copy
     'bone_clearance_mm': 0.5,  # a free vertex inside a bone mesh at rest is moved out to this distance from its
@@ -152,11 +153,12 @@ def settings_with_defaults(settings: dict) -> dict:
             continue
         if not (isinstance(s[k], (int, float)) and math.isfinite(s[k]) and s[k] > 0):
             raise UserError(f'{k} must be a positive number, got {s[k]!r}')
-    for k in ('share_mm', 'min_area_mm2', 'min_fat_mm'):
+    for k in ('share_mm', 'min_area_mm2', 'min_fat_mm', 'via_mm'):
         if not (isinstance(s[k], (int, float)) and math.isfinite(s[k]) and s[k] >= 0):
             raise UserError(f'{k} must be a number >= 0, got {s[k]!r}')
-    if not isinstance(s['anchor_muscles'], bool):
-        raise UserError(f'anchor_muscles must be true or false, got {s["anchor_muscles"]!r}')
+    for k in ('anchor_muscles', 'via_points'):
+        if not isinstance(s[k], bool):
+            raise UserError(f'{k} must be true or false, got {s[k]!r}')
     if s['attach_mm'] is not None and not (math.isfinite(s['attach_mm']) and s['attach_mm'] >= 0):
         raise UserError(f'attach_mm must be >= 0, got {s["attach_mm"]!r}')
     if s['ray_origin'] not in ('best', 'centroid'):
@@ -391,8 +393,55 @@ def _sees_own_bone(p: np.ndarray, own: np.ndarray, other: np.ndarray) -> np.ndar
     return ok
 
 
+def _muscle_span(entry, seg_names, skel) -> list:
+    """The segments on the tree path between a muscle's origin and insertion segments (indices; [] without both)."""
+    o, i_ = entry.get('origin'), entry.get('insertion')
+    span = segment_span(skel['segment_parent'], seg_names.index(o) if o else None, seg_names.index(i_) if i_ else None)
+    return [] if span is None else [int(x) for x in span]
+
+
+def _section_holds(pos, polys, p, tol: float) -> bool:
+    """Whether one of the ordered rings ``polys`` (vertex indices) holds the point p in its slice: p's (x, y) inside
+    the polygon or within tol [m] of its outline."""
+    from skimage.measure import points_in_poly
+    for poly in polys:
+        xy = pos[poly, :2]
+        if points_in_poly(p[None, :2], xy)[0]:
+            return True
+        e = np.roll(xy, -1, 0) - xy
+        t = np.clip(((p[:2] - xy) * e).sum(1) / np.maximum((e * e).sum(1), 1e-30), 0.0, 1.0)
+        if np.min(np.linalg.norm(xy + t[:, None] * e - p[:2], axis=1)) <= tol:
+            return True
+    return False
+
+
+def _turns_inside_out(pos, vseg, cells, verts, offsets, ring, si, skel, span) -> str | None:
+    """The hinge whose range would turn a muscle cell next to ``ring`` inside out if ``ring`` were fixed to segment si:
+    for each hinge with child si whose parent the muscle spans, the ring and the neighbouring cells' vertices bound to
+    si turned about the hinge to each end of its range, every other vertex where it is (a free vertex is pulled along
+    the muscle by its tension, not carried round by the bone). None if no cell's signed volume reaches 0."""
+    from scipy.spatial.transform import Rotation
+    from tissue_sim.core.geometry import prism_volumes
+    rs = set(ring.tolist())
+    nb = [c for c in cells if rs & set(verts[offsets[c]:offsets[c + 1]].tolist())]
+    for j in range(len(skel['joint_names'])):
+        if skel['joint_type'][j] != M.JOINT_HINGE or skel['joint_child'][j] != si or skel['joint_parent'][j] not in span:
+            continue
+        c0 = np.asarray(skel['joint_centre'][j], float)
+        for ang in skel['joint_range'][j]:
+            R = Rotation.from_rotvec(ang * np.asarray(skel['joint_axis'][j], float)).as_matrix()
+            for c in nb:
+                v = verts[offsets[c]:offsets[c + 1]]
+                x = pos[v].copy()
+                turn = np.isin(v, ring) | (vseg[v] == si)
+                x[turn] = (x[turn] - c0) @ R.T + c0
+                if prism_volumes(x, np.array([0, len(v)]), np.arange(len(v)))[0] <= 0.0:
+                    return skel['joint_names'][j]
+    return None
+
+
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
-                       vseg, warnings, pos, allowed, vias: bool = False) -> dict:
+                       vseg, warnings, pos, allowed, vias: bool = False, via_m: float = 0.003, skel=None) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
     attachments from anatomy atlases, section 4.2), in place on ``vseg``.
@@ -412,8 +461,11 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
     moving with it, they go at most 3.5 mm into the femur over 0-120 deg (docs/builder.md).
     With ``vias``, the ring on the muscle's slice nearest each of its via points (tissues.yaml ``via_points``: where
     the source model holds the path to a bone between its ends) is fixed to the via point's segment by the same
-    rules; a via point beyond the muscle's slices (on a tendon the labels do not reach) is skipped and listed
-    (``vias_beyond_slices``; docs/builder.md "Via points").
+    rules, where that ring's section holds the via point (inside it or within ``via_m`` of its outline: the muscle lies
+    where the source path runs); a via point beyond the muscle's slices (on a tendon the labels do not reach) or off
+    the section, or whose ring fixed would turn a neighbouring cell inside out within the range of a joint the muscle
+    crosses (``skel``), is skipped and listed (``vias_beyond_slices``, ``vias_off_section``, ``vias_inside_out``;
+    docs/builder.md "Via points").
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
@@ -432,14 +484,23 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
         ends = [('origin', zs.max() if up else zs.min(), tab[lab].get('origin')),
                 ('insertion', zs.min() if up else zs.max(), tab[lab].get('insertion'))]
         if vias:
+            polys = [p_ for c in cells for v_ in [verts[offsets[c]:offsets[c + 1]]]
+                     for p_ in (v_[:len(v_) // 2], v_[len(v_) // 2:])]
             zu = np.unique(zs)
             lo, hi = sorted((slice_z[zu.min()], slice_z[zu.max()]))
             for k, (seg, at) in enumerate(tab[lab].get('via_points', [])):
                 zi = zu[np.argmin(np.abs(slice_z[zu] - at[2]))]
                 if not lo <= at[2] <= hi:      # on a tendon beyond the labelled muscle (the ankle's retinacula)
                     out.setdefault(tab[lab]['name'], {}).setdefault('vias_beyond_slices', []).append(k)
+                elif not _section_holds(pos, [p_ for p_ in polys if vslice[p_[0]] == zi], at, via_m):
+                    out.setdefault(tab[lab]['name'], {}).setdefault('vias_off_section', []).append(k)
                 elif all((zi, seg) != (z_, s_) for _, z_, s_ in ends):
-                    ends.append((f'via {k}', zi, seg))
+                    span = _muscle_span(tab[lab], seg_names, skel) if skel is not None else []
+                    if skel is not None and _turns_inside_out(pos, vseg, cells, verts, offsets, vs[zs == zi],
+                                                              seg_names.index(seg), skel, span):
+                        out.setdefault(tab[lab]['name'], {}).setdefault('vias_inside_out', []).append(k)
+                    else:
+                        ends.append((f'via {k}', zi, seg))
         for end, zi, seg in ends:
             if seg is None:
                 continue
@@ -772,8 +833,8 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     glides = {}                                      # muscle -> the segments it passes over (bind_passed_over off)
     for m, lab in enumerate(muscle_labels_used):
         o, i_ = tab[lab].get('origin'), tab[lab].get('insertion')
-        span = segment_span(skel['segment_parent'], seg_names.index(o) if o else None, seg_names.index(i_) if i_ else None)
-        if span is None:
+        span = _muscle_span(tab[lab], seg_names, skel)
+        if not span:
             continue
         row = np.zeros(nseg, bool); row[span] = True
         cm = np.flatnonzero((ctiss == M.TISSUE_MUSCLE) & (cmus_k == m))
@@ -822,7 +883,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
                                  tab, seg_names, bonepix, vseg, warnings, pos,
                                  allowed if s['unshare_passed_over'] else allowed & ~(passed & ~arises),
-                                 vias=s['via_points']) if s['anchor_muscles'] else {}
+                                 vias=s['via_points'], via_m=float(s['via_mm']) * 1e-3, skel=skel) if s['anchor_muscles'] else {}
 
     # ---------------------------------------------------------------- gliding muscles: their own vertices
     # With unshare_passed_over (and bind_passed_over off), every end ring is anchored, and a vertex bound to
