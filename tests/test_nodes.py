@@ -108,7 +108,10 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         assert {'tissue/muscle/flexor', 'tissue/skin'} <= set(ns) and not any('/bone/' in k for k in ns)
         assert all(x.header.frame_id == 'world' and len(x.points) > 0 for x in m.markers)
         assert ns['tissue/muscle/flexor'].color.a == 1.0 and ns['tissue/skin'].color.a < 0.5
-        assert len(bones.msgs) == 1
+        # sent once (not per frame: 5 s would bring ~170): one message, or that message twice when the probe's
+        # transient-local reader matches while the simulator writes it (DDS may then deliver the live sample and the
+        # history copy; seen once in CI: 2 identical messages)
+        assert 1 <= len(bones.msgs) <= 2 and all(x == bones.msgs[0] for x in bones.msgs), len(bones.msgs)
         b = {x.ns: x for x in bones.msgs[0].markers}
         assert b['tissue/bone/lower'].color.a == 1.0 and b['tissue/bone/lower'].header.frame_id == 'lower'
         assert b['tissue/bone/lower'].frame_locked and len(b['tissue/bone/lower'].points) > 0
