@@ -369,6 +369,11 @@ def _inputs(angles_deg, osim_path, model) -> tuple:
     return angles, osim_path, tm, knee_muscles(tm, yaml.safe_load(Path(default_inputs()[1]).read_text()))
 
 
+def _built_with_via_points(tm) -> bool:
+    """Whether the model was built with the builder setting via_points (its meta's settings; the results say which)."""
+    return bool(tm.meta.get('settings', {}).get('via_points'))
+
+
 def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
                    osim_path=None, model=None, progress=None) -> dict:
     """Everything docs/validation.md reports, as one JSON-able dict (see ``evaluate`` for the targets)."""
@@ -390,7 +395,7 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
         runs[key] = hold_sweep(sim, muscles, angles, act, settle, ramp_speed,
                                progress=(lambda d, k=key: progress(k, d)) if progress else None)
     out = {'params': params, 'angles_deg': angles, 'settle_s': settle, 'ramp_speed_deg_s': ramp_speed,
-           'model': tm.name, 'via_points': bool(tm.meta.get('settings', {}).get('via_points')), 'n_substeps': sim.n_substeps, 'opensim': ref, 'active_sets': active_sets,
+           'model': tm.name, 'via_points': _built_with_via_points(tm), 'n_substeps': sim.n_substeps, 'opensim': ref, 'active_sets': active_sets,
            'muscles': {}, 'torque': {}}
     for i, km in enumerate(muscles):
         act_key = 'hamstrings' if km.name in hams else 'others'
@@ -762,7 +767,7 @@ def run_passive_validation(params: str = 'physical', angles_deg=None, settle: fl
     ref = opensim_passive_moments(osim_path, angles, [0.0] * len(angles))
     ank = opensim_passive_moments(osim_path, [0.0] * len(ANKLE_ANGLES), ANKLE_ANGLES)
     re = riener_edrich_knee(np.asarray(angles))
-    out = {'params': params, 'angles_deg': angles, 'settle_s': settle, 'model': tm.name, 'via_points': bool(tm.meta.get('settings', {}).get('via_points')),
+    out = {'params': params, 'angles_deg': angles, 'settle_s': settle, 'model': tm.name, 'via_points': _built_with_via_points(tm),
            'passive_force_length': bool(sim.params.passive_force_length),
            'passive_curve': dict(curve=sim.params.fl_passive_curve, k=sim.params.fl_passive_shape,
                                  eps0=sim.params.fl_passive_strain),

@@ -488,6 +488,7 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
                      for p_ in (v_[:len(v_) // 2], v_[len(v_) // 2:])]
             zu = np.unique(zs)
             lo, hi = sorted((slice_z[zu.min()], slice_z[zu.max()]))
+            span = _muscle_span(tab[lab], seg_names, skel) if skel is not None else []
             for k, (seg, at) in enumerate(tab[lab].get('via_points', [])):
                 zi = zu[np.argmin(np.abs(slice_z[zu] - at[2]))]
                 if not lo <= at[2] <= hi:      # on a tendon beyond the labelled muscle (the ankle's retinacula)
@@ -495,7 +496,6 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
                 elif not _section_holds(pos, [p_ for p_ in polys if vslice[p_[0]] == zi], at, via_m):
                     out.setdefault(tab[lab]['name'], {}).setdefault('vias_off_section', []).append(k)
                 elif all((zi, seg) != (z_, s_) for _, z_, s_ in ends):
-                    span = _muscle_span(tab[lab], seg_names, skel) if skel is not None else []
                     if skel is not None and _turns_inside_out(pos, vseg, cells, verts, offsets, vs[zs == zi],
                                                               seg_names.index(seg), skel, span):
                         out.setdefault(tab[lab]['name'], {}).setdefault('vias_inside_out', []).append(k)
