@@ -12,7 +12,9 @@ appear: creating a subscription takes 5-200 ms (measured) in the node's one thre
 delay, and so gap the log times of, the topics already flowing. Other topics' types are discovered
 from the ROS graph. Files: profile ros2, ros2msg schemas, cdr, zstd chunks, a ``tissue_sim``
 metadata record (model, parameters, versions, topics); rosbag2 and Foxglove open them. Log times
-are the receive time (wall clock, ns). SIGINT/SIGTERM finish the file; after SIGKILL the file is
+are the receive time (wall clock, ns), publish times the publisher's DDS source timestamp (as rosbag2
+records them: a frame's publish time says when the node sent it, its log time when it arrived here).
+SIGINT/SIGTERM finish the file; after SIGKILL the file is
 readable up to the last flushed chunk (``--flush`` seconds) by tissue_sim.core.mcapio.
 """
 from __future__ import annotations
@@ -128,7 +130,7 @@ class Recorder(Node):
         offered = self.offered(topic)
         latched = topic in LATCHED or (offered and all(q.durability == 'transient_local' for q in offered))
         qos = qos_latched() if latched else qos_stream(100)
-        self.subs[topic] = self.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data),
+        self.subs[topic] = self.create_subscription(cls, topic, lambda data, info, t=topic: self.on_message(t, data, info),
                                                     qos, raw=True)
         self.get_logger().info(f'subscribed to {topic} [{typ}]')
 
@@ -152,10 +154,13 @@ class Recorder(Node):
             return False
         return True
 
-    def on_message(self, topic, data):
+    def on_message(self, topic, data, info=None):
+        """``info``: rclpy's message info; its ``source_timestamp`` (the publisher's clock, ns) is the
+        message's publish time, the receive time (now) its log time."""
         if self.closed:
             return
         now = time.time_ns()
+        sent = (info or {}).get('source_timestamp') or now
         gap = self.min_gap_ns.get(topic)
         if gap is not None:
             # keep a message when a whole period has passed since the last kept one (small slack for jitter)
@@ -166,7 +171,7 @@ class Recorder(Node):
             if topic in self.unrecordable or not self.add_channel(topic):
                 self.unrecordable.add(topic)
                 return
-        self.writer.write(topic, data, now)
+        self.writer.write(topic, data, now, sent)
         self.counts[topic] = self.counts.get(topic, 0) + 1
         if self.counts[topic] == 1:
             self.get_logger().info(f'recording {topic}: first message received')
