@@ -37,8 +37,46 @@ def _zigzag_chain(n_cells=30, gap=0.01, offset=0.003, ring=6, radius=0.01):
     cv += list(range(base, base + 2 * ring))
     off.append(len(cv))
     tm = types.SimpleNamespace(n_muscles=1, cell_muscle=np.array([0] * n_cells + [-1]),
-                               cell_slice=np.array(list(range(n_cells)) + [0]))
+                               cell_slice=np.array(list(range(n_cells)) + [0]), vertex_segment=np.full(len(x), -1))
     return tm, x, np.array(off), np.array(cv)
+
+
+def _kinked(x, ring=6, at=10, half_angle=np.radians(35)):
+    """The straight chain's positions bent at ring ``at`` into two straight legs, each half_angle off the z axis."""
+    bent = x.copy()
+    z0 = at * 0.01
+    dz = x[:, 2] - z0
+    s = np.where(dz < 0, -1.0, 1.0)
+    bent[:, 0] = x[:, 0] + np.abs(dz) * np.sin(half_angle)
+    bent[:, 2] = z0 + s * np.abs(dz) * np.cos(half_angle)
+    return bent
+
+
+def test_centre_line_passes_through_a_ring_bound_whole_to_a_bone():
+    """A via ring (bound whole to one segment, the builder's via points) is a point of the centre line, as the
+    source model's path passes through its via point: a muscle bent there measures both legs in full, the Gaussian
+    smooths each piece on its own (and cuts the corner of a ring that is free); the cells next to it keep their chord."""
+    tm, x, off, cv = _zigzag_chain(n_cells=20, offset=0.0)
+    bent = _kinked(x)
+    legs = 0.20 * 1.0             # two straight legs of 10 gaps of 10 mm, bent at ring 10
+    free = measures.centre_lines(tm, off, cv, bent, 0.015)
+    assert free.lengths(bent, 1)[0] < legs - 0.002                      # the smoothing cuts a free ring's corner
+    tm.vertex_segment[10 * 6:11 * 6] = 0                                 # ring 10 bound whole to segment 0
+    lines = measures.centre_lines(tm, off, cv, bent, 0.015)
+    assert lines.lengths(bent, 1)[0] == pytest.approx(legs, rel=1e-9)
+    pts = lines.points(bent)
+    kink = bent[10 * 6:11 * 6].mean(0)
+    assert np.any(np.all(np.isclose(pts, kink, rtol=0, atol=1e-12), axis=1))   # the ring's centroid is on the line
+    assert [p.size for p in lines.pieces(0)] == [10, 10] and free.pieces(0)[0].size == 20
+    chord = np.zeros(len(off) - 1)
+    measures.cell_axial_lengths(bent, off, cv, chord)
+    L = M.path_lengths(tm, bent, off, cv, chord, sigma=0.015, lines=lines)
+    assert np.allclose(L[:-1], chord[:-1], rtol=1e-9)                  # straight legs: every cell's chord
+    Lf = M.path_lengths(tm, bent, off, cv, chord, sigma=0.015, lines=free)
+    assert Lf[9] < 0.99 * chord[9] and Lf[10] < 0.99 * chord[10]        # free: the kink's cells are cut
+    # a ring bound only in part is no via ring
+    tm.vertex_segment[10 * 6] = -1
+    assert measures.centre_lines(tm, off, cv, bent, 0.015).lengths(bent, 1)[0] < legs - 0.002
 
 
 def test_path_length_of_a_zigzag_chain_is_its_length_along_the_axis():

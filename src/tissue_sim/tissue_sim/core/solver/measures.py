@@ -73,11 +73,12 @@ def prism_volumes_compiled(x, off, cv, out):
 class CentreLines:
     """Every muscle's centre line as a linear map of the vertex positions (``centre_lines``): its points are
     ``smooth @ (raw @ x)``, per muscle in order its first end ring's centroid, the mean cell centre of each slice
-    gap (Gaussian-smoothed along the muscle), its last end ring's centroid."""
+    gap (Gaussian-smoothed along the muscle, piece by piece between its anchored rings), the centroid of each ring
+    inside the muscle that is bound whole to one bone (a via ring) where it lies, its last end ring's centroid."""
     raw: object                     # (P, V) scipy.sparse CSR: each point's unsmoothed position from the vertices
-    smooth: object                  # (P, P) scipy.sparse CSR: the Gaussian along each muscle's gap points (ends kept)
+    smooth: object                  # (P, P) scipy.sparse CSR: the Gaussian along each piece's gap points (anchors kept)
     muscle: np.ndarray              # (P,) int32 the muscle of each point
-    gap: np.ndarray                 # (P,) int32 the point's slice gap along its muscle (-1: an end ring)
+    gap: np.ndarray                 # (P,) int32 the point's slice gap along its muscle (-1: an end or via ring)
 
     def points(self, x: np.ndarray) -> np.ndarray:
         """(P, 3) [m] the centre lines' points at positions x."""
@@ -89,50 +90,91 @@ class CentreLines:
         same = self.muscle[1:] == self.muscle[:-1]
         return np.bincount(self.muscle[1:][same], weights=d[same], minlength=n_muscles)[:n_muscles]
 
+    def pieces(self, m: int) -> list:
+        """Muscle m's gap points between its anchored rings: a list of index arrays into the points, each in
+        gap order (one piece for a muscle with no via ring)."""
+        idx = np.flatnonzero(self.muscle == m)
+        cut = np.flatnonzero(self.gap[idx] < 0)
+        return [idx[a + 1:b] for a, b in zip(cut[:-1], cut[1:]) if b > a + 1]
+
+
+def via_rings(tm, cells: np.ndarray, gap: np.ndarray, off: np.ndarray, cv: np.ndarray) -> list:
+    """The slice boundaries inside a muscle (b: between its gaps b and b + 1) whose ring is bound whole to one
+    segment (the builder's via rings, tissues.yaml via_points): there the muscle's path is held to the bone, as the
+    source model's path is at its via point."""
+    n = np.diff(off) // 2
+    out = []
+    for b in range(int(gap.max()) if gap.size else 0):
+        ring = np.concatenate([cv[off[c] + n[c]:off[c] + 2 * n[c]] for c in cells[gap == b]])
+        seg = np.asarray(tm.vertex_segment)[ring]
+        if seg.size and seg.min() >= 0 and (seg == seg[0]).all():
+            out.append(b)
+    return out
+
 
 def centre_lines(tm, off: np.ndarray, cv: np.ndarray, x: np.ndarray, sigma: float) -> CentreLines:
     """Each muscle's centre line (docs/solver.md "Muscle length"): from its first end ring's centroid (the mean of the
     bottom-ring centroids of the cells in its first slice gap) through the mean of each slice gap's cell centres to its
-    last end ring's centroid, the gap points smoothed along the muscle with a Gaussian of ``sigma`` [m] (in gap steps:
-    sigma / the mean distance between consecutive gap points at positions x; scipy's gaussian_filter1d, 'nearest'
-    ends, as a matrix). A muscle of fewer than 3 gaps is not smoothed. Linear in the positions: built once (compile_model)."""
+    last end ring's centroid, passing through the centroid of each via ring (``via_rings``: a ring inside the muscle
+    bound whole to one bone, where the path is held as the source model's at its via point). The gap points are
+    smoothed along the muscle, each piece between anchored rings on its own, with a Gaussian of ``sigma`` [m] (in gap
+    steps: sigma / the mean distance between the muscle's consecutive gap points at positions x; scipy's
+    gaussian_filter1d, 'nearest' ends, as a matrix); a piece of fewer than 3 gaps is not smoothed. Linear in the
+    positions: built once (compile_model)."""
     from scipy import sparse
     from scipy.ndimage import gaussian_filter1d
     n = np.diff(off) // 2
     rows, cols, vals, blocks, muscle, gaps = [], [], [], [], [], []
     P = 0
+
+    def ring_point(row, cells_, ring):       # the mean over cells_ of their bottom (0) / top (1) ring centroids
+        for c in cells_:
+            rows.append(np.full(n[c], row))
+            cols.append(cv[off[c] + ring * n[c]:off[c] + (ring + 1) * n[c]])
+            vals.append(np.full(n[c], 1.0 / (n[c] * cells_.size)))
+
     for m in range(tm.n_muscles):
         cells = np.flatnonzero(tm.cell_muscle == m)
         if cells.size == 0:
             continue
         _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
         G, count = int(gap.max()) + 1, np.bincount(gap)
+        vias = via_rings(tm, cells, gap, off, cv)
+        row_of = P + 1 + np.arange(G) + np.searchsorted(vias, np.arange(G))      # gap g's row (after the vias below it)
         for c, g in zip(cells, gap):           # gap point: the mean over the gap's cells of each cell's 2 n vertices
-            rows.append(np.full(2 * n[c], P + 1 + g))
+            rows.append(np.full(2 * n[c], row_of[g]))
             cols.append(cv[off[c]:off[c + 1]])
             vals.append(np.full(2 * n[c], 1.0 / (2 * n[c] * count[g])))
-        for row, g, ring in ((P, 0, 0), (P + G + 1, G - 1, 1)):     # end points: the bottom / top rings
-            for c in cells[gap == g]:
-                rows.append(np.full(n[c], row))
-                cols.append(cv[off[c] + ring * n[c]:off[c] + (ring + 1) * n[c]])
-                vals.append(np.full(n[c], 1.0 / (n[c] * count[g])))
-        blocks.append(G)
-        muscle.append(np.full(G + 2, m))
-        gaps.append(np.concatenate([[-1], np.arange(G), [-1]]))
-        P += G + 2
+        ring_point(P, cells[gap == 0], 0)                           # end points: the bottom / top rings
+        ring_point(P + G + len(vias) + 1, cells[gap == G - 1], 1)
+        for b in vias:                                              # via points: gap b's top ring
+            ring_point(row_of[b] + 1, cells[gap == b], 1)
+        pieces = np.split(np.arange(G), np.asarray(vias, int) + 1)
+        blocks.append((G, pieces))
+        muscle.append(np.full(G + len(vias) + 2, m))
+        gaps.append(np.concatenate([[-1]] + [np.r_[piece, -1] for piece in pieces]))
+        P += G + len(vias) + 2
     V = x.shape[0]
     cat = (lambda a, dt: np.concatenate(a).astype(dt)) if rows else (lambda a, dt: np.zeros(0, dt))
     raw = sparse.csr_matrix((cat(vals, np.float64), (cat(rows, np.int64), cat(cols, np.int64))), shape=(P, V))
     pts = raw @ np.asarray(x, np.float64)
     mats, start = [], 0
-    for G in blocks:
-        W = np.eye(G + 2)
-        if G >= 3:
-            line = pts[start + 1:start + 1 + G]
+    for G, pieces in blocks:
+        K = G + len(pieces) + 1
+        W = np.eye(K)
+        gap_rows = np.concatenate([start_ + np.arange(len(pc)) for start_, pc in
+                                   zip(1 + np.cumsum([0] + [len(pc) + 1 for pc in pieces[:-1]]), pieces)])
+        if G >= 2:
+            line = pts[start + gap_rows]
             spacing = float(np.mean(np.linalg.norm(np.diff(line, axis=0), axis=1)))
-            W[1:G + 1, 1:G + 1] = gaussian_filter1d(np.eye(G), sigma / max(spacing, 1e-9), axis=0, mode='nearest')
+            at = 1
+            for pc in pieces:
+                if len(pc) >= 3:
+                    W[at:at + len(pc), at:at + len(pc)] = gaussian_filter1d(np.eye(len(pc)), sigma / max(spacing, 1e-9),
+                                                                             axis=0, mode='nearest')
+                at += len(pc) + 1
         mats.append(sparse.csr_matrix(W))
-        start += G + 2
+        start += K
     smooth = sparse.block_diag(mats, format='csr') if mats else sparse.csr_matrix((0, 0))
     return CentreLines(raw, smooth, cat(muscle, np.int32), cat(gaps, np.int32))
 

@@ -430,8 +430,9 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
                  sigma: float, floor: float = 0.5, lines: CentreLines | None = None) -> np.ndarray:
     """(C,) [m] the active tension's rest length of each muscle cell along its muscle's centre line (`active_length: path`):
     the cell's ring-centroid chord projected on the tangent of the muscle's centre line at its slice gap, at least
-    ``floor`` x the chord; fat cells and the cells of each muscle's first and last slice gap keep ``chord_len`` (the
-    chain's line of pull into its anchored end ring, which the smoothed line cuts short). The centre line
+    ``floor`` x the chord; fat cells and the cells of the slice gaps next to each of a muscle's anchored rings (its
+    end rings and via rings) keep ``chord_len`` (the chain's line of pull into its attachment, which the smoothed line
+    cuts short). The centre line
     (measures.centre_lines, the one the muscle length is measured along): the mean of each gap's cell centres, slice
     by slice, smoothed with a Gaussian of ``sigma`` [m], differentiated.
     Why: the rings' centroids wander sideways from slice to slice (segmentation, each ring's own polygon), more per
@@ -453,14 +454,15 @@ def path_lengths(tm: TissueModel, x: np.ndarray, off: np.ndarray, cv: np.ndarray
         if cells.size == 0:
             continue
         _, gap = np.unique(tm.cell_slice[cells], return_inverse=True)
-        line = pts[(lines.muscle == m) & (lines.gap >= 0)]       # the smoothed gap points, in gap order
-        if line.shape[0] < 3:
-            continue                                        # end gaps only
-        tangent = np.gradient(line, axis=0)
-        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-300)
-        along = np.maximum(np.abs(np.einsum('ij,ij->i', chord[cells], tangent[gap])), floor * out[cells])
-        inner = (gap > 0) & (gap < line.shape[0] - 1)       # the end gaps keep their chord: there the chain turns
-        out[cells[inner]] = along[inner]                    # into its attachment, which the smoothed line cuts
+        for piece in lines.pieces(m):                       # the gaps between two anchored rings (ends, via rings)
+            if piece.size < 3:
+                continue                                    # gaps next to an anchored ring only
+            tangent = np.gradient(pts[piece], axis=0)       # the smoothed gap points, in gap order
+            tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-300)
+            first = lines.gap[piece[0]]
+            mine = (gap > first) & (gap < first + piece.size - 1)   # the gaps next to an anchored ring keep their
+            along = np.abs(np.einsum('ij,ij->i', chord[cells[mine]], tangent[gap[mine] - first]))   # chord: there the
+            out[cells[mine]] = np.maximum(along, floor * out[cells[mine]])  # chain turns into its attachment
     return out
 
 
