@@ -76,7 +76,7 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
     import rclpy
     from sensor_msgs.msg import JointState
     from tf2_msgs.msg import TFMessage
-    from tissue_msgs.msg import TissueState, TissueTopology
+    from tissue_msgs.msg import MuscleSet, TissueState, TissueTopology
     from visualization_msgs.msg import MarkerArray
     from tissue_sim.core import tissue_cdr
     from tissue_sim.ros.common import qos_latched
@@ -91,6 +91,7 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         tf = Collector(node, TFMessage, '/tf', keep=False, raw=True, qos=100)
         topo = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
         bones = Collector(node, MarkerArray, '/tissue/bone_markers', qos=qos_latched())
+        muscles = Collector(node, MuscleSet, '/tissue/muscles', qos=qos_latched())
         sim.wait_for_output('simulator ready', timeout=60)
         spin_until(lambda: len(js.t) > 10 and len(mk.t) > 10, node, 30, 'frames to flow')
         t0 = time.monotonic()
@@ -121,6 +122,11 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         s = tissue_cdr.decode_state(st.msgs[-1])
         assert s.vertex_positions.shape == (tp.n_vertices, 3) and np.isfinite(s.vertex_positions).all()
         assert s.joint_names == ['knee'] and s.sim_time > 1.0
+        # the muscles alone (what the activation node reads), the topology's, with its model hash
+        assert 1 <= len(muscles.msgs) <= 2
+        ms = muscles.msgs[0]
+        assert list(ms.muscle_names) == list(tp.muscle_names) and list(ms.muscle_groups) == list(tp.muscle_groups)
+        assert ms.model_hash == tp.meta['model_hash'] and ms.model_name == tp.name and len(tp.muscle_names) > 0
         # activations (the state), excitations (the commands: none) and each muscle's force [N], one per muscle
         assert s.excitations.shape == s.activations.shape == s.muscle_forces.shape == (len(s.muscle_names),)
         assert np.all(s.excitations == 0) and np.all(np.isfinite(s.muscle_forces))
@@ -473,14 +479,20 @@ def test_activation_defaults_drive_the_hamstrings_of_the_model_the_simulator_run
     assert sim.returncode == 0, sim.output
 
 
+def _muscle_set(tm):
+    """The /tissue/muscles message the simulator publishes for model ``tm`` (its names and groups)."""
+    from tissue_msgs.msg import MuscleSet
+    return MuscleSet(model_name=tm.name, muscle_names=list(tm.muscle_names), muscle_groups=list(tm.muscle_groups))
+
+
 def test_a_timeline_means_the_same_headless_and_through_the_activation_node(knee_model, tmp_path):
     """One activation YAML, two ways: the activation node's messages and the headless solver's
     timeline (what `tissue-sim simulate --timeline` runs) give the same activations, the most
     specific entry setting a muscle (hamstring 0.5, not 0.3 + 0.5 and not the later 'all' 0.3)."""
     import rclpy
     import yaml
-    from tissue_msgs.msg import MuscleActivation, TissueTopology
-    from tissue_sim.core import solver, tissue_cdr
+    from tissue_msgs.msg import MuscleActivation, MuscleSet
+    from tissue_sim.core import solver
     from tissue_sim.core.model import TissueModel
     from tissue_sim.ros.common import qos_latched
     f = tmp_path / 'overlap.yaml'
@@ -490,8 +502,8 @@ def test_a_timeline_means_the_same_headless_and_through_the_activation_node(knee
                                         yaml.safe_load(f.read_text())['muscles'])
     with isolated_domain() as dom, ros_context(dom.id) as ctx:
         node = rclpy.create_node('probe', context=ctx)
-        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
-        topo.publish(tissue_cdr.encode_topology(tm))     # as the simulator does
+        topo = node.create_publisher(MuscleSet, '/tissue/muscles', qos_latched())
+        topo.publish(_muscle_set(tm))                    # as the simulator does
         got = Collector(node, MuscleActivation, '/tissue/activation')
         with run_executable('activation', '--profile', 'timeline', '--timeline', f, '--wall-time', '--rate', '20',
                             env=dom.env) as act:
@@ -521,19 +533,18 @@ def test_simulator_parameters_are_declared_once():
         'bone_marker_resolution': 0.0}
 
 
-def test_activation_set_resolves_groups_from_the_topology_then_exits(knee_model):
-    """`activation --set GROUP=V ...` waits for the model's topology, publishes one message naming
+def test_activation_set_resolves_groups_from_the_models_muscles_then_exits(knee_model):
+    """`activation --set GROUP=V ...` waits for the model's muscles (/tissue/muscles), publishes one message naming
     the group's muscles, and exits 0 (its own end through the shared main)."""
     import rclpy
-    from tissue_msgs.msg import MuscleActivation, TissueTopology
-    from tissue_sim.core import tissue_cdr
+    from tissue_msgs.msg import MuscleActivation, MuscleSet
     from tissue_sim.core.model import TissueModel
     from tissue_sim.ros.common import qos_latched
     tm = TissueModel.load(knee_model)
     with isolated_domain() as dom, ros_context(dom.id) as ctx:
         node = rclpy.create_node('probe', context=ctx)
-        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
-        topo.publish(tissue_cdr.encode_topology(tm))
+        topo = node.create_publisher(MuscleSet, '/tissue/muscles', qos_latched())
+        topo.publish(_muscle_set(tm))
         got = Collector(node, MuscleActivation, '/tissue/activation')
         with run_executable('activation', '--set', 'hamstrings=0.7', 'quadriceps=0.2', env=dom.env) as act:
             spin_until(lambda: got.msgs, node, 30, 'the message')
@@ -545,23 +556,22 @@ def test_activation_set_resolves_groups_from_the_topology_then_exits(knee_model)
     assert list(got.msgs[0].activations) == pytest.approx([0.7, 0.2])
 
 
-def test_activation_follows_the_model_a_new_topology_announces(knee_model, bundled_names_knee):
-    """A simulator restarted with another model announces a new topology: the activation node
+def test_activation_follows_the_model_a_new_muscle_set_announces(knee_model, bundled_names_knee):
+    """A simulator restarted with another model announces its muscles again (/tissue/muscles): the activation node
     resolves its default muscles (the hamstrings) again, by the new model's names."""
     import rclpy
-    from tissue_msgs.msg import MuscleActivation, TissueTopology
-    from tissue_sim.core import tissue_cdr
+    from tissue_msgs.msg import MuscleActivation, MuscleSet
     from tissue_sim.core.model import TissueModel
     from tissue_sim.ros.common import qos_latched
     with isolated_domain() as dom, ros_context(dom.id) as ctx:
         node = rclpy.create_node('probe', context=ctx)
-        topo = node.create_publisher(TissueTopology, '/tissue/topology', qos_latched())
-        topo.publish(tissue_cdr.encode_topology(TissueModel.load(knee_model)))
+        topo = node.create_publisher(MuscleSet, '/tissue/muscles', qos_latched())
+        topo.publish(_muscle_set(TissueModel.load(knee_model)))
         got = Collector(node, MuscleActivation, '/tissue/activation')
         with run_executable('activation', '--profile', 'step', '--rate', '20', env=dom.env) as act:
             spin_until(lambda: got.msgs and list(got.msgs[-1].muscle_names) == ['hamstring'], node, 30,
                        'messages for the first model')
-            topo.publish(tissue_cdr.encode_topology(TissueModel.load(bundled_names_knee)))
+            topo.publish(_muscle_set(TissueModel.load(bundled_names_knee)))
             spin_until(lambda: list(got.msgs[-1].muscle_names) == ['biceps_femoris_long_head'], node, 30,
                        'messages for the second model')
         node.destroy_node()

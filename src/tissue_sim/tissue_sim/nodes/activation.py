@@ -14,7 +14,7 @@ Examples::
 
 Time is simulated time from /clock (use_sim_time is on by default), so a profile is reproducible
 whatever the simulator's real-time rate. Muscle names, groups and the default muscles (the
-hamstrings of the model) are resolved from /tissue/topology (transient-local), again whenever a new
+hamstrings of the model) are resolved from /tissue/muscles (transient-local), again whenever a new
 model is announced; muscle names with an underscore are published before that. When several
 selections name one muscle the most specific sets it (tissue_sim.core.activation).
 """
@@ -26,7 +26,7 @@ import time
 from rclpy.node import Node
 
 from ..core import activation as act
-from ..ros.common import TOPIC_ACTIVATION, TOPIC_TOPOLOGY, qos_latched, qos_stream
+from ..ros.common import TOPIC_ACTIVATION, TOPIC_MUSCLES, qos_latched, qos_stream
 from ..ros.common import main as node_main
 
 
@@ -53,7 +53,7 @@ def build_parser():
     p.add_argument('--rate', type=float, default=50.0, help='publish rate [Hz of wall time] (default 50)')
     p.add_argument('--wall-time', action='store_true', help='profile time from the wall clock, not /clock')
     p.add_argument('--topology-timeout', type=float, default=30.0,
-                   help='seconds to wait for /tissue/topology when names must be resolved')
+                   help='seconds to wait for the model\'s muscles (/tissue/muscles) when names must be resolved')
     return p
 
 
@@ -91,7 +91,7 @@ class Activation(Node):
     def __init__(self, args):
         from rclpy.clock import Clock, ClockType
         from rclpy.parameter import Parameter
-        from tissue_msgs.msg import MuscleActivation, TissueTopology
+        from tissue_msgs.msg import MuscleActivation, MuscleSet
         super().__init__('activation', parameter_overrides=[
             Parameter('use_sim_time', Parameter.Type.BOOL, not args.wall_time)])
         self.a = args
@@ -102,14 +102,16 @@ class Activation(Node):
         self._t0_wall = time.monotonic()
         self.plan = None            # core.activation.Activations: the muscles published and their a(t)
         self.model = None           # (names, groups) the plan was resolved for
-        self.create_subscription(TissueTopology, TOPIC_TOPOLOGY, self.on_topology, qos_latched())
+        # the model's muscle names and groups (/tissue/muscles, ~1 kB), not the whole topology (~430 kB: a late reader of
+        # a large latched message can hold the simulator's other writes while it is delivered, docs/ros.md)
+        self.create_subscription(MuscleSet, TOPIC_MUSCLES, self.on_muscles, qos_latched())
         chosen = list(self.set_values) if args.profile == 'set' else (args.muscles or [])
         if chosen and args.others is None and args.profile != 'timeline' and all(literal(m) for m in chosen):
-            self.resolve(None)      # muscle names: published at once, checked when the topology comes
+            self.resolve(None)      # muscle names: published at once, checked when the model's muscles come
         # wall-clock ticks (with use_sim_time the node's own clock stands still while the simulator is paused)
         self.timer = self.create_timer(1.0 / args.rate, self.tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-    def on_topology(self, msg):
+    def on_muscles(self, msg):
         model = (list(msg.muscle_names), list(msg.muscle_groups))
         if model != self.model:
             self.model = model
@@ -132,7 +134,7 @@ class Activation(Node):
     def tick(self):
         if self.plan is None:
             if time.monotonic() - self._t0_wall > self.a.topology_timeout:
-                raise act.ActivationError(f'no {TOPIC_TOPOLOGY} within {self.a.topology_timeout:.0f} s '
+                raise act.ActivationError(f'no {TOPIC_MUSCLES} within {self.a.topology_timeout:.0f} s '
                                           '(is the simulator running in this ROS domain?)')
             return
         if self.a.profile == 'set':

@@ -30,13 +30,13 @@ from pathlib import Path
 from ..core import mcapio
 from rclpy.node import Node
 
-from ..ros.common import (TISSUE_TOPICS, TOPIC_BONE_MARKERS, TOPIC_ROBOT_DESCRIPTION, TOPIC_TF_STATIC,
+from ..ros.common import (TISSUE_TOPICS, TOPIC_BONE_MARKERS, TOPIC_MUSCLES, TOPIC_ROBOT_DESCRIPTION, TOPIC_TF_STATIC,
                           TOPIC_TOPOLOGY, TOPIC_TYPES,
                           qos_latched, qos_stream)
 from ..ros.common import main as node_main
 
 # published once, transient local
-LATCHED = (TOPIC_TOPOLOGY, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTION, TOPIC_BONE_MARKERS)
+LATCHED = (TOPIC_TOPOLOGY, TOPIC_MUSCLES, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTION, TOPIC_BONE_MARKERS)
 
 
 def build_parser():

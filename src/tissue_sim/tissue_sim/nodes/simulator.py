@@ -2,7 +2,8 @@
 
 Publishes (at ``publish_rate`` Hz of wall time): /clock (sim time), /joint_states,
 /tissue/state (TissueState), /tissue/markers (MarkerArray of the whole model), /tf (the moving
-segments' frames, sim time), /diagnostics (1 Hz); once (transient-local): /tissue/topology,
+segments' frames, sim time), /diagnostics (1 Hz); once (transient-local): /tissue/topology, /tissue/muscles
+(the muscle names and groups alone, for the activation node),
 /tf_static (the fixed frames, the root segment under ``world`` when the root is fixed) and
 /robot_description (the URDF of the model the node runs, tissue_sim.core.urdf). Subscribes to
 /tissue/activation. Services ~/reset (std_srvs/Trigger) and ~/pause (std_srvs/SetBool, true = pause).
@@ -39,7 +40,7 @@ from ..core import measures, realtime, urdf
 from ..core.activation import REASONS, Muscles
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
                           TOPIC_BONE_MARKERS, TOPIC_ROBOT_DESCRIPTION, TOPIC_STATE, TOPIC_TF, TOPIC_TF_STATIC,
-                          TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
+                          TOPIC_MUSCLES, TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
 from ..ros.common import main as node_main
 
 PARAMS = (
@@ -95,7 +96,7 @@ class Simulator(Node):
         from std_msgs.msg import String
         from std_srvs.srv import SetBool, Trigger
         from tf2_msgs.msg import TFMessage
-        from tissue_msgs.msg import MuscleActivation, TissueState, TissueTopology
+        from tissue_msgs.msg import MuscleActivation, MuscleSet, TissueState, TissueTopology
         from visualization_msgs.msg import MarkerArray
         from ..core import solver, tissue_cdr
         from ..core.load import load_model, load_params
@@ -144,6 +145,8 @@ class Simulator(Node):
                                  if self.marker_enc is not None else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, qos_stream())
         self.pub_topo = self.create_publisher(TissueTopology, TOPIC_TOPOLOGY, qos_latched())
+        self.MuscleSet = MuscleSet
+        self.pub_muscles = self.create_publisher(MuscleSet, TOPIC_MUSCLES, qos_latched())
         # /tf at depth 10, not tf2's 100: beside the 0.8 MB markers a depth-100 writer reached a subscriber of both in
         # bursts (7-19 Hz, gaps of 1-3 s; Fast DDS), depth 10 at 34 Hz (also to a depth-100 subscriber)
         self.pub_tf = self.create_publisher(TFMessage, TOPIC_TF, qos_stream(10)) if P['publish_tf'] else None
@@ -383,8 +386,13 @@ class Simulator(Node):
         return mk.sequential_rgba(d[enc.skin_corners], scale)
 
     def publish_topology(self):
-        self.pub_topo.publish(self.tcdr.encode_topology(self.tm, parameters_yaml=self.params.to_yaml(),
-                                                        stamp_ns=0, frame_id=self.frame_id))
+        topo = self.tcdr.encode_topology(self.tm, parameters_yaml=self.params.to_yaml(), stamp_ns=0,
+                                         frame_id=self.frame_id)
+        self.pub_topo.publish(topo)
+        muscles = self.MuscleSet(model_name=self.tm.name, model_hash=self.tcdr.decode_topology(topo).meta['model_hash'],
+                                 muscle_names=list(self.tm.muscle_names), muscle_groups=list(self.tm.muscle_groups))
+        muscles.header.frame_id = self.frame_id
+        self.pub_muscles.publish(muscles)
         if self.pub_bone_markers is not None:
             self.pub_bone_markers.publish(mk.bone_marker_array(
                 self.tm, bone_resolution=float(self.get_parameter('bone_marker_resolution').value)))

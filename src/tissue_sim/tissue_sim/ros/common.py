@@ -11,6 +11,7 @@ import sys
 TOPIC_ACTIVATION = '/tissue/activation'
 TOPIC_STATE = '/tissue/state'
 TOPIC_TOPOLOGY = '/tissue/topology'
+TOPIC_MUSCLES = '/tissue/muscles'
 TOPIC_MARKERS = '/tissue/markers'
 TOPIC_BONE_MARKERS = '/tissue/bone_markers'
 TOPIC_JOINTS = '/joint_states'
@@ -22,6 +23,7 @@ TOPIC_ROBOT_DESCRIPTION = '/robot_description'
 TISSUE_TOPICS = (TOPIC_STATE, TOPIC_TOPOLOGY, TOPIC_ACTIVATION, TOPIC_JOINTS, TOPIC_DIAGNOSTICS)
 TOPIC_TYPES = {      # the types of the topics the nodes publish (a recorder subscribes before they appear)
     TOPIC_STATE: 'tissue_msgs/msg/TissueState', TOPIC_TOPOLOGY: 'tissue_msgs/msg/TissueTopology',
+    TOPIC_MUSCLES: 'tissue_msgs/msg/MuscleSet',
     TOPIC_ACTIVATION: 'tissue_msgs/msg/MuscleActivation', TOPIC_JOINTS: 'sensor_msgs/msg/JointState',
     TOPIC_DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray', TOPIC_MARKERS: 'visualization_msgs/msg/MarkerArray',
     TOPIC_BONE_MARKERS: 'visualization_msgs/msg/MarkerArray',
