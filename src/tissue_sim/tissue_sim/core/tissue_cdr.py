@@ -52,6 +52,13 @@ class StateFrame:
 
 
 # ------------------------------------------------------------------------------------ topology
+def hash_of(model) -> str:
+    """The model hash a topology of ``model`` carries: ``model.meta['model_hash']`` (a decoded topology), else
+    ``model.content_hash()``."""
+    meta = model.meta or {}
+    return meta['model_hash'] if 'model_hash' in meta else model.content_hash()
+
+
 def encode_topology(model, parameters_yaml: str | None = None, model_hash: str | None = None,
                     stamp_ns: int | None = None, frame_id: str | None = None) -> bytes:
     """CDR bytes of the TissueTopology message of ``model`` (a TissueModel or a decoded topology).
@@ -61,7 +68,7 @@ def encode_topology(model, parameters_yaml: str | None = None, model_hash: str |
     """
     meta = model.meta or {}
     if model_hash is None:
-        model_hash = meta['model_hash'] if 'model_hash' in meta else model.content_hash()
+        model_hash = hash_of(model)
     if parameters_yaml is None:
         parameters_yaml = meta.get('parameters_yaml', '')
     stamp_ns = int(meta.get('stamp_ns', 0)) if stamp_ns is None else stamp_ns

@@ -386,10 +386,10 @@ class Simulator(Node):
         return mk.sequential_rgba(d[enc.skin_corners], scale)
 
     def publish_topology(self):
-        topo = self.tcdr.encode_topology(self.tm, parameters_yaml=self.params.to_yaml(), stamp_ns=0,
-                                         frame_id=self.frame_id)
-        self.pub_topo.publish(topo)
-        muscles = self.MuscleSet(model_name=self.tm.name, model_hash=self.tcdr.decode_topology(topo).meta['model_hash'],
+        model_hash = self.tcdr.hash_of(self.tm)
+        self.pub_topo.publish(self.tcdr.encode_topology(self.tm, parameters_yaml=self.params.to_yaml(),
+                                                        model_hash=model_hash, stamp_ns=0, frame_id=self.frame_id))
+        muscles = self.MuscleSet(model_name=self.tm.name, model_hash=model_hash,
                                  muscle_names=list(self.tm.muscle_names), muscle_groups=list(self.tm.muscle_groups))
         muscles.header.frame_id = self.frame_id
         self.pub_muscles.publish(muscles)

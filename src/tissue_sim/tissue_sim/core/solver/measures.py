@@ -94,8 +94,13 @@ class CentreLines:
         """Muscle m's gap points between its anchored rings: a list of index arrays into the points, each in
         gap order (one piece for a muscle with no via ring)."""
         idx = np.flatnonzero(self.muscle == m)
-        cut = np.flatnonzero(self.gap[idx] < 0)
-        return [idx[a + 1:b] for a, b in zip(cut[:-1], cut[1:]) if b > a + 1]
+        return [idx[a:b] for a, b in _runs(self.gap[idx])]
+
+
+def _runs(gap: np.ndarray) -> list:
+    """(start, stop) of each run of gap points (gap >= 0) between anchored points (gap -1) of one muscle's points."""
+    cut = np.flatnonzero(gap < 0)
+    return [(a + 1, b) for a, b in zip(cut[:-1], cut[1:]) if b > a + 1]
 
 
 def via_rings(tm, cells: np.ndarray, gap: np.ndarray, off: np.ndarray, cv: np.ndarray) -> list:
@@ -124,7 +129,7 @@ def centre_lines(tm, off: np.ndarray, cv: np.ndarray, x: np.ndarray, sigma: floa
     from scipy import sparse
     from scipy.ndimage import gaussian_filter1d
     n = np.diff(off) // 2
-    rows, cols, vals, blocks, muscle, gaps = [], [], [], [], [], []
+    rows, cols, vals, muscle, gaps = [], [], [], [], []
     P = 0
 
     def ring_point(row, cells_, ring):       # the mean over cells_ of their bottom (0) / top (1) ring centroids
@@ -150,7 +155,6 @@ def centre_lines(tm, off: np.ndarray, cv: np.ndarray, x: np.ndarray, sigma: floa
         for b in vias:                                              # via points: gap b's top ring
             ring_point(row_of[b] + 1, cells[gap == b], 1)
         pieces = np.split(np.arange(G), np.asarray(vias, int) + 1)
-        blocks.append((G, pieces))
         muscle.append(np.full(G + len(vias) + 2, m))
         gaps.append(np.concatenate([[-1]] + [np.r_[piece, -1] for piece in pieces]))
         P += G + len(vias) + 2
@@ -159,22 +163,15 @@ def centre_lines(tm, off: np.ndarray, cv: np.ndarray, x: np.ndarray, sigma: floa
     raw = sparse.csr_matrix((cat(vals, np.float64), (cat(rows, np.int64), cat(cols, np.int64))), shape=(P, V))
     pts = raw @ np.asarray(x, np.float64)
     mats, start = [], 0
-    for G, pieces in blocks:
-        K = G + len(pieces) + 1
-        W = np.eye(K)
-        gap_rows = np.concatenate([start_ + np.arange(len(pc)) for start_, pc in
-                                   zip(1 + np.cumsum([0] + [len(pc) + 1 for pc in pieces[:-1]]), pieces)])
-        if G >= 2:
-            line = pts[start + gap_rows]
-            spacing = float(np.mean(np.linalg.norm(np.diff(line, axis=0), axis=1)))
-            at = 1
-            for pc in pieces:
-                if len(pc) >= 3:
-                    W[at:at + len(pc), at:at + len(pc)] = gaussian_filter1d(np.eye(len(pc)), sigma / max(spacing, 1e-9),
-                                                                             axis=0, mode='nearest')
-                at += len(pc) + 1
+    for g in gaps:                            # per muscle: its points' gaps (-1 at the anchored points)
+        W = np.eye(g.size)
+        line = pts[start + np.flatnonzero(g >= 0)]
+        step = sigma / max(float(np.mean(np.linalg.norm(np.diff(line, axis=0), axis=1))), 1e-9) if len(line) > 1 else 0
+        for a, b in _runs(g):
+            if b - a >= 3:
+                W[a:b, a:b] = gaussian_filter1d(np.eye(b - a), step, axis=0, mode='nearest')
         mats.append(sparse.csr_matrix(W))
-        start += K
+        start += g.size
     smooth = sparse.block_diag(mats, format='csr') if mats else sparse.csr_matrix((0, 0))
     return CentreLines(raw, smooth, cat(muscle, np.int32), cat(gaps, np.int32))
 
