@@ -156,27 +156,14 @@ def ankle_transient(sim, duration=1.5, every=0.025, watch=(380, 388)):
     return rows, inv, peak, steps / max(cpu, 1e-9), low
 
 
-def _value(text):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return {'true': True, 'false': False}.get(text.lower(), text)
-
-
 def ankle_main(sets):
     from tissue_sim.core.builder import default_model
-    bad = [s for s in sets if '=' not in s]
-    if bad:
-        print(f'error: --set {bad[0]!r}: expected NAME=VALUE', file=sys.stderr)
-        sys.exit(2)
-    kw = {k: _value(v) for k, v in (s.split('=', 1) for s in sets)}
     try:
-        params = solver.Params.physical(**kw)
-    except (ValueError, TypeError) as e:
-        print(f'error: --set {" ".join(sets)}: {e}', file=sys.stderr)
+        params = solver.Params.from_assignments('physical', sets)
+    except ValueError as e:
+        print(f'error: --set: {e}', file=sys.stderr)
         sys.exit(2)
+    kw = {k: getattr(params, k) for k in (a.partition('=')[0].strip() for a in sets)}
     sim = solver.compile_model(default_model(), params)
     rows, inv, peak, sps, least = ankle_transient(sim)
     print(f'physical set{" with " + str(kw) if kw else ""}: full hamstring activation from rest, every 25 ms')

@@ -3,7 +3,7 @@
 from t = 0) on the bundled limb built 1x, 3x and 6x finer (`build-model --refine R`), one integrator.
 
     . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--integrator NAME] [--substeps unscaled|set|matched|N]
-                                              [--duration 0.3] [--out DIR] [--quick]
+                                              [--duration 0.3] [--out DIR] [--quick] [--set NAME=VALUE ...] [--isometric]
 
 For each refinement: vertices, cells, sub-steps per 1-ms step, steps per CPU second (one thread, the
 stepping alone), the knee angle every 10 ms (or the step where the run diverged). Then the knee-angle
@@ -19,7 +19,9 @@ with explicit: automatic); 'matched' = the set's own x omega_max(R) / omega_max(
 every model. The mass scaling adds mass where a vertex's cells are too stiff for the sub-step
 (h^2 kappa / limit^2): at the physical set's 4 sub-steps that is +207 % of the free tissue's mass on the
 default model and grows with refinement (cells stiffer and lighter): +2,285 % at 3x, +9,024 % at 6x;
-each run reports its added mass. --quick: 1x and 2x, 0.3 s (for `make bench`).
+each run reports its added mass. --quick: 1x and 2x, 0.3 s (for `make bench`). --set NAME=VALUE (repeatable): a Params
+field of the physical set changed (what a term costs: the same table with and without it). --isometric: the knee held
+at 0 deg by the joint lock; the series compared is the hamstrings' knee torque [N m] instead of the angle.
 """
 from __future__ import annotations
 
@@ -43,6 +45,7 @@ from tissue_sim.core import solver  # noqa: E402
 from tissue_sim.core.solver import params as P  # noqa: E402
 
 SAMPLE_EVERY = 10          # steps between knee samples (10 ms at the physical set's 1-ms step)
+SERIES = {False: ('knee_deg', 'deg'), True: ('knee_torque_Nm', 'N m')}   # what a run records (--isometric: True)
 UNSCALED_TOL = 1e-3        # --substeps unscaled: mass_scaled adds less than this share of the true mass
 
 
@@ -106,8 +109,9 @@ def with_moment_stiffness(tm, params, c):
     return dc.replace(tm, cell_k_scale=want / (np.cbrt(V) * 4.0 / n))
 
 
-def run_one(tm, params, duration, label):
-    """Knee angle [deg] every SAMPLE_EVERY steps of the demo experiment, steps per CPU second, divergence."""
+def run_one(tm, params, duration, label, isometric=False):
+    """Knee angle [deg] every SAMPLE_EVERY steps of the demo experiment (isometric: the knee held at 0 deg by the
+    joint lock, the knee torque [N m, flexing +] the hamstrings produce), steps per CPU second, divergence."""
     sim = solver.compile_model(tm, params)
     knee = list(tm.joint_names).index('knee') if 'knee' in tm.joint_names else 0
     ham = {'hamstrings': [(0.0, 1.0)]}
@@ -118,12 +122,22 @@ def run_one(tm, params, duration, label):
     c0, w0 = time.process_time(), time.perf_counter()
     last = w0
     try:
-        for tt, st in solver.simulate(sim, duration, ham, every=SAMPLE_EVERY, output='state'):   # (observe() costs
-            t.append(round(float(tt), 6))                                                   # ~4 ms: not timed)
-            q.append(float(np.degrees(st.q[knee])))
-            if time.perf_counter() - last > 60:
-                last = time.perf_counter()
-                print(f'  {label}: t {tt:.2f} s, knee {q[-1]:.1f} deg, {time.process_time() - c0:.0f} CPU s', flush=True)
+        if isometric:
+            st, ctl = solver.make_state(sim), solver.make_control(sim)
+            ctl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+            ctl.joint_lock[knee], ctl.joint_target[knee] = True, 0.0
+            t.append(0.0), q.append(0.0)
+            for k in range(n // SAMPLE_EVERY):
+                solver.step(sim, st, ctl, n_steps=SAMPLE_EVERY)
+                t.append(round((k + 1) * SAMPLE_EVERY * params.dt, 6))
+                q.append(-float(st.joint_lock_torque[knee]))        # the lock's torque holds the knee: minus it flexes
+        else:
+            for tt, st in solver.simulate(sim, duration, ham, every=SAMPLE_EVERY, output='state'):   # (observe() costs
+                t.append(round(float(tt), 6))                                                   # ~4 ms: not timed)
+                q.append(float(np.degrees(st.q[knee])))
+                if time.perf_counter() - last > 60:
+                    last = time.perf_counter()
+                    print(f'  {label}: t {tt:.2f} s, knee {q[-1]:.1f} deg, {time.process_time() - c0:.0f} CPU s', flush=True)
     except solver.DivergenceError as e:
         diverged = {'step': e.step, 'time_s': round(e.step * params.dt, 4), 'cause': e.cause}
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
@@ -131,9 +145,10 @@ def run_one(tm, params, duration, label):
     out = dict(label=label, vertices=int(tm.n_vertices), cells=int(tm.n_cells), integrator=params.integrator,
                substeps=int(sim.n_substeps), added_mass_percent=round(100 * added_mass_share(sim, sim.n_substeps), 3), omega_max_dt=round(float(sim.omega_max * params.dt), 2),
                steps=int(done), steps_requested=n, cpu_s=round(cpu, 2), wall_s=round(wall, 2),
-               steps_per_cpu_s=round(done / max(cpu, 1e-9), 1), t=t, knee_deg=[round(v, 4) for v in q],
+               steps_per_cpu_s=round(done / max(cpu, 1e-9), 1), t=t, series=SERIES[isometric][0],
                diverged=diverged)
-    fin = f'{q[-1]:.1f} deg at {t[-1]:.2f} s' if q else '-'
+    out[out['series']] = [round(v, 4) for v in q]
+    fin = f'{q[-1]:.1f} {SERIES[isometric][1]} at {t[-1]:.2f} s' if q else '-'
     print(f'{label}: {out["vertices"]:,} vertices, {out["cells"]:,} cells, {params.integrator} x{out["substeps"]} '
           f'(omega_max dT {out["omega_max_dt"]}, added mass {out["added_mass_percent"]} %): '
           f'{out["steps_per_cpu_s"]:.1f} steps/CPU s, knee {fin}'
@@ -142,11 +157,13 @@ def run_one(tm, params, duration, label):
 
 
 def differences(a, b):
-    """Max and RMS |knee_a - knee_b| [deg] over the samples both runs reached."""
-    n = min(len(a['knee_deg']), len(b['knee_deg']))
+    """Max and RMS |knee_a - knee_b| [deg; N m with --isometric] over the samples both runs reached (keys max_deg,
+    rms_deg either way)."""
+    k = a['series']
+    n = min(len(a[k]), len(b[k]))
     if n < 2:
         return None
-    d = np.abs(np.asarray(a['knee_deg'][:n]) - np.asarray(b['knee_deg'][:n]))
+    d = np.abs(np.asarray(a[k][:n]) - np.asarray(b[k][:n]))
     return {'max_deg': round(float(d.max()), 3), 'rms_deg': round(float(np.sqrt(np.mean(d ** 2))), 3),
             'up_to_s': a['t'][n - 1]}
 
@@ -160,9 +177,9 @@ def plot(runs, path, title):
         lab = f'{r["label"]}: {r["vertices"]:,} vertices, x{r["substeps"]}'
         if r['diverged']:
             lab += f' (diverged at step {r["diverged"]["step"]})'
-        ax.plot(r['t'], r['knee_deg'], label=lab)
+        ax.plot(r['t'], r[r['series']], label=lab)
     ax.set_xlabel('time [s]')
-    ax.set_ylabel('knee flexion [deg]')
+    ax.set_ylabel('knee flexion [deg]' if runs[0]['series'] == 'knee_deg' else 'knee torque, flexing + [N m]')
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
@@ -172,11 +189,13 @@ def plot(runs, path, title):
 
 
 def markdown(out) -> str:
-    rows = ['| model | vertices | cells | integrator, sub-steps | added mass | steps/CPU s | knee at end | diff. to next finer: max / RMS [deg] |',
+    unit = 'deg' if not out['runs'] or out['runs'][0]['series'] == 'knee_deg' else 'N m'
+    rows = [f'| model | vertices | cells | integrator, sub-steps | added mass | steps/CPU s | knee at end | diff. to next finer: max / RMS [{unit}] |',
             '|---|---|---|---|---|---|---|---|']
     for i, r in enumerate(out['runs']):
         d = out['differences'][i] if i < len(out['differences']) else None
-        end = f'{r["knee_deg"][-1]:.1f} deg at {r["t"][-1]:.2f} s' if r['knee_deg'] else '-'
+        k = r['series']
+        end = f'{r[k][-1]:.1f} {SERIES[k != "knee_deg"][1]} at {r["t"][-1]:.2f} s' if r[k] else '-'
         if r['diverged']:
             end += f', diverged at step {r["diverged"]["step"]}'
         dd = f'{d["max_deg"]} / {d["rms_deg"]}' if d else '-'
@@ -201,6 +220,12 @@ def main():
     ap.add_argument('--active-length', choices=P.ACTIVE_LENGTHS, default=None,
                     help="the active tension's rest length (Params.active_length; default: the physical set's): 'chord' or "
                          "'path' (along each muscle's smoothed centre line)")
+    ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
+                    help='a Params field of the physical set (repeatable; VALUE read as YAML, e.g. bone_contact=false, '
+                         "fold_contact=''): what a term costs in accuracy, run with and without it")
+    ap.add_argument('--isometric', action='store_true',
+                    help='the knee held at 0 deg (joint lock) instead: the knee torque of the fully active hamstrings '
+                         '[N m] over time, compared between the models as the angle is')
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
     a = ap.parse_args()
     if a.quick:
@@ -220,7 +245,11 @@ def main():
     if mode in ('matched', 'unscaled') and integ != 'mass_scaled':
         sys.exit(f'error: --substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
     from tissue_sim.core.builder import default_model
-    base = P.Params.physical(integrator=integ)
+    try:
+        base = P.Params.from_assignments('physical', a.set, integrator=integ)
+    except ValueError as e:
+        print(f'error: --set: {e}', file=sys.stderr)
+        sys.exit(2)
     if a.active_length:
         base = dataclasses.replace(base, active_length=a.active_length).validate()
     if integ == 'explicit' and mode == 'set':
@@ -247,7 +276,7 @@ def main():
             sub = max(1, base.substeps or 1)
             w = solver.compile_model(tm, dataclasses.replace(base, substeps=1).validate()).omega_max
             params = dataclasses.replace(base, substeps=int(math.ceil(sub * w / omega1 - 1e-9))).validate()
-        r, _ = run_one(tm, params, a.duration, f'{R:g}x')
+        r, _ = run_one(tm, params, a.duration, f'{R:g}x', isometric=a.isometric)
         r['refine'] = R
         r['stiffness_moment_ratio'] = {k: round(v, 3) for k, v in ratio.items()}
         runs.append(r)
@@ -259,8 +288,8 @@ def main():
     except OSError:
         pass
     out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
-                         '--activate hamstrings=1)', 'integrator': integ, 'substeps_mode': mode,
-           'duration_s': a.duration, 'stiffness': a.stiffness, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
+                         '--activate hamstrings=1)' + ('; the knee held at 0 deg, its torque' if a.isometric else ''), 'integrator': integ, 'substeps_mode': mode,
+           'duration_s': a.duration, 'stiffness': a.stiffness, 'set': list(a.set), 'isometric': a.isometric, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
     shrink = [d['max_deg'] for d in diffs if d]
     out['differences_shrink'] = bool(len(shrink) >= 2 and all(b < a_ for a_, b in zip(shrink, shrink[1:])))
@@ -268,7 +297,8 @@ def main():
     od.mkdir(parents=True, exist_ok=True)
     (od / 'convergence.json').write_text(json.dumps(out, indent=1))
     try:
-        plot(runs, od / 'convergence.png', f'knee flexion, hamstrings fully active; {integ}, sub-steps {mode}'
+        plot(runs, od / 'convergence.png', f'knee {"torque held at 0 deg" if a.isometric else "flexion"}, hamstrings '
+             f'fully active; {integ}, sub-steps {mode}' + (f'; {" ".join(a.set)}' if a.set else '')
              + f'; active length {base.active_length}'
              + ('; stiffness per volume as the default model' if a.stiffness == 'moment' else ''))
     except Exception as e:  # report, do not hide
@@ -282,7 +312,7 @@ def main():
                   f'(up to {d["up_to_s"]} s)')
     print(f'differences shrink with refinement: {out["differences_shrink"]}; {cpu}; load average '
           f'{out["load_average_1min"]}; written {od / "convergence.json"}, {od / "convergence.png"}')
-    slim = dict(out, runs=[{k: v for k, v in r.items() if k not in ('t', 'knee_deg')} for r in runs])
+    slim = dict(out, runs=[{k: v for k, v in r.items() if k not in ('t', r['series'])} for r in runs])
     print(json.dumps(slim))
 
 

@@ -416,6 +416,42 @@ def test_via_points_fix_the_ring_nearest_each():
     assert 0 < len(changed) <= 20 and np.array_equal(tm.rest_positions, off.rest_positions)
 
 
+def test_a_via_ring_that_would_turn_a_cell_inside_out_is_held_at_its_centroid_for_the_named_muscles():
+    """builder point_vias: the flexor's ring at the lower via point (refused whole: the cell above it would turn inside
+    out) is listed as a point via for a muscle named (or every muscle: True): its 10 vertices stay free (but one the
+    bone touches, bound by the paper's rule) and the model
+    records them, their segment and muscle (TissueModel.via_point_*); not named, it is listed under vias_inside_out as
+    before and the model has no point via."""
+    lab, aff, tab = _anchored_table()
+    tab['labels'][11]['via_points'] = [{'segment': 'lower', 'at_m': [-0.035, 0.0, -0.052]}]
+    plain, _ = build_model((lab, aff), tab, **P)                         # default list: not the flexor
+    assert plain.meta['anchors']['flexor']['vias_inside_out'] == [0] and plain.via_point_segment.size == 0
+    for setting in (['flexor'], True):
+        tm, _ = build_model((lab, aff), tab, **P, point_vias=setting)
+        a = tm.meta['anchors']['flexor']
+        assert a['vias_point'] == [0] and 'vias_inside_out' not in a and 'via 0' not in a
+        assert list(tm.via_point_offsets) == [0, 10] and list(tm.via_point_segment) == [tm.segment_names.index('lower')]
+        assert list(tm.via_point_muscle) == [tm.muscle_index('flexor')]
+        ring = tm.via_point_vertices
+        assert np.sum(tm.vertex_segment[ring] == -1) == 9 and np.ptp(tm.rest_positions[ring, 2]) < 1e-9
+        assert abs(tm.rest_positions[ring, 2].mean() + 0.052) < 0.02          # the slice nearest the via point
+        assert np.array_equal(tm.vertex_segment, plain.vertex_segment)       # nothing else bound differently
+
+
+def test_the_bundled_semitendinosus_passes_its_tibial_via_point():
+    """The bundled limb: semitendinosus' ring at the source model's P2 on the tibia is its one point via (refused
+    whole by the inside-out test); gracilis' and sartorius' tibial via rings are not (point_vias: semitendinosus)."""
+    from tissue_sim.core.builder import default_model
+    tm = default_model()
+    assert [tm.muscle_names[m] for m in tm.via_point_muscle] == ['semitendinosus']
+    assert tm.meta['anchors']['semitendinosus']['vias_point'] == [0]
+    assert tm.meta['anchors']['gracilis']['vias_inside_out'] == [0]
+    ring = tm.via_point_vertices
+    assert tm.segment_names[tm.via_point_segment[0]] == 'shank' and ring.size == 11
+    p2 = np.array([-0.0312, 0.02417, -0.44823])                               # tissues.yaml via_points[0]
+    assert np.linalg.norm(tm.rest_positions[ring].mean(axis=0) - p2) < 0.01
+
+
 @pytest.mark.parametrize('bad,msg', [([{'segment': 'pelvis', 'at_m': [0, 0, 0]}], "via point segment 'pelvis' is not in"),
                                      ([{'segment': 'lower', 'at_m': [0, 0]}], 'via_points[0] needs "segment" and "at_m"'),
                                      ({'segment': 'lower'}, 'via_points must be a list')])
@@ -428,7 +464,9 @@ def test_bad_via_points_are_a_clear_error(bad, msg):
 
 
 @pytest.mark.parametrize('setting,msg', [({'via_mm': -1.0}, 'via_mm must be a number >= 0'),
-                                         ({'via_points': 'yes'}, 'via_points must be true or false')])
+                                         ({'via_points': 'yes'}, 'via_points must be true or false'),
+                                         ({'point_vias': 'flexor'}, 'point_vias must be true, false or a list'),
+                                         ({'point_vias': ['flexor', 3]}, 'point_vias must be true, false or a list')])
 def test_bad_via_settings_are_a_clear_error(setting, msg):
     from tissue_sim.errors import UserError
     lab, aff, tab = _anchored_table()

@@ -334,6 +334,20 @@ def test_params_yaml_round_trip_and_errors(tmp_path):
         solver.Params.from_yaml(tmp_path / 'missing.yaml')
 
 
+def test_params_from_assignments_reads_each_value_as_yaml_and_names_a_bad_one():
+    p = solver.Params.from_assignments('physical', ['bone_contact=false', "fold_contact=''", 'sheath_group=',
+                                                    'volume_stiffness_fat=2.5', 'substeps=1', 'gravity=[0, 0, -9.81]'],
+                                       integrator='implicit')
+    assert p == solver.Params.physical(bone_contact=False, fold_contact='', sheath_group='', volume_stiffness_fat=2.5,
+                                       substeps=1, gravity=(0.0, 0.0, -9.81), integrator='implicit')
+    assert solver.Params.from_assignments('paper', []) == solver.Params.paper()
+    for bad, msg in (('bone_contact', 'expected NAME=VALUE'), ('=3', 'expected NAME=VALUE'),
+                     ('bone_contact=maybe', 'bone_contact must be a bool'), ('bogus=1', 'unknown field'),
+                     ('substeps=[1', 'not a YAML'), ('min_stretch=0.01', 'min_stretch')):
+        with pytest.raises(ValueError, match=msg):
+            solver.Params.from_assignments('physical', [bad])
+
+
 def test_bundled_parameter_files_load():
     from importlib import resources
     for name in ('params_paper.yaml', 'params_physical.yaml'):

@@ -160,7 +160,11 @@ def test_a_fine_model_is_stable_at_one_ms_with_one_iteration(settings):
     """~26k vertices (the builder at 140 slices, 24 muscle and 36 fat rays), the bundled limb refined 3x (32k) and 2x
     (15k): physical set with its sheath (hamstrings, sartorius, gracilis), every fibre at its optimum at rest (rest_fibre_length 1.0, the
     stronger drive), full hamstring activation from rest, 1 ms, one sub-step, ONE local/global iteration: 1 s
-    without divergence, the knee at its 120-deg stop. Without the volume term's bound (implicit_volume_cap 0) the
+    without divergence, no vertex faster than 5 m/s at its end, the knee past 90 deg (measured 119.6 / 97.6 deg at
+    2x / 3x: on the 3x limb the knee stops at ~100 deg, where semitendinosus' moment arm, its tendon passing its via
+    point on the tibia, is the source model's order, 13-23 mm at 100-110 deg on the 1x limb, and the finer mesh's
+    passive tissue is stiffer, docs/convergence.md; with the ring free, point_vias false, its bowstringing tendon took
+    the knee to its 120-deg stop). Without the volume term's bound (implicit_volume_cap 0) the
     runs diverged at steps 487 (26k), 256 (refine 3: a semimembranosus cell sheared to singular values 6.5 / 0.8 /
     0.19, its volume term ~27x its rest stiffness) and 564 (refine 2); docs/solver.md "Implicit integrator"."""
     from tissue_sim.core.builder import default_model
@@ -171,7 +175,7 @@ def test_a_fine_model_is_stable_at_one_ms_with_one_iteration(settings):
     assert sim.contact.s_idx.size and np.any(sim.contact.s_side < 0)      # sheathed above and below the knee
     assert np.all(sim.volume_cap[sim.k_volume > 0] > 0)
     st = _run(sim, 1000)
-    assert np.degrees(st.q[0]) > 110.0
+    assert np.degrees(st.q[0]) > 90.0
     assert np.all(np.isfinite(st.x)) and np.abs(st.v).max() < 5.0
 
 

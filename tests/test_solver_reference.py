@@ -42,6 +42,36 @@ def test_fast_step_matches_the_reference_step_on_the_knee_phantom():
 
 
 
+def _with_point_via(tm, m, z, segment):
+    """tm with muscle m's ring at height z made a point via of segment (TissueModel.via_point_*), and that ring."""
+    import dataclasses
+    cells = np.flatnonzero(tm.cell_muscle == m)
+    vs = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells]))
+    ring = vs[np.isclose(tm.rest_positions[vs, 2], z)].astype(np.int32)
+    return dataclasses.replace(tm, via_point_offsets=np.array([0, ring.size]), via_point_vertices=ring,
+                               via_point_segment=np.array([segment], np.int32),
+                               via_point_muscle=np.array([m], np.int32)).validate(), ring
+
+
+def test_a_point_via_ring_keeps_its_centroid_on_its_bone_and_turns_freely():
+    """integration.hold_via_points against reference.via_stage (the same trajectory), and what it does: the hamstring's
+    free ring 50 mm below the knee, a point via of the shank, has its centroid exactly at its rest place in the shank's
+    frame after every step while its vertices move in that frame (the ring is not bound: it turns and deforms with its
+    cells); the knee moves otherwise than without it (the held ring changes the hamstring's line of pull)."""
+    tm0 = phantom.knee(n_gaps=12, knee_range_deg=(0.0, 60.0))
+    tm, ring = _with_point_via(tm0, 0, -0.05, 1)
+    params = solver.Params.paper(rotation_iterations=50)
+    sim, fast, ref = _both(tm, params, 300)
+    assert fast.q[0] > 0.5
+    _assert_same(sim, fast, ref, 1e-9)
+    c0 = tm.rest_positions[ring].mean(axis=0)
+    assert np.linalg.norm(fast.x[ring].mean(axis=0) - (fast.seg_R[1] @ c0 + fast.seg_t[1])) < 1e-12
+    local = (fast.x[ring] - fast.seg_t[1]) @ fast.seg_R[1]            # R^T (x - t): the shank's frame
+    assert np.abs(local - tm.rest_positions[ring]).max() > 2e-3
+    _, plain, _ = _both(tm0, params, 300)
+    assert abs(plain.q[0] - fast.q[0]) > 1e-3
+
+
 def test_fast_step_matches_the_reference_step_with_the_fat_volume_term():
     """volume_stiffness_fat > 0 (the physical set's fat volume term, here on the paper set): fat cells get a volume
     stiffness, their groups leave the kernel's plain (fat-only) version, and the trajectory, energies and pressures

@@ -123,6 +123,21 @@ def test_targets_follow_the_data(reference):
     assert V.evaluate(flat)['moment_arm_signs']['pass'] is True
 
 
+def test_moment_arm_error_is_the_mean_distance_to_the_source_model(reference):
+    """validation.moment_arm_error: ours = 1.3 x OpenSim's everywhere gives 0.3 x the mean |OpenSim| per muscle and
+    overall (passive and active, every angle); a NaN (a diverged sweep) is left out."""
+    res = _fake_result(reference, 1.3, 0.7, [100.0, 120.0, 90.0, 50.0, 10.0])
+    me = V.moment_arm_error(res)
+    osim = {n: np.abs(np.asarray(d['opensim_moment_arm'])) * 1e3 for n, d in res['muscles'].items()}
+    assert me['n'] == 2 * sum(v.size for v in osim.values())
+    assert me['mean_abs_mm'] == pytest.approx(0.3 * np.mean(np.concatenate(list(osim.values()))))
+    for n, v in osim.items():
+        assert me['per_muscle_mm'][n] == pytest.approx(0.3 * v.mean())
+    name = next(iter(res['muscles']))
+    res['muscles'][name]['active_moment_arm'] = [np.nan] * len(ANGLES)
+    assert V.moment_arm_error(res)['n'] == me['n'] - len(ANGLES)
+
+
 def _locked_hold(sim, state, ctrl, j, n):
     """The knee ramped to 10 deg at 100 deg/s by the solver's joint lock, then held (n steps in all); the
     other joints (the ankle) locked at rest, as validation.hold_sweep does."""
@@ -250,8 +265,11 @@ def test_validate_command_on_the_bundled_model(tmp_path, capsys, params):
     # the fully active hamstrings pull: their cells put a flexing torque on the shank at full extension
     assert res['torque']['hamstrings_only'][0] > 0
     assert max(res['torque']['hamstrings_active']) > max(res['torque']['passive'])
-    # the flags are the evaluation of the data written
+    # the flags are the evaluation of the data written, and so is the moment arms' summary
     assert res['targets'] == json.loads(json.dumps(V.jsonable(V.evaluate(res))))
+    me = res['moment_arm_error']
+    assert me == json.loads(json.dumps(V.jsonable(V.moment_arm_error(res)))) and 0 < me['mean_abs_mm'] < 100
+    assert 'mean |ours - OpenSim|' in ' '.join(text.split())          # (rich wraps the line at spaces)
     pt = res['targets']['peak_torque']
     assert pt['peak_Nm'] == max(res['torque']['hamstrings_active'])
     if params == 'physical':

@@ -207,3 +207,9 @@ def _print(con, res, quiet):
     con.print(f'{mark[ts["pass"]]} torque-angle shape: peak at {ts["peak_at_deg"]:g}° (published: small to moderate '
               f'flexion, ≤ {V.SHAPE_PEAK_MAX_DEG:g}°; OpenSim {ts["opensim_peak_at_deg"]:g}°), '
               f'{"falling" if ts["falls_after_peak"] else "not falling"} after it')
+    me = res.get('moment_arm_error')
+    if me and me['mean_abs_mm'] is not None:
+        worst = sorted(((v, k) for k, v in me['per_muscle_mm'].items() if v is not None), reverse=True)[:3]
+        con.print(f'moment arms against the source model (a summary, not a target): mean |ours - OpenSim| '
+                  f'{me["mean_abs_mm"]:.2f} mm over {me["n"]} (muscle, mode, angle); largest '
+                  + ', '.join(f'{k} {v:.1f}' for v, k in worst) + ' mm')

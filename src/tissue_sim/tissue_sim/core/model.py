@@ -233,6 +233,14 @@ class TissueModel(TissueTopology):
                                         # fibre height L_opt sin(pennation at L_opt) [m]
     path_powers: np.ndarray = None      # (T, J) int32 exponents of each monomial
     path_coef: np.ndarray = None        # (P, T) float64 [m] coefficients
+    # point via rings (the builder's via points whose ring cannot be bound whole; docs/builder.md "Via points"): ring r's
+    # vertices via_point_vertices[via_point_offsets[r]:via_point_offsets[r + 1]] keep their centroid at its rest place
+    # in segment via_point_segment[r]'s frame while the ring turns freely; via_point_muscle[r] its muscle.
+    # None / absent from a file: none (R = 0)
+    via_point_offsets: np.ndarray = None    # (R+1,) int64
+    via_point_vertices: np.ndarray = None   # (N,) int32
+    via_point_segment: np.ndarray = None    # (R,) int32
+    via_point_muscle: np.ndarray = None     # (R,) int32
 
     def __post_init__(self):
         J = len(self.joint_names)
@@ -245,6 +253,10 @@ class TissueModel(TissueTopology):
                               ('muscle_rest_fibre_length', lambda: np.ones(len(self.muscle_names))),
                               ('path_muscle', lambda: np.zeros(0, np.int32)), ('path_data', lambda: np.zeros((0, 4))),
                               ('path_powers', lambda: np.zeros((0, J), np.int32)),
+                              ('via_point_offsets', lambda: np.zeros(1, np.int64)),
+                              ('via_point_vertices', lambda: np.zeros(0, np.int32)),
+                              ('via_point_segment', lambda: np.zeros(0, np.int32)),
+                              ('via_point_muscle', lambda: np.zeros(0, np.int32)),
                               ('path_coef', lambda: np.zeros((len(self.path_muscle) if self.path_muscle is not None
                                                               else 0, 0)))):
             if getattr(self, name) is None:
@@ -295,6 +307,15 @@ class TissueModel(TissueTopology):
                 need(False, f'{len(bad)} inverted cell(s) (the first: cell {c}, {"fat" if fat[c] else "muscle"}, '
                      f'rest volume {vol[c] * 1e9:.3g} mm^3, rings wound against '
                      f'{"the other fat cells" if fat[c] else "the contract (counter-clockwise from +z)"})')
+        R = self.via_point_segment.shape[0]
+        vo, vv = self.via_point_offsets, self.via_point_vertices
+        need(vo.shape == (R + 1,) and vo[0] == 0 and vo[-1] == vv.shape[0] and np.all(np.diff(vo) >= 3)
+             and self.via_point_muscle.shape == (R,), 'via_point_offsets inconsistent with via_point_vertices, '
+             'via_point_segment and via_point_muscle (rings of >= 3 vertices)')
+        need(vv.size == 0 or (vv.min() >= 0 and vv.max() < V), 'via_point_vertices index out of range')
+        need(np.all((self.via_point_segment >= 0) & (self.via_point_segment < S))
+             and np.all((self.via_point_muscle >= 0) & (self.via_point_muscle < M)),
+             'via_point_segment or via_point_muscle out of range')
         need(self.skin_quads.ndim == 2 and self.skin_quads.shape[1] == 4 and self.skin_quad_cell.shape == (self.skin_quads.shape[0],),
              'skin_quads must be (Q, 4) with skin_quad_cell (Q,)')
         need(self.surface_triangles.ndim == 2 and self.surface_triangles.shape[1] == 3, 'surface_triangles must be (T, 3)')
@@ -440,11 +461,13 @@ class TissueModel(TissueTopology):
                         'cell_slice', 'skin_quads', 'skin_quad_cell', 'surface_triangles', 'surface_group',
                         'bone_segment', 'bone_vertex_offsets', 'bone_triangle_offsets', 'bone_triangles',
                         'segment_parent', 'joint_type', 'joint_parent', 'joint_child', 'joint_driver',
-                        'coupling_offsets', 'path_muscle', 'path_powers', 'joint_path_offsets'}
+                        'coupling_offsets', 'path_muscle', 'path_powers', 'joint_path_offsets',
+                        'via_point_offsets', 'via_point_vertices', 'via_point_segment', 'via_point_muscle'}
         optional = {'joint_driver', 'coupling_offsets', 'coupling_table',      # a model without coupled joints
                     'joint_path_offsets', 'joint_path_table', 'joint_path_axes',  # no hinge with a path
                     'muscle_rest_fibre_length',                             # a file written before the field: 1.0
-                    'path_muscle', 'path_data', 'path_powers', 'path_coef'}  # no muscle paths
+                    'path_muscle', 'path_data', 'path_powers', 'path_coef',  # no muscle paths
+                    'via_point_offsets', 'via_point_vertices', 'via_point_segment', 'via_point_muscle'}   # none
         kw = {}
         for f in dataclasses.fields(cls):
             if f.name in ('name', 'meta'):

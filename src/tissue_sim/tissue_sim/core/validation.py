@@ -433,7 +433,22 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
     out['moment_arm_resolution'] = moment_arm_resolution(runs, muscles, angles, list(tm.muscle_names))
     out['diverged'] = {k: r['diverged'] for k, r in runs.items()}      # None, or where a sweep diverged (then NaN on)
     out['targets'] = evaluate(out)
+    out['moment_arm_error'] = moment_arm_error(out)
     return out
+
+
+def moment_arm_error(res: dict) -> dict:
+    """Not a target, a summary: the mean |ours - OpenSim's computeMomentArm| [mm] of every knee muscle's moment arm,
+    passive and active, at every angle sampled (a sweep that diverged: its NaN angles left out), overall and per muscle.
+    One number to compare two builds or parameter sets by (docs/validation.md)."""
+    per = {}
+    for name, d in res['muscles'].items():
+        os_ = np.asarray(d['opensim_moment_arm'], float)
+        e = np.concatenate([np.abs(np.asarray(d[f'{mode}_moment_arm'], float) - os_) for mode in ('passive', 'active')])
+        per[name] = e[np.isfinite(e)] * 1e3
+    every = np.concatenate(list(per.values())) if per else np.zeros(0)
+    return {'mean_abs_mm': float(every.mean()) if every.size else None, 'n': int(every.size),
+            'per_muscle_mm': {k: float(v.mean()) if v.size else None for k, v in per.items()}}
 
 
 def moment_arm_resolution(runs: dict, muscles: list, angles, names) -> dict:

@@ -45,6 +45,10 @@ DEFAULTS = {
     'via_points': True,        # also fix the ring nearest each of a muscle's via points (the source model's
                                # intermediate path points, tissues.yaml) to the via point's segment, as its end rings,
     'via_mm': 3.0,             # ... where the ring's section holds the via point (inside, or this close to its outline)
+    'point_vias': ['semitendinosus'],  # ... and where that ring, fixed whole, would turn a cell inside out: for these
+                               # muscles (a list of names; True: every muscle) its centroid is held at the bone instead
+                               # (a point via: the ring turns freely); False: such a via point is skipped. The bundled
+                               # limb's list: measured (docs/builder.md "Via points")
     'unshare_passed_over': True,  # with bind_passed_over off: where such a muscle shares a vertex with the end
                                # ring of a muscle arising from the bone it passes over, it gets its own free copy
     'bone_clearance_mm': 0.5,  # a free vertex inside a bone mesh at rest is moved out to this distance from its
@@ -156,6 +160,12 @@ def settings_with_defaults(settings: dict) -> dict:
     for k in ('share_mm', 'min_area_mm2', 'min_fat_mm', 'via_mm'):
         if not (isinstance(s[k], (int, float)) and math.isfinite(s[k]) and s[k] >= 0):
             raise UserError(f'{k} must be a number >= 0, got {s[k]!r}')
+    if isinstance(s['point_vias'], (list, tuple)):
+        if not all(isinstance(n, str) and n for n in s['point_vias']):
+            raise UserError(f'point_vias must be true, false or a list of muscle names, got {s["point_vias"]!r}')
+        s['point_vias'] = sorted(set(s['point_vias']))
+    elif not isinstance(s['point_vias'], bool):
+        raise UserError(f'point_vias must be true, false or a list of muscle names, got {s["point_vias"]!r}')
     for k in ('anchor_muscles', 'via_points'):
         if not isinstance(s[k], bool):
             raise UserError(f'{k} must be true or false, got {s[k]!r}')
@@ -441,7 +451,8 @@ def _turns_inside_out(pos, vseg, cells, verts, offsets, ring, si, skel, span) ->
 
 
 def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, tab, seg_names, bonepix,
-                       vseg, warnings, pos, allowed, vias: bool = False, via_m: float = 0.003, skel=None) -> dict:
+                       vseg, warnings, pos, allowed, vias: bool = False, via_m: float = 0.003, skel=None,
+                       point_rings: list | None = None, point_names=None) -> dict:
     """Fix each muscle's proximal end ring to its origin segment and its distal end ring to its
     insertion segment (the tissue table's ``origin``/``insertion``; the paper takes muscle
     attachments from anatomy atlases, section 4.2), in place on ``vseg``.
@@ -465,7 +476,11 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
     where the source path runs); a via point beyond the muscle's slices (on a tendon the labels do not reach) or off
     the section, or whose ring fixed would turn a neighbouring cell inside out within the range of a joint the muscle
     crosses (``skel``), is skipped and listed (``vias_beyond_slices``, ``vias_off_section``, ``vias_inside_out``;
-    docs/builder.md "Via points").
+    docs/builder.md "Via points"). With ``point_rings`` (a list), a ring that fails only the inside-out test becomes
+    a point via instead: (muscle index, the ring's vertices, segment index) is appended to it and the via point listed
+    under ``vias_point`` (the solver holds the ring's centroid at its rest place in that segment's frame and lets the ring
+    turn: a tendon passing a bone-fixed point, as the source model's path at its via point); ``point_names`` (a set of
+    muscle names; None: every muscle) limits that to the muscles named.
     A ring is fixed only where a bone of that segment is present on the ring's slice, i.e. the
     ring lies along that bone: a ring across a joint from its bone (a belly ending above the
     patella, a calf muscle ending far above the foot) would become a rigid lever through the
@@ -498,7 +513,11 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
                 elif all((zi, seg) != (z_, s_) for _, z_, s_ in ends):
                     if skel is not None and _turns_inside_out(pos, vseg, cells, verts, offsets, vs[zs == zi],
                                                               seg_names.index(seg), skel, span):
-                        out.setdefault(tab[lab]['name'], {}).setdefault('vias_inside_out', []).append(k)
+                        if point_rings is not None and (point_names is None or tab[lab]['name'] in point_names):
+                            point_rings.append((m, vs[zs == zi], seg_names.index(seg)))
+                            out.setdefault(tab[lab]['name'], {}).setdefault('vias_point', []).append(k)
+                        else:
+                            out.setdefault(tab[lab]['name'], {}).setdefault('vias_inside_out', []).append(k)
                     else:
                         ends.append((f'via {k}', zi, seg))
         for end, zi, seg in ends:
@@ -880,10 +899,14 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
                 bone_touch[tab[int(l)]['name']] = bone_touch.get(tab[int(l)]['name'], 0) + 1
 
     # ---------------------------------------------------------------- muscle origins and insertions
+    point_rings = [] if s['point_vias'] else None
+    point_names = set(s['point_vias']) if isinstance(s['point_vias'], list) else None
     anchors = anchor_muscle_ends(vslice, slice_z, verts_k, offsets_k, ctiss, cmus_k, muscle_labels_used,
                                  tab, seg_names, bonepix, vseg, warnings, pos,
                                  allowed if s['unshare_passed_over'] else allowed & ~(passed & ~arises),
-                                 vias=s['via_points'], via_m=float(s['via_mm']) * 1e-3, skel=skel) if s['anchor_muscles'] else {}
+                                 vias=s['via_points'], via_m=float(s['via_mm']) * 1e-3, skel=skel,
+                                 point_rings=point_rings, point_names=point_names) if s['anchor_muscles'] else {}
+    point_rings = point_rings or []
 
     # ---------------------------------------------------------------- gliding muscles: their own vertices
     # With unshare_passed_over (and bind_passed_over off), every end ring is anchored, and a vertex bound to
@@ -892,12 +915,17 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ring keeps its anchor. The gastrocnemii lie in their own compartment and glide over the shank's
     # muscles; one such shared vertex bound to the tibia pinned the medialis' cells below the knee, and
     # left free, the hamstrings' insertion rings lost their anchor there (docs/anatomy.md, the gastrocnemii).
+    # A point via ring's vertices count as held by its segment here: a gliding muscle sharing one gets its own copy
+    # (the gastrocnemius medialis beside semitendinosus' ring on the 3x limb was dragged by the ring's projection).
+    held = vseg.copy()
+    for _, ring, sg in point_rings:
+        held[ring[held[ring] < 0]] = sg
     split = {}                                       # (muscle, vertex) -> its own vertex
     if not s['bind_passed_over'] and s['unshare_passed_over'] and glides:
         cmv = np.repeat(np.where(ctiss == M.TISSUE_MUSCLE, cmus_k, -1), sizes_k)
         for e in np.flatnonzero(cmv >= 0):
             m, v = int(cmv[e]), int(verts_k[e])
-            if vseg[v] >= 0 and m in glides and glides[m][vseg[v]]:
+            if held[v] >= 0 and m in glides and glides[m][held[v]]:
                 verts_k[e] = split.setdefault((m, v), V + len(split))
         if split:
             old = np.array([v for _, v in split], np.int64)
@@ -1005,6 +1033,10 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         name=table['name'],
         rest_positions=pos, vertex_segment=vseg, vertex_flags=flags,
         cell_offsets=offsets_k.astype(np.int64), cell_vertices=verts_k.astype(np.int32),
+        via_point_offsets=np.concatenate([[0], np.cumsum([len(r) for _, r, _ in point_rings])]).astype(np.int64),
+        via_point_vertices=(np.concatenate([r for _, r, _ in point_rings]) if point_rings else np.zeros(0)).astype(np.int32),
+        via_point_segment=np.array([sg for _, _, sg in point_rings], np.int32),
+        via_point_muscle=np.array([m for m, _, _ in point_rings], np.int32),
         cell_tissue=ctiss, cell_muscle=cell_muscle_all[kc], cell_fibre=fib,
         cell_slice=cell_slice_all[kc], cell_k_scale=k_all[kc],
         skin_quads=quads, skin_quad_cell=qcell,

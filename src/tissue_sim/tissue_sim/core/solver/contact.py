@@ -709,8 +709,12 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
     per hinge, the free vertices of the cells of the muscles of `group` (muscle groups or names, comma-separated; ''
     none) whose rest height above the hinge centre along n0 is in [SHEATH_FROM, reach] (the part of the thigh above the
     knee: the chain may bend over the condyles below it), held in the parent's frame (side +1); and those of the
-    muscles of `below` from SHEATH_FROM to reach below it, held in the child's frame (side -1)."""
-    vs = np.asarray(vertex_segment)
+    muscles of `below` from SHEATH_FROM to reach below it, held in the child's frame (side -1). A point via ring's
+    vertices are not sheathed: the via holds the ring's centroid and lets it turn (docs/solver.md "Point vias"); held
+    each near its rest line, the ring would turn with the bone, and the cell above semitendinosus' turned inside out at
+    the knee's 120-deg stop."""
+    vs = np.asarray(vertex_segment).copy()
+    vs[np.asarray(getattr(tm, 'via_point_vertices', np.zeros(0, np.int32)), np.int64)] = -2     # (not free: left out)
 
     def free_vertices(spec):
         names = [g.strip() for g in str(spec).split(',') if g.strip()]
@@ -718,7 +722,7 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
         cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
         cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
                          if len(cells) else np.zeros(0, np.int64))
-        return cand[vs[cand] < 0]
+        return cand[vs[cand] == -1]
     up, down = free_vertices(group), free_vertices(below)
     cand = np.union1d(up, down)
     held = {1.0: np.isin(cand, up), -1.0: np.isin(cand, down)}

@@ -53,3 +53,67 @@ def integrate(h, x, v, f, inv_den, xn, vn, att_idx, att_seg, rest, seg_R, seg_t,
             nfast += 0 if da * da + db * db + dc * dc <= vmax2 else 1
         k = e
     return nfast
+
+
+@njit(cache=True, inline='always')
+def _via_place(r, via_seg, via_local, seg_R, seg_t):
+    """Point via ring r's centroid place p = R_s local_r + t_s in its segment's pose (seg_R, seg_t)."""
+    s = via_seg[r]
+    lx, ly, lz = via_local[r, 0], via_local[r, 1], via_local[r, 2]
+    return (seg_R[s, 0, 0] * lx + seg_R[s, 0, 1] * ly + seg_R[s, 0, 2] * lz + seg_t[s, 0],
+            seg_R[s, 1, 0] * lx + seg_R[s, 1, 1] * ly + seg_R[s, 1, 2] * lz + seg_t[s, 1],
+            seg_R[s, 2, 0] * lx + seg_R[s, 2, 1] * ly + seg_R[s, 2, 2] * lz + seg_t[s, 2])
+
+
+@njit(cache=True, fastmath={'contract'})
+def via_forces(f, via_off, via_idx, via_seg, via_local, seg_R, seg_t, inv_den, wr):
+    """The point via rings' pull on their bones (before the skeleton step, with the forces f of this sub-step's
+    evaluation): the bone holds each ring's centroid, so it takes the net force on the ring's free vertices (inv_den >
+    0), applied at the centroid's place p (no moment about p: the ring turns freely), into wr (S, 6) (force, its moment
+    about the world origin), as a bound vertex's force reaches its segment. The same with either integrator: the ring's
+    projection (hold_via_points) then only moves it."""
+    for r in range(via_seg.shape[0]):
+        fx = fy = fz = 0.0
+        for k in range(via_off[r], via_off[r + 1]):
+            i = via_idx[k]
+            if inv_den[i] > 0.0:
+                fx += f[i, 0]; fy += f[i, 1]; fz += f[i, 2]
+        px, py, pz = _via_place(r, via_seg, via_local, seg_R, seg_t)
+        s = via_seg[r]
+        wr[s, 0] += fx
+        wr[s, 1] += fy
+        wr[s, 2] += fz
+        wr[s, 3] += py * fz - pz * fy
+        wr[s, 4] += pz * fx - px * fz
+        wr[s, 5] += px * fy - py * fx
+
+
+@njit(cache=True, fastmath={'contract'})
+def hold_via_points(h, xn, vn, via_off, via_idx, via_seg, via_local, seg_R, seg_t, inv_den):
+    """Point via rings (SimModel.via_*; docs/solver.md "Point vias"), after the integration: ring r's centroid c (the
+    mean of its vertices at xn, bone-attached ones where their segments put them) is moved onto its place in segment
+    s = via_seg[r]'s new pose, p = R_s via_local[r] + t_s, by moving each of its free vertices (inv_den > 0) by
+    d = (p - c) n / n_free and its velocity by d / h: only the centroid is held, the ring turns and deforms with its
+    cells (a tendon passing a bone-fixed point, as the source model's path at its via point). The bone took the ring's
+    net force in the skeleton step (via_forces)."""
+    ih = 1.0 / h
+    for r in range(via_seg.shape[0]):
+        a, b = via_off[r], via_off[r + 1]
+        cx = cy = cz = 0.0
+        nfree = 0
+        for k in range(a, b):
+            i = via_idx[k]
+            cx += xn[i, 0]; cy += xn[i, 1]; cz += xn[i, 2]
+            if inv_den[i] > 0.0:
+                nfree += 1
+        if nfree == 0:
+            continue
+        n = b - a
+        px, py, pz = _via_place(r, via_seg, via_local, seg_R, seg_t)
+        sc = n / nfree
+        dx, dy, dz = (px - cx / n) * sc, (py - cy / n) * sc, (pz - cz / n) * sc
+        for k in range(a, b):
+            i = via_idx[k]
+            if inv_den[i] > 0.0:
+                xn[i, 0] += dx; xn[i, 1] += dy; xn[i, 2] += dz
+                vn[i, 0] += dx * ih; vn[i, 1] += dy * ih; vn[i, 2] += dz * ih

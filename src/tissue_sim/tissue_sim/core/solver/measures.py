@@ -105,14 +105,19 @@ def _runs(gap: np.ndarray) -> list:
 
 def via_rings(tm, cells: np.ndarray, gap: np.ndarray, off: np.ndarray, cv: np.ndarray) -> list:
     """The slice boundaries inside a muscle (b: between its gaps b and b + 1) whose ring is bound whole to one
-    segment (the builder's via rings, tissues.yaml via_points): there the muscle's path is held to the bone, as the
-    source model's path is at its via point."""
+    segment or is one of the muscle's point via rings (the builder's via rings, tissues.yaml via_points;
+    TissueModel.via_point_*): there the muscle's path is held to the bone, as the source model's path is at its via
+    point."""
     n = np.diff(off) // 2
+    m = tm.cell_muscle[cells[0]] if cells.size else -1
+    po, pv = np.asarray(getattr(tm, 'via_point_offsets', [0])), np.asarray(getattr(tm, 'via_point_vertices', []))
+    pm = np.asarray(getattr(tm, 'via_point_muscle', []))
+    points = [set(pv[po[r]:po[r + 1]].tolist()) for r in np.flatnonzero(pm == m)]
     out = []
     for b in range(int(gap.max()) if gap.size else 0):
         ring = np.concatenate([cv[off[c] + n[c]:off[c] + 2 * n[c]] for c in cells[gap == b]])
         seg = np.asarray(tm.vertex_segment)[ring]
-        if seg.size and seg.min() >= 0 and (seg == seg[0]).all():
+        if (seg.size and seg.min() >= 0 and (seg == seg[0]).all()) or any(set(ring.tolist()) <= p for p in points):
             out.append(b)
     return out
 
@@ -218,10 +223,18 @@ def joint_torques(sim, state, f: np.ndarray, idx=None) -> np.ndarray:
     default all), by virtual work as the skeleton kernel applies them: a hinge j gets (W_j x (x - P_j) + D_j) . f
     (a plain hinge: a_j . (x - p_j) x f) from the vertices of the segments it moves; the driver of a coupled joint gets
     (W x (x - P) + R_p d') . f from the vertices of its child (skeleton.joint_jacobians; docs/solver.md "Skeleton").
-    0 for a fixed or coupled joint."""
+    A point via ring on one of those vertices' segments adds the net force f on its free vertices at its centroid's
+    place on the bone, as the step's skeleton stage takes it (integration.via_forces). 0 for a fixed or coupled joint."""
     idx = sim.att_idx if idx is None else np.asarray(idx)
     seg = sim.vertex_segment[idx]
     x, F = state.x[idx], f[idx]
+    rings = [r for r in range(sim.via_seg.size) if sim.via_seg[r] in set(seg.tolist())]
+    if rings:
+        ring_f = [f[v[sim.inv_mass[v] > 0]].sum(axis=0) for v in (sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]
+                                                                  for r in rings)]
+        where = [state.seg_R[sim.via_seg[r]] @ sim.via_local[r] + state.seg_t[sim.via_seg[r]] for r in rings]
+        seg = np.concatenate([seg, sim.via_seg[rings]])
+        x, F = np.concatenate([x, np.reshape(where, (-1, 3))]), np.concatenate([F, np.reshape(ring_f, (-1, 3))])
     tau = np.zeros(sim.n_joints)
     W, P, D = joint_jacobians(state.q, sim.skeleton, state.seg_R, state.seg_t)
     for j in range(sim.n_joints):

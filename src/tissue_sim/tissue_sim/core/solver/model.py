@@ -79,6 +79,10 @@ class SimModel:
     free_idx: np.ndarray            # (V - A,) int32 free vertices
     att_idx: np.ndarray             # (A,) int32 bone-attached vertices, grouped by segment (ascending vertex within)
     att_seg: np.ndarray             # (A,) int32 their segments
+    via_off: np.ndarray             # (R+1,) int64 point via rings (TissueModel.via_point_*): ring r's vertices
+    via_idx: np.ndarray             # (N,) int32 via_idx[via_off[r]:via_off[r + 1]]
+    via_seg: np.ndarray             # (R,) int32 the segment holding ring r's centroid
+    via_local: np.ndarray           # (R, 3) [m] the centroid's place in that segment's frame (its rest centroid)
     # skeleton
     seg_order: np.ndarray           # (S,) parents before children
     seg_parent: np.ndarray
@@ -343,6 +347,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         centre_lines=lines,
         free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
         att_idx=_frozen(att), att_seg=_frozen(vs[att]),
+        **via_points(tm, rest),
         seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
         seg_mass=_frozen(seg_mass), seg_com=_frozen(seg_com), seg_inertia=_frozen(seg_I),
         j_parent=_frozen(tm.joint_parent, np.int32), j_child=_frozen(tm.joint_child, np.int32),
@@ -397,6 +402,16 @@ def coupling_spline(tm: TissueModel, joint_paths: bool = True) -> dict:
     sec = np.asarray(tm.joint_path_axes, np.float64).reshape(J, 2, 3)
     return dict(j_driver=_frozen(tm.joint_driver, np.int32), cp_off=_frozen(np.array(off, np.int64)),
                 cp_x=_frozen(cp_x.astype(np.float64)), cp_c=_frozen(cp_c), j_sec=_frozen(sec))
+
+
+def via_points(tm: TissueModel, rest: np.ndarray) -> dict:
+    """The point via rings' arrays of SimModel (via_off, via_idx, via_seg, via_local): each ring's vertices, its segment
+    and its rest centroid (a segment's frame is the model frame in the rest pose; integration.hold_via_points)."""
+    off, idx = np.asarray(tm.via_point_offsets, np.int64), np.asarray(tm.via_point_vertices, np.int32)
+    R = off.size - 1
+    local = np.array([rest[idx[off[r]:off[r + 1]]].mean(axis=0) for r in range(R)]).reshape(R, 3)
+    return dict(via_off=_frozen(off), via_idx=_frozen(idx), via_seg=_frozen(np.asarray(tm.via_point_segment, np.int32)),
+                via_local=_frozen(local, np.float64))
 
 
 def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarray, sizes: np.ndarray) -> np.ndarray:

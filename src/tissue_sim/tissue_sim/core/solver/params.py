@@ -165,7 +165,7 @@ class Params:
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
-                    sheath_below='sartorius,gracilis', sheath_radius=1e-3,
+                    sheath_below='sartorius,gracilis,semitendinosus', sheath_radius=1e-3,
                     active_length='path', length_measure='centre_line', volume_measure='enclosed',
                     end_ring_pull='bound', joint_paths=True)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
@@ -188,6 +188,12 @@ class Params:
         # -1.8 mm), `tissue-sim validate`: 22 wrong signs (23); on the limb regenerated with the partition rule for a
         # squeezed-out muscle (tools/anatomy/README.md) sartorius stays a flexor without it too (-1.0 mm), and the sheath
         # takes its active moment arm at 0 deg from +6.0 to +10.0 mm, gracilis' from +3.4 to +5.4 (OpenSim +12.0, +21.7)
+        # semitendinosus in the sheath below the knee too (the pes anserinus' third tendon, with sartorius and gracilis): its
+        # tendon passes its via point on the tibia (a point via, docs/builder.md "Via points"), a ring that turns freely
+        # (not sheathed itself); without the sheath the turning ring swung the free ring above it forwards on the 3x limb
+        # (8 mm) and semitendinosus' isometric knee torque at 0 deg (implicit x4, 0.3 s) fell to -4.5 N m (1x: 17.0); with
+        # it 12.8 N m, the four hamstrings' 93.1 against 93.8 N m on the 1x limb, where no free vertex of semitendinosus
+        # lies in the sheath's reach below the knee but its via ring (the 1x limb's figures are the same with or without it)
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
         # falls as the knee flexes, and full co-contraction at 30 deg gives 18.4 N m/rad against the passive knee's 8.8
@@ -299,6 +305,23 @@ class Params:
             elif t in (bool, int, str) and (not isinstance(v, t) or (t is int and isinstance(v, bool))):
                 raise ValueError(f'solver parameters: {k} must be a {t.__name__}, got {v!r}')
         return cls(**kw).validate()
+
+    @classmethod
+    def from_assignments(cls, preset: str, assignments, **fields) -> 'Params':
+        """The preset ('paper' or 'physical') with ``fields`` and then NAME=VALUE overrides (a bench's repeatable --set;
+        each VALUE read as YAML: 0.5, 3e7, true, knee, [0, 0, -9.81]; '' or nothing after '=' is the empty string).
+        ValueError naming the bad assignment or field."""
+        d = {'preset': preset, **fields}
+        for a in assignments:
+            name, eq, text = str(a).partition('=')
+            if not eq or not name.strip():
+                raise ValueError(f'solver parameters: {a!r}: expected NAME=VALUE')
+            try:
+                v = yaml.safe_load(text) if text.strip() not in ('', "''", '""') else ''
+            except yaml.YAMLError:
+                raise ValueError(f'solver parameters: {a!r}: VALUE is not a YAML scalar or list') from None
+            d[name.strip()] = '' if v is None else v
+        return cls.from_dict(d)
 
     @classmethod
     def from_yaml(cls, path) -> 'Params':

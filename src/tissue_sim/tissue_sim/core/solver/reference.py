@@ -210,9 +210,15 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.muscle_velocity[seen] += h / (p.fv_filter_time + h) * (
                 (length - state.muscle_length)[seen] / h - state.muscle_velocity[seen])
             state.muscle_length[:] = length
-        # 2. skeleton: joint torques from the forces on the bone-attached vertices, tau_pe and the last sub-step's contact
-        # reaction (state.contact_wrench), joint dynamics (a locked hinge is driven to its target, its torque in
-        # state.joint_lock_torque), poses
+        # 2. skeleton: joint torques from the forces on the bone-attached vertices, the point via rings' net forces at
+        # their centroids' places, tau_pe and the last sub-step's contact reaction (state.contact_wrench), joint dynamics
+        # (a locked hinge is driven to its target, its torque in state.joint_lock_torque), poses
+        for r in range(sim.via_seg.size):
+            ring = sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]
+            s_ = sim.via_seg[r]
+            force = f[ring[inv_den[ring] > 0]].sum(axis=0)
+            state.contact_wrench[s_] += np.concatenate([force, np.cross(state.seg_R[s_] @ sim.via_local[r]
+                                                                        + state.seg_t[s_], force)])
         SK.skeleton_step(h, state.q, state.qd, f, y, sim.skeleton, sim.att_idx, sim.att_seg,
                          p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
                          np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque, tau_pe,
@@ -240,6 +246,9 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
             state.x[free] += h * state.v[free]
             state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
+        # 3b. point via rings: each ring's centroid moved onto its place on its bone by moving its free vertices alike
+        if sim.via_seg.size:
+            via_stage(sim, h, state.x, state.v, state.seg_R, state.seg_t, inv_den)
         # 4. fold contact (Params.fold_contact), then bone contact: free vertices closer to a bone than their floor are
         # projected out (Params.bone_contact); the segments take the reaction of each velocity change, for the next sub-step
         if sim.contact.g_seg.size or sim.contact.f_seg.size:
@@ -319,6 +328,22 @@ def react(wr, s, share, x, m, dv, h):
     F = -share * m[:, None] * dv / h
     wr[s, :3] += F.sum(axis=0)
     wr[s, 3:] += np.cross(x, F).sum(axis=0)
+
+
+def via_stage(sim, h, x, v, seg_R, seg_t, inv_den):
+    """Stage 3b, the point via rings (SimModel.via_*; integration.hold_via_points compiled), in place: ring r's
+    centroid onto p = R_s local_r + t_s by moving its free vertices by d = (p - c) n / n_free (velocities by d / h).
+    (Its bone took the ring's net force in stage 2.)"""
+    for r in range(sim.via_seg.size):
+        ring = sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]
+        free = ring[inv_den[ring] > 0]
+        if not free.size:
+            continue
+        s = sim.via_seg[r]
+        p = seg_R[s] @ sim.via_local[r] + seg_t[s]
+        d = (p - x[ring].mean(axis=0)) * ring.size / free.size
+        x[free] += d
+        v[free] += d / h
 
 
 def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h, m=None, wr=None):

@@ -50,7 +50,8 @@ Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
                                 'fmax path_muscle path_data path_powers path_coef path_shift l_rest enc_size enc_start enc_cell '
                                 'enc_s6 enc_v0 enc_k enc_idx off cv cell_muscle k_active rest_length end_cell end_top end_free_off end_free '
-                                'end_bound_off end_bound')     # enc_*: volume.Enclosed; end_*: cells.EndRings
+                                'end_bound_off end_bound via_off via_idx via_seg via_local')     # enc_*: volume.Enclosed;
+                                # end_*: cells.EndRings; via_*: the point via rings (SimModel.via_*)
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 pe_curve')
 Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mlen0 mvel0 act_t muscle_sums act0 passive '
@@ -139,8 +140,11 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0; a_st[:] = scratch.act0
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
-            # 2. skeleton: joint torques from the forces on bone-attached vertices, the passive fibre force and the last
-            # sub-step's contact reaction (stage 4), joint dynamics
+            # 2. skeleton: joint torques from the forces on bone-attached vertices, the point via rings' net forces
+            # (integration.via_forces), the passive fibre force and the last sub-step's contact reaction (stage 4), joint dynamics
+            if tissue.via_seg.shape[0] > 0:
+                IK.via_forces(f, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local, st.seg_R, st.seg_t,
+                              tissue.inv_den, st.contact_wrench)
             ok = SK.skeleton_step(h, q, qd, f, xe, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
                                   st.seg_R, st.seg_t, scratch.skel_work, lock, target, st.joint_lock_torque, scratch.tau_pe,
                                   st.contact_wrench)
@@ -176,6 +180,10 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 SK.forward_kinematics(q, sk, st.seg_R, st.seg_t)
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
+            # 3b. point via rings: each one's centroid moved onto its place on its bone (integration.hold_via_points)
+            if tissue.via_seg.shape[0] > 0:
+                IK.hold_via_points(h, xb, vb, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local,
+                                   st.seg_R, st.seg_t, tissue.inv_den)
             # 4. bone contact: free vertices closer to a bone than the margin are projected out, their inward
             # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
             # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane);
@@ -265,7 +273,8 @@ class Workspace:
                         sim.cell_muscle[mcells], sim.length_weight[mcells],
                         np.where(vl0 > 0, 1.0 / np.where(vl0 > 0, vl0, 1.0), 0.0),
                         MU.muscle_constants(sim)[0], *MU.path_constants(sim),   # the force-length's constants (muscle.py)
-                        *enc, sim.off, sim.cv, sim.cell_muscle, sim.k_active, sim.rest_length, *sim.end_rings)
+                        *enc, sim.off, sim.cv, sim.cell_muscle, sim.k_active, sim.rest_length, *sim.end_rings,
+                        sim.via_off, sim.via_idx, sim.via_seg, sim.via_local)
         num = Numbers(math.log(p.contraction_rate), math.log(p.relax_rate), float(p.min_stretch), float(p.rate_dt),
                       p.volume_mode == 'actual', int(p.rotation_iterations), float(p.joint_damping),
                       float(p.limit_omega_dt), float(p.limit_damping_ratio), float(p.velocity_damping),
