@@ -713,8 +713,8 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
     vertices are not sheathed: the via holds the ring's centroid and lets it turn (docs/solver.md "Point vias"); held
     each near its rest line, the ring would turn with the bone, and the cell above semitendinosus' turned inside out at
     the knee's 120-deg stop."""
-    vs = np.asarray(vertex_segment).copy()
-    vs[np.asarray(getattr(tm, 'via_point_vertices', np.zeros(0, np.int32)), np.int64)] = -2     # (not free: left out)
+    vs = np.asarray(vertex_segment)
+    via = np.asarray(tm.via_point_vertices)
 
     def free_vertices(spec):
         names = [g.strip() for g in str(spec).split(',') if g.strip()]
@@ -722,7 +722,7 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
         cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
         cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
                          if len(cells) else np.zeros(0, np.int64))
-        return cand[vs[cand] == -1]
+        return cand[(vs[cand] < 0) & ~np.isin(cand, via)]
     up, down = free_vertices(group), free_vertices(below)
     cand = np.union1d(up, down)
     held = {1.0: np.isin(cand, up), -1.0: np.isin(cand, down)}

@@ -228,13 +228,9 @@ def joint_torques(sim, state, f: np.ndarray, idx=None) -> np.ndarray:
     idx = sim.att_idx if idx is None else np.asarray(idx)
     seg = sim.vertex_segment[idx]
     x, F = state.x[idx], f[idx]
-    rings = [r for r in range(sim.via_seg.size) if sim.via_seg[r] in set(seg.tolist())]
-    if rings:
-        ring_f = [f[v[sim.inv_mass[v] > 0]].sum(axis=0) for v in (sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]
-                                                                  for r in rings)]
-        where = [state.seg_R[sim.via_seg[r]] @ sim.via_local[r] + state.seg_t[sim.via_seg[r]] for r in rings]
-        seg = np.concatenate([seg, sim.via_seg[rings]])
-        x, F = np.concatenate([x, np.reshape(where, (-1, 3))]), np.concatenate([F, np.reshape(ring_f, (-1, 3))])
+    vseg, where, pull = via_pulls(sim, f, state.seg_R, state.seg_t)
+    mine = np.isin(vseg, seg)
+    seg, x, F = np.concatenate([seg, vseg[mine]]), np.concatenate([x, where[mine]]), np.concatenate([F, pull[mine]])
     tau = np.zeros(sim.n_joints)
     W, P, D = joint_jacobians(state.q, sim.skeleton, state.seg_R, state.seg_t)
     for j in range(sim.n_joints):
@@ -246,6 +242,18 @@ def joint_torques(sim, state, f: np.ndarray, idx=None) -> np.ndarray:
             continue
         tau[k] += float(W[j] @ np.cross(x[sel] - P[j], F[sel]).sum(0) + D[j] @ F[sel].sum(0))
     return tau
+
+
+def via_pulls(sim, f: np.ndarray, seg_R: np.ndarray, seg_t: np.ndarray) -> tuple:
+    """The point via rings' pull on their bones (docs/solver.md "Point vias"; integration.via_forces compiled): per ring
+    its segment, its centroid's place p = R_s local + t_s in the poses (seg_R, seg_t) and the net force f on its free
+    vertices. Returns (segments (R,), places (R, 3), forces (R, 3))."""
+    R = sim.via_seg.size
+    free = sim.inv_mass > 0
+    where = np.einsum('rij,rj->ri', seg_R[sim.via_seg], sim.via_local).reshape(R, 3) + seg_t[sim.via_seg].reshape(R, 3)
+    pull = np.array([f[v[free[v]]].sum(axis=0) for v in np.split(sim.via_idx, sim.via_off[1:-1])] if R else
+                    np.zeros((0, 3))).reshape(R, 3)
+    return np.asarray(sim.via_seg), where, pull
 
 
 def skeleton_energy(sim, state) -> float:

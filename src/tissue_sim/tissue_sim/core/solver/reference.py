@@ -13,6 +13,7 @@ import collections
 import numpy as np
 
 from tissue_sim.core.solver import cells as CK, contact as CT, implicit as IM, muscle as MU, skeleton as SK
+from tissue_sim.core.solver.measures import via_pulls
 from tissue_sim.core.solver.model import SimModel, State, substeps_for
 
 Padded = collections.namedtuple('Padded', 'idx mask bottom X0')   # (C, P) vertex, real slot, bottom ring; (C, P, 3)
@@ -213,12 +214,8 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         # 2. skeleton: joint torques from the forces on the bone-attached vertices, the point via rings' net forces at
         # their centroids' places, tau_pe and the last sub-step's contact reaction (state.contact_wrench), joint dynamics
         # (a locked hinge is driven to its target, its torque in state.joint_lock_torque), poses
-        for r in range(sim.via_seg.size):
-            ring = sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]
-            s_ = sim.via_seg[r]
-            force = f[ring[inv_den[ring] > 0]].sum(axis=0)
-            state.contact_wrench[s_] += np.concatenate([force, np.cross(state.seg_R[s_] @ sim.via_local[r]
-                                                                        + state.seg_t[s_], force)])
+        for s_, where, pull in zip(*via_pulls(sim, f, state.seg_R, state.seg_t)):
+            state.contact_wrench[s_] += np.concatenate([pull, np.cross(where, pull)])
         SK.skeleton_step(h, state.q, state.qd, f, y, sim.skeleton, sim.att_idx, sim.att_seg,
                          p.joint_damping, p.limit_omega_dt, p.limit_damping_ratio, state.seg_R, state.seg_t,
                          np.zeros((max(J, 1), 8 + J)), lock, q_target, state.joint_lock_torque, tau_pe,
@@ -334,14 +331,13 @@ def via_stage(sim, h, x, v, seg_R, seg_t, inv_den):
     """Stage 3b, the point via rings (SimModel.via_*; integration.hold_via_points compiled), in place: ring r's
     centroid onto p = R_s local_r + t_s by moving its free vertices by d = (p - c) n / n_free (velocities by d / h).
     (Its bone took the ring's net force in stage 2.)"""
+    _, places, _ = via_pulls(sim, x, seg_R, seg_t)
     for r in range(sim.via_seg.size):
         ring = sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]
         free = ring[inv_den[ring] > 0]
         if not free.size:
             continue
-        s = sim.via_seg[r]
-        p = seg_R[s] @ sim.via_local[r] + seg_t[s]
-        d = (p - x[ring].mean(axis=0)) * ring.size / free.size
+        d = (places[r] - x[ring].mean(axis=0)) * ring.size / free.size
         x[free] += d
         v[free] += d / h
 
