@@ -263,9 +263,12 @@ def main():
           f'fat volume term costs {100 * (1 - r_phys / r_phys_nofat):.1f} %)')
     isim, r_imp = solver_rate(solver.Params.physical(integrator='implicit', substeps=1), 100)
     ifac = implicit_factor(isim)
-    print(f'numba solver, physical params, implicit      : {r_imp:9.0f} steps/s  (1 sub-step of 1 ms, one solve: '
-          f'{r_imp / r_phys_aff:.2f}x the affine mass_scaled row, {r_imp / r_phys:.2f}x the enclosed one; factor '
-          f'{ifac["unknowns"]} unknowns, {ifac["entries"]:,} entries)')
+    print(f'numba solver, physical params, implicit      : {r_imp:9.0f} steps/s  (1 sub-step of 1 ms, one solve, '
+          f'{isim.params.implicit_scheme}: {r_imp / r_phys_aff:.2f}x the affine mass_scaled row, {r_imp / r_phys:.2f}x '
+          f'the enclosed one; factor {ifac["unknowns"]} unknowns, {ifac["entries"]:,} entries)')
+    _, r_imp_be = solver_rate(solver.Params.physical(integrator='implicit', substeps=1, implicit_scheme='euler'), 100)
+    print(f'numba solver, physical params, implicit euler: {r_imp_be:9.0f} steps/s  (backward Euler instead of BDF2: '
+          f'BDF2 costs {100 * (1 - r_imp / r_imp_be):.1f} %)')
     _, r_imp2 = solver_rate(solver.Params.physical(integrator='implicit', substeps=1, implicit_iterations=2), 100)
     print(f'numba solver, physical params, implicit x2   : {r_imp2:9.0f} steps/s  (2 local/global iterations)')
     # plain numpy: reference_step, the same physics and integrator as the paper-set step (exact rotations by SVD)
@@ -297,6 +300,7 @@ def main():
                numpy_steps_per_s=round(r_numpy, 1), speedup_vs_numpy=round(r_step / r_numpy, 1), numpy_agreement_m=agree,
                target_steps_per_s=10000, target_met=bool(r_chunk >= 10000), steps_per_s_chunked_wall=round(r_chunk_wall),
                physical_implicit_steps_per_s=round(r_imp), physical_implicit2_steps_per_s=round(r_imp2),
+               physical_implicit_euler_steps_per_s=round(r_imp_be),
                implicit_speedup=round(r_imp / r_phys_aff, 2), implicit_speedup_vs_enclosed=round(r_imp / r_phys, 2),
                implicit_factor=ifac,
                cpu_load_1min=round(os.getloadavg()[0], 2), timing='per CPU second of this process, one thread')
@@ -431,13 +435,14 @@ def scaling_child(spec):
 def ab_rates(tm, rounds, seconds):
     """--ab N: the physical set under mass_scaled (4 sub-steps) with the affine volume measure, the one the implicit
     integrator holds (the ratio's reference: the same physics), and with the set's enclosed measure, and under implicit
-    (1 sub-step; all with the set's hamstring sheath, the implicit one with its correction solve), and implicit without
-    the sheath (what the correction costs), full hamstring activation, 100-step chunks, one thread: N rounds, each configuration one window of
+    (1 sub-step; all with the set's hamstring sheath, the implicit one with its correction solve; the set's BDF2 and
+    backward Euler), and implicit without the sheath (what the correction costs), full hamstring activation, 100-step chunks, one thread: N rounds, each configuration one window of
     `seconds` in turn (steps per CPU second, best of rate()'s 3 sub-windows), so load changes hit all of them alike.
     Prints each round, the median rates and ratio, and the load average."""
     from tissue_sim.core.solver.step import _run
     confs = (('mass_scaled', dict(volume_measure='affine')), ('mass_scaled, enclosed', {}),
              ('implicit', dict(integrator='implicit', substeps=1)),
+             ('implicit, backward Euler', dict(integrator='implicit', substeps=1, implicit_scheme='euler')),
              ('implicit, no sheath', dict(integrator='implicit', substeps=1, sheath_group='', sheath_below='')))
     runs = []
     for name, kw in confs:
@@ -469,7 +474,7 @@ def stage_times(tm, iterations, reps=None):
     """--stages I: where the implicit step's time goes (physical set, `integrator: implicit`, I iterations, one
     thread): each stage's kernel called on its own on the state after 200 steps of a full hamstring contraction,
     microseconds per call (CPU time, best of 3 windows), beside the whole step (step() in 10-step calls). A step makes
-    one prediction, I cell passes, one skeleton step, one integration (its bones' poses, the first solve, the
+    BDF2's start (the physical set's formula), one prediction, I cell passes, one skeleton step, one integration (its bones' poses, the first solve, the
     velocities), I - 1 further solves, the sheath correction and the contact stage."""
     from tissue_sim.core.solver import contact as CT, implicit as IM, skeleton as SK
     from tissue_sim.core.solver.step import _cell_pass
@@ -505,6 +510,8 @@ def stage_times(tm, iterations, reps=None):
         IM.sheath_correct(h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, 1e9, wr)
 
     stages = [
+        ('BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3', lambda: IM.bdf2_start(h, x, v, st.x_prev, st.v_prev,
+                                                                              st.history_h, imp.xh, imp.vh)),
         ('prediction y = x + h v', lambda: IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)),
         ('cell pass (rotations/polar, forces)', lambda: _cell_pass(x, v, f, cells, lam, act, num.vol_actual, num.iters,
                                                                      num.vol_gain, scratch.cell_work)),
@@ -523,7 +530,7 @@ def stage_times(tm, iterations, reps=None):
         print(f'  {name:55s} {res[name]:9.1f}', flush=True)
     whole = 1e6 / (10 * rate(lambda: solver.step(sim, st, ctrl, n_steps=10), 3.0))
     res['whole step'] = whole
-    parts = (res['prediction y = x + h v'] + iterations * res['cell pass (rotations/polar, forces)']
+    parts = (res['BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3'] * imp.bdf2 + res['prediction y = x + h v'] + iterations * res['cell pass (rotations/polar, forces)']
              + res['skeleton step'] + iterations * (res['solve: rhs + L, D^-1, L^T (one)'] + res['velocities (x1 - x)/h'])
              + res['sheath correction (offsets, region solve, velocities)'] + res['fold + bone contact (stage 4)'])
     print(f'  {"sum of the parts (x iterations where repeated)":55s} {parts:9.1f}')

@@ -42,7 +42,7 @@ from numba import njit
 from tissue_sim.core.solver import contact as CT, integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux')
+                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 xh vh')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
@@ -52,7 +52,8 @@ star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n
 The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [N/m] k_s of each vertex
 (sheath_weights), sd (V, 6) scratch (each sheathed vertex's way back, its position before the correction), the factor of A' = A + diag(ks) in the same
 star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
-s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form."""
+s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form. bdf2 (bool): the scheme is BDF2
+(the factor is then at solve_length(h) = 2h/3); xh, vh (V, 3) its starting point (bdf2_start; scratch)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -202,14 +203,54 @@ def _factor(A):
     return np.argsort(lu.perm_c), Ls, d
 
 
+def solve_length(p, h: float) -> float:
+    """[s] The step length the implicit solve is made with for sub-step length h: h (backward Euler), 2h/3 (BDF2:
+    x1 = xh + (2h/3) v1, v1 = vh + (2h/3) a1, bdf2_start)."""
+    return h * 2.0 / 3.0 if p.implicit_scheme == 'bdf2' else h
+
+
+@njit(cache=True)
+def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh):
+    """BDF2's starting point of a sub-step of length h from the last two: xh = (4 x - x_prev) / 3, vh = (4 v - v_prev) / 3
+    (the step is then backward Euler's from (xh, vh) over 2h/3). Without a history at h (history_h[0] != h: the first
+    sub-step, or h changed) the past is taken at constant velocity, x_prev = x - h v, v_prev = v: then xh = x + h v / 3,
+    vh = v, and the prediction xh + (2h/3) vh = x + h v is backward Euler's."""
+    fresh = history_h[0] != h
+    for i in range(x.shape[0]):
+        for a in range(3):
+            xp = x[i, a] - h * v[i, a] if fresh else x_prev[i, a]
+            vp = v[i, a] if fresh else v_prev[i, a]
+            xh[i, a] = (4.0 * x[i, a] - xp) / 3.0
+            vh[i, a] = (4.0 * v[i, a] - vp) / 3.0
+
+
+@njit(cache=True)
+def bdf2_history(h, x, v, xn, vn, xc, vc, x_prev, v_prev, history_h):
+    """After a BDF2 sub-step from (x, v) to (xn, vn): the next one's history, x_prev = x, v_prev = v, except for the
+    vertices a stage after the solve moved or whose velocity it changed (the fold and bone contact, stage 4: (xc, vc) are
+    the positions and velocities before it): their past is taken at constant velocity, x_prev = xn - h vn, v_prev = vn (a
+    projection is not motion: carried in the history, BDF2's extrapolation would turn the jump into velocity, and a vertex
+    pushed out of a bone every sub-step ran away: the 6x limb at 16 sub-steps diverged at step 296)."""
+    for i in range(x.shape[0]):
+        jump = (xn[i, 0] != xc[i, 0] or xn[i, 1] != xc[i, 1] or xn[i, 2] != xc[i, 2]
+                or vn[i, 0] != vc[i, 0] or vn[i, 1] != vc[i, 1] or vn[i, 2] != vc[i, 2])
+        for a in range(3):
+            x_prev[i, a] = xn[i, a] - h * vn[i, a] if jump else x[i, a]
+            v_prev[i, a] = vn[i, a] if jump else v[i, a]
+    history_h[0] = h
+
+
 def make(sim, h: float) -> Implicit:
-    """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators)."""
+    """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators); its system at
+    solve_length(h)."""
     V = sim.n_vertices
     e_i, e_f, e_p = np.zeros(0, np.int32), np.zeros(0), np.zeros(1, np.int64)
     if sim.params.integrator != 'implicit':
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
                         e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
-                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f)
+                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f, False, np.zeros((0, 3)), np.zeros((0, 3)))
+    bdf2 = sim.params.implicit_scheme == 'bdf2'
+    h = solve_length(sim.params, h)
     A, free, keff = star_system(sim, h)
     nf, n = free.size, A.shape[0]
     unk, Ls, d = _factor(A)
@@ -251,7 +292,8 @@ def make(sim, h: float) -> Implicit:
         sU = (e_p, e_i, e_f)
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
-                    np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU)
+                    np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, np.zeros((V, 3)),
+                    np.zeros((V, 3)))
 
 
 def _transposed(Ls):

@@ -170,6 +170,10 @@ class State:
                                     # its moment about the world origin [N m]), applied in the next sub-step (docs/contact.md)
     step: int = 0
     time: float = 0.0               # [s]
+    x_prev: np.ndarray = None       # (V, 3) [m] the positions one sub-step back (implicit_scheme 'bdf2'; internal)
+    v_prev: np.ndarray = None       # (V, 3) [m/s] the velocities one sub-step back
+    history_h: np.ndarray = None    # (1,) [s] the sub-step length x_prev and v_prev are back by (0: no history; a bdf2 step
+                                    # then takes the past as at constant velocity, x_prev = x - h v, v_prev = v)
     x_back: np.ndarray = None       # double buffers (internal)
     v_back: np.ndarray = None
     workspace: object = dataclasses.field(default=None, repr=False)   # the step's scratch buffers (step.Workspace,
@@ -563,7 +567,8 @@ def make_state(sim: SimModel) -> State:
                cell_length=np.zeros(C), muscle_length=np.full(max(sim.n_muscles, 0), -1.0),
                muscle_velocity=np.zeros(max(sim.n_muscles, 0)), joint_lock_torque=np.zeros(J),
                activation=np.zeros(max(sim.n_muscles, 0)), contact_wrench=np.zeros((S, 6)),
-               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)))
+               x_back=np.empty((V, 3)), v_back=np.empty((V, 3)), x_prev=np.zeros((V, 3)), v_prev=np.zeros((V, 3)),
+               history_h=np.zeros(1))
     SK.coupled_coordinates(st.q, st.qd, sim.skeleton)
     return st
 
@@ -597,6 +602,8 @@ def set_joint_positions(sim: SimModel, state: State, q, qd=None) -> State:
     state.muscle_velocity[:] = 0.0
     if state.contact_wrench is not None:
         state.contact_wrench[:] = 0.0    # (the last sub-step's contact reaction belongs to the old pose)
+    if state.history_h is not None:
+        state.history_h[:] = 0.0         # (BDF2 starts again: the last sub-step is not this pose's past)
     return state
 
 

@@ -26,6 +26,7 @@ VOLUME_MODES = ('actual', 'rest')
 VOLUME_MEASURES = ('affine', 'enclosed')
 END_RING_PULLS = ('ring', 'bound')
 INTEGRATORS = ('mass_scaled', 'explicit', 'implicit')
+IMPLICIT_SCHEMES = ('bdf2', 'euler')
 ACTIVE_LENGTHS = ('chord', 'path')
 LENGTH_MEASURES = ('chord', 'centre_line')
 
@@ -39,6 +40,11 @@ class Params:
                                           # h^2 kappa / stability_limit^2 where its cells' summed stiffness kappa needs it;
                                           # 'explicit': true masses, automatic sub-steps (docs/solver.md);
                                           # 'implicit': implicit Euler of the free vertices (prefactored; true masses, 1 sub-step)
+    implicit_scheme: str = 'euler'        # the implicit integrator's formula: 'euler' = backward Euler; 'bdf2' = the
+                                          # second-order backward differentiation formula (the physical set's: the solve at
+                                          # 2h/3 from the last two sub-steps, less numerical damping; its margin for stiffness
+                                          # beyond the system matrix is smaller: the paper set's unit-mass cells diverged
+                                          # with it; docs/solver.md "Implicit integrator", "The formula")
     implicit_iterations: int = 1          # local/global iterations per sub-step of the implicit integrator (1: one solve)
     implicit_volume_cap: float = 1.0      # implicit integrator only: a cell's volume-term stiffness at most this fraction of
                                           # its weight keff in the system matrix (the force scaled down beyond; 0 = unbounded;
@@ -160,7 +166,7 @@ class Params:
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
-                    integrator='mass_scaled', substeps=4, max_contraction_velocity=10.0,
+                    integrator='mass_scaled', substeps=4, implicit_scheme='bdf2', max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
@@ -257,6 +263,7 @@ class Params:
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
         need(math.isfinite(self.implicit_volume_cap) and self.implicit_volume_cap >= 0,
              'implicit_volume_cap must be a finite number >= 0 (0: off)')
+        need(self.implicit_scheme in IMPLICIT_SCHEMES, f'implicit_scheme must be one of {IMPLICIT_SCHEMES}')
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')
         need(1 <= self.rotation_iterations <= 50, 'rotation_iterations must be in [1, 50]')

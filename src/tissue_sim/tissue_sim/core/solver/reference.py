@@ -194,16 +194,23 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length        # [m/s] v_max L0 of each muscle
         vn = np.divide(state.muscle_velocity, vl0, out=np.zeros_like(vl0), where=vl0 > 0)
         act_t = a * np.array([CK.force_velocity(w, p.fv_max_lengthening) for w in vn]) if fv_on else a.copy()
-        # (integrator implicit: every force at the inertial prediction y, bone-attached vertices at x + h v)
+        # (integrator implicit: every force at the inertial prediction y, bone-attached vertices at x + h v; the solve is
+        # backward Euler's over hs from (xs, vs): (x, v) and h, or with BDF2 (4 x - x_prev)/3, (4 v - v_prev)/3 and 2h/3,
+        # the past at constant velocity where there is none at h)
         implicit = p.integrator == 'implicit'
-        y = np.where(free[:, None], state.x + h * (1.0 - h * p.velocity_damping) * (state.v + h * sim.gravity),
-                     state.x + h * state.v) if implicit else state.x
+        hs, xs, vs = h, state.x.copy(), state.v.copy()
+        if implicit and p.implicit_scheme == 'bdf2':
+            if state.x_prev is None or state.history_h is None or state.history_h[0] != h:
+                state.x_prev, state.v_prev, state.history_h = state.x - h * state.v, state.v.copy(), np.array([h])
+            hs, xs, vs = IM.solve_length(p, h), (4 * state.x - state.x_prev) / 3, (4 * state.v - state.v_prev) / 3
+        y = np.where(free[:, None], xs + hs * (1.0 - hs * p.velocity_damping) * (vs + hs * sim.gravity),
+                     xs + hs * vs) if implicit else state.x
         if fl_on:            # normalised fibre length l of each muscle's source-model path at the joint coordinates
             act_t = act_t * np.exp(-(path_fibres(sim, state.q)[0] - 1.0) ** 2 / p.fl_width)
         # the passive fibre force as joint torques (minus the gradient of its energy in the joint coordinates)
         tau_pe = passive_joint_torques(sim, state.q) if pe_on else np.zeros(J)
         f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
-            sim, pad, y, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
+            sim, pad, y, vs, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
         if fv_on:            # each muscle's length (sum of w_c l_c), its filtered lengthening velocity
             mc = sim.cell_muscle >= 0
             length = np.bincount(sim.cell_muscle[mc], (sim.length_weight * state.cell_length)[mc], sim.n_muscles)
@@ -226,32 +233,40 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
         i, s = sim.att_idx, sim.att_seg
         xa = np.einsum('aij,aj->ai', state.seg_R[s], sim.rest[i]) + state.seg_t[s]
         if implicit:
-            x_old, moved = state.x.copy(), np.zeros_like(state.x)
+            past = state.x.copy(), state.v.copy()
+            moved = np.zeros_like(state.x)
             moved[i] = xa - y[i]
-            state.x[free] = IM.reference_solve(sim, h, f, y, y, moved)
+            state.x[free] = IM.reference_solve(sim, hs, f, y, y, moved)
             state.x[i] = xa
-            state.v[:] = (state.x - x_old) / h
+            state.v[:] = (state.x - xs) / hs
             for _ in range(1, p.implicit_iterations):
                 f, state.cell_energy[:], state.cell_length[:], R = cell_forces(
                     sim, pad, state.x, state.v, state.lam, act_t, state.pressure, vol_gain, p.volume_mode == 'actual')
-                state.x[free] = IM.reference_solve(sim, h, f, state.x, y, np.zeros_like(state.x))
-                state.v[:] = (state.x - x_old) / h
+                state.x[free] = IM.reference_solve(sim, hs, f, state.x, y, np.zeros_like(state.x))
+                state.v[:] = (state.x - xs) / hs
             if sim.contact.s_idx.size:        # the sheath (docs/solver.md "Implicit integrator": the sheath)
-                sheath_correction(sim, h, state.x, state.seg_R, state.seg_t, state.contact_wrench)
-                state.v[:] = (state.x - x_old) / h
+                sheath_correction(sim, hs, state.x, state.seg_R, state.seg_t, state.contact_wrench)
+                state.v[:] = (state.x - xs) / hs
+            if p.implicit_scheme == 'bdf2':   # this sub-step is the next one's history (stage 4's vertices: below)
+                state.x_prev, state.v_prev, state.history_h = past[0], past[1], np.array([h])
         else:
             state.v[:] = (state.v + h * (f * inv_den[:, None] + sim.gravity)) * (1.0 - h * p.velocity_damping)
             state.x[free] += h * state.v[free]
             state.v[i], state.x[i] = (xa - state.x[i]) / h, xa
         # 3b. point via rings: each ring's centroid moved onto its place on its bone by moving its free vertices alike
         if sim.via_seg.size:
-            via_stage(sim, h, state.x, state.v, state.seg_R, state.seg_t, inv_den)
+            via_stage(sim, hs, state.x, state.v, state.seg_R, state.seg_t, inv_den)
         # 4. fold contact (Params.fold_contact), then bone contact: free vertices closer to a bone than their floor are
         # projected out (Params.bone_contact); the segments take the reaction of each velocity change, for the next sub-step
         if sim.contact.g_seg.size or sim.contact.f_seg.size:
+            before = state.x.copy(), state.v.copy()
             m = np.divide(1.0, inv_den, out=np.zeros_like(inv_den), where=inv_den > 0)
             fold_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h, m, state.contact_wrench)
             contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h, m, state.contact_wrench)
+            if implicit and p.implicit_scheme == 'bdf2':     # a projection is not motion: BDF2 restarts there
+                jump = np.any((state.x != before[0]) | (state.v != before[1]), axis=1)
+                state.x_prev[jump] = state.x[jump] - h * state.v[jump]
+                state.v_prev[jump] = state.v[jump]
         state.f[:] = f
     state.quat[:] = rotation_quaternions(R)
     state.step += 1

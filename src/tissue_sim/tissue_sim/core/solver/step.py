@@ -46,7 +46,8 @@ CAUSES = {CAUSE_CELL_FORCE: 'non-finite or overflowing elastic force', CAUSE_SPE
           CAUSE_SKELETON: 'non-finite joint acceleration'}
 
 Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam cell_energy pressure cell_length '
-                                'muscle_length muscle_velocity joint_lock_torque activation contact_wrench')   # the State's arrays (xb, vb: back buffers)
+                                'muscle_length muscle_velocity joint_lock_torque activation contact_wrench x_prev v_prev '
+                                'history_h')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
                                 'fmax path_muscle path_data path_powers path_coef path_shift l_rest enc_size enc_start enc_cell '
                                 'enc_s6 enc_v0 enc_k enc_idx off cv cell_muscle k_active rest_length end_cell end_top end_free_off end_free '
@@ -107,11 +108,16 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             # factor (muscle velocity from the last evaluation) x the active force-length factor (the fibre
             # length of the source-model path at the joint coordinates now), the passive fibre force as joint torques
             # (conservative, muscle.py), then every cell's elastic + volume + damping force; integrator
-            # implicit: all of them at the inertial prediction y = x + h v (+ h^2 g)
+            # implicit: all of them at the inertial prediction y = x + h v (+ h^2 g) with velocity v (BDF2: at
+            # y = xh + (2h/3) vh with vh, the velocity its solve corrects: v1 = vh + w / (2h/3))
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             xe = x
+            hs, xs, vs = h, x, v       # the implicit solve's step length and start (BDF2: 2h/3 from its combination)
+            if imp.on and imp.bdf2:
+                IM.bdf2_start(h, x, v, st.x_prev, st.v_prev, st.history_h, imp.xh, imp.vh)
+                hs, xs, vs = h * 2.0 / 3.0, imp.xh, imp.vh
             if imp.on:
-                IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)
+                IM.predict(hs, xs, vs, imp.y, imp.mh2, sk.gravity, num.vel_damp)
                 xe = imp.y
             if num.fl_on or num.pe_on:
                 MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
@@ -123,7 +129,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                                        scratch.tau_pe, scratch.passive)
             MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
                                      num.fl_gamma, act_t)
-            bad = _cell_pass(xe, v, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
+            bad = _cell_pass(xe, vs, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
             if tissue.enc_size.shape[0] > 0:
                 VO.enclosed_lanes(xe, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
                                   tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
@@ -150,8 +156,8 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                                   st.contact_wrench)
             st.contact_wrench[:] = 0.0    # (applied: stage 3's sheath correction and stage 4 write this sub-step's)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
-            if imp.on:             # implicit Euler: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
-                fast = IM.integrate(h, x, v, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
+            if imp.on:             # implicit: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
+                fast = IM.integrate(hs, xs, vs, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
                                     st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
                 for _ in range(1, imp.iters):
                     if fast or not ok:
@@ -167,9 +173,9 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                         CK.end_ring_shift(xb, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active,
                                           tissue.rest_length, tissue.end_cell, tissue.end_top, tissue.end_free_off,
                                           tissue.end_free, tissue.end_bound_off, tissue.end_bound, lam, act_t)
-                    fast = IM.correct(h, x, f, xb, vb, imp, num.vmax2)
+                    fast = IM.correct(hs, xs, f, xb, vb, imp, num.vmax2)
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
-                    fast = IM.sheath_correct(h, x, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
+                    fast = IM.sheath_correct(hs, xs, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
             else:
                 fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
                                     st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
@@ -180,18 +186,23 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 SK.forward_kinematics(q, sk, st.seg_R, st.seg_t)
                 CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
                 return swaps
-            # 3b. point via rings: each one's centroid moved onto its place on its bone (integration.hold_via_points)
+            # 3b. point via rings: each one's centroid moved onto its place on its bone (integration.hold_via_points;
+            # a move d changes the velocity by d / hs: v1 = (x1 - xs) / hs)
             if tissue.via_seg.shape[0] > 0:
-                IK.hold_via_points(h, xb, vb, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local,
+                IK.hold_via_points(hs, xb, vb, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local,
                                    st.seg_R, st.seg_t, tissue.inv_den)
             # 4. bone contact: free vertices closer to a bone than the margin are projected out, their inward
             # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
             # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane);
             # each velocity change's reaction goes to the segment that made it, for the next sub-step's skeleton step
+            if imp.on and imp.bdf2:    # (the state before stage 4, for BDF2's history: implicit.bdf2_history)
+                imp.xh[:] = xb; imp.vh[:] = vb
             if cgrid.g_seg.shape[0] > 0 or cgrid.f_seg.shape[0] > 0:
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
                 CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
                 CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
+            if imp.on and imp.bdf2:    # the sub-step is taken: it is BDF2's history for the next one
+                IM.bdf2_history(h, x, v, xb, vb, imp.xh, imp.vh, st.x_prev, st.v_prev, st.history_h)
             x, xb = xb, x
             v, vb = vb, v
             swaps += 1
@@ -315,9 +326,12 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
         state.activation = np.zeros(sim.n_muscles)
     if state.contact_wrench is None:
         state.contact_wrench = np.zeros((sim.n_segments, 6))
+    if state.x_prev is None or state.x_prev.shape != state.x.shape:
+        state.x_prev, state.v_prev, state.history_h = np.zeros_like(state.x), np.zeros_like(state.x), np.zeros(1)
     st = (state.x, state.v, state.x_back, state.v_back, state.f, state.quat, state.q, state.qd, state.seg_R,
           state.seg_t, state.lam, state.cell_energy, state.pressure, state.cell_length, state.muscle_length,
-          state.muscle_velocity, state.joint_lock_torque, state.activation, state.contact_wrench)   # (the fields of Arrays)
+          state.muscle_velocity, state.joint_lock_torque, state.activation, state.contact_wrench, state.x_prev,
+          state.v_prev, state.history_h)   # (the fields of Arrays)
     if lock is None:
         lock, target = ws.no_lock
     run = advance
