@@ -42,7 +42,7 @@ from numba import njit
 from tissue_sim.core.solver import contact as CT, integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 xh vh')
+                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
@@ -53,7 +53,8 @@ The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [
 (sheath_weights), sd (V, 6) scratch (each sheathed vertex's way back, its position before the correction), the factor of A' = A + diag(ks) in the same
 star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
 s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form. bdf2 (bool): the scheme is BDF2
-(the factor is then at solve_length(h) = 2h/3); xh, vh (V, 3) its starting point (bdf2_start; scratch)."""
+(the factor is then at solve_length(h) = 2h/3); hs [s] that solve length (h with backward Euler); xh, vh (V, 3) its
+starting point (bdf2_start; scratch)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -248,7 +249,7 @@ def make(sim, h: float) -> Implicit:
     if sim.params.integrator != 'implicit':
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
                         e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
-                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f, False, np.zeros((0, 3)), np.zeros((0, 3)))
+                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)))
     bdf2 = sim.params.implicit_scheme == 'bdf2'
     h = solve_length(sim.params, h)
     A, free, keff = star_system(sim, h)
@@ -292,8 +293,8 @@ def make(sim, h: float) -> Implicit:
         sU = (e_p, e_i, e_f)
     return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
-                    np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, np.zeros((V, 3)),
-                    np.zeros((V, 3)))
+                    np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
+                    np.zeros((V, 3)), np.zeros((V, 3)))
 
 
 def _transposed(Ls):

@@ -115,7 +115,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             hs, xs, vs = h, x, v       # the implicit solve's step length and start (BDF2: 2h/3 from its combination)
             if imp.on and imp.bdf2:
                 IM.bdf2_start(h, x, v, st.x_prev, st.v_prev, st.history_h, imp.xh, imp.vh)
-                hs, xs, vs = h * 2.0 / 3.0, imp.xh, imp.vh
+                hs, xs, vs = imp.hs, imp.xh, imp.vh      # (implicit.solve_length)
             if imp.on:
                 IM.predict(hs, xs, vs, imp.y, imp.mh2, sk.gravity, num.vel_damp)
                 xe = imp.y
