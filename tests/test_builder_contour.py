@@ -103,6 +103,49 @@ def test_ring_start_minimises_twist():
     assert np.abs(ring - [0.01, -0.005] - ref).max() < 1e-9
 
 
+def _foot(n=36):
+    """A long skin outline (the foot's lowest slices: 250 x 70 mm) and a small inner region near its heel end."""
+    t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    skin = np.stack([0.125 * np.cos(t), 0.035 * np.sin(t) * (1 + 0.15 * np.cos(t))], 1)
+    outer, _ = CT.best_ring(CT.resample(skin, CT.FINE * n), n, None, None)
+    inner = CT.resample(np.stack([-0.085 + 0.012 * np.cos(t), 0.01 * np.sin(t)], 1), CT.FINE * n)
+    return outer, inner
+
+
+def test_fat_inner_ring_keeps_its_vertices_apart_where_a_long_skin_faces_a_small_region():
+    """The pairing along the inner outline (contours.pair_inner): valid quads, neighbouring inner vertices at least
+    INNER_FLOOR x the even spacing apart. Pairing by angle about the region's centre (fat_rings' first try) crowds
+    them here; on the 6x limb's foot it made coincident inner vertices, on the 3x crossing cells (rays instead)."""
+    n = 36
+    outer, inner = _foot(n)
+    even = np.linalg.norm(np.diff(np.vstack([inner, inner[:1]]), axis=0), axis=1).sum() / n
+    ci = inner.mean(axis=0)                             # pairing by angle, for contrast
+    ang = lambda p: np.arctan2(p[:, 1] - ci[1], p[:, 0] - ci[0])
+    dif = np.abs((ang(inner)[None, :] - ang(outer)[:, None] + np.pi) % (2 * np.pi) - np.pi)
+    by_angle = inner[np.argmin(dif, axis=1)]
+    gaps = lambda r: np.linalg.norm(np.roll(r, -1, axis=0) - r, axis=1)
+    assert gaps(by_angle).min() < 0.2 * even
+    paired = CT.pair_inner(inner, outer)
+    assert paired is not None and CT.fat_quads_valid(paired, outer)
+    assert gaps(paired).min() >= 0.95 * CT.INNER_FLOOR * even
+    # concentric circles: every inner vertex is the radial foot of its skin vertex
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = np.stack([0.05 * np.cos(t), 0.05 * np.sin(t)], 1)
+    circ = CT.resample(np.stack([0.03 * np.cos(t), 0.03 * np.sin(t)], 1), CT.FINE * n)
+    p = CT.pair_inner(circ, ring)
+    assert np.abs(p - 0.6 * ring).max() < 1e-9
+
+
+def test_fat_inner_ring_none_where_no_layer_of_cells_can_face_the_skin():
+    """A skin outline that is not star-shaped from the inner region (a notch facing away from it): no monotone pairing
+    gives valid quads, and the builder falls back to rays on that slice (reported)."""
+    t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    r = 0.05 * (1 + 0.6 * np.cos(5 * t))                 # a five-pointed star with deep notches
+    star, _ = CT.best_ring(CT.resample(np.stack([r * np.cos(t), r * np.sin(t)], 1), CT.FINE * 40), 40, None, None)
+    inner = CT.resample(np.stack([0.065 + 0.004 * np.cos(t), 0.004 * np.sin(t)], 1), CT.FINE * 40)
+    assert CT.pair_inner(inner, star) is None
+
+
 def test_area_matching_keeps_a_crescent_area():
     t = np.linspace(0, 2 * np.pi, 720, endpoint=False)
     outer = np.stack([np.cos(t), np.sin(t)], 1)

@@ -10,6 +10,7 @@ import pytest
 from tissue_sim.cli import main
 from tissue_sim.core import builder
 from tissue_sim.core.builder.assemble import cut_fragments, settings_with_defaults
+from tissue_sim.core.builder import quality
 from tissue_sim.errors import UserError
 
 try:
@@ -119,6 +120,11 @@ def _check_fine(tm, rep, base, R):
         assert any(f['muscle'] in w and 'left out' in w for w in rep['warnings'])
     for name, r in q['volume_ratio'].items():
         assert abs(r - 1) < 0.1, (name, r)
+    # no fat ring's inner vertices crowd together (wedge cells; contours.pair_inner, assemble.FALLBACK_CORE): on each
+    # slice the shortest inner edge is at least 5 % of the mean (before: 1.7 % at 3x, 0 at 6x, on the foot)
+    r, zi = quality.fat_inner_spacing(tm)
+    assert r >= 0.05, (r, zi)
+    assert q['fat_inner_spacing'] == {'min_ratio': round(r, 4), 'slice': zi}
     return t1
 
 

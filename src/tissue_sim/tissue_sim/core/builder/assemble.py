@@ -29,6 +29,8 @@ from .sharing import share_groups
 # 1700-2878, every 25th, 540 fat cells = 45 slice gaps x 12 rays); sections='rays' is the paper's
 # cross-section method. See docs/builder.md.
 SLICE_KEYS = ('slices', 'slice_mm', 'slice_step')
+FALLBACK_CORE = 0.3        # contour sections' ray fallback (the foot's lowest slices): an inner point at least this x the
+                           # ray's length out, so that rays missing the non-fat tissue do not meet in a fan of wedges
 NONE_IS_A_VALUE = ('attach_mm', 'bone_clearance_mm')   # settings whose None means 'off' (not 'the default')
 DEFAULTS = {
     'slices': 46,              # this many slices evenly over the labelled extent (the paper's 46 slices)
@@ -751,9 +753,9 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
     # ---------------------------------------------------------------- fat tube
     nf = s['fat_rays']
     if s['sections'] == 'contour':
-        def fallback(zi, ref):          # contour rings that cross: the paper's rays on that slice, least twist
+        def fallback(zi, ref):          # contour rings that cross: the paper's rays on that slice, least twist (core)
             return CT.turn_rays(lambda off: S.fat_rays(vol.labels[:, :, ks[zi]], geoms[zi], bone_labels, fat_labels, nf,
-                                                       s['min_fat_mm'] / 1000.0, off), nf, ref)
+                                                       s['min_fat_mm'] / 1000.0, off, FALLBACK_CORE), nf, ref)
         fats, bad = CT.fat_rings(fats, nf, s['min_fat_mm'] / 1000.0, fallback)
         for zi in bad:
             warnings.append(f'slice {zi}: the fat layer\'s outlines give crossing cells: rays used on this slice')

@@ -17,6 +17,10 @@ from skimage import measure
 from .rays import polygon_area
 
 FINE = 8                 # fine outline samples per ring vertex (start-index resolution 1/FINE of a vertex step)
+INNER_FLOOR = 0.5        # pair_inner: least spacing of the fat layer's inner vertices, x the even spacing
+ANGLE_MIN_GAP = 0.02     # fat_rings: the pairing by angle is kept where its inner points are at least this x the even
+                         # spacing apart (the bundled limb's foot ring: 0.024); closer, pair_inner replaces it
+INNER_NEAR = 0.1         # pair_inner: weight of the pairing lengths against the spacing's evenness
 
 
 def outline_px(mask: np.ndarray) -> np.ndarray | None:
@@ -76,6 +80,20 @@ def anterior_start(fine: np.ndarray, n: int) -> int:
     return int(np.argmin(ang + 1e-9 * np.arange(len(fine))))
 
 
+def _gaps(ring: np.ndarray) -> np.ndarray:
+    """Edge lengths of a closed ring (n, 2): |ring[i + 1] - ring[i]|."""
+    return np.linalg.norm(np.roll(ring, -1, axis=0) - ring, axis=1)
+
+
+def polygon_perimeter(xy: np.ndarray) -> float:
+    return float(_gaps(xy).sum())
+
+
+def _tri2(a, b, c):
+    """Twice the signed area of triangles (a, b, c) (arrays of xy, broadcast)."""
+    return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+
+
 def is_simple(xy: np.ndarray) -> bool:
     """True when the closed polygon has no two non-adjacent edges that intersect."""
     n = len(xy)
@@ -83,11 +101,8 @@ def is_simple(xy: np.ndarray) -> bool:
     i, j = np.triu_indices(n, 2)
     keep = ~((i == 0) & (j == n - 1))
     i, j = i[keep], j[keep]
-
-    def orient(p, q, r):
-        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
-    d1 = orient(a[i], b[i], a[j]); d2 = orient(a[i], b[i], b[j])
-    d3 = orient(a[j], b[j], a[i]); d4 = orient(a[j], b[j], b[i])
+    d1 = _tri2(a[i], b[i], a[j]); d2 = _tri2(a[i], b[i], b[j])
+    d3 = _tri2(a[j], b[j], a[i]); d4 = _tri2(a[j], b[j], b[i])
     return not np.any((d1 * d2 < 0) & (d3 * d4 < 0))
 
 
@@ -298,17 +313,26 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tupl
         if o is None:
             o = ring_at(f['outer'], anterior_start(f['outer'], n), n)
         co = o.mean(axis=0)
-        inn = None
+        inn, crowded = None, False
         if f['inner'] is not None:
             inn, _ = best_ring(f['inner'], n, o, f['inner_area'], centred=False)
             if inn is not None and not fat_quads_valid(inn, o):
-                # a small inner region off the skin's centre (the foot): pair by angle about it instead
+                # a small inner region off the skin's centre (the foot): pair by angle about it instead, and where
+                # that crosses or puts neighbouring inner points (nearly) together, along its outline (pair_inner)
                 fi = f['inner']
                 ci = fi.mean(axis=0)
                 ang_f = np.arctan2(fi[:, 1] - ci[1], fi[:, 0] - ci[0])
                 ang_o = np.arctan2(o[:, 1] - ci[1], o[:, 0] - ci[0])
                 dif = np.abs((ang_f[None, :] - ang_o[:, None] + np.pi) % (2 * np.pi) - np.pi)
                 inn = match_area(fi[np.argmin(dif, axis=1)], f['inner_area'])
+                even = polygon_perimeter(fi) / n
+                if not fat_quads_valid(inn, o) or _gaps(inn).min() < ANGLE_MIN_GAP * even:
+                    p = pair_inner(fi, o)
+                    if p is not None:
+                        pm = match_area(p, f['inner_area'])
+                        inn = pm if fat_quads_valid(pm, o) else p
+                    else:
+                        crowded = True          # no pairing gives distinct points and valid quads: rays
         if inn is None:
             inn = co + 0.5 * (o - co)
         ci = inn.mean(axis=0)
@@ -320,7 +344,7 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tupl
             u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
             inn[thin] = o[thin] + u * min_thickness_m
         ref = o
-        if not fat_quads_valid(inn, o):
+        if crowded or not fat_quads_valid(inn, o):
             f_bad.append(len(out))
             if fallback is not None:
                 fb = fallback(len(out), ref_prev)
@@ -334,6 +358,65 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tupl
         out.append({'origin': np.array([co[0], co[1], z]), 'inner': pts(inn), 'outer': pts(o), 'has_bone': f['has_bone'],
                     'fat_area_mm2': f['fat_area_mm2']})
     return out, f_bad
+
+
+def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, n_starts: int = 16) -> np.ndarray | None:
+    """The fat layer's inner ring paired with the skin ring ``outer`` (n, 2, CCW) on the fine inner outline ``fine``
+    (m, 2, CCW): indices in order along the outline, each step at least ``floor`` x and at most 6 x the even spacing
+    m/n, every quad (inner a, inner b, outer b, outer a) a simple clockwise quad (one diagonal inside), with the least
+    sum of squared deviations (in even spacings) from the even spacing plus INNER_NEAR x the squared pairing lengths
+    (over the mean squared thickness).
+    A dynamic programme over the fine points, for the ``n_starts`` starts nearest to outer[0]. None when no pairing
+    gives valid quads. The floor keeps neighbouring inner vertices apart where a long skin outline faces a short inner
+    one (the foot): there, pairing by nearness or by angle makes near-degenerate wedge cells."""
+    m, n = len(fine), len(outer)
+    even = m / n
+    g = max(1, int(np.ceil(floor * even)))
+    G = max(g, min(m // 2, int(np.ceil(6 * even))))
+    if g * n > m:
+        return None
+    I2 = np.concatenate([fine, fine])                               # unrolled: offsets 0 .. m from the start
+    d0 = np.linalg.norm(fine[:, None, :] - outer[None], axis=2)     # (m, n)
+    scale = float(np.mean(np.min(d0, axis=0) ** 2)) + 1e-12
+    best, best_cost = None, np.inf
+    for s0 in np.argsort(d0[:, 0], kind='stable')[:n_starts]:
+        I = I2[s0:s0 + m + 1]                                       # offsets 0 .. m (m: the start again)
+        dist = INNER_NEAR * np.sum((I[:, None, :] - outer[None]) ** 2, axis=2) / scale   # (m + 1, n)
+        cost = np.full(m + 1, np.inf)
+        cost[0] = dist[0, 0]
+        back = np.zeros((n, m + 1), dtype=np.int64)
+        for k in range(n):
+            ob, oa = outer[(k + 1) % n], outer[k]
+            new = np.full(m + 1, np.inf)
+            arg = np.zeros(m + 1, dtype=np.int64)
+            t = np.flatnonzero(np.isfinite(cost))
+            if t.size == 0:
+                break
+            for dlt in range(g, G + 1):
+                u = t + dlt
+                ok = u <= m if k == n - 1 else u <= m - g * (n - 1 - k)
+                if k == n - 1:
+                    ok &= u == m
+                if not ok.any():
+                    continue
+                tt, uu = t[ok], u[ok]
+                ia, ib = I[tt], I[uu]
+                valid = (((_tri2(ia, ib, ob) < 0) & (_tri2(ia, ob, oa) < 0))
+                         | ((_tri2(ia, ib, oa) < 0) & (_tri2(ib, ob, oa) < 0)))
+                tt, uu = tt[valid], uu[valid]
+                c = cost[tt] + (dist[uu, (k + 1) % n] if k < n - 1 else 0.0) + (dlt / even - 1.0) ** 2
+                better = c < new[uu]
+                new[uu[better]] = c[better]
+                arg[uu[better]] = tt[better]
+            cost, back[k] = new, arg
+        if np.isfinite(cost[m]) and cost[m] < best_cost:
+            idx = np.zeros(n, dtype=np.int64)
+            u = m
+            for k in range(n - 1, 0, -1):
+                u = back[k][u]
+                idx[k] = u
+            best_cost, best = cost[m], I[idx]
+    return None if best is None else best.copy()
 
 
 def fat_quads_valid(inner: np.ndarray, outer: np.ndarray) -> bool:

@@ -97,6 +97,26 @@ def cell_shear(tm: M.TissueModel, positions=None) -> tuple[np.ndarray, np.ndarra
     return shear, slant
 
 
+def fat_inner_spacing(tm: M.TissueModel) -> tuple[float, int]:
+    """(ratio, slice): the shortest inner edge of a fat ring over that ring's mean inner edge, at the slice where it is
+    least (each fat cell's first two vertices are inner a and inner b of its lower ring). Near 0: neighbouring inner
+    vertices nearly coincide, and that ring's cells are wedges that fold about their inner edge (docs/builder.md
+    "Fat tube"). (1.0, -1) without fat cells."""
+    fat = np.flatnonzero(tm.cell_tissue == M.TISSUE_FAT)
+    if len(fat) == 0:
+        return 1.0, -1
+    v = tm.cell_vertices[tm.cell_offsets[fat][:, None] + np.arange(2)]
+    e = np.linalg.norm(tm.rest_positions[v[:, 0]] - tm.rest_positions[v[:, 1]], axis=1)
+    zs = tm.cell_slice[fat]
+    best = (np.inf, -1)
+    for zi in np.unique(zs):
+        ez = e[zs == zi]
+        r = float(ez.min() / max(ez.mean(), 1e-300))
+        if r < best[0]:
+            best = (r, int(zi))
+    return best
+
+
 def quality_checks(tm, vols, checks: dict) -> tuple[dict, list]:
     """Volume against label volume per tissue, chain breaks, shear, bones without attached
     vertices. Returns (section of the report, warnings)."""
@@ -131,11 +151,13 @@ def quality_checks(tm, vols, checks: dict) -> tuple[dict, list]:
         desc = ', '.join(f'cell {c} ({tm.muscle_names[tm.cell_muscle[c]] if mus[c] else "fat"}, slice {tm.cell_slice[c]}: '
                          f'{sh[c]:.1f})' for c in worst)
         warn.append(f'{len(over)} cell(s) sheared more than {lim:g} x their height (worst: {desc})')
+    sp_ratio, sp_slice = fat_inner_spacing(tm)
     for b, n in checks['bone_touch'].items():
         if n == 0:
             warn.append(f'bone {b}: no soft-tissue vertex is attached to it')
     sec = {'volume_ratio': vol_rows, 'label_volume_cm3': {k: round(v * 1e6, 2) for k, v in checks['label_volume_m3'].items()},
            'breaks': checks['breaks'], 'fragments_left_out': checks.get('fragments', []), 'bridged_small_components': checks['bridged'], 'shear_limit': lim, 'shear': shear,
+           'fat_inner_spacing': {'min_ratio': round(sp_ratio, 4), 'slice': sp_slice},
            'bone_attached_vertices': checks['bone_touch'], 'attachment_refused_across_joint': checks['refused_across_joint'],
            'free_vertices_moved_out_of_bones': checks.get('moved_out_of_bones', 0),
            'gliding_vertices_bound_where_wrapped': checks.get('wrapped_bound', 0),

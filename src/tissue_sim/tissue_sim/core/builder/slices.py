@@ -144,10 +144,11 @@ def muscle_regions(sl: np.ndarray, geom: SliceGeom, labels: list[int], n_rays: i
 
 
 def fat_rays(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int], fat_labels: list[int], n_rays: int,
-             min_thickness_m: float, angle_offset: float) -> dict:
+             min_thickness_m: float, angle_offset: float, core: float = 0.05) -> dict:
     """Fat tube rays of one slice (paper section 2.3): from the centroid of the bone region(s), the
     outer (skin) point is the farthest exit from the body, the inner point the farthest exit from
-    the non-fat tissue (muscle, bone); inner is kept at least ``min_thickness_m`` inside outer."""
+    the non-fat tissue (muscle, bone); inner is kept at least ``min_thickness_m`` inside outer and
+    at least ``core`` x the ray's length out from the origin (rays that miss the non-fat tissue)."""
     body = sl > 0
     bb = _pad_bbox(ndimage.find_objects(body.astype(np.int8))[0], sl.shape, 3)
     crop = sl[bb]
@@ -162,7 +163,7 @@ def fat_rays(sl: np.ndarray, geom: SliceGeom, bone_labels: list[int], fat_labels
     inner = rays.cast((bodyc & ~fat).astype(np.float64), origin, dirs, 'last')
     inner = np.where(np.isfinite(inner), inner, 0.0)
     outer = np.where(np.isfinite(outer), outer, min_thickness_m)
-    inner = np.clip(inner, 0.05 * outer, np.maximum(outer - min_thickness_m, 0.05 * outer))
+    inner = np.clip(inner, core * outer, np.maximum(outer - min_thickness_m, core * outer))
     o_model = geom.to_model(origin + [bb[0].start, bb[1].start])
     def pts(d):
         p = np.empty((n_rays, 3))
