@@ -26,7 +26,6 @@ sys.path.insert(0, str(ROOT / 'src' / 'tissue_sim'))
 import numpy as np  # noqa: E402
 
 from tissue_sim.core import builder, solver  # noqa: E402
-from tissue_sim.core.builder import quality  # noqa: E402
 from tissue_sim.core.solver.measures import cell_volumes  # noqa: E402
 
 SAMPLE_EVERY = 5           # steps between volume samples (5 ms at the physical set's 1-ms step)

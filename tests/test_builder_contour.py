@@ -118,16 +118,11 @@ def test_fat_inner_ring_keeps_its_vertices_apart_where_a_long_skin_faces_a_small
     them here; on the 6x limb's foot it made coincident inner vertices, on the 3x crossing cells (rays instead)."""
     n = 36
     outer, inner = _foot(n)
-    even = np.linalg.norm(np.diff(np.vstack([inner, inner[:1]]), axis=0), axis=1).sum() / n
-    ci = inner.mean(axis=0)                             # pairing by angle, for contrast
-    ang = lambda p: np.arctan2(p[:, 1] - ci[1], p[:, 0] - ci[0])
-    dif = np.abs((ang(inner)[None, :] - ang(outer)[:, None] + np.pi) % (2 * np.pi) - np.pi)
-    by_angle = inner[np.argmin(dif, axis=1)]
-    gaps = lambda r: np.linalg.norm(np.roll(r, -1, axis=0) - r, axis=1)
-    assert gaps(by_angle).min() < 0.2 * even
+    even = CT.polygon_perimeter(inner) / n
+    assert CT.gaps(CT.pair_by_angle(inner, outer)).min() < 0.2 * even
     paired = CT.pair_inner(inner, outer)
     assert paired is not None and CT.fat_quads_valid(paired, outer)
-    assert gaps(paired).min() >= 0.95 * CT.INNER_FLOOR * even
+    assert CT.gaps(paired).min() >= 0.95 * CT.INNER_FLOOR * even
     # concentric circles: every inner vertex is the radial foot of its skin vertex
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ring = np.stack([0.05 * np.cos(t), 0.05 * np.sin(t)], 1)

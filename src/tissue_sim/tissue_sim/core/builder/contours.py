@@ -80,13 +80,13 @@ def anterior_start(fine: np.ndarray, n: int) -> int:
     return int(np.argmin(ang + 1e-9 * np.arange(len(fine))))
 
 
-def _gaps(ring: np.ndarray) -> np.ndarray:
+def gaps(ring: np.ndarray) -> np.ndarray:
     """Edge lengths of a closed ring (n, 2): |ring[i + 1] - ring[i]|."""
     return np.linalg.norm(np.roll(ring, -1, axis=0) - ring, axis=1)
 
 
 def polygon_perimeter(xy: np.ndarray) -> float:
-    return float(_gaps(xy).sum())
+    return float(gaps(xy).sum())
 
 
 def _tri2(a, b, c):
@@ -320,13 +320,9 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tupl
                 # a small inner region off the skin's centre (the foot): pair by angle about it instead, and where
                 # that crosses or puts neighbouring inner points (nearly) together, along its outline (pair_inner)
                 fi = f['inner']
-                ci = fi.mean(axis=0)
-                ang_f = np.arctan2(fi[:, 1] - ci[1], fi[:, 0] - ci[0])
-                ang_o = np.arctan2(o[:, 1] - ci[1], o[:, 0] - ci[0])
-                dif = np.abs((ang_f[None, :] - ang_o[:, None] + np.pi) % (2 * np.pi) - np.pi)
-                inn = match_area(fi[np.argmin(dif, axis=1)], f['inner_area'])
+                inn = match_area(pair_by_angle(fi, o), f['inner_area'])
                 even = polygon_perimeter(fi) / n
-                if not fat_quads_valid(inn, o) or _gaps(inn).min() < ANGLE_MIN_GAP * even:
+                if not fat_quads_valid(inn, o) or gaps(inn).min() < ANGLE_MIN_GAP * even:
                     p = pair_inner(fi, o)
                     if p is not None:
                         pm = match_area(p, f['inner_area'])
@@ -360,6 +356,16 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tupl
     return out, f_bad
 
 
+def pair_by_angle(fine: np.ndarray, outer: np.ndarray) -> np.ndarray:
+    """For each vertex of ``outer`` (n, 2), the point of the fine inner outline ``fine`` nearest to it in angle about
+    the outline's centroid (fat_rings' first pairing where the even ring would cross)."""
+    c = fine.mean(axis=0)
+    ang_f = np.arctan2(fine[:, 1] - c[1], fine[:, 0] - c[0])
+    ang_o = np.arctan2(outer[:, 1] - c[1], outer[:, 0] - c[0])
+    dif = np.abs((ang_f[None, :] - ang_o[:, None] + np.pi) % (2 * np.pi) - np.pi)
+    return fine[np.argmin(dif, axis=1)]
+
+
 def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, n_starts: int = 16) -> np.ndarray | None:
     """The fat layer's inner ring paired with the skin ring ``outer`` (n, 2, CCW) on the fine inner outline ``fine``
     (m, 2, CCW): indices in order along the outline, each step at least ``floor`` x and at most 6 x the even spacing
@@ -375,13 +381,12 @@ def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, 
     G = max(g, min(m // 2, int(np.ceil(6 * even))))
     if g * n > m:
         return None
-    I2 = np.concatenate([fine, fine])                               # unrolled: offsets 0 .. m from the start
-    d0 = np.linalg.norm(fine[:, None, :] - outer[None], axis=2)     # (m, n)
-    scale = float(np.mean(np.min(d0, axis=0) ** 2)) + 1e-12
+    d2 = np.sum((fine[:, None, :] - outer[None]) ** 2, axis=2)     # (m, n) squared pairing lengths
+    d2 *= INNER_NEAR / (float(np.mean(np.min(d2, axis=0))) + 1e-24)
     best, best_cost = None, np.inf
-    for s0 in np.argsort(d0[:, 0], kind='stable')[:n_starts]:
-        I = I2[s0:s0 + m + 1]                                       # offsets 0 .. m (m: the start again)
-        dist = INNER_NEAR * np.sum((I[:, None, :] - outer[None]) ** 2, axis=2) / scale   # (m + 1, n)
+    for s0 in np.argsort(d2[:, 0], kind='stable')[:n_starts]:
+        off = (s0 + np.arange(m + 1)) % m                           # offsets 0 .. m from the start (m: the start again)
+        I, dist = fine[off], d2[off]
         cost = np.full(m + 1, np.inf)
         cost[0] = dist[0, 0]
         back = np.zeros((n, m + 1), dtype=np.int64)
@@ -394,9 +399,7 @@ def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, 
                 break
             for dlt in range(g, G + 1):
                 u = t + dlt
-                ok = u <= m if k == n - 1 else u <= m - g * (n - 1 - k)
-                if k == n - 1:
-                    ok &= u == m
+                ok = (u == m) if k == n - 1 else (u <= m - g * (n - 1 - k))    # room left for the other steps
                 if not ok.any():
                     continue
                 tt, uu = t[ok], u[ok]
