@@ -4,6 +4,7 @@ from t = 0) on the bundled limb built 1x, 3x and 6x finer (`build-model --refine
 
     . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--integrator NAME] [--substeps unscaled|set|matched|N]
                                               [--duration 0.3] [--out DIR] [--quick] [--set NAME=VALUE ...] [--isometric]
+                                              [--build NAME=VALUE ...] [--torques]
 
 For each refinement: vertices, cells, sub-steps per 1-ms step, steps per CPU second (one thread, the
 stepping alone), the knee angle every 10 ms (or the step where the run diverged). Then the knee-angle
@@ -21,7 +22,9 @@ every model. The mass scaling adds mass where a vertex's cells are too stiff for
 default model and grows with refinement (cells stiffer and lighter): +2,285 % at 3x, +9,024 % at 6x;
 each run reports its added mass. --quick: 1x and 2x, 0.3 s (for `make bench`). --set NAME=VALUE (repeatable): a Params
 field of the physical set changed (what a term costs: the same table with and without it). --isometric: the knee held
-at 0 deg by the joint lock; the series compared is the hamstrings' knee torque [N m] instead of the angle.
+at 0 deg by the joint lock; the series compared is the hamstrings' knee torque [N m] instead of the angle. --build
+NAME=VALUE (repeatable): a builder setting of the models (e.g. point_vias=false). --torques: the knee torque of each
+source the skeleton step takes (torque_sources), printed every 30 ms and in the JSON: where a lag comes from.
 """
 from __future__ import annotations
 
@@ -109,15 +112,17 @@ def with_moment_stiffness(tm, params, c):
     return dc.replace(tm, cell_k_scale=want / (np.cbrt(V) * 4.0 / n))
 
 
-def run_one(tm, params, duration, label, isometric=False):
+def run_one(tm, params, duration, label, isometric=False, torques=False):
     """Knee angle [deg] every SAMPLE_EVERY steps of the demo experiment (isometric: the knee held at 0 deg by the
-    joint lock, the knee torque [N m, flexing +] the hamstrings produce), steps per CPU second, divergence."""
+    joint lock, the knee torque [N m, flexing +] the hamstrings produce), steps per CPU second, divergence. torques:
+    also, per sample, the knee torque of each source the skeleton step takes (torque_sources; its cost is in the
+    CPU time then)."""
     sim = solver.compile_model(tm, params)
     knee = list(tm.joint_names).index('knee') if 'knee' in tm.joint_names else 0
     ham = {'hamstrings': [(0.0, 1.0)]}
     warm = solver.make_state(sim)
     solver.step(sim, warm, solver.make_control(sim))          # numba compile / caches outside the timing
-    t, q, diverged = [], [], None
+    t, q, diverged, src = [], [], None, []
     n = int(round(duration / params.dt))
     c0, w0 = time.process_time(), time.perf_counter()
     last = w0
@@ -135,6 +140,8 @@ def run_one(tm, params, duration, label, isometric=False):
             for tt, st in solver.simulate(sim, duration, ham, every=SAMPLE_EVERY, output='state'):   # (observe() costs
                 t.append(round(float(tt), 6))                                                   # ~4 ms: not timed)
                 q.append(float(np.degrees(st.q[knee])))
+                if torques:
+                    src.append(torque_sources(sim, st, knee))
                 if time.perf_counter() - last > 60:
                     last = time.perf_counter()
                     print(f'  {label}: t {tt:.2f} s, knee {q[-1]:.1f} deg, {time.process_time() - c0:.0f} CPU s', flush=True)
@@ -148,12 +155,39 @@ def run_one(tm, params, duration, label, isometric=False):
                steps_per_cpu_s=round(done / max(cpu, 1e-9), 1), t=t, series=SERIES[isometric][0],
                diverged=diverged)
     out[out['series']] = [round(v, 4) for v in q]
+    if torques:
+        out['torque_sources_Nm'] = {k: [round(d[k], 3) for d in src] for k in TORQUE_SOURCES}
     fin = f'{q[-1]:.1f} {SERIES[isometric][1]} at {t[-1]:.2f} s' if q else '-'
     print(f'{label}: {out["vertices"]:,} vertices, {out["cells"]:,} cells, {params.integrator} x{out["substeps"]} '
           f'(omega_max dT {out["omega_max_dt"]}, added mass {out["added_mass_percent"]} %): '
           f'{out["steps_per_cpu_s"]:.1f} steps/CPU s, knee {fin}'
           + (f'; DIVERGED at step {diverged["step"]} ({diverged["cause"]})' if diverged else ''), flush=True)
     return out, sim
+
+
+TORQUE_SOURCES = ('tissue on bound vertices', 'point via rings', 'contact and sheath reaction', 'passive fibres')
+
+
+def torque_sources(sim, st, knee) -> dict:
+    """The knee's generalized force [N m, flexing +] from each thing the skeleton step takes, at the state of a
+    sample: the cells' forces on the bone-attached vertices (State.f, this sub-step's evaluation), the point via rings'
+    net pull (integration.via_forces), the contact stages' and the sheath correction's reaction left for the next
+    sub-step (State.contact_wrench) and the passive fibre force (reference.passive_joint_torques)."""
+    from tissue_sim.core.solver import measures as ME, reference as RF
+    tissue = ME.joint_torques(sim, st, st.f, vias=False)[knee]
+    return {TORQUE_SOURCES[0]: float(tissue), TORQUE_SOURCES[1]: float(ME.joint_torques(sim, st, st.f)[knee] - tissue),
+            TORQUE_SOURCES[2]: float(ME.wrench_torques(sim, st, st.contact_wrench)[knee]),
+            TORQUE_SOURCES[3]: float(RF.passive_joint_torques(sim, st.q)[knee]) if sim.params.passive_force_length and sim.params.specific_tension > 0 else 0.0}
+
+
+def torque_table(r, every=3) -> str:
+    """A run's torque sources every `every` samples, as a markdown table."""
+    ts = r['torque_sources_Nm']
+    rows = ['| t [s] | knee [deg] | ' + ' | '.join(TORQUE_SOURCES) + ' |', '|---' * (2 + len(TORQUE_SOURCES)) + '|']
+    for i in range(every - 1, len(ts[TORQUE_SOURCES[0]]), every):
+        rows.append(f'| {r["t"][i + 1]:.2f} | {r["knee_deg"][i + 1]:.1f} | '
+                    + ' | '.join(f'{ts[k][i]:.1f}' for k in TORQUE_SOURCES) + ' |')
+    return '\n'.join(rows)
 
 
 def differences(a, b):
@@ -226,6 +260,13 @@ def main():
     ap.add_argument('--isometric', action='store_true',
                     help='the knee held at 0 deg (joint lock) instead: the knee torque of the fully active hamstrings '
                          '[N m] over time, compared between the models as the angle is')
+    ap.add_argument('--build', action='append', default=[], metavar='NAME=VALUE',
+                    help='a builder setting of the models (repeatable; VALUE read as YAML, e.g. point_vias=false; '
+                         'docs/builder.md): what a modelling choice costs')
+    ap.add_argument('--torques', action='store_true',
+                    help='also the knee torque of each source the skeleton step takes (the bound vertices, the point '
+                         'via rings, the contact and sheath reaction, the passive fibres), every 30 ms (its cost is '
+                         'in the steps/CPU s then)')
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
     a = ap.parse_args()
     if a.quick:
@@ -245,6 +286,15 @@ def main():
     if mode in ('matched', 'unscaled') and integ != 'mass_scaled':
         sys.exit(f'error: --substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
     from tissue_sim.core.builder import default_model
+    from tissue_sim.errors import UserError
+    import yaml
+    build = {}
+    for item in a.build:
+        name, eq, value = item.partition('=')
+        if not eq or not name:
+            print(f'error: --build {item!r}: expected NAME=VALUE', file=sys.stderr)
+            sys.exit(2)
+        build[name] = yaml.safe_load(value)
     try:
         base = P.Params.from_assignments('physical', a.set, integrator=integ)
     except ValueError as e:
@@ -258,7 +308,11 @@ def main():
     c_ref = moment_ratio(default_model(), base)
     for R in refs:
         t0 = time.perf_counter()
-        tm = default_model(refine=R)
+        try:
+            tm = default_model(refine=R, **build)
+        except UserError as e:        # a bad builder setting: one line, exit 2
+            print(f'error: --build: {e}', file=sys.stderr)
+            sys.exit(2)
         ratio = moment_ratio(tm, base)
         if a.stiffness == 'moment':
             tm = with_moment_stiffness(tm, base, c_ref)
@@ -276,7 +330,9 @@ def main():
             sub = max(1, base.substeps or 1)
             w = solver.compile_model(tm, dataclasses.replace(base, substeps=1).validate()).omega_max
             params = dataclasses.replace(base, substeps=int(math.ceil(sub * w / omega1 - 1e-9))).validate()
-        r, _ = run_one(tm, params, a.duration, f'{R:g}x', isometric=a.isometric)
+        r, _ = run_one(tm, params, a.duration, f'{R:g}x', isometric=a.isometric, torques=a.torques and not a.isometric)
+        if 'torque_sources_Nm' in r:
+            print(f'{R:g}x: knee torque by source [N m, flexing +]:\n' + torque_table(r), flush=True)
         r['refine'] = R
         r['stiffness_moment_ratio'] = {k: round(v, 3) for k, v in ratio.items()}
         runs.append(r)
@@ -289,7 +345,7 @@ def main():
         pass
     out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
                          '--activate hamstrings=1)' + ('; the knee held at 0 deg, its torque' if a.isometric else ''), 'integrator': integ, 'substeps_mode': mode,
-           'duration_s': a.duration, 'stiffness': a.stiffness, 'set': list(a.set), 'isometric': a.isometric, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
+           'duration_s': a.duration, 'stiffness': a.stiffness, 'set': list(a.set), 'build': build, 'isometric': a.isometric, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
     shrink = [d['max_deg'] for d in diffs if d]
     out['differences_shrink'] = bool(len(shrink) >= 2 and all(b < a_ for a_, b in zip(shrink, shrink[1:])))
@@ -298,7 +354,7 @@ def main():
     (od / 'convergence.json').write_text(json.dumps(out, indent=1))
     try:
         plot(runs, od / 'convergence.png', f'knee {"torque held at 0 deg" if a.isometric else "flexion"}, hamstrings '
-             f'fully active; {integ}, sub-steps {mode}' + (f'; {" ".join(a.set)}' if a.set else '')
+             f'fully active; {integ}, sub-steps {mode}' + (f'; {" ".join(a.set + a.build)}' if a.set or a.build else '')
              + f'; active length {base.active_length}'
              + ('; stiffness per volume as the default model' if a.stiffness == 'moment' else ''))
     except Exception as e:  # report, do not hide

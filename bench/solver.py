@@ -475,7 +475,7 @@ def stage_times(tm, iterations, reps=None):
     thread): each stage's kernel called on its own on the state after 200 steps of a full hamstring contraction,
     microseconds per call (CPU time, best of 3 windows), beside the whole step (step() in 10-step calls). A step makes
     BDF2's start (the physical set's formula), one prediction, I cell passes, one skeleton step, one integration (its bones' poses, the first solve, the
-    velocities), I - 1 further solves, the sheath correction and the contact stage."""
+    velocities), I - 1 further solves, the sheath correction, the point via correction and the contact stage."""
     from tissue_sim.core.solver import contact as CT, implicit as IM, skeleton as SK
     from tissue_sim.core.solver.step import _cell_pass
     sim = solver.compile_model(tm, solver.Params.physical(integrator='implicit', substeps=1, threads=1,
@@ -509,6 +509,10 @@ def stage_times(tm, iterations, reps=None):
         xn[:] = x
         IM.sheath_correct(h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, 1e9, wr)
 
+    def via():
+        xn[:] = x
+        IM.via_correct(h, x, xn, vn, imp, sim.via_off, sim.via_idx, sim.via_seg, sim.via_local, st.seg_R, st.seg_t, 1e9)
+
     stages = [
         ('BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3', lambda: IM.bdf2_start(h, x, v, st.x_prev, st.v_prev,
                                                                               st.history_h, imp.xh, imp.vh)),
@@ -519,6 +523,7 @@ def stage_times(tm, iterations, reps=None):
         ('solve: rhs + L, D^-1, L^T (one)', lambda: IM._solve(imp, f, xn, imp.y, False)),
         ('velocities (x1 - x)/h', lambda: IM._velocities(h, x, xn, vn, imp.mh2, 1e9)),
         ('sheath correction (offsets, region solve, velocities)', sheath),
+        ('point via correction (centroids, A^-1 C^T, velocities)', via),
         ('fold + bone contact (stage 4)', contact),
     ]
     res = {}
@@ -532,7 +537,8 @@ def stage_times(tm, iterations, reps=None):
     res['whole step'] = whole
     parts = (res['BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3'] * imp.bdf2 + res['prediction y = x + h v'] + iterations * res['cell pass (rotations/polar, forces)']
              + res['skeleton step'] + iterations * (res['solve: rhs + L, D^-1, L^T (one)'] + res['velocities (x1 - x)/h'])
-             + res['sheath correction (offsets, region solve, velocities)'] + res['fold + bone contact (stage 4)'])
+             + res['sheath correction (offsets, region solve, velocities)']
+             + res['point via correction (centroids, A^-1 C^T, velocities)'] + res['fold + bone contact (stage 4)'])
     print(f'  {"sum of the parts (x iterations where repeated)":55s} {parts:9.1f}')
     print(f'  {"whole step (step(), 10 per call)":55s} {whole:9.1f}   ({1e6 / whole:,.0f} steps/s; load average '
           f'{os.getloadavg()[0]:.2f})')

@@ -272,3 +272,44 @@ def test_a_full_hamstring_contraction_with_the_sheath_is_stable(default_tm):
     beyond = [push for k in range(sim.contact.f_seg.shape[0])
               for _, _, _, push, _ in reference.sheath_offsets(sim.contact, k, st.x, st.seg_R, st.seg_t)]
     assert max((np.abs(b).max() for b in beyond if b.size), default=0.0) <= 1e-9
+
+
+def test_the_via_correction_is_the_constrained_solve_and_moves_the_tissue_round_the_ring(default_tm):
+    """implicit.via_correct (Params.implicit_via_correction, the default): after the solve, the least A-norm
+    correction that puts each point via ring's centroid on its place. Against the KKT system written out (scipy:
+    A w + C^T l = 0, C w = -g): the same correction; the ring's centroid lands on its place; the tissue round the
+    ring moves with it (hold_via_points would move the ring's free vertices only); off, nothing is precomputed."""
+    sim = solver.compile_model(default_tm, _implicit())
+    assert sim.via_seg.size >= 1                         # semitendinosus' ring at the tibia (builder: point_vias)
+    h = IM.solve_length(sim.params, sim.params.dt)
+    imp = IM.make(sim, sim.params.dt)
+    st = solver.make_state(sim)
+    rng = np.random.default_rng(3)
+    free = sim.inv_mass > 0
+    x0 = st.x.copy()
+    xn = x0 + np.where(free[:, None], 1e-3 * rng.standard_normal(x0.shape), 0.0)
+    vn = np.zeros_like(xn)
+    before = xn.copy()
+    assert IM.via_correct(h, x0, xn, vn, imp, sim.via_off, sim.via_idx, sim.via_seg, sim.via_local, st.seg_R,
+                          st.seg_t, 1e12) == 0
+    w = (xn - before)[free]
+    # the KKT system over the free vertices
+    A, _, _ = IM.system_matrix(sim, h)
+    C = IM.via_matrix(sim, np.flatnonzero(free))
+    places = np.einsum('rij,rj->ri', st.seg_R[sim.via_seg], sim.via_local) + st.seg_t[sim.via_seg]
+    rings = [sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]] for r in range(sim.via_seg.size)]
+    g = np.array([before[ring].mean(axis=0) for ring in rings]) - places
+    AiCt = sla.spsolve(A.tocsc(), C.T).reshape(-1, len(rings))
+    expected = -AiCt @ np.linalg.solve(C @ AiCt, g)
+    assert np.abs(g).max() > 1e-4
+    assert np.abs(w - expected).max() <= 1e-9 * np.abs(expected).max()
+    assert np.allclose(IM.reference_via_solve(sim, h, before, places), expected, rtol=0, atol=1e-12)
+    for ring, p in zip(rings, places):
+        assert np.abs(xn[ring].mean(axis=0) - p).max() < 1e-12
+    in_ring = np.zeros(sim.n_vertices, bool)
+    in_ring[np.concatenate(rings)] = True
+    moved = np.linalg.norm(xn - before, axis=1)
+    assert np.sum(moved[free & ~in_ring] > 0.05 * moved[in_ring].max()) >= 10     # the tissue round it follows
+    assert np.allclose(vn[free], (xn - x0)[free] / h)
+    off = IM.make(solver.compile_model(default_tm, _implicit(implicit_via_correction=False)), sim.params.dt)
+    assert off.via_sinv.shape == (0, 0)

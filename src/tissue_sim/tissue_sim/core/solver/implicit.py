@@ -42,7 +42,8 @@ from numba import njit
 from tissue_sim.core.solver import contact as CT, integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh')
+                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh '
+                                  'via_u via_sinv via_g')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
@@ -54,7 +55,9 @@ The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [
 star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
 s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form. bdf2 (bool): the scheme is BDF2
 (the factor is then at solve_length(h) = 2h/3); hs [s] that solve length (h with backward Euler); xh, vh (V, 3) its
-starting point (bdf2_start; scratch)."""
+starting point (bdf2_start; scratch). The point via rings held inside the solve (via_correct; empty without
+rings or with Params.implicit_via_correction off): via_u (R, V) A^-1 C^T (C: each ring's centroid of its free
+vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (2R, 3) scratch."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -147,6 +150,88 @@ def reference_sheath_solve(sim, h: float, d):
     Ar = (A + sp.diags(ks)).tocsr()[reg][:, reg].tocsc()
     w[reg] = sla.spsolve(Ar, ks[reg, None] * d[free][reg]).reshape(-1, 3)
     return w
+
+
+def via_matrix(sim, free) -> np.ndarray:
+    """(R, n_free) C: row r takes ring r's centroid (the mean over all its vertices, SimModel.via_*) from its free
+    vertices' positions, 1/n_r on each of them (its bone-attached vertices' share is fixed by their segment)."""
+    fidx = np.full(sim.n_vertices, -1)
+    fidx[free] = np.arange(free.size)
+    C = np.zeros((sim.via_seg.size, free.size))
+    for r in range(sim.via_seg.size):
+        ring = np.asarray(sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]])
+        C[r, fidx[ring[fidx[ring] >= 0]]] = 1.0 / ring.size
+    return C
+
+
+def via_system(sim, imp) -> tuple:
+    """The point via rings' correction inside the implicit solve (via_correct), with imp's factor: (via_u (R, V) =
+    A^-1 C^T on the free vertices, 0 on the others, one solve per ring; via_sinv (R, R) = (C A^-1 C^T)^-1; via_g
+    (2R, 3) scratch). Empty without rings or with Params.implicit_via_correction off."""
+    R, V = sim.via_seg.size, sim.n_vertices
+    if R == 0 or not sim.params.implicit_via_correction:
+        return np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3))
+    free = np.flatnonzero(sim.inv_mass > 0)
+    C = via_matrix(sim, free)
+    u = np.zeros((R, V))
+    zero = np.zeros((V, 3))
+    for r in range(R):
+        f = np.zeros((V, 3))
+        f[free, 0] = C[r]
+        w = np.zeros((V, 3))
+        _solve(imp, f, w, zero, False)            # w = A^-1 f on the free vertices (xk = y = 0)
+        u[r] = w[:, 0]
+    return u, np.linalg.inv(u[:, free] @ C.T).reshape(R, R), np.zeros((2 * R, 3))
+
+
+@njit(cache=True, fastmath={'contract'})
+def via_correct(h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, seg_t, vmax2):
+    """The point via rings inside the implicit step (Params.implicit_via_correction; docs/solver.md "Point vias"),
+    after the last iteration and the sheath correction: the free vertices move by the least A-norm correction that
+    puts every ring's centroid (bone-attached vertices where their segments put them) on its place on its bone,
+    xn_free -= A^-1 C^T (C A^-1 C^T)^-1 g (g (R, 3): each centroid's offset from its place, via_u and via_sinv
+    precomputed): the ring and the tissue round it move together, as the constant system couples them, instead of the
+    ring alone (integration.hold_via_points, which then finds the centroids in place). v1 = (xn - x)/h. Returns how
+    many vertices are too fast or not finite."""
+    R = imp.via_sinv.shape[0]
+    if R == 0:
+        return 0
+    g = imp.via_g
+    for r in range(R):
+        a, b = via_off[r], via_off[r + 1]
+        cx = cy = cz = 0.0
+        for k in range(a, b):
+            i = via_idx[k]
+            cx += xn[i, 0]; cy += xn[i, 1]; cz += xn[i, 2]
+        px, py, pz = IK._via_place(r, via_seg, via_local, seg_R, seg_t)
+        n = b - a
+        g[r, 0], g[r, 1], g[r, 2] = cx / n - px, cy / n - py, cz / n - pz
+    u, si, lam = imp.via_u, imp.via_sinv, imp.via_g[R:]       # (via_g's second half: the multipliers)
+    for r in range(R):
+        l0 = l1 = l2 = 0.0
+        for q in range(R):
+            l0 += si[r, q] * g[q, 0]; l1 += si[r, q] * g[q, 1]; l2 += si[r, q] * g[q, 2]
+        lam[r, 0], lam[r, 1], lam[r, 2] = l0, l1, l2
+    nfast = 0
+    ih = 1.0 / h
+    for i in range(xn.shape[0]):
+        if imp.mh2[i] > 0.0:
+            for r in range(R):
+                w = u[r, i]
+                xn[i, 0] -= w * lam[r, 0]; xn[i, 1] -= w * lam[r, 1]; xn[i, 2] -= w * lam[r, 2]
+            nfast += _velocity(i, ih, x, xn, vn, vmax2)
+    return nfast
+
+
+def reference_via_solve(sim, h: float, x, places):
+    """The point via rings' correction of reference.reference_step: w (n_free, 3) = -A^-1 C^T (C A^-1 C^T)^-1 g, g
+    (R, 3) each ring's centroid at x minus its place (places (R, 3)), with scipy's sparse direct solve on A."""
+    A, _, free = _system_cached(sim, h)
+    free = np.flatnonzero(free) if free.dtype == bool else free
+    C = via_matrix(sim, free)
+    g = np.array([x[sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]].mean(axis=0) for r in range(sim.via_seg.size)]) - places
+    AiCt = sla.spsolve(A.tocsc(), C.T).reshape(free.size, -1)
+    return -AiCt @ np.linalg.solve(C @ AiCt, g)
 
 
 _CACHE = {}
@@ -260,7 +345,8 @@ def make(sim, h: float) -> Implicit:
     if sim.params.integrator != 'implicit':
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
                         e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
-                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)))
+                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)),
+                        np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)))
     bdf2 = sim.params.implicit_scheme == 'bdf2'
     h = solve_length(sim.params, h)
     A, free, keff = star_system(sim, h)
@@ -302,10 +388,11 @@ def make(sim, h: float) -> Implicit:
     else:
         sheath = (e_f, np.zeros((0, 6)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
         sU = (e_p, e_i, e_f)
-    return Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
+    imp = Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
                     np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
-                    np.zeros((V, 3)), np.zeros((V, 3)))
+                    np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)))
+    return imp._replace(**dict(zip(('via_u', 'via_sinv', 'via_g'), via_system(sim, imp))))
 
 
 def _transposed(Ls):

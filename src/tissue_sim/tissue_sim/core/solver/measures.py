@@ -218,19 +218,35 @@ def kinetic_energy(sim, state) -> float:
     return 0.5 * float(np.dot(sim.mass[free], np.einsum('ij,ij->i', state.v[free], state.v[free])))
 
 
-def joint_torques(sim, state, f: np.ndarray, idx=None) -> np.ndarray:
+def joint_torques(sim, state, f: np.ndarray, idx=None, vias: bool = True) -> np.ndarray:
     """(J,) [N m] generalized force on each hinge of forces f (V, 3) on bone-attached vertices (idx: which;
     default all), by virtual work as the skeleton kernel applies them: a hinge j gets (W_j x (x - P_j) + D_j) . f
     (a plain hinge: a_j . (x - p_j) x f) from the vertices of the segments it moves; the driver of a coupled joint gets
     (W x (x - P) + R_p d') . f from the vertices of its child (skeleton.joint_jacobians; docs/solver.md "Skeleton").
     A point via ring on one of those vertices' segments adds the net force f on its free vertices at its centroid's
-    place on the bone, as the step's skeleton stage takes it (integration.via_forces). 0 for a fixed or coupled joint."""
+    place on the bone, as the step's skeleton stage takes it (integration.via_forces; vias=False: not). 0 for a fixed
+    or coupled joint."""
     idx = sim.att_idx if idx is None else np.asarray(idx)
     seg = sim.vertex_segment[idx]
     x, F = state.x[idx], f[idx]
-    vseg, where, pull = via_pulls(sim, f, state.seg_R, state.seg_t)
-    mine = np.isin(vseg, seg)
-    seg, x, F = np.concatenate([seg, vseg[mine]]), np.concatenate([x, where[mine]]), np.concatenate([F, pull[mine]])
+    if vias:
+        vseg, where, pull = via_pulls(sim, f, state.seg_R, state.seg_t)
+        mine = np.isin(vseg, seg)
+        seg, x, F = np.concatenate([seg, vseg[mine]]), np.concatenate([x, where[mine]]), np.concatenate([F, pull[mine]])
+    return _generalized(sim, state, seg, F, np.cross(x, F))
+
+
+def wrench_torques(sim, state, wr: np.ndarray) -> np.ndarray:
+    """(J,) [N m] generalized force on each hinge of wrenches wr (S, 6) on the segments (force, its moment about the
+    world origin: State.contact_wrench, the reaction the contact stages and the sheath correction leave for the next
+    sub-step's skeleton step), by the same virtual work as joint_torques."""
+    return _generalized(sim, state, np.arange(wr.shape[0]), wr[:, :3], wr[:, 3:])
+
+
+def _generalized(sim, state, seg, F, M) -> np.ndarray:
+    """(J,) the generalized forces of forces F (N, 3) on segments seg (N,) with their moments M (N, 3) about the world
+    origin: hinge j gets W_j . (sum M - P_j x sum F) + D_j . sum F over the segments it moves (= (W_j x (x - P_j) +
+    D_j) . F for a force F at x); a coupled joint's driver from its child."""
     tau = np.zeros(sim.n_joints)
     W, P, D = joint_jacobians(state.q, sim.skeleton, state.seg_R, state.seg_t)
     for j in range(sim.n_joints):
@@ -240,7 +256,8 @@ def joint_torques(sim, state, f: np.ndarray, idx=None) -> np.ndarray:
             sel, k = sim.anc[j][seg], j
         else:
             continue
-        tau[k] += float(W[j] @ np.cross(x[sel] - P[j], F[sel]).sum(0) + D[j] @ F[sel].sum(0))
+        f, m = F[sel].sum(0), M[sel].sum(0)
+        tau[k] += float(W[j] @ (m - np.cross(P[j], f)) + D[j] @ f)
     return tau
 
 

@@ -49,6 +49,10 @@ class Params:
     implicit_volume_cap: float = 1.0      # implicit integrator only: a cell's volume-term stiffness at most this fraction of
                                           # its weight keff in the system matrix (the force scaled down beyond; 0 = unbounded;
                                           # docs/solver.md "Implicit integrator"); mass_scaled/explicit: always unbounded
+    implicit_via_correction: bool = True  # implicit integrator only: the point via rings' centroids held inside the solve
+                                          # (the least-A-norm correction that puts them on their places, the tissue round
+                                          # them following; False: the ring alone moved back after the solve, as the other
+                                          # integrators do; docs/solver.md "Point vias")
     substeps: int = 0                     # sub-steps per step; 0 = automatic (explicit: stability estimate; mass_scaled: 1)
     stability_limit: float = 1.8          # automatic sub-steps keep omega_max * h below this (< 2, symplectic Euler)
     # --- soft tissue -----------------------------------------------------------------------

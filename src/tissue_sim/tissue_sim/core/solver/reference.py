@@ -247,6 +247,10 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             if sim.contact.s_idx.size:        # the sheath (docs/solver.md "Implicit integrator": the sheath)
                 sheath_correction(sim, hs, state.x, state.seg_R, state.seg_t, state.contact_wrench)
                 state.v[:] = (state.x - xs) / hs
+            if sim.via_seg.size and p.implicit_via_correction:    # the point via rings inside the solve
+                _, places, _ = via_pulls(sim, state.x, state.seg_R, state.seg_t)        # (implicit.via_correct)
+                state.x[free] += IM.reference_via_solve(sim, hs, state.x, places)
+                state.v[:] = (state.x - xs) / hs
             if p.implicit_scheme == 'bdf2':   # this sub-step is the next one's history (stage 4's vertices: below)
                 state.x_prev, state.v_prev, state.history_h = past[0], past[1], np.array([h])
         else:

@@ -176,6 +176,9 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                     fast = IM.correct(hs, xs, f, xb, vb, imp, num.vmax2)
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
                     fast = IM.sheath_correct(hs, xs, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
+                if ok and not fast:    # the point via rings inside it (implicit.via_correct; none: nothing done)
+                    fast = IM.via_correct(hs, xs, xb, vb, imp, tissue.via_off, tissue.via_idx, tissue.via_seg,
+                                          tissue.via_local, st.seg_R, st.seg_t, num.vmax2)
             else:
                 fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
                                     st.seg_R, st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
