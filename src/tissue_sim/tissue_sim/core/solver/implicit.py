@@ -212,15 +212,12 @@ def via_correct(h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, 
         for q in range(R):
             l0 += si[r, q] * g[q, 0]; l1 += si[r, q] * g[q, 1]; l2 += si[r, q] * g[q, 2]
         lam[r, 0], lam[r, 1], lam[r, 2] = l0, l1, l2
-    nfast = 0
-    ih = 1.0 / h
-    for i in range(xn.shape[0]):
-        if imp.mh2[i] > 0.0:
-            for r in range(R):
-                w = u[r, i]
-                xn[i, 0] -= w * lam[r, 0]; xn[i, 1] -= w * lam[r, 1]; xn[i, 2] -= w * lam[r, 2]
-            nfast += _velocity(i, ih, x, xn, vn, vmax2)
-    return nfast
+    for r in range(R):
+        u_r, l0, l1, l2 = u[r], lam[r, 0], lam[r, 1], lam[r, 2]
+        for i in range(xn.shape[0]):            # (0 on the bone-attached vertices)
+            w = u_r[i]
+            xn[i, 0] -= w * l0; xn[i, 1] -= w * l1; xn[i, 2] -= w * l2
+    return _velocities(h, x, xn, vn, imp.mh2, vmax2)
 
 
 def reference_via_solve(sim, h: float, x, places):
