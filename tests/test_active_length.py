@@ -175,10 +175,10 @@ def _isometric_forces(tm, active_length):
 
 @pytest.mark.slow
 def test_path_length_keeps_the_isometric_hamstring_forces_on_a_finer_model(default_tm):
-    """Held at 0 deg, 1x against 2x (`default_model(refine=2)`): with `chord` every hamstring delivers 9-24 % less
-    on the finer model (its chains straighten further); along the centre line within 8.5 % (measured: long head 3.4 %,
-    short head 3.4 %, semimembranosus 5.0 %, semitendinosus 8.2 %; semitendinosus 7.8 % with its via ring moved back
-    alone after the solve, `implicit_via_correction: false`)."""
+    """Held at 0 deg, 1x against 2x (`default_model(refine=2)`): along the centre line every hamstring within 6.5 %
+    of the 1x limb (measured: long head 1.9 %, short head 3.9 %, semimembranosus 1.9 %, semitendinosus 5.3 %), with
+    `chord` further off (2.4 / 5.5 / 3.9 / 10.5 %: its chains straighten further on the finer model; 9-24 % before
+    the builder smoothed the finer models' muscle paths, docs/builder.md "Muscle paths")."""
     from tissue_sim.core.builder import default_model
     fine = default_model(refine=2)
     rel = {}
@@ -186,5 +186,5 @@ def test_path_length_keeps_the_isometric_hamstring_forces_on_a_finer_model(defau
         coarse_f, fine_f = _isometric_forces(default_tm, mode), _isometric_forces(fine, mode)
         rel[mode] = np.abs(fine_f / coarse_f - 1.0)
         print(f'\n{mode}: 1x {np.round(coarse_f)} N, 2x {np.round(fine_f)} N, |2x/1x - 1| {np.round(rel[mode], 3)}')
-    assert rel['path'].max() < 0.085, rel
-    assert rel['chord'].max() > 2 * rel['path'].max(), rel
+    assert rel['path'].max() < 0.065, rel
+    assert rel['chord'].max() > 1.5 * rel['path'].max(), rel
