@@ -287,18 +287,11 @@ def main():
         sys.exit(f'error: --substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
     from tissue_sim.core.builder import default_model
     from tissue_sim.errors import UserError
-    import yaml
-    build = {}
-    for item in a.build:
-        name, eq, value = item.partition('=')
-        if not eq or not name:
-            print(f'error: --build {item!r}: expected NAME=VALUE', file=sys.stderr)
-            sys.exit(2)
-        build[name] = yaml.safe_load(value)
     try:
+        build = P.parse_assignments(a.build, 'builder settings')
         base = P.Params.from_assignments('physical', a.set, integrator=integ)
     except ValueError as e:
-        print(f'error: --set: {e}', file=sys.stderr)
+        print(f'error: {e}', file=sys.stderr)      # (names builder settings or solver parameters)
         sys.exit(2)
     if a.active_length:
         base = dataclasses.replace(base, active_length=a.active_length).validate()

@@ -71,10 +71,10 @@ DEFAULTS = {
     'allow_missing': False,    # table labels absent from the volume: warning instead of error
     'max_fragment': 0.01,      # a piece of a muscle cut off from its main part by slices without its label and holding at
                                # most this share of the muscle's volume is left out (reported); 0 = every such piece is a break
-    'path_smooth_mm': 17.5,    # each muscle ring (not a chain's end rings) moved across its slice onto the chain's centroid
-                               # path fitted over +-this [mm] along the axis (a line, weighted 1 - |dz|/this): the
-                               # outlines' slice-to-slice jitter out of the finer models' chains (at the default
-                               # slicing, 17.5-20-mm gaps, nothing moves); 0 = off (docs/builder.md "Muscle paths")
+    'path_smooth_mm': 17.5,    # each inner muscle ring moved across its slice onto the chain's centroid path fitted over
+                               # +-this [mm] along the axis, by at most half its radius (smooth_path): the outlines'
+                               # slice-to-slice jitter out of the finer models' chains (at the default slicing,
+                               # 17.5-20-mm gaps, nothing moves); 0 = off (docs/builder.md "Muscle paths")
     'refine': 1.0,             # N x finer: slice gaps, muscle_rays and fat_rays x refine (rounded), min_cell_volume_mm3
                                # / refine^3; lengths (share_mm, attach_mm, min_area_mm2, min_fat_mm, path_smooth_mm) stay
                                # (docs/builder.md)

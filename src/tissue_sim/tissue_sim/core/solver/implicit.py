@@ -57,7 +57,7 @@ s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather f
 (the factor is then at solve_length(h) = 2h/3); hs [s] that solve length (h with backward Euler); xh, vh (V, 3) its
 starting point (bdf2_start; scratch). The point via rings held inside the solve (via_correct; empty without
 rings or with Params.implicit_via_correction off): via_u (R, V) A^-1 C^T (C: each ring's centroid of its free
-vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (2R, 3) scratch."""
+vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (R, 3) scratch."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -167,7 +167,7 @@ def via_matrix(sim, free) -> np.ndarray:
 def via_system(sim, imp) -> tuple:
     """The point via rings' correction inside the implicit solve (via_correct), with imp's factor: (via_u (R, V) =
     A^-1 C^T on the free vertices, 0 on the others, one solve per ring; via_sinv (R, R) = (C A^-1 C^T)^-1; via_g
-    (2R, 3) scratch). Empty without rings or with Params.implicit_via_correction off."""
+    (R, 3) scratch: the centroids' offsets). Empty without rings or with Params.implicit_via_correction off."""
     R, V = sim.via_seg.size, sim.n_vertices
     if R == 0 or not sim.params.implicit_via_correction:
         return np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3))
@@ -181,7 +181,7 @@ def via_system(sim, imp) -> tuple:
         w = np.zeros((V, 3))
         _solve(imp, f, w, zero, False)            # w = A^-1 f on the free vertices (xk = y = 0)
         u[r] = w[:, 0]
-    return u, np.linalg.inv(u[:, free] @ C.T).reshape(R, R), np.zeros((2 * R, 3))
+    return u, np.linalg.inv(u[:, free] @ C.T).reshape(R, R), np.zeros((R, 3))
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -206,14 +206,12 @@ def via_correct(h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, 
         px, py, pz = IK._via_place(r, via_seg, via_local, seg_R, seg_t)
         n = b - a
         g[r, 0], g[r, 1], g[r, 2] = cx / n - px, cy / n - py, cz / n - pz
-    u, si, lam = imp.via_u, imp.via_sinv, imp.via_g[R:]       # (via_g's second half: the multipliers)
-    for r in range(R):
+    u, si = imp.via_u, imp.via_sinv
+    for r in range(R):                          # ring r's multiplier (C A^-1 C^T)^-1 g, then its column's move
         l0 = l1 = l2 = 0.0
         for q in range(R):
             l0 += si[r, q] * g[q, 0]; l1 += si[r, q] * g[q, 1]; l2 += si[r, q] * g[q, 2]
-        lam[r, 0], lam[r, 1], lam[r, 2] = l0, l1, l2
-    for r in range(R):
-        u_r, l0, l1, l2 = u[r], lam[r, 0], lam[r, 1], lam[r, 2]
+        u_r = u[r]
         for i in range(xn.shape[0]):            # (0 on the bone-attached vertices)
             w = u_r[i]
             xn[i, 0] -= w * l0; xn[i, 1] -= w * l1; xn[i, 2] -= w * l2
@@ -223,8 +221,8 @@ def via_correct(h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, 
 def reference_via_solve(sim, h: float, x, places):
     """The point via rings' correction of reference.reference_step: w (n_free, 3) = -A^-1 C^T (C A^-1 C^T)^-1 g, g
     (R, 3) each ring's centroid at x minus its place (places (R, 3)), with scipy's sparse direct solve on A."""
-    A, _, free = _system_cached(sim, h)
-    free = np.flatnonzero(free) if free.dtype == bool else free
+    A, _, mask = _system_cached(sim, h)
+    free = np.flatnonzero(mask)
     C = via_matrix(sim, free)
     g = np.array([x[sim.via_idx[sim.via_off[r]:sim.via_off[r + 1]]].mean(axis=0) for r in range(sim.via_seg.size)]) - places
     AiCt = sla.spsolve(A.tocsc(), C.T).reshape(free.size, -1)

@@ -31,6 +31,22 @@ ACTIVE_LENGTHS = ('chord', 'path')
 LENGTH_MEASURES = ('chord', 'centre_line')
 
 
+
+def parse_assignments(assignments, what: str) -> dict:
+    """NAME=VALUE strings (a bench's repeatable --set or --build) as a dict, each VALUE read as YAML (0.5, 3e7, true,
+    knee, [0, 0, -9.81]; '' or nothing after '=' is the empty string). ValueError naming `what` and the bad one."""
+    d = {}
+    for a in assignments:
+        name, eq, text = str(a).partition('=')
+        if not eq or not name.strip():
+            raise ValueError(f'{what}: {a!r}: expected NAME=VALUE')
+        try:
+            v = yaml.safe_load(text) if text.strip() not in ('', "''", '""') else ''
+        except yaml.YAMLError:
+            raise ValueError(f'{what}: {a!r}: VALUE is not a YAML scalar or list') from None
+        d[name.strip()] = '' if v is None else v
+    return d
+
 @dataclasses.dataclass
 class Params:
     preset: str = 'paper'                 # name of the preset this set started from (informative)
@@ -322,17 +338,7 @@ class Params:
         """The preset ('paper' or 'physical') with ``fields`` and then NAME=VALUE overrides (a bench's repeatable --set;
         each VALUE read as YAML: 0.5, 3e7, true, knee, [0, 0, -9.81]; '' or nothing after '=' is the empty string).
         ValueError naming the bad assignment or field."""
-        d = {'preset': preset, **fields}
-        for a in assignments:
-            name, eq, text = str(a).partition('=')
-            if not eq or not name.strip():
-                raise ValueError(f'solver parameters: {a!r}: expected NAME=VALUE')
-            try:
-                v = yaml.safe_load(text) if text.strip() not in ('', "''", '""') else ''
-            except yaml.YAMLError:
-                raise ValueError(f'solver parameters: {a!r}: VALUE is not a YAML scalar or list') from None
-            d[name.strip()] = '' if v is None else v
-        return cls.from_dict(d)
+        return cls.from_dict({'preset': preset, **fields, **parse_assignments(assignments, 'solver parameters')})
 
     @classmethod
     def from_yaml(cls, path) -> 'Params':
