@@ -127,8 +127,10 @@ def _sequence(tmp_path):
     if gaps.max() < limit:
         return None
     i = int(np.argmax(gaps))
+    # what the simulator said of its frame loop (nodes/simulator.py: a publish() call held by the DDS layer, a late tick)
+    said = [ln for ln in sim.output.splitlines() if 'inside the DDS layer' in ln or 'frame tick' in ln]
     return (f'{1e3 * gaps.max():.0f} ms gap in /joint_states at {(t[i + 1] - t[0]) * 1e-9:.2f} s '
-            f'(limit {1e3 * limit:.0f} ms); events at {at}')
+            f'(limit {1e3 * limit:.0f} ms); events at {at}; the simulator logged: {said or "nothing"}')
 
 
 def test_the_set_up_objects_are_frozen_out_of_the_garbage_collector(monkeypatch):
@@ -159,3 +161,38 @@ def test_the_set_up_objects_are_frozen_out_of_the_garbage_collector(monkeypatch)
             gc.unfreeze()
     print(f"\nfrozen {seen['frozen']} objects; {seen['tracked']} left to the collector")
     assert seen['frozen'] > 50_000 and seen['tracked'] < 0.02 * seen['frozen'], seen
+
+
+def test_the_simulator_reports_a_publish_call_the_dds_layer_held_and_a_late_tick():
+    """What the stall test prints when it fails: a publish() call over SLOW_PUBLISH_S (here the real /joint_states
+    publisher behind a 150-ms wait, standing in for Fast DDS opening a new participant's shared-memory port) is logged
+    with its topic, counted and in /diagnostics' publish_call_ms_max; a tick long after the last one is counted."""
+    import time as _time
+    from rclpy.parameter import Parameter
+    from tissue_sim.nodes import simulator as S
+    with isolated_domain() as dom, ros_context(dom.id) as ctx:
+        node = S.Simulator(context=ctx, parameter_overrides=[Parameter('model', value='phantom:knee')])
+        try:
+            node.publish_frame(node.state)
+            assert node.slow_publishes == 0 and node.publish_call_max < S.SLOW_PUBLISH_S
+            pub = node.pub_joints
+            real = pub.publish
+
+            class Held:                 # the real publisher, held 150 ms first
+                topic_name = node.pub_joints.topic_name
+
+                def publish(self, msg):
+                    _time.sleep(0.15)
+                    real(msg)
+            node.pub_joints = Held()
+            node.publish_frame(node.state)
+            f = node.figures(_time.monotonic())
+            assert node.slow_publishes == 1 and f['slow_publishes'] == 1 and f['publish_call_ms_max'] >= 150.0, f
+            node.pub_joints = pub
+            node.tick_t = _time.monotonic() - 0.5
+            node.tick()
+            assert node.late_ticks == 1
+            node.tick()
+            assert node.late_ticks == 1
+        finally:
+            node.destroy_node()

@@ -43,6 +43,9 @@ from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPI
                           TOPIC_MUSCLES, TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
 from ..ros.common import main as node_main
 
+SLOW_PUBLISH_S = 0.1        # a publish() call longer than this is logged (the DDS layer held the frame loop)
+LATE_TICK_PERIODS = 3.0     # a frame tick this many periods (and 0.1 s) after the last one is logged
+
 PARAMS = (
     Param('model', '', "model file (.npz); '' = the bundled lower limb; phantom:knee = the solver's knee phantom",
           read_only=True),
@@ -177,6 +180,10 @@ class Simulator(Node):
         self.step_cpu = 0.0             # CPU seconds of the stepping thread spent stepping
         self.publish_cost = 0.0         # a frame's build + publish [s of wall time], running mean
         self.publish_cpu = 0.0          # ... [s of the frame loop's CPU time]
+        self.publish_call_max = 0.0     # the longest single publish() call [s] in the diagnostics window
+        self.slow_publishes = 0         # publish() calls over SLOW_PUBLISH_S so far
+        self.late_ticks = 0             # frame ticks over LATE_TICK_PERIODS periods after the last so far
+        self.tick_t = None              # when the last tick started (time.monotonic)
         self.period = realtime.frame_period(P['publish_rate'])
         self.stepper = None
         self.frame = self.state                 # the state of the last frame published
@@ -294,6 +301,11 @@ class Simulator(Node):
         period apart across a resume (stepping first, the first frame after a resume went out a whole budget of
         steps later than the paused ones before it: a 46-62 ms gap). With the solver thread, the thread's latest."""
         now = time.monotonic()
+        if self.tick_t is not None and now - self.tick_t > max(0.1, LATE_TICK_PERIODS * self.period):
+            self.late_ticks += 1
+            self.get_logger().warning(f'frame tick {1e3 * (now - self.tick_t):.0f} ms after the last one (timer '
+                                      f'period {1e3 * self.period:.0f} ms): the process did not run its timer')
+        self.tick_t = now
         if self.stepper is None:
             self.publish_checked(self.state, now)
             self.advance(now)
@@ -317,29 +329,41 @@ class Simulator(Node):
         self.publish_times.append(time.monotonic())
         self.maybe_diagnostics(now)
 
+    def send(self, pub, msg):
+        """pub.publish(msg), timed: a call over SLOW_PUBLISH_S (the DDS layer blocking the frame loop, e.g. while a
+        participant joins) is logged with its topic and counted; the longest call goes to /diagnostics."""
+        t0 = time.perf_counter()
+        pub.publish(msg)
+        dt = time.perf_counter() - t0
+        self.publish_call_max = max(self.publish_call_max, dt)
+        if dt > SLOW_PUBLISH_S:
+            self.slow_publishes += 1
+            self.get_logger().warning(f'publishing on {pub.topic_name} took {1e3 * dt:.0f} ms (inside the DDS '
+                                      f'layer: the frame loop waited)')
+
     def publish_frame(self, st):
         """Publish the frame of state ``st`` (the solver thread's latest copy, or the state itself)."""
         obs = self.solver.observe(self.sim, st)
         stamp = int(round(st.time * 1e9))
         clock = self.Clock()
         clock.clock.sec, clock.clock.nanosec = stamp // 1_000_000_000, stamp % 1_000_000_000
-        self.pub_clock.publish(clock)
+        self.send(self.pub_clock, clock)
         js = self.JointState()
         js.header.stamp = clock.clock
         js.header.frame_id = self.frame_id
         js.name, js.position, js.velocity = urdf.joint_states(self.sim, obs['joint_positions'], obs['joint_velocities'])
-        self.pub_joints.publish(js)
+        self.send(self.pub_joints, js)
         if self.pub_tf is not None and self.tf_moving:
-            self.pub_tf.publish(self.tf_message(stamp, self.tf_moving, st))
+            self.send(self.pub_tf, self.tf_message(stamp, self.tf_moving, st))
         if self.get_parameter('publish_state').value:
-            self.pub_state.publish(self.tcdr.encode_frame(self.tm, st, obs, self.ctrl.activation,
-                                                          stamp_ns=stamp, frame_id=self.frame_id))
+            self.send(self.pub_state, self.tcdr.encode_frame(self.tm, st, obs, self.ctrl.activation,
+                                                             stamp_ns=stamp, frame_id=self.frame_id))
         if self.marker_enc is not None and self.get_parameter('publish_markers').value and self.marker_due():
             t0 = time.perf_counter()
             rgba = self.corner_colours(st.x)
             data = self.marker_enc.encode(stamp, st.x, obs['segment_poses'], rgba)
             t1 = time.perf_counter()
-            self.pub_markers.publish(data)
+            self.send(self.pub_markers, data)
             t2 = time.perf_counter()
             self.marker_ms.append(1e3 * (t2 - t0))
             self.marker_encode_ms.append(1e3 * (t1 - t0))
@@ -411,7 +435,9 @@ class Simulator(Node):
                     marker_ms_mean=float(np.mean(self.marker_ms)) if self.marker_ms else 0.0,
                     marker_ms_max=float(np.max(self.marker_ms)) if self.marker_ms else 0.0,
                     marker_encode_ms_mean=float(np.mean(self.marker_encode_ms)) if self.marker_encode_ms else 0.0,
-                    marker_bytes=self.marker_enc.nbytes if self.marker_enc is not None else 0)
+                    marker_bytes=self.marker_enc.nbytes if self.marker_enc is not None else 0,
+                    publish_call_ms_max=1e3 * self.publish_call_max, slow_publishes=self.slow_publishes,
+                    late_ticks=self.late_ticks)
 
     def maybe_diagnostics(self, now):
         if now - self.last_diag < float(self.get_parameter('diagnostics_period').value):
@@ -419,6 +445,7 @@ class Simulator(Node):
         from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
         f = self.figures(now)
         self.diag_window = (now, self.frame.time, self.steps_done, self.step_wall, self.step_cpu)
+        self.publish_call_max = 0.0
         self.last_diag = now
         target = float(self.P['publish_rate'])
         if self.diverged:

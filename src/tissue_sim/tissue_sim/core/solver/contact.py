@@ -42,10 +42,11 @@ normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_
 The sheath (``sheath_group`` above, ``sheath_below`` below), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
 positions s_X (N, 3) [m] and side s_side (+1: held in the parent's frame, above the hinge; -1: the child's, below),
 kept within s_r (1,) [m] of their rest line along n0 in that segment's frame."""
-ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats')
+ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats xf mask')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
-the broad phase's records qc (B, F, 3) (rest-frame point where a vertex was last tested) and slack (B, F) (0: test it);
-cand (F,) int32 scratch; stats (2,) int64 = (calls, vertex-grid tests so far)."""
+the broad phase's records qc (B, 3, F) (rest-frame point where a vertex was last tested, by coordinate) and slack (B,
+F) (0: test it); scratch: cand (F,) int32, xf (3, F) the free vertices' positions by coordinate, mask (F rounded up to
+8,) uint8; stats (2,) int64 = (calls, vertex-grid tests so far)."""
 
 
 # ------------------------------------------------------------------------------- grid building
@@ -365,6 +366,38 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den
 
 
 @njit(cache=True, fastmath={'contract'})
+def _broad(xf, qc, slack, r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz, mask):
+    """bone_contact's broad phase for one grid, in flat loops the compiler vectorises: mask[ii] = 1 where free vertex
+    ii is to be tested (its record's slack is 0, or its rest-frame point R^T (x - t) has moved from the record qc (3,
+    F) by at least the slack); returns how many."""
+    n = 0
+    for ii in range(xf.shape[1]):
+        dx, dy, dz = xf[0, ii] - tx, xf[1, ii] - ty, xf[2, ii] - tz
+        ex = r00 * dx + r10 * dy + r20 * dz - qc[0, ii]
+        ey = r01 * dx + r11 * dy + r21 * dz - qc[1, ii]
+        ez = r02 * dx + r12 * dy + r22 * dz - qc[2, ii]
+        q = slack[ii]
+        m = np.uint8((q <= 0.0) | (ex * ex + ey * ey + ez * ez >= q * q))
+        mask[ii] = m
+        n += m
+    return n
+
+
+@njit(cache=True)
+def _gather(mask, F, cand):
+    """The indices ii < F where mask[ii] != 0, into cand; returns how many (eight mask bytes read at a time)."""
+    words = mask.view(np.uint64)
+    n = 0
+    for w in range(words.shape[0]):
+        if words[w] != 0:
+            for ii in range(8 * w, min(8 * w + 8, F)):
+                if mask[ii] != 0:
+                    cand[n] = ii
+                    n += 1
+    return n
+
+
+@njit(cache=True, fastmath={'contract'})
 def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
     """Stage 4 of the step: project every free vertex closer to a bone than its floor (the margin)
     back onto it along the distance gradient, in place on (x, v) (the positions and velocities the
@@ -383,11 +416,14 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
     interpolation sqrt(3)-Lipschitz: the result is that of testing every vertex every sub-step,
     whatever the history (reference.contact_stage does that)."""
     g_seg, g_origin, g_inv_h, g_dims, free_idx = cg.g_seg, cg.g_origin, cg.g_inv_h, cg.g_dims, cg.free_idx
-    R0, t0, qc, slack, cand, stats = cw.R0, cw.t0, cw.qc, cw.slack, cw.cand, cw.stats
+    R0, t0, qc, slack, cand, stats, xf, mask = cw.R0, cw.t0, cw.qc, cw.slack, cw.cand, cw.stats, cw.xf, cw.mask
     B = g_seg.shape[0]
     F = free_idx.shape[0]
     hits = 0
     stats[0] += 1
+    for ii in range(F):                 # the free vertices' positions by coordinate (the broad phase's loads)
+        i = free_idx[ii]
+        xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]
     for b in range(B):
         s = g_seg[b]
         r00, r01, r02 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2]
@@ -396,28 +432,9 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
         tx, ty, tz = seg_t[s, 0], seg_t[s, 1], seg_t[s, 2]
         ox, oy, oz, ih = g_origin[b, 0], g_origin[b, 1], g_origin[b, 2], g_inv_h[b]
         mx, my, mz = g_dims[b, 0] - 1.0, g_dims[b, 1] - 1.0, g_dims[b, 2] - 1.0
-        still = (r00 == 1.0 and r11 == 1.0 and r22 == 1.0 and r01 == 0.0 and r02 == 0.0 and r10 == 0.0
-                 and r12 == 0.0 and r20 == 0.0 and r21 == 0.0 and tx == 0.0 and ty == 0.0 and tz == 0.0)
-        n = 0
-        if still:                   # the segment at its rest pose (the fixed root): rest frame = world
-            for ii in range(F):
-                i = free_idx[ii]
-                ex, ey, ez = x[i, 0] - qc[b, ii, 0], x[i, 1] - qc[b, ii, 1], x[i, 2] - qc[b, ii, 2]
-                q = slack[b, ii]
-                if q <= 0.0 or ex * ex + ey * ey + ez * ez >= q * q:
-                    cand[n] = ii
-                    n += 1
-        else:
-            for ii in range(F):
-                i = free_idx[ii]
-                dx, dy, dz = x[i, 0] - tx, x[i, 1] - ty, x[i, 2] - tz
-                ex = r00 * dx + r10 * dy + r20 * dz - qc[b, ii, 0]
-                ey = r01 * dx + r11 * dy + r21 * dz - qc[b, ii, 1]
-                ez = r02 * dx + r12 * dy + r22 * dz - qc[b, ii, 2]
-                q = slack[b, ii]
-                if q <= 0.0 or ex * ex + ey * ey + ez * ez >= q * q:
-                    cand[n] = ii
-                    n += 1
+        n = _broad(xf, qc[b], slack[b], r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz, mask)
+        if n > 0:
+            n = _gather(mask, F, cand)
         stats[1] += n
         for k in range(n):
             ii = cand[k]
@@ -430,9 +447,10 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
             if gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= mx and gy <= my and gz <= mz:
                 d, hit = _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den, wr)
                 hits += hit
+                xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]     # (projected: the next grids see it)
             else:                       # outside the box: a lower bound of the distance to it
                 d, hit = max(max(-gx, gx - mx), max(max(-gy, gy - my), max(-gz, gz - mz))) / ih, False
-            qc[b, ii, 0], qc[b, ii, 1], qc[b, ii, 2] = px, py, pz
+            qc[b, 0, ii], qc[b, 1, ii], qc[b, 2, ii] = px, py, pz
             slack[b, ii] = 0.0 if hit else (d - 1e-6) * (1.0 / LIPSCHITZ)    # projected: tested again next sub-step
     return hits
 
@@ -823,8 +841,8 @@ def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: f
 def work(cg: ContactGrids, n_segments: int) -> ContactWork:
     """Fresh mutable buffers of the contact stage for one State (records empty: every vertex tested first)."""
     S, B, F = max(int(n_segments), 1), cg.g_seg.shape[0], cg.free_idx.shape[0]
-    return ContactWork(np.tile(np.eye(3), (S, 1, 1)), np.zeros((S, 3)), np.zeros((B, F, 3)), np.zeros((B, F)),
-                       np.zeros(F, np.int32), np.zeros(2, np.int64))
+    return ContactWork(np.tile(np.eye(3), (S, 1, 1)), np.zeros((S, 3)), np.zeros((B, 3, F)), np.zeros((B, F)),
+                       np.zeros(F, np.int32), np.zeros(2, np.int64), np.zeros((3, F)), np.zeros(-(-F // 8) * 8, np.uint8))
 
 
 def _cached_sdf(V, T, h):
