@@ -604,12 +604,12 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
         # the plane's own rate at a fixed point x: (n.(x - c) - n0.(x - c0)) / h = a.x + b
         ax, ay, az = (nx - p0[0]) * ih, (ny - p0[1]) * ih, (nz - p0[2]) * ih
         bq = ((p0[0] * p0[3] + p0[1] * p0[4] + p0[2] * p0[5]) - (nx * cx + ny * cy + nz * cz)) * ih
-        for ii in range(cg.f_off[k], cg.f_off[k + 1]):
+        for ii in range(cg.f_off[k], cg.f_off[k + 1] if cg.f_plane[0] else cg.f_off[k]):     # (plane off: none)
             i = cg.f_idx[ii]
             s = cg.f_side[ii]
             phi = s * (nx * (x[i, 0] - cx) + ny * (x[i, 1] - cy) + nz * (x[i, 2] - cz))
             lim = cg.f_floor[ii]
-            if phi >= lim or not cg.f_plane[0]:
+            if phi >= lim:
                 continue
             o = 6 if s > 0.0 else 9             # the vertex's own segment's proximal direction
             dx, dy, dz = s * pl[o], s * pl[o + 1], s * pl[o + 2]
