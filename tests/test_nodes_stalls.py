@@ -19,8 +19,18 @@ gaps were measured here with 2 cores shared by 7 jobs in runs whose every gap ma
 tick of the simulator, not a slow frame. There the limit is 250 ms: above those delays, below the
 one-time stalls of the issue (0.32 s and 0.68 s on an idle machine). The load is taken when a run
 ends; a run over the limit is repeated once (a node's stall shows twice, another process holding a
-core for a moment does not). The gaps found are printed either way (pytest -s)."""
+core for a moment does not). The gaps found are printed either way (pytest -s).
+
+The DDS layer's hold. The simulator times each publish() call and logs one over 100 ms (nodes/simulator.py). In a CI
+run of the whole suite on 2026-11-29 the gap at the activation node's join (325 and 320 ms, one in each of the run's
+two sequences; gaps of 0.31-0.36 s there had failed CI runs since 2026-11-26, intermittently) was such a call: "publishing on /joint_states
+took 320 ms (inside the DDS layer ...)". Fast DDS 2.14 (2.14.5 is the only ros-fastrtps on PyPI) can hold every
+publisher of a process for ~1/3 s while it opens a newly discovered participant's shared-memory port
+(eProsima/Fast-DDS#6535, open). That is not the node's stall: a gap over the limit passes when a publish() call the
+simulator logged as held overlaps it, the hold is under DDS_HOLD_MAX_S and the gap less the hold is under the limit;
+at most DDS_HOLDS_MAX holds in a run. Every other gap over the limit fails, the simulator's log lines in the message."""
 import os
+import re
 import signal
 import time
 
@@ -31,6 +41,20 @@ import rosutil  # noqa: F401  (activates the workspace before rclpy; skips if no
 from rosutil import isolated_domain, ros_context, run_executable, spin_until
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+DDS_HOLD_MAX_S = 0.5        # the upstream hold is ~1/3 s per port opening (1/3 of Fast DDS's 1-s health-check timeout)
+DDS_HOLDS_MAX = 2           # in a run: the recorder and the activation node join while frames flow
+_HELD = re.compile(r'\[(\d+)\.(\d+)\] \[simulator\]: publishing on (\S+) took (\d+) ms \(inside the DDS layer')
+
+
+def dds_holds(output: str) -> list:
+    """(start, end) [ns, system clock] of each publish() call the simulator logged as held by the DDS layer (the log
+    line's stamp is its end)."""
+    holds = []
+    for m in _HELD.finditer(output):
+        end = int(m.group(1)) * 1_000_000_000 + int(m.group(2).ljust(9, '0')[:9])
+        holds.append((end - int(m.group(4)) * 1_000_000, end))
+    return holds
 
 def _limit_s() -> tuple[float, bool]:
     """(limit [s], idle): taken when a sequence ends (the 1-minute load average over its run), not
@@ -124,12 +148,24 @@ def _sequence(tmp_path):
     assert at['resume'] > 0.5 and len(t) > 100        # paused frames, then the whole sequence
     # publish times are the sender's (not the receive time again): before the receive, mostly by well under a frame
     assert (late > 0).mean() > 0.9 and late.min() >= -0.005 and np.median(late) < 0.02 and late.max() < 1.0, (late.min(), np.median(late), late.max())
-    if gaps.max() < limit:
-        return None
-    i = int(np.argmax(gaps))
     # what the simulator said of its frame loop (nodes/simulator.py: a publish() call held by the DDS layer, a late tick)
     said = [ln for ln in sim.output.splitlines() if 'inside the DDS layer' in ln or 'frame tick' in ln]
-    return (f'{1e3 * gaps.max():.0f} ms gap in /joint_states at {(t[i + 1] - t[0]) * 1e-9:.2f} s '
+    holds = dds_holds(sim.output)
+    slack = 5_000_000                       # [ns] the log stamp comes a moment after the call returns
+    own = []                                # gaps over the limit that no DDS hold explains
+    for i in np.flatnonzero(gaps >= limit):
+        held = [(a, b) for a, b in holds if a - slack < t[i + 1] and b + slack > t[i]]
+        d = max((b - a for a, b in held), default=0) * 1e-9
+        if held and d < DDS_HOLD_MAX_S and gaps[i] - d < limit:
+            print(f'{1e3 * gaps[i]:.0f} ms gap at {(t[i + 1] - t[0]) * 1e-9:.2f} s: a publish() call held {1e3 * d:.0f} ms '
+                  f'inside the DDS layer (eProsima/Fast-DDS#6535), not the node\'s stall')
+        else:
+            own.append(i)
+    assert len(holds) <= DDS_HOLDS_MAX, said
+    if not own:
+        return None
+    i = max(own, key=lambda k: gaps[k])
+    return (f'{1e3 * gaps[i]:.0f} ms gap in /joint_states at {(t[i + 1] - t[0]) * 1e-9:.2f} s '
             f'(limit {1e3 * limit:.0f} ms); events at {at}; the simulator logged: {said or "nothing"}')
 
 

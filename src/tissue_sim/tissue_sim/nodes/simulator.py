@@ -304,7 +304,7 @@ class Simulator(Node):
         if self.tick_t is not None and now - self.tick_t > max(0.1, LATE_TICK_PERIODS * self.period):
             self.late_ticks += 1
             self.get_logger().warning(f'frame tick {1e3 * (now - self.tick_t):.0f} ms after the last one (timer '
-                                      f'period {1e3 * self.period:.0f} ms): the process did not run its timer')
+                                      f'period {1e3 * self.period:.0f} ms; a held publish() call is logged before it)')
         self.tick_t = now
         if self.stepper is None:
             self.publish_checked(self.state, now)
