@@ -257,6 +257,25 @@ def test_sheath_above_and_below_hold_their_own_groups():
     assert sides('', '')[1].size == 0 and sides('no_such_group', 'no_such_group')[1].size == 0
 
 
+def test_sheath_shared_false_leaves_the_vertices_shared_with_other_muscles(default_tm):
+    """sheath_shared (default True) sheathes every free vertex of the named muscles' cells; False leaves out those on
+    another muscle's cell too (fat cells do not count): on the bundled limb with the physical set's groups, the
+    sheathed vertices with it are exactly those without it less the shared ones, and there are such vertices on
+    both sides of the knee."""
+    p = solver.Params.physical()
+    keep, drop = (solver.compile_model(default_tm, solver.Params.physical(sheath_shared=v)).contact for v in (True, False))
+    off, cv = np.asarray(default_tm.cell_offsets), np.asarray(default_tm.cell_vertices)
+    cm = np.asarray(default_tm.cell_muscle)[np.repeat(np.arange(off.size - 1), np.diff(off))]
+
+    def named(spec):
+        ns = [g.strip() for g in spec.split(',') if g.strip()]
+        return [m for m, (n, g) in enumerate(zip(default_tm.muscle_names, default_tm.muscle_groups)) if n in ns or g in ns]
+    for side, spec in ((1.0, p.sheath_group), (-1.0, p.sheath_below)):
+        other = set(cv[(cm >= 0) & ~np.isin(cm, named(spec))].tolist())
+        all_, own = (set(np.asarray(cg.s_idx)[np.asarray(cg.s_side) == side].tolist()) for cg in (keep, drop))
+        assert all_ & other and own == all_ - other, side
+
+
 def test_the_sheath_leaves_a_point_via_ring_free_to_turn():
     """A point via ring (TissueModel.via_point_*) is not sheathed: the hamstring column's free ring 50 mm below the knee
     phantom's centre is in the sheath below the knee, and made a point via it no longer is (the rest of the column

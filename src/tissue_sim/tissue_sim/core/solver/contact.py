@@ -722,7 +722,7 @@ SHEATH_FROM = 0.005     # [m] the sheath holds a group's vertices from this heig
 
 
 def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment,
-                    below: str = '') -> dict:
+                    below: str = '', shared: bool = True) -> dict:
     """The sheath's constants (s_off, s_idx, s_X, s_r; ContactGrids) for the folding hinges in fold (fold_vertices):
     per hinge, the free vertices of the cells of the muscles of `group` (muscle groups or names, comma-separated; ''
     none) whose rest height above the hinge centre along n0 is in [SHEATH_FROM, reach] (the part of the thigh above the
@@ -730,9 +730,12 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
     muscles of `below` from SHEATH_FROM to reach below it, held in the child's frame (side -1). A point via ring's
     vertices are not sheathed: the via holds the ring's centroid and lets it turn (docs/solver.md "Point vias"); held
     each near its rest line, the ring would turn with the bone, and the cell above semitendinosus' turned inside out at
-    the knee's 120-deg stop."""
+    the knee's 120-deg stop. shared False: a vertex these muscles share with another muscle's cells is not sheathed
+    (the sheath holds their own tissue; a shared vertex would hold the neighbour's too, e.g. a calf muscle's pull
+    passed to the tibia through sartorius' sheath below the knee)."""
     vs = np.asarray(vertex_segment)
     via = np.asarray(tm.via_point_vertices)
+    cell_of = np.repeat(np.arange(len(tm.cell_offsets) - 1), np.diff(tm.cell_offsets))
 
     def free_vertices(spec):
         names = [g.strip() for g in str(spec).split(',') if g.strip()]
@@ -740,7 +743,12 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
         cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
         cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
                          if len(cells) else np.zeros(0, np.int64))
-        return cand[(vs[cand] < 0) & ~np.isin(cand, via)]
+        keep = (vs[cand] < 0) & ~np.isin(cand, via)
+        if not shared:          # not on another muscle's cell (fat cells are no muscle: cell_muscle -1)
+            cm = np.asarray(tm.cell_muscle)[cell_of]
+            other = np.asarray(tm.cell_vertices)[(cm >= 0) & ~np.isin(cm, mus)]
+            keep &= ~np.isin(cand, other)
+        return cand[keep]
     up, down = free_vertices(group), free_vertices(below)
     cand = np.union1d(up, down)
     held = {1.0: np.isin(cand, up), -1.0: np.isin(cand, down)}
@@ -786,7 +794,7 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
         fold = fold_vertices(tm, p.fold_contact, float(p.fold_reach), float(p.contact_margin), rest, vertex_segment)
         fold['f_plane'] = np.array([bool(p.fold_plane)])
         fold.update(sheath_vertices(tm, fold, p.sheath_group, float(p.sheath_radius), float(p.fold_reach), rest,
-                                    vertex_segment, p.sheath_below))
+                                    vertex_segment, p.sheath_below, bool(p.sheath_shared)))
         for a in fold.values():
             a.flags.writeable = False
         cg = cg._replace(**fold)

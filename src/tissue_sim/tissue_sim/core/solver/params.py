@@ -167,6 +167,8 @@ class Params:
     sheath_radius: float = 3e-3           # [m] how far a sheathed vertex may leave its rest line along the segment, across it
     sheath_below: str = ''                # muscle group(s)/names held in the sheath below each folding hinge too, in the child
                                           # segment's frame ('' none)
+    sheath_shared: bool = True            # the sheath holds the vertices the named muscles share with other muscles' cells too
+                                          # (False: only their own and those shared with fat, docs/contact.md "The sheath")
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
