@@ -225,7 +225,7 @@ def test_the_simulator_reports_a_publish_call_the_dds_layer_held_and_a_late_tick
             f = node.figures(_time.monotonic())
             assert node.slow_publishes == 1 and f['slow_publishes'] == 1 and f['publish_call_ms_max'] >= 150.0, f
             node.pub_joints = pub
-            node.tick_t = _time.monotonic() - 0.5
+            node.last_tick = _time.monotonic() - 0.5
             node.tick()
             assert node.late_ticks == 1
             node.tick()

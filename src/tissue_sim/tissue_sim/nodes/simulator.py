@@ -183,7 +183,6 @@ class Simulator(Node):
         self.publish_call_max = 0.0     # the longest single publish() call [s] in the diagnostics window
         self.slow_publishes = 0         # publish() calls over SLOW_PUBLISH_S so far
         self.late_ticks = 0             # frame ticks over LATE_TICK_PERIODS periods after the last so far
-        self.tick_t = None              # when the last tick started (time.monotonic)
         self.period = realtime.frame_period(P['publish_rate'])
         self.stepper = None
         self.frame = self.state                 # the state of the last frame published
@@ -301,11 +300,11 @@ class Simulator(Node):
         period apart across a resume (stepping first, the first frame after a resume went out a whole budget of
         steps later than the paused ones before it: a 46-62 ms gap). With the solver thread, the thread's latest."""
         now = time.monotonic()
-        if self.tick_t is not None and now - self.tick_t > max(0.1, LATE_TICK_PERIODS * self.period):
+        since = now - self.last_tick        # (advance below sets last_tick; before the first tick it is t_start)
+        if self.last_tick != self.t_start and since > max(0.1, LATE_TICK_PERIODS * self.period):
             self.late_ticks += 1
-            self.get_logger().warning(f'frame tick {1e3 * (now - self.tick_t):.0f} ms after the last one (timer '
+            self.get_logger().warning(f'frame tick {1e3 * since:.0f} ms after the last one (timer '
                                       f'period {1e3 * self.period:.0f} ms; a held publish() call is logged before it)')
-        self.tick_t = now
         if self.stepper is None:
             self.publish_checked(self.state, now)
             self.advance(now)

@@ -735,7 +735,7 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
     passed to the tibia through sartorius' sheath below the knee)."""
     vs = np.asarray(vertex_segment)
     via = np.asarray(tm.via_point_vertices)
-    cell_of = np.repeat(np.arange(len(tm.cell_offsets) - 1), np.diff(tm.cell_offsets))
+    cm = np.asarray(tm.cell_muscle)[np.repeat(np.arange(len(tm.cell_offsets) - 1), np.diff(tm.cell_offsets))]
 
     def free_vertices(spec):
         names = [g.strip() for g in str(spec).split(',') if g.strip()]
@@ -745,7 +745,6 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
                          if len(cells) else np.zeros(0, np.int64))
         keep = (vs[cand] < 0) & ~np.isin(cand, via)
         if not shared:          # not on another muscle's cell (fat cells are no muscle: cell_muscle -1)
-            cm = np.asarray(tm.cell_muscle)[cell_of]
             other = np.asarray(tm.cell_vertices)[(cm >= 0) & ~np.isin(cm, mus)]
             keep &= ~np.isin(cand, other)
         return cand[keep]

@@ -31,7 +31,6 @@ ACTIVE_LENGTHS = ('chord', 'path')
 LENGTH_MEASURES = ('chord', 'centre_line')
 
 
-
 def parse_assignments(assignments, what: str) -> dict:
     """NAME=VALUE strings (a bench's repeatable --set or --build) as a dict, each VALUE read as YAML (0.5, 3e7, true,
     knee, [0, 0, -9.81]; '' or nothing after '=' is the empty string). ValueError naming `what` and the bad one."""
@@ -46,6 +45,7 @@ def parse_assignments(assignments, what: str) -> dict:
             raise ValueError(f'{what}: {a!r}: VALUE is not a YAML scalar or list') from None
         d[name.strip()] = '' if v is None else v
     return d
+
 
 @dataclasses.dataclass
 class Params:
