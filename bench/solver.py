@@ -474,7 +474,7 @@ def stage_times(tm, iterations, reps=None):
     """--stages I: where the implicit step's time goes (physical set, `integrator: implicit`, I iterations, one
     thread): each stage's kernel called on its own on the state after 200 steps of a full hamstring contraction,
     microseconds per call (CPU time, best of 3 windows), beside the whole step (step() in 10-step calls). A step makes
-    BDF2's start (the physical set's formula), one prediction, I cell passes, one skeleton step, one integration (its bones' poses, the first solve, the
+    BDF2's start with its prediction (the physical set's formula; backward Euler: the prediction), I cell passes, one skeleton step, one integration (its bones' poses, the first solve, the
     velocities), I - 1 further solves, the sheath correction, the point via correction and the contact stage."""
     from tissue_sim.core.solver import contact as CT, implicit as IM, skeleton as SK
     from tissue_sim.core.solver.step import _cell_pass
@@ -513,10 +513,58 @@ def stage_times(tm, iterations, reps=None):
         xn[:] = x
         IM.via_correct(h, x, xn, vn, imp, sim.via_off, sim.via_idx, sim.via_seg, sim.via_local, st.seg_R, st.seg_t, 1e9)
 
+    from tissue_sim.core.solver import cells as CK, integration as IK, muscle as MU, volume as VO
+    a_st, mlen, mvel = st.activation.copy(), st.muscle_length.copy(), st.muscle_velocity.copy()
+    act_t = scratch.act_t
+
+    def muscles():          # stages 0 and 1 before the cell pass: activation, contraction, force-length, tension
+        MU.advance_activation(act, a_st, h, num.tau_act, num.tau_deact)
+        CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
+        if num.fl_on or num.pe_on:
+            MU.fibre_lengths(st.q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
+                             tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
+                             scratch.path_dlen, scratch.part_l, scratch.fibre)
+            if num.pe_on:
+                MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
+                                   scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
+                                   scratch.tau_pe, scratch.passive)
+        MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
+                                 num.fl_gamma, act_t)
+
+    def after_cells():      # stage 1 after the cell pass: the enclosed volume, the end rings, the muscle velocity
+        if tissue.enc_size.shape[0] > 0:
+            VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
+                              tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
+                              scratch.enc_energy)
+        if tissue.end_cell.shape[0] > 0:
+            CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
+                              tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
+                              tissue.end_bound_off, tissue.end_bound, lam, act_t)
+        if num.fv_on:
+            CK.muscle_velocity(scratch.cell_work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen,
+                               mvel, h, num.fv_alpha, scratch.muscle_sums)
+
+    def vias():             # the point via rings' forces on their bones (stage 2) and their centroids held (3b)
+        if tissue.via_seg.shape[0] > 0:
+            IK.via_forces(f, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local, st.seg_R, st.seg_t,
+                          tissue.inv_den, wr)
+            xn[:] = x
+            IK.hold_via_points(h, xn, vn, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local,
+                               st.seg_R, st.seg_t, tissue.inv_den)
+
+    xp, vp, hh = st.x_prev.copy(), st.v_prev.copy(), st.history_h.copy()
+
+    def history():          # BDF2's bookkeeping: the next sub-step's history (stage 4's moved vertices as it left them)
+        IM.bdf2_history(h, x, v, xn, vn, xp, vp, hh, cw.moved, cw.n_moved)
+
     stages = [
-        ('BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3', lambda: IM.bdf2_start(h, x, v, st.x_prev, st.v_prev,
-                                                                              st.history_h, imp.xh, imp.vh)),
-        ('prediction y = x + h v', lambda: IM.predict(h, x, v, imp.y, imp.mh2, sk.gravity, num.vel_damp)),
+        ('muscle stages (activation, force-length, tension)', muscles),
+        ('after the cells (enclosed volume, end rings, velocity)', after_cells),
+        ('point via forces and centroids (stages 2, 3b)', vias),
+        ('BDF2 history (copy, moved vertices)', history),
+        ('BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3 and y', lambda: IM.bdf2_start(
+            h, x, v, st.x_prev, st.v_prev, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)),
+        ('prediction y = x + h v (backward Euler)', lambda: IM.predict(x, v, imp.y, imp.yc, imp.yg)),
         ('cell pass (rotations/polar, forces)', lambda: _cell_pass(x, v, f, cells, lam, act, num.vol_actual, num.iters,
                                                                      num.vol_gain, scratch.cell_work)),
         ('skeleton step', skel),
@@ -535,7 +583,12 @@ def stage_times(tm, iterations, reps=None):
         print(f'  {name:55s} {res[name]:9.1f}', flush=True)
     whole = 1e6 / (10 * rate(lambda: solver.step(sim, st, ctrl, n_steps=10), 3.0))
     res['whole step'] = whole
-    parts = (res['BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3'] * imp.bdf2 + res['prediction y = x + h v'] + iterations * res['cell pass (rotations/polar, forces)']
+    parts = (res['muscle stages (activation, force-length, tension)']
+             + iterations * res['after the cells (enclosed volume, end rings, velocity)']
+             + res['point via forces and centroids (stages 2, 3b)']
+             + (res['BDF2 history (copy, moved vertices)'] + res['BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3 and y']
+                if imp.bdf2 else res['prediction y = x + h v (backward Euler)'])
+             + iterations * res['cell pass (rotations/polar, forces)']
              + res['skeleton step'] + iterations * (res['solve: rhs + L, D^-1, L^T (one)'] + res['velocities (x1 - x)/h'])
              + res['sheath correction (offsets, region solve, velocities)']
              + res['point via correction (centroids, A^-1 C^T, velocities)'] + res['fold + bone contact (stage 4)'])

@@ -102,7 +102,7 @@ def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity(
     v[dist] = [0.3, 0.0, 0.0]               # towards the thigh's side: its normal part goes
     xr, vr, x0 = x.copy(), v.copy(), x.copy()
     ke0 = 0.5 * np.sum(v * v)
-    work = C.work(cg, sim.n_segments)
+    work = C.work(cg, sim.n_segments, len(x))     # (listing the moved vertices, as BDF2 does)
     work.R0[:], work.t0[:] = R, t
     m = np.full(len(x), 2e-3)
     wr, wrr = np.zeros((sim.n_segments, 6)), np.zeros((sim.n_segments, 6))
@@ -117,6 +117,12 @@ def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity(
     assert np.allclose(wr[:, :3].sum(0), -dp.sum(0) / 1e-3, atol=1e-9)
     assert np.allclose(wr[:, 3:].sum(0), -np.cross(x, dp).sum(0) / 1e-3, atol=1e-9)
     assert np.allclose(x[prox[2]], [0.0, 0.0, 0.05])
+    # the stage lists exactly the vertices whose position or velocity it changed, each once (BDF2's history reads it)
+    listed = work.moved[:work.n_moved[0]]
+    assert sorted(listed) == sorted(set(listed))
+    assert set(listed) == set(np.flatnonzero(np.any((x != x0) | (v != v_in), axis=1)))
+    C.unmark(work)
+    assert work.n_moved[0] == 0 and not work.flag.any()
     if not plane:
         assert hits == 1
         assert np.array_equal(np.delete(x, prox[2], 0), np.delete(x0, prox[2], 0))

@@ -42,11 +42,30 @@ normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_
 The sheath (``sheath_group`` above, ``sheath_below`` below), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
 positions s_X (N, 3) [m] and side s_side (+1: held in the parent's frame, above the hinge; -1: the child's, below),
 kept within s_r (1,) [m] of their rest line along n0 in that segment's frame."""
-ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats xf mask')
+ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats xf mask moved n_moved flag')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, 3, F) (rest-frame point where a vertex was last tested, by coordinate) and slack (B,
 F) (0: test it); scratch: cand (F,) int32, xf (3, F) the free vertices' positions by coordinate, mask (F rounded up to
-8,) uint8; stats (2,) int64 = (calls, vertex-grid tests so far)."""
+8,) uint8; stats (2,) int64 = (calls, vertex-grid tests so far); the vertices the stage moved since unmark, each once (mark):
+moved (V,) int32, the first n_moved[0] (int64 (1,)) of it, flag (V,) uint8 (1: listed); V = 0 where nothing reads the
+list (work's n_listed: only BDF2 does)."""
+
+
+@njit(inline='always')
+def mark(cw, i):
+    """Vertex i was moved by the stage (its position or velocity changed): listed in cw.moved once (no list: nothing)."""
+    if cw.flag.shape[0] > 0 and cw.flag[i] == 0:
+        cw.flag[i] = 1
+        cw.moved[cw.n_moved[0]] = i
+        cw.n_moved[0] += 1
+
+
+@njit(cache=True)
+def unmark(cw):
+    """The list of moved vertices emptied (before stage 4)."""
+    for k in range(cw.n_moved[0]):
+        cw.flag[cw.moved[k]] = 0
+    cw.n_moved[0] = 0
 
 
 # ------------------------------------------------------------------------------- grid building
@@ -447,6 +466,8 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
             if gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= mx and gy <= my and gz <= mz:
                 d, hit = _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den, wr)
                 hits += hit
+                if hit:
+                    mark(cw, i)
                 xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]     # (projected: the next grids see it)
             else:                       # outside the box: a lower bound of the distance to it
                 d, hit = max(max(-gx, gx - mx), max(max(-gy, gy - my), max(-gz, gz - mz))) / ih, False
@@ -520,6 +541,7 @@ def _sheath(h, x, v, seg_R, seg_t, cg, cw, k, p_seg, c_seg, geo, inv_den, wr):
             continue
         i = cg.s_idx[ii]
         hits += 1
+        mark(cw, i)
         px, py, pz, ux, uy, uz = o[0], o[1], o[2], o[3], o[4], o[5]
         # the segment's velocity at the vertex: (x - (R0 p + t0)) / h, p before the projection
         bx = (x[i, 0] - (cw.R0[ps, 0, 0] * px + cw.R0[ps, 0, 1] * py + cw.R0[ps, 0, 2] * pz + cw.t0[ps, 0])) * ih
@@ -621,6 +643,7 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
             x[i, 1] += push * dy
             x[i, 2] += push * dz
             hits += 1
+            mark(cw, i)
             # the vertex's rate of s phi: s (n . v + plane rate at x); inward: remove it along n
             vn = s * (nx * v[i, 0] + ny * v[i, 1] + nz * v[i, 2] + ax * x[i, 0] + ay * x[i, 1] + az * x[i, 2] + bq)
             if vn < 0.0:
@@ -654,6 +677,7 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
                 x[i, 1] += (lim - w) * ey
                 x[i, 2] += (lim - w) * ez
                 hits += 1
+                mark(cw, i)
                 vn = (ex * v[i, 0] + ey * v[i, 1] + ez * v[i, 2] + ((ex - fx) * x[i, 0] + (ey - fy) * x[i, 1]
                                                                     + (ez - fz) * x[i, 2]) * ih + eb)
                 if vn < 0.0:
@@ -845,11 +869,13 @@ def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: f
     return cg
 
 
-def work(cg: ContactGrids, n_segments: int) -> ContactWork:
-    """Fresh mutable buffers of the contact stage for one State (records empty: every vertex tested first)."""
-    S, B, F = max(int(n_segments), 1), cg.g_seg.shape[0], cg.free_idx.shape[0]
+def work(cg: ContactGrids, n_segments: int, n_listed: int = 0) -> ContactWork:
+    """Fresh mutable buffers of the contact stage for one State (records empty: every vertex tested first); n_listed:
+    the model's vertices where the moved vertices are to be listed (mark), else 0."""
+    S, B, F, V = max(int(n_segments), 1), cg.g_seg.shape[0], cg.free_idx.shape[0], int(n_listed)
     return ContactWork(np.tile(np.eye(3), (S, 1, 1)), np.zeros((S, 3)), np.zeros((B, 3, F)), np.zeros((B, F)),
-                       np.zeros(F, np.int32), np.zeros(2, np.int64), np.zeros((3, F)), np.zeros(-(-F // 8) * 8, np.uint8))
+                       np.zeros(F, np.int32), np.zeros(2, np.int64), np.zeros((3, F)), np.zeros(-(-F // 8) * 8, np.uint8),
+                       np.zeros(V, np.int32), np.zeros(1, np.int64), np.zeros(V, np.uint8))
 
 
 def _cached_sdf(V, T, h):

@@ -43,7 +43,7 @@ from tissue_sim.core.solver import contact as CT, integration as IK
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
                                   'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh '
-                                  'via_u via_sinv via_g')
+                                  'via_u via_sinv via_g yc yg')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
 (V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
@@ -57,7 +57,8 @@ s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather f
 (the factor is then at solve_length(h) = 2h/3); hs [s] that solve length (h with backward Euler); xh, vh (V, 3) its
 starting point (bdf2_start; scratch). The point via rings held inside the solve (via_correct; empty without
 rings or with Params.implicit_via_correction off): via_u (R, V) A^-1 C^T (C: each ring's centroid of its free
-vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (R, 3) scratch."""
+vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (R, 3) scratch.
+yc, yg (V, 3): the prediction's coefficients at hs, y = x + yc v + yg (predict)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -290,45 +291,49 @@ def solve_length(p, h: float) -> float:
     return h * 2.0 / 3.0 if p.implicit_scheme == 'bdf2' else h
 
 
-@njit(cache=True)
-def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh):
-    """BDF2's starting point of a sub-step of length h from the last two: xh = (4 x - x_prev) / 3, vh = (4 v - v_prev) / 3
-    (the step is then backward Euler's from (xh, vh) over 2h/3). Without a history at h (history_h[0] != h: the first
-    sub-step, or h changed) the past is taken at constant velocity, x_prev = x - h v, v_prev = v: then xh = x + h v / 3,
-    vh = v, and the prediction xh + (2h/3) vh = x + h v is backward Euler's. (Over the flat arrays: the division
-    vectorises; per (vertex, axis) it was bound by the scalar divider, ~4x slower.)"""
+@njit(cache=True, fastmath={'contract'})
+def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg):
+    """BDF2's starting point of a sub-step of length h from the last two, xh = (4 x - x_prev) / 3, vh = (4 v - v_prev) / 3
+    (the step is then backward Euler's from (xh, vh) over 2h/3), and its prediction y = xh + yc vh + yg (predict) in
+    the same pass. Without a history at h (history_h[0] != h: the first sub-step, or h changed) the past is taken at
+    constant velocity, x_prev = x - h v, v_prev = v: then xh = x + h v / 3, vh = v, and the prediction
+    xh + (2h/3) vh = x + h v is backward Euler's. One flat loop over the arrays (it vectorises; a third multiplies:
+    the division was bound by the divider)."""
     xf, vf, xpf, vpf, xhf, vhf = x.reshape(-1), v.reshape(-1), x_prev.reshape(-1), v_prev.reshape(-1), xh.reshape(-1), vh.reshape(-1)
+    yf, ycf, ygf = y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
+    third = 1.0 / 3.0
     if history_h[0] != h:
         for k in range(xf.shape[0]):
-            xp = xf[k] - h * vf[k]
-            xhf[k] = (4.0 * xf[k] - xp) / 3.0
-            vhf[k] = (4.0 * vf[k] - vf[k]) / 3.0
+            xa = (4.0 * xf[k] - (xf[k] - h * vf[k])) * third
+            xhf[k] = xa
+            vhf[k] = vf[k]
+            yf[k] = xa + ycf[k] * vf[k] + ygf[k]
     else:
         for k in range(xf.shape[0]):
-            xhf[k] = (4.0 * xf[k] - xpf[k]) / 3.0
-            vhf[k] = (4.0 * vf[k] - vpf[k]) / 3.0
+            xa = (4.0 * xf[k] - xpf[k]) * third
+            va = (4.0 * vf[k] - vpf[k]) * third
+            xhf[k] = xa
+            vhf[k] = va
+            yf[k] = xa + ycf[k] * va + ygf[k]
 
 
 @njit(cache=True)
-def bdf2_history(h, x, v, xn, vn, xc, vc, x_prev, v_prev, history_h):
+def bdf2_history(h, x, v, xn, vn, x_prev, v_prev, history_h, moved, n_moved):
     """After a BDF2 sub-step from (x, v) to (xn, vn): the next one's history, x_prev = x, v_prev = v, except for the
-    vertices a stage after the solve moved or whose velocity it changed (the fold and bone contact, stage 4: (xc, vc) are
-    the positions and velocities before it; xc is overwritten, a scratch): their past is taken at constant velocity,
-    x_prev = xn - h vn, v_prev = vn (a projection is not motion: carried in the history, BDF2's extrapolation would turn
-    the jump into velocity, and a vertex pushed out of a bone every sub-step ran away: the 6x limb at 16 sub-steps
-    diverged at step 296). The copy and the comparison run over the flat arrays (they vectorise), the few moved
-    vertices after."""
+    vertices a stage after the solve moved or whose velocity it changed (the fold and bone contact, stage 4: their
+    indices are moved[:n_moved[0]], contact.mark): their past is taken at constant velocity, x_prev = xn - h vn,
+    v_prev = vn (a projection is not motion: carried in the history, BDF2's extrapolation would turn the jump into
+    velocity, and a vertex pushed out of a bone every sub-step ran away: the 6x limb at 16 sub-steps diverged at step
+    296). The copy runs over the flat arrays (it vectorises), the few moved vertices after."""
     xf, vf, xpf, vpf = x.reshape(-1), v.reshape(-1), x_prev.reshape(-1), v_prev.reshape(-1)
-    xnf, vnf, xcf, vcf = xn.reshape(-1), vn.reshape(-1), xc.reshape(-1), vc.reshape(-1)
     for k in range(xf.shape[0]):
         xpf[k] = xf[k]
         vpf[k] = vf[k]
-        xcf[k] = 1.0 if (xnf[k] != xcf[k]) | (vnf[k] != vcf[k]) else 0.0     # (xc: 1 where the stage changed it)
-    for i in range(x.shape[0]):
-        if xc[i, 0] + xc[i, 1] + xc[i, 2] != 0.0:
-            for a in range(3):
-                x_prev[i, a] = xn[i, a] - h * vn[i, a]
-                v_prev[i, a] = vn[i, a]
+    for k in range(n_moved[0]):
+        i = moved[k]
+        for a in range(3):
+            x_prev[i, a] = xn[i, a] - h * vn[i, a]
+            v_prev[i, a] = vn[i, a]
     history_h[0] = h
 
 
@@ -341,7 +346,7 @@ def make(sim, h: float) -> Implicit:
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
                         e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
                         np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)),
-                        np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)))
+                        np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
     bdf2 = sim.params.implicit_scheme == 'bdf2'
     h = solve_length(sim.params, h)
     A, free, keff = star_system(sim, h)
@@ -386,7 +391,8 @@ def make(sim, h: float) -> Implicit:
     imp = Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
                     np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
-                    np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)))
+                    np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)),
+                    *prediction(sim, h))
     return imp._replace(**dict(zip(('via_u', 'via_sinv', 'via_g'), via_system(sim, imp))))
 
 
@@ -397,19 +403,26 @@ def _transposed(Ls):
     return U.indptr.astype(np.int64), U.indices.astype(np.int32), U.data.copy()
 
 
+def prediction(sim, h: float) -> tuple:
+    """(yc, yg) (V, 3), the prediction's coefficients at step length h (predict): free vertices yc = h (1 - h c_v),
+    yg = h^2 (1 - h c_v) g; bone-attached ones yc = h, yg = 0."""
+    free = (sim.inv_mass > 0)[:, None]
+    damp = 1.0 - h * sim.params.velocity_damping
+    yc = np.where(free, h * damp, h) * np.ones(3)
+    yg = np.where(free, h * h * damp * np.asarray(sim.gravity, float)[None, :], 0.0)
+    return np.ascontiguousarray(yc), np.ascontiguousarray(yg)
+
+
 @njit(cache=True, fastmath={'contract'})
-def predict(h, x, v, y, mh2, gravity, vel_damp):
-    """y = x + h (1 - h c_v)(v + h g) for the free vertices (mh2 > 0), y = x + h v for the bone-attached ones (their
-    segment's motion continued): the positions the step's forces are evaluated at (the same free positions
-    integration.integrate writes with a zero force). The bones must be predicted too: with them where they are, tissue
-    moving with a bone would lie h v ahead of it and pull it on (a negative damping k h: the knee diverged in 24 steps)."""
-    damp = 1.0 - h * vel_damp
-    for i in range(x.shape[0]):
-        if mh2[i] > 0.0:
-            for a in range(3):
-                y[i, a] = x[i, a] + h * ((v[i, a] + h * gravity[a]) * damp)
-        else:
-            y[i, 0] = x[i, 0] + h * v[i, 0]; y[i, 1] = x[i, 1] + h * v[i, 1]; y[i, 2] = x[i, 2] + h * v[i, 2]
+def predict(x, v, y, yc, yg):
+    """y = x + yc v + yg (implicit.prediction's coefficients at hs): y = x + h (1 - h c_v)(v + h g) for the free
+    vertices, y = x + h v for the bone-attached ones (their segment's motion continued): the positions the step's
+    forces are evaluated at (the same free positions integration.integrate writes with a zero force). The bones must be
+    predicted too: with them where they are, tissue moving with a bone would lie h v ahead of it and pull it on (a
+    negative damping k h: the knee diverged in 24 steps). One flat loop (it vectorises)."""
+    xf, vf, yf, ycf, ygf = x.reshape(-1), v.reshape(-1), y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
+    for k in range(xf.shape[0]):
+        yf[k] = xf[k] + ycf[k] * vf[k] + ygf[k]
 
 
 @njit(cache=True, fastmath={'contract'})

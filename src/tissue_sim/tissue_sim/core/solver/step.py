@@ -113,11 +113,12 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
             xe = x
             hs, xs, vs = h, x, v       # the implicit solve's step length and start (BDF2: 2h/3 from its combination)
-            if imp.on and imp.bdf2:
-                IM.bdf2_start(h, x, v, st.x_prev, st.v_prev, st.history_h, imp.xh, imp.vh)
+            if imp.on and imp.bdf2:    # (its start and the prediction y in one pass)
+                IM.bdf2_start(h, x, v, st.x_prev, st.v_prev, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)
                 hs, xs, vs = imp.hs, imp.xh, imp.vh      # (implicit.solve_length)
+            elif imp.on:
+                IM.predict(x, v, imp.y, imp.yc, imp.yg)
             if imp.on:
-                IM.predict(hs, xs, vs, imp.y, imp.mh2, sk.gravity, num.vel_damp)
                 xe = imp.y
             if num.fl_on or num.pe_on:
                 MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
@@ -198,14 +199,13 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
             # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane);
             # each velocity change's reaction goes to the segment that made it, for the next sub-step's skeleton step
-            if imp.on and imp.bdf2:    # (the state before stage 4, for BDF2's history: implicit.bdf2_history)
-                imp.xh[:] = xb; imp.vh[:] = vb
+            CT.unmark(cwork)          # (stage 4 lists the vertices it moves: BDF2's history, implicit.bdf2_history)
             if cgrid.g_seg.shape[0] > 0 or cgrid.f_seg.shape[0] > 0:
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
                 CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
                 CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
             if imp.on and imp.bdf2:    # the sub-step is taken: it is BDF2's history for the next one
-                IM.bdf2_history(h, x, v, xb, vb, imp.xh, imp.vh, st.x_prev, st.v_prev, st.history_h)
+                IM.bdf2_history(h, x, v, xb, vb, st.x_prev, st.v_prev, st.history_h, cwork.moved, cwork.n_moved)
             x, xb = xb, x
             v, vb = vb, v
             swaps += 1
@@ -246,7 +246,8 @@ class Workspace:
         self._by_h = {}
         self._imp = {}
         self.no_lock = (np.zeros(sim.n_joints, np.bool_), np.zeros(sim.n_joints))    # (lock, target): no joint locked
-        self.contact = CT.work(sim.contact, sim.n_segments)
+        self.contact = CT.work(sim.contact, sim.n_segments,      # (BDF2 reads the moved vertices)
+                               sim.n_vertices if sim.params.integrator == 'implicit' and sim.params.implicit_scheme == 'bdf2' else 0)
 
     def arrays(self, h: float):
         """(cells, tissue, skeleton, numbers, scratch, (contact grids, contact work)) for sub-step length h, as
