@@ -473,7 +473,7 @@ def ab_rates(tm, rounds, seconds):
 def stage_times(tm, iterations, reps=None):
     """--stages I: where the implicit step's time goes (physical set, `integrator: implicit`, I iterations, one
     thread): each stage's kernel called on its own on the state after 200 steps of a full hamstring contraction,
-    microseconds per call (CPU time, best of 3 windows), beside the whole step (step() in 10-step calls). A step makes
+    microseconds per call (CPU time, best of 3 windows; n calls inside one compiled call), beside the whole step (step() in 10-step calls). A step makes
     BDF2's start with its prediction (the physical set's formula; backward Euler: the prediction), I cell passes, one skeleton step, one integration (its bones' poses, the first solve, the
     velocities), I - 1 further solves, the sheath correction, the point via correction and the contact stage."""
     from tissue_sim.core.solver import contact as CT, implicit as IM, skeleton as SK
@@ -493,93 +493,123 @@ def stage_times(tm, iterations, reps=None):
     no_lock = np.zeros(sim.n_joints, np.bool_)
     wr = np.zeros((sim.n_segments, 6))
 
-    def skel():
-        q, qd = st.q.copy(), st.qd.copy()
-        SK.skeleton_step(h, q, qd, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z, R, t,
-                         scratch.skel_work, no_lock, st.q.copy(), np.zeros(sim.n_joints), scratch.tau_pe,
-                         st.contact_wrench)
-
-    def contact():
-        xn[:] = x; vn[:] = v
-        SK.forward_kinematics(st.q, sk, cw.R0, cw.t0)
-        CT.fold_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw, tissue.inv_den, wr)
-        CT.bone_contact(h, xn, vn, st.seg_R, st.seg_t, cg, cw, tissue.inv_den, wr)
-
-    def sheath():
-        xn[:] = x
-        IM.sheath_correct(h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, 1e9, wr)
-
-    def via():
-        xn[:] = x
-        IM.via_correct(h, x, xn, vn, imp, sim.via_off, sim.via_idx, sim.via_seg, sim.via_local, st.seg_R, st.seg_t, 1e9)
-
-    from tissue_sim.core.solver import cells as CK, integration as IK, muscle as MU, volume as VO
+    from numba import njit
+    from tissue_sim.core.solver import cells as CK, integration as IK, muscle as MU
+    from tissue_sim.core.solver.step import after_cells, muscle_tension
     a_st, mlen, mvel = st.activation.copy(), st.muscle_length.copy(), st.muscle_velocity.copy()
-    act_t = scratch.act_t
-
-    def muscles():          # stages 0 and 1 before the cell pass: activation, contraction, force-length, tension
-        MU.advance_activation(act, a_st, h, num.tau_act, num.tau_deact)
-        CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
-        if num.fl_on or num.pe_on:
-            MU.fibre_lengths(st.q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
-                             tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
-                             scratch.path_dlen, scratch.part_l, scratch.fibre)
-            if num.pe_on:
-                MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
-                                   scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
-                                   scratch.tau_pe, scratch.passive)
-        MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
-                                 num.fl_gamma, act_t)
-
-    def after_cells():      # stage 1 after the cell pass: the enclosed volume, the end rings, the muscle velocity
-        if tissue.enc_size.shape[0] > 0:
-            VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
-                              tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
-                              scratch.enc_energy)
-        if tissue.end_cell.shape[0] > 0:
-            CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
-                              tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
-                              tissue.end_bound_off, tissue.end_bound, lam, act_t)
-        if num.fv_on:
-            CK.muscle_velocity(scratch.cell_work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen,
-                               mvel, h, num.fv_alpha, scratch.muscle_sums)
-
-    def vias():             # the point via rings' forces on their bones (stage 2) and their centroids held (3b)
-        if tissue.via_seg.shape[0] > 0:
-            IK.via_forces(f, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local, st.seg_R, st.seg_t,
-                          tissue.inv_den, wr)
-            xn[:] = x
-            IK.hold_via_points(h, xn, vn, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local,
-                               st.seg_R, st.seg_t, tissue.inv_den)
-
+    q, qd, q_target = st.q.copy(), st.qd.copy(), st.q.copy()
     xp, vp, hh = st.x_prev.copy(), st.v_prev.copy(), st.history_h.copy()
+    lock_torque = np.zeros(sim.n_joints)
 
-    def history():          # BDF2's bookkeeping: the next sub-step's history (stage 4's moved vertices as it left them)
-        IM.bdf2_history(h, x, v, xn, vn, xp, vp, hh, cw.moved, cw.n_moved)
+    # Each stage's kernels called n times inside one compiled call (called from Python, each call would unbox the
+    # named tuples again: ~18 us for the Implicit tuple alone), on copies where the step would change the state.
+    @njit
+    def muscles_n(n, act, a_st, h, lam, q, mvel, tissue, num, scratch):
+        for _ in range(n):
+            MU.advance_activation(act, a_st, h, num.tau_act, num.tau_deact)
+            CK.update_contraction(lam, a_st, num.log_c, num.log_r, num.lam_min, h / num.h_ref)
+            muscle_tension(q, a_st, mvel, tissue, num, scratch)
+
+    @njit
+    def after_cells_n(n, x, f, h, lam, mlen, mvel, tissue, num, scratch):
+        for _ in range(n):
+            after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, True)
+
+    @njit
+    def vias_n(n, h, x, f, xn, vn, tissue, seg_R, seg_t, wr):
+        for _ in range(n):
+            if tissue.via_seg.shape[0] > 0:
+                IK.via_forces(f, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local, seg_R, seg_t,
+                              tissue.inv_den, wr)
+                xn[:] = x
+                IK.hold_via_points(h, xn, vn, tissue.via_off, tissue.via_idx, tissue.via_seg, tissue.via_local,
+                                   seg_R, seg_t, tissue.inv_den)
+
+    @njit
+    def history_n(n, h, x, v, xn, vn, xp, vp, hh, cw):
+        for _ in range(n):
+            IM.bdf2_history(h, x, v, xn, vn, xp, vp, hh, cw.moved, cw.n_moved)
+
+    @njit
+    def start_n(n, h, x, v, xp, vp, hh, imp):
+        for _ in range(n):
+            IM.bdf2_start(h, x, v, xp, vp, hh, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)
+
+    @njit
+    def predict_n(n, x, v, imp):
+        for _ in range(n):
+            IM.predict(x, v, imp.y, imp.yc, imp.yg)
+
+    @njit
+    def cells_n(n, x, v, f, cells, lam, act, num, work):
+        for _ in range(n):
+            _cell_pass(x, v, f, cells, lam, act, num.vol_actual, num.iters, num.vol_gain, work)
+
+    @njit
+    def skeleton_n(n, h, q, qd, f, x, sk, tissue, num, R, t, scratch, lock, target, lock_torque, wr):
+        for _ in range(n):
+            q1, qd1 = q.copy(), qd.copy()
+            SK.skeleton_step(h, q1, qd1, f, x, sk, tissue.att_idx, tissue.att_seg, num.jdamp, num.lim_wh, num.lim_z,
+                             R, t, scratch.skel_work, lock, target, lock_torque, scratch.tau_pe, wr)
+
+    @njit
+    def solve_n(n, imp, f, xn):
+        for _ in range(n):
+            IM._solve(imp, f, xn, imp.y, False)
+
+    @njit
+    def velocities_n(n, h, x, xn, vn, imp):
+        for _ in range(n):
+            IM._velocities(h, x, xn, vn, imp.mh2, 1e9)
+
+    @njit
+    def sheath_n(n, h, x, xn, vn, imp, seg_R, seg_t, cg, wr):
+        for _ in range(n):
+            xn[:] = x
+            IM.sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, 1e9, wr)
+
+    @njit
+    def via_n(n, h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, seg_t):
+        for _ in range(n):
+            xn[:] = x
+            IM.via_correct(h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, seg_t, 1e9)
+
+    @njit
+    def contact_n(n, h, x, v, xn, vn, q, sk, seg_R, seg_t, cg, cw, inv_den, wr):
+        for _ in range(n):
+            xn[:] = x; vn[:] = v
+            SK.forward_kinematics(q, sk, cw.R0, cw.t0)
+            CT.unmark(cw)
+            CT.fold_contact(h, xn, vn, seg_R, seg_t, cg, cw, inv_den, wr)
+            CT.bone_contact(h, xn, vn, seg_R, seg_t, cg, cw, inv_den, wr)
 
     stages = [
-        ('muscle stages (activation, force-length, tension)', muscles),
-        ('after the cells (enclosed volume, end rings, velocity)', after_cells),
-        ('point via forces and centroids (stages 2, 3b)', vias),
-        ('BDF2 history (copy, moved vertices)', history),
-        ('BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3 and y', lambda: IM.bdf2_start(
-            h, x, v, st.x_prev, st.v_prev, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)),
-        ('prediction y = x + h v (backward Euler)', lambda: IM.predict(x, v, imp.y, imp.yc, imp.yg)),
-        ('cell pass (rotations/polar, forces)', lambda: _cell_pass(x, v, f, cells, lam, act, num.vol_actual, num.iters,
-                                                                     num.vol_gain, scratch.cell_work)),
-        ('skeleton step', skel),
-        ('solve: rhs + L, D^-1, L^T (one)', lambda: IM._solve(imp, f, xn, imp.y, False)),
-        ('velocities (x1 - x)/h', lambda: IM._velocities(h, x, xn, vn, imp.mh2, 1e9)),
-        ('sheath correction (offsets, region solve, velocities)', sheath),
-        ('point via correction (centroids, A^-1 C^T, velocities)', via),
-        ('fold + bone contact (stage 4)', contact),
+        ('muscle stages (activation, force-length, tension)',
+         lambda n: muscles_n(n, act, a_st, h, lam, st.q, mvel, tissue, num, scratch)),
+        ('after the cells (enclosed volume, end rings, velocity)',
+         lambda n: after_cells_n(n, x, f, h, lam, mlen, mvel, tissue, num, scratch)),
+        ('point via forces and centroids (stages 2, 3b)', lambda n: vias_n(n, h, x, f, xn, vn, tissue, R, t, wr)),
+        ('BDF2 history (copy, moved vertices)', lambda n: history_n(n, h, x, v, xn, vn, xp, vp, hh, cw)),
+        ('BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3 and y', lambda n: start_n(n, h, x, v, xp, vp, hh, imp)),
+        ('prediction y = x + h v (backward Euler)', lambda n: predict_n(n, x, v, imp)),
+        ('cell pass (rotations/polar, forces)', lambda n: cells_n(n, x, v, f, cells, lam, act, num, scratch.cell_work)),
+        ('skeleton step', lambda n: skeleton_n(n, h, q, qd, f, x, sk, tissue, num, R, t, scratch, no_lock, q_target,
+                                               lock_torque, st.contact_wrench)),
+        ('solve: rhs + L, D^-1, L^T (one)', lambda n: solve_n(n, imp, f, xn)),
+        ('velocities (x1 - x)/h', lambda n: velocities_n(n, h, x, xn, vn, imp)),
+        ('sheath correction (offsets, region solve, velocities)',
+         lambda n: sheath_n(n, h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, wr)),
+        ('point via correction (centroids, A^-1 C^T, velocities)',
+         lambda n: via_n(n, h, x, xn, vn, imp, sim.via_off, sim.via_idx, sim.via_seg, sim.via_local, st.seg_R, st.seg_t)),
+        ('fold + bone contact (stage 4)',
+         lambda n: contact_n(n, h, x, v, xn, vn, st.q, sk, st.seg_R, st.seg_t, cg, cw, tissue.inv_den, wr)),
     ]
     res = {}
     print(f'implicit step, {iterations} iteration(s), {sim.n_vertices} vertices, {sim.n_cells} cells; factor '
           f'{imp.n_lnz:,} entries, sheath region factor {imp.s_Lx.size + imp.s_dinv.size:,}; microseconds per call:')
     for name, fn in stages:
         n = reps or max(5, int(2e5 / sim.n_vertices))
-        res[name] = 1e6 / rate(lambda: [fn() for _ in range(n)], 1.0) / n
+        res[name] = 1e6 / rate(lambda: fn(n), 1.0) / n
         print(f'  {name:55s} {res[name]:9.1f}', flush=True)
     whole = 1e6 / (10 * rate(lambda: solver.step(sim, st, ctrl, n_steps=10), 3.0))
     res['whole step'] = whole

@@ -80,6 +80,40 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
                     CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1]), IM.Implicit(*imp), info)
 
 
+@njit(inline='always')
+def muscle_tension(q, a_st, mvel, tissue, num, scratch):
+    """Stage 1 before the cell pass: the active force-length's fibre lengths of the source-model paths at the joint
+    coordinates q, the passive fibre force as joint torques (scratch.tau_pe), and each muscle's active tension factor
+    (activation x force-velocity x force-length) into scratch.act_t."""
+    if num.fl_on or num.pe_on:
+        MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
+                         tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
+                         scratch.path_dlen, scratch.part_l, scratch.fibre)
+        if num.pe_on:
+            MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
+                               scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
+                               scratch.tau_pe, scratch.passive)
+    MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
+                             num.fl_gamma, scratch.act_t)
+
+
+@njit(inline='always')
+def after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, velocity):
+    """Stage 1 after the cell pass at x: the muscle cells' enclosed-volume forces, the partly bound end rings' shift,
+    and (velocity) the muscles' length and velocity from the cell pass's axial lengths."""
+    if tissue.enc_size.shape[0] > 0:
+        VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
+                          tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
+                          scratch.enc_energy)
+    if tissue.end_cell.shape[0] > 0:
+        CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
+                          tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
+                          tissue.end_bound_off, tissue.end_bound, lam, scratch.act_t)
+    if velocity and num.fv_on:
+        CK.muscle_velocity(scratch.cell_work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
+                           num.fv_alpha, scratch.muscle_sums)
+
+
 @njit(cache=True)
 def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, imp, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
@@ -120,28 +154,9 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 IM.predict(x, v, imp.y, imp.yc, imp.yg)
             if imp.on:
                 xe = imp.y
-            if num.fl_on or num.pe_on:
-                MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
-                                 tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
-                                 scratch.path_dlen, scratch.part_l, scratch.fibre)
-                if num.pe_on:
-                    MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
-                                       scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
-                                       scratch.tau_pe, scratch.passive)
-            MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
-                                     num.fl_gamma, act_t)
+            muscle_tension(q, a_st, mvel, tissue, num, scratch)
             bad = _cell_pass(xe, vs, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work)
-            if tissue.enc_size.shape[0] > 0:
-                VO.enclosed_lanes(xe, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
-                                  tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
-                                  scratch.enc_energy)
-            if tissue.end_cell.shape[0] > 0:
-                CK.end_ring_shift(xe, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
-                                  tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
-                                  tissue.end_bound_off, tissue.end_bound, lam, act_t)
-            if num.fv_on:
-                CK.muscle_velocity(work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
-                                   num.fv_alpha, scratch.muscle_sums)
+            after_cells(xe, f, h, lam, mlen, mvel, tissue, num, scratch, True)
             if bad >= 0:
                 info[0], info[1], info[2] = n, bad, CAUSE_CELL_FORCE
                 lam[:] = scratch.lam0; mlen[:] = scratch.mlen0; mvel[:] = scratch.mvel0; a_st[:] = scratch.act0
@@ -166,14 +181,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                     if _cell_pass(xb, vb, f, cells, lam, act_t, num.vol_actual, num.iters, num.vol_gain, work) >= 0:
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
-                    if tissue.enc_size.shape[0] > 0:
-                        VO.enclosed_lanes(xb, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6,
-                                          tissue.enc_v0, tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb,
-                                          scratch.enc_gt, scratch.enc_t, scratch.enc_energy)
-                    if tissue.end_cell.shape[0] > 0:
-                        CK.end_ring_shift(xb, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active,
-                                          tissue.rest_length, tissue.end_cell, tissue.end_top, tissue.end_free_off,
-                                          tissue.end_free, tissue.end_bound_off, tissue.end_bound, lam, act_t)
+                    after_cells(xb, f, h, lam, mlen, mvel, tissue, num, scratch, False)
                     fast = IM.correct(hs, xs, f, xb, vb, imp, num.vmax2)
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
                     fast = IM.sheath_correct(hs, xs, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
