@@ -304,7 +304,7 @@ def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg):
     third = 1.0 / 3.0
     if history_h[0] != h:
         for k in range(xf.shape[0]):
-            xa = (4.0 * xf[k] - (xf[k] - h * vf[k])) * third
+            xa = xf[k] + h * vf[k] * third
             xhf[k] = xa
             vhf[k] = vf[k]
             yf[k] = xa + ycf[k] * vf[k] + ygf[k]

@@ -207,7 +207,8 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
             # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane);
             # each velocity change's reaction goes to the segment that made it, for the next sub-step's skeleton step
-            CT.unmark(cwork)          # (stage 4 lists the vertices it moves: BDF2's history, implicit.bdf2_history)
+            if imp.on and imp.bdf2:    # (stage 4 lists the vertices it moves: BDF2's history, implicit.bdf2_history)
+                CT.unmark(cwork)
             if cgrid.g_seg.shape[0] > 0 or cgrid.f_seg.shape[0] > 0:
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
                 CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
