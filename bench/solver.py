@@ -528,7 +528,7 @@ def stage_times(tm, iterations, reps=None):
     @njit
     def history_n(n, h, x, v, xn, vn, xp, vp, hh, cw):
         for _ in range(n):
-            IM.bdf2_history(h, x, v, xn, vn, xp, vp, hh, cw.moved, cw.n_moved)
+            IM.bdf2_history(h, xn, vn, x, v, hh, cw.moved, cw.n_moved)
 
     @njit
     def start_n(n, h, x, v, xp, vp, hh, imp):
@@ -553,14 +553,14 @@ def stage_times(tm, iterations, reps=None):
                              R, t, scratch.skel_work, lock, target, lock_torque, scratch.tau_pe, wr)
 
     @njit
-    def solve_n(n, imp, f, xn):
+    def pose_n(n, h, x, xn, vn, tissue, seg_R, seg_t):
         for _ in range(n):
-            IM._solve(imp, f, xn, imp.y, False)
+            IK.pose_attached(h, x, xn, vn, tissue.att_idx, tissue.att_seg, tissue.rest, seg_R, seg_t, 1e9)
 
     @njit
-    def velocities_n(n, h, x, xn, vn, imp):
+    def solve_n(n, h, x, imp, f, xn, vn):
         for _ in range(n):
-            IM._velocities(h, x, xn, vn, imp.mh2, 1e9)
+            IM._solve(imp, f, xn, imp.y, False, x, vn, 1.0 / h, 1e9)
 
     @njit
     def sheath_n(n, h, x, xn, vn, imp, seg_R, seg_t, cg, wr):
@@ -589,14 +589,14 @@ def stage_times(tm, iterations, reps=None):
         ('after the cells (enclosed volume, end rings, velocity)',
          lambda n: after_cells_n(n, x, f, h, lam, mlen, mvel, tissue, num, scratch)),
         ('point via forces and centroids (stages 2, 3b)', lambda n: vias_n(n, h, x, f, xn, vn, tissue, R, t, wr)),
-        ('BDF2 history (copy, moved vertices)', lambda n: history_n(n, h, x, v, xn, vn, xp, vp, hh, cw)),
+        ('BDF2 history (moved vertices)', lambda n: history_n(n, h, x, v, xn, vn, xp, vp, hh, cw)),
         ('BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3 and y', lambda n: start_n(n, h, x, v, xp, vp, hh, imp)),
         ('prediction y = x + h v (backward Euler)', lambda n: predict_n(n, x, v, imp)),
         ('cell pass (rotations/polar, forces)', lambda n: cells_n(n, x, v, f, cells, lam, act, num, scratch.cell_work)),
         ('skeleton step', lambda n: skeleton_n(n, h, q, qd, f, x, sk, tissue, num, R, t, scratch, no_lock, q_target,
                                                lock_torque, st.contact_wrench)),
-        ('solve: rhs + L, D^-1, L^T (one)', lambda n: solve_n(n, imp, f, xn)),
-        ('velocities (x1 - x)/h', lambda n: velocities_n(n, h, x, xn, vn, imp)),
+        ('bone-attached vertices posed', lambda n: pose_n(n, h, x, xn, vn, tissue, st.seg_R, st.seg_t)),
+        ('solve: rhs + L, D^-1, L^T, velocities (one)', lambda n: solve_n(n, h, x, imp, f, xn, vn)),
         ('sheath correction (offsets, region solve, velocities)',
          lambda n: sheath_n(n, h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, wr)),
         ('point via correction (centroids, A^-1 C^T, velocities)',
@@ -616,10 +616,11 @@ def stage_times(tm, iterations, reps=None):
     parts = (res['muscle stages (activation, force-length, tension)']
              + iterations * res['after the cells (enclosed volume, end rings, velocity)']
              + res['point via forces and centroids (stages 2, 3b)']
-             + (res['BDF2 history (copy, moved vertices)'] + res['BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3 and y']
+             + (res['BDF2 history (moved vertices)'] + res['BDF2 start (4 x - x_prev)/3, (4 v - v_prev)/3 and y']
                 if imp.bdf2 else res['prediction y = x + h v (backward Euler)'])
              + iterations * res['cell pass (rotations/polar, forces)']
-             + res['skeleton step'] + iterations * (res['solve: rhs + L, D^-1, L^T (one)'] + res['velocities (x1 - x)/h'])
+             + res['skeleton step'] + res['bone-attached vertices posed']
+             + iterations * res['solve: rhs + L, D^-1, L^T, velocities (one)']
              + res['sheath correction (offsets, region solve, velocities)']
              + res['point via correction (centroids, A^-1 C^T, velocities)'] + res['fold + bone contact (stage 4)'])
     print(f'  {"sum of the parts (x iterations where repeated)":55s} {parts:9.1f}')

@@ -38,7 +38,7 @@ def test_the_star_form_factor_solves_the_written_out_system(default_tm):
     xk = y.copy()
     xk[~free] += 1e-3 * rng.standard_normal((int(np.sum(~free)), 3))      # the bones moved beyond the prediction
     moved = np.where(free[:, None], 0.0, xk - y)
-    IM._solve(imp, f, xk, y, True)
+    IM._solve(imp, f, xk, y, True, y, np.zeros_like(y), 0.0, 0.0)
     w = sla.spsolve(A, f[free] - Lf @ moved)
     assert np.abs(w).max() > 0
     assert np.abs((xk - y)[free] - w).max() <= 1e-9 * np.abs(w).max()

@@ -41,12 +41,11 @@ from numba import njit
 
 from tissue_sim.core.solver import contact as CT, integration as IK
 
-Implicit = collections.namedtuple('Implicit', 'on iters y mh2 zero_inv row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
+Implicit = collections.namedtuple('Implicit', 'on iters y mh2 row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
                                   'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh '
                                   'via_u via_sinv via_g yc yg')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
-iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), zero_inv
-(V,) zeros (integration.integrate then poses the bones and writes y for the free vertices), per row p of the factor
+iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), per row p of the factor
 (elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
 weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
 star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative).
@@ -56,7 +55,7 @@ star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_din
 s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form. bdf2 (bool): the scheme is BDF2
 (the factor is then at solve_length(h) = 2h/3); hs [s] that solve length (h with backward Euler); xh, vh (V, 3) its
 starting point (bdf2_start; scratch). The point via rings held inside the solve (via_correct; empty without
-rings or with Params.implicit_via_correction off): via_u (R, V) A^-1 C^T (C: each ring's centroid of its free
+rings or with Params.implicit_via_correction off): via_u (V, R) A^-1 C^T (C: each ring's centroid of its free
 vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (R, 3) scratch.
 yc, yg (V, 3): the prediction's coefficients at hs, y = x + yc v + yg (predict)."""
 
@@ -166,12 +165,12 @@ def via_matrix(sim, free) -> np.ndarray:
 
 
 def via_system(sim, imp) -> tuple:
-    """The point via rings' correction inside the implicit solve (via_correct), with imp's factor: (via_u (R, V) =
+    """The point via rings' correction inside the implicit solve (via_correct), with imp's factor: (via_u (V, R) =
     A^-1 C^T on the free vertices, 0 on the others, one solve per ring; via_sinv (R, R) = (C A^-1 C^T)^-1; via_g
     (R, 3) scratch: the centroids' offsets). Empty without rings or with Params.implicit_via_correction off."""
     R, V = sim.via_seg.size, sim.n_vertices
     if R == 0 or not sim.params.implicit_via_correction:
-        return np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3))
+        return np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3))
     free = np.flatnonzero(sim.inv_mass > 0)
     C = via_matrix(sim, free)
     u = np.zeros((R, V))
@@ -180,9 +179,9 @@ def via_system(sim, imp) -> tuple:
         f = np.zeros((V, 3))
         f[free, 0] = C[r]
         w = np.zeros((V, 3))
-        _solve(imp, f, w, zero, False)            # w = A^-1 f on the free vertices (xk = y = 0)
+        _solve(imp, f, w, zero, True, zero, np.zeros((V, 3)), 0.0, 0.0)     # w = A^-1 f on the free vertices (y = 0)
         u[r] = w[:, 0]
-    return u, np.linalg.inv(u[:, free] @ C.T).reshape(R, R), np.zeros((R, 3))
+    return np.ascontiguousarray(u.T), np.linalg.inv(u[:, free] @ C.T).reshape(R, R), np.zeros((R, 3))
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -207,16 +206,24 @@ def via_correct(h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, 
         px, py, pz = IK._via_place(r, via_seg, via_local, seg_R, seg_t)
         n = b - a
         g[r, 0], g[r, 1], g[r, 2] = cx / n - px, cy / n - py, cz / n - pz
-    u, si = imp.via_u, imp.via_sinv
-    for r in range(R):                          # ring r's multiplier (C A^-1 C^T)^-1 g, then its column's move
+    u, si, mh2 = imp.via_u, imp.via_sinv, imp.mh2
+    lm = np.empty((R, 3))                       # each ring's multiplier (C A^-1 C^T)^-1 g
+    for r in range(R):
         l0 = l1 = l2 = 0.0
         for q in range(R):
             l0 += si[r, q] * g[q, 0]; l1 += si[r, q] * g[q, 1]; l2 += si[r, q] * g[q, 2]
-        u_r = u[r]
-        for i in range(xn.shape[0]):            # (0 on the bone-attached vertices)
-            w = u_r[i]
-            xn[i, 0] -= w * l0; xn[i, 1] -= w * l1; xn[i, 2] -= w * l2
-    return _velocities(h, x, xn, vn, imp.mh2, vmax2)
+        lm[r, 0], lm[r, 1], lm[r, 2] = l0, l1, l2
+    nfast = 0
+    ih = 1.0 / h
+    for i in range(xn.shape[0]):                # the rings' columns' moves and the velocities, in one pass
+        if mh2[i] > 0.0:                        # (u is 0 on the bone-attached vertices)
+            d0 = d1 = d2 = 0.0
+            for r in range(R):
+                w = u[i, r]
+                d0 += w * lm[r, 0]; d1 += w * lm[r, 1]; d2 += w * lm[r, 2]
+            xn[i, 0] -= d0; xn[i, 1] -= d1; xn[i, 2] -= d2
+            nfast += _velocity(i, ih, x, xn, vn, vmax2)
+    return nfast
 
 
 def reference_via_solve(sim, h: float, x, places):
@@ -280,7 +287,6 @@ def _factor(A):
         raise RuntimeError('implicit integrator: the factor is not symmetric (U != D L^T)')
     Ls = sp.tril(Lf, k=-1).tocsr()
     Ls.sort_indices()
-    Ls.indices, Ls.indptr = Ls.indices.astype(np.int32), Ls.indptr.astype(np.int64)
     # row p of the factor is unknown perm_c[p] of A (Pr A Pc = L U, perm_r == perm_c)
     return np.argsort(lu.perm_c), Ls, d
 
@@ -318,22 +324,19 @@ def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg):
 
 
 @njit(cache=True)
-def bdf2_history(h, x, v, xn, vn, x_prev, v_prev, history_h, moved, n_moved):
-    """After a BDF2 sub-step from (x, v) to (xn, vn): the next one's history, x_prev = x, v_prev = v, except for the
-    vertices a stage after the solve moved or whose velocity it changed (the fold and bone contact, stage 4: their
-    indices are moved[:n_moved[0]], contact.mark): their past is taken at constant velocity, x_prev = xn - h vn,
-    v_prev = vn (a projection is not motion: carried in the history, BDF2's extrapolation would turn the jump into
-    velocity, and a vertex pushed out of a bone every sub-step ran away: the 6x limb at 16 sub-steps diverged at step
-    296). The copy runs over the flat arrays (it vectorises), the few moved vertices after."""
-    xf, vf, xpf, vpf = x.reshape(-1), v.reshape(-1), x_prev.reshape(-1), v_prev.reshape(-1)
-    for k in range(xf.shape[0]):
-        xpf[k] = xf[k]
-        vpf[k] = vf[k]
+def bdf2_history(h, xn, vn, x_old, v_old, history_h, moved, n_moved):
+    """After a BDF2 sub-step from (x_old, v_old) to (xn, vn): the next one's history is (x_old, v_old) itself (the
+    step rotates its buffers, step._advance: nothing is copied), except for the vertices a stage after the solve
+    moved or whose velocity it changed (the fold and bone contact, stage 4: their indices are moved[:n_moved[0]],
+    contact.mark): their past is taken at constant velocity, x_prev = xn - h vn, v_prev = vn, written into x_old,
+    v_old (a projection is not motion: carried in the history, BDF2's extrapolation would turn the jump into
+    velocity, and a vertex pushed out of a bone every sub-step ran away: the 6x limb at 16 sub-steps diverged at
+    step 296)."""
     for k in range(n_moved[0]):
         i = moved[k]
         for a in range(3):
-            x_prev[i, a] = xn[i, a] - h * vn[i, a]
-            v_prev[i, a] = vn[i, a]
+            x_old[i, a] = xn[i, a] - h * vn[i, a]
+            v_old[i, a] = vn[i, a]
     history_h[0] = h
 
 
@@ -342,11 +345,12 @@ def make(sim, h: float) -> Implicit:
     solve_length(h)."""
     V = sim.n_vertices
     e_i, e_f, e_p = np.zeros(0, np.int32), np.zeros(0), np.zeros(1, np.int64)
+    e_u, e_q = np.zeros(0, np.uint32), np.zeros(1, np.uint64)       # (a factor's index arrays: _csr)
     if sim.params.integrator != 'implicit':
-        return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), np.zeros(V), e_i, e_i, e_f, e_p,
-                        e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_p, e_i, e_f, e_f,
-                        np.zeros((0, 3)), e_p, e_i, e_f, e_p, e_i, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)),
-                        np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
+        return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), e_i, e_i, e_f, e_p,
+                        e_i, e_q, e_u, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_q, e_u, e_f, e_f,
+                        np.zeros((0, 3)), e_q, e_u, e_f, e_q, e_u, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)),
+                        np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
     bdf2 = sim.params.implicit_scheme == 'bdf2'
     h = solve_length(sim.params, h)
     A, free, keff = star_system(sim, h)
@@ -382,25 +386,31 @@ def make(sim, h: float) -> Implicit:
         keep = np.concatenate([reg, nf + np.flatnonzero(touch)])
         s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsr()[keep][:, keep].tocsc())
         s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
-        sheath = (ks, np.zeros((V, 6)), s_rows, sLs.indptr, sLs.indices, sLs.data.copy(), 1.0 / sd_,
+        sheath = (ks, np.zeros((V, 6)), s_rows, *_csr(sLs), 1.0 / sd_,
                   np.zeros((keep.size, 3)))
         sU = _transposed(sLs)
     else:
-        sheath = (e_f, np.zeros((0, 6)), e_i, e_p, e_i, e_f, e_f, np.zeros((0, 3)))
-        sU = (e_p, e_i, e_f)
-    imp = Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, np.zeros(V), row_v, row_c,
-                    np.ascontiguousarray(keff), ptr, idx, Ls.indptr, Ls.indices, Ls.data.copy(), 1.0 / d,
+        sheath = (e_f, np.zeros((0, 6)), e_i, e_q, e_u, e_f, e_f, np.zeros((0, 3)))
+        sU = (e_q, e_u, e_f)
+    imp = Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, row_v, row_c,
+                    np.ascontiguousarray(keff), ptr, idx, *_csr(Ls), 1.0 / d,
                     np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
-                    np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((0, V)), np.zeros((0, 0)), np.zeros((0, 3)),
+                    np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)),
                     *prediction(sim, h))
     return imp._replace(**dict(zip(('via_u', 'via_sinv', 'via_g'), via_system(sim, imp))))
 
 
+def _csr(M) -> tuple:
+    """(indptr uint64, indices uint32, data) of a sorted CSR matrix, as the solves read them. Unsigned: numba then
+    indexes with them directly (a signed index costs a negative-index test per entry, ~10 % of the solves)."""
+    return M.indptr.astype(np.uint64), M.indices.astype(np.uint32), M.data.copy()
+
+
 def _transposed(Ls):
-    """(indptr, indices, data) of L^T by rows (CSR, sorted): the backward pass reads row p's entries L_jp, j > p."""
+    """_csr of L^T: the backward pass reads row p's entries L_jp, j > p."""
     U = Ls.T.tocsr()
     U.sort_indices()
-    return U.indptr.astype(np.int64), U.indices.astype(np.int32), U.data.copy()
+    return _csr(U)
 
 
 def prediction(sim, h: float) -> tuple:
@@ -426,21 +436,25 @@ def predict(x, v, y, yc, yg):
 
 
 @njit(cache=True, fastmath={'contract'})
-def _solve(imp, f, xk, y, first):
-    """xk_free += w, A w = the right-hand side (f - M (xk - y)/h^2 on the vertices' rows; on the cells' rows in the
-    first iteration the bones' motion beyond the prediction, keff_c sum (xk_a - y_a)): L z' = rhs (the rhs formed row
-    by row as the forward pass reaches it), then L^T w = D^-1 z' (_backward: each w_p final when the backward pass
-    leaves row p, the update made there)."""
-    z, Lp, Lj, Lx, dinv = imp.z, imp.Lp, imp.Lj, imp.Lx, imp.dinv
+def _solve(imp, f, xk, y, first, xs, vn, ih, vmax2):
+    """The implicit solve A w = rhs on the free vertices, and their velocities: L z' = rhs (formed row by row as the
+    forward pass reaches it), then L^T w = D^-1 z' (_backward_step: each w_p final when the backward pass leaves row
+    p, and the vertex updated there). first: the step's first iteration, from the prediction: rhs = f on the
+    vertices' rows (xk = y there: its free rows are not read) and, on the cells' rows, the bones' motion beyond the
+    prediction, keff_c sum (xk_a - y_a); xk_free = y + w. Otherwise rhs = f - M (xk - y)/h^2, xk_free += w. Either
+    way vn_free = (xk - xs) ih (_velocity). Returns how many free vertices are faster than sqrt(vmax2) or not finite."""
+    z, Lp, Lj, Lx = imp.z, imp.Lp, imp.Lj, imp.Lx
     row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
     n = z.shape[0]
     for p in range(n):
         i = row_v[p]
         if i >= 0:
-            m = mh2[i]
-            s0 = f[i, 0] - m * (xk[i, 0] - y[i, 0])
-            s1 = f[i, 1] - m * (xk[i, 1] - y[i, 1])
-            s2 = f[i, 2] - m * (xk[i, 2] - y[i, 2])
+            s0, s1, s2 = f[i, 0], f[i, 1], f[i, 2]
+            if not first:
+                m = mh2[i]
+                s0 -= m * (xk[i, 0] - y[i, 0])
+                s1 -= m * (xk[i, 1] - y[i, 1])
+                s2 -= m * (xk[i, 2] - y[i, 2])
         else:
             s0 = s1 = s2 = 0.0
             if first:
@@ -450,7 +464,7 @@ def _solve(imp, f, xk, y, first):
                 k = keff[row_c[p]]
                 s0 *= k; s1 *= k; s2 *= k
         _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2)
-    _backward(imp.Up, imp.Uj, imp.Ux, dinv, row_v, z, xk)
+    return _backward_step(imp.Up, imp.Uj, imp.Ux, imp.dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2)
 
 
 @njit(inline='always')
@@ -480,6 +494,29 @@ def _backward(Up, Uj, Ux, dinv, row_v, z, xk):
             xk[i, 0] += s0; xk[i, 1] += s1; xk[i, 2] += s2
 
 
+@njit(cache=True, fastmath={'contract'})
+def _backward_step(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2):
+    """_backward for the step's solve (_solve), the vertices updated where their rows are left: xk_free = y + w
+    (first) or xk_free += w, and vn_free = (xk - xs) ih; returns how many are faster than sqrt(vmax2) or not finite."""
+    nfast = 0
+    for p in range(z.shape[0] - 1, -1, -1):
+        d = dinv[p]
+        s0, s1, s2 = z[p, 0] * d, z[p, 1] * d, z[p, 2] * d
+        for q in range(Up[p], Up[p + 1]):
+            j = Uj[q]
+            l = Ux[q]
+            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+        i = row_v[p]
+        if i >= 0:
+            if first:
+                xk[i, 0] = y[i, 0] + s0; xk[i, 1] = y[i, 1] + s1; xk[i, 2] = y[i, 2] + s2
+            else:
+                xk[i, 0] += s0; xk[i, 1] += s1; xk[i, 2] += s2
+            nfast += _velocity(i, ih, xs, xk, vn, vmax2)
+    return nfast
+
+
 @njit(inline='always')
 def _velocity(i, ih, x, xn, vn, vmax2):
     """vn[i] = (xn[i] - x[i]) / h (ih = 1/h); 1 if it is faster than sqrt(vmax2) or not finite (NaN counts), else 0."""
@@ -490,32 +527,20 @@ def _velocity(i, ih, x, xn, vn, vmax2):
     return 0 if a * a + b * b + c * c <= vmax2 else 1
 
 
-@njit(cache=True, fastmath={'contract'})
-def _velocities(h, x, xn, vn, mh2, vmax2):
-    nfast = 0
-    ih = 1.0 / h
-    for i in range(x.shape[0]):
-        if mh2[i] > 0.0:
-            nfast += _velocity(i, ih, x, xn, vn, vmax2)
-    return nfast
-
-
 @njit(cache=True)
-def integrate(h, x, v, f, xn, vn, imp, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp, vmax2):
+def integrate(h, x, f, xn, vn, imp, att_idx, att_seg, rest, seg_R, seg_t, vmax2):
     """Stage 3 with the implicit integrator, first iteration: f = the forces at imp.y (predict); the bone-attached
-    vertices take their segment's new pose (integration.integrate), the free ones x1 = y + A^-1 (f - Lhat_fa
-    (xa1 - ya)), v1 = (x1 - x)/h. Reads x, v, writes xn, vn; returns how many vertices are too fast or not finite."""
-    nfast = IK.integrate(h, x, v, f, imp.zero_inv, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, gravity, vel_damp,
-                         vmax2)
-    _solve(imp, f, xn, imp.y, True)
-    return nfast + _velocities(h, x, xn, vn, imp.mh2, vmax2)
+    vertices take their segment's new pose (integration.pose_attached), the free ones x1 = y + A^-1 (f - Lhat_fa
+    (xa1 - ya)), v1 = (x1 - x)/h (_solve). Reads x, writes xn, vn; returns how many vertices are too fast or not
+    finite."""
+    nfast = IK.pose_attached(h, x, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, vmax2)
+    return nfast + _solve(imp, f, xn, imp.y, True, x, vn, 1.0 / h, vmax2)
 
 
 @njit(cache=True)
 def correct(h, x, f, xn, vn, imp, vmax2):
     """A further local/global iteration: f = the forces at (xn, vn); xn_free += A^-1 (f - M (xn - y)/h^2)."""
-    _solve(imp, f, xn, imp.y, False)
-    return _velocities(h, x, xn, vn, imp.mh2, vmax2)
+    return _solve(imp, f, xn, imp.y, False, x, vn, 1.0 / h, vmax2)
 
 
 @njit(cache=True, fastmath={'contract'})

@@ -14,7 +14,7 @@ def integrate(h, x, v, f, inv_den, xn, vn, att_idx, att_seg, rest, seg_R, seg_t,
     x, v untouched). Returns how many vertices are faster than sqrt(vmax2) or not finite.
 
     The first loop runs over every vertex in order on flat views (no index list: LLVM vectorises it);
-    a bone-attached vertex (inv_den 0) is computed there too, not counted, and overwritten by the second."""
+    a bone-attached vertex (inv_den 0) is computed there too, not counted, and overwritten by pose_attached."""
     nfast = 0
     damp = 1.0 - h * vel_damp
     g0, g1, g2 = h * gravity[0], h * gravity[1], h * gravity[2]
@@ -28,8 +28,17 @@ def integrate(h, x, v, f, inv_den, xn, vn, att_idx, att_seg, rest, seg_R, seg_t,
         xnf[3 * i] = xf[3 * i] + h * a; xnf[3 * i + 1] = xf[3 * i + 1] + h * b; xnf[3 * i + 2] = xf[3 * i + 2] + h * c
         sp = a * a + b * b + c * c
         nfast += 0 if sp <= vmax2 or hm == 0.0 else 1      # (NaN counts)
-    # bone-attached vertices, by runs of one segment (compile_model sorts them by segment): the pose in
-    # registers, flat views and unsigned indices (no negative-index wrap-around)
+    return nfast + pose_attached(h, x, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, vmax2)
+
+
+@njit(cache=True, fastmath={'contract'})
+def pose_attached(h, x, xn, vn, att_idx, att_seg, rest, seg_R, seg_t, vmax2):
+    """The bone-attached vertices in their segments' poses: xn = R_s X + t_s, vn = (xn - x)/h (integrate; the
+    implicit integrator's integration, implicit.integrate). By runs of one segment (compile_model sorts them by
+    segment): the pose in registers, flat views and unsigned indices (no negative-index wrap-around). Returns how
+    many are faster than sqrt(vmax2) or not finite."""
+    nfast = 0
+    xf, xnf, vnf = x.reshape(-1), xn.reshape(-1), vn.reshape(-1)
     ih = 1.0 / h
     rf = rest.reshape(-1)
     k = 0

@@ -67,7 +67,8 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
     same for every step) and the joint lock (lock (J,) bool, target (J,) [rad]: Control.joint_lock/joint_target),
     in place. Positions and velocities alternate between (x, v) and the back buffers
-    (xb, vb); returns how many swaps happened. On failure info = (step, cell, cause) and the state is left
+    (xb, vb) (with BDF2 the two rotate with its history (x_prev, v_prev): (x, xb, x_prev) <- (xb, x_prev, x));
+    returns how many swaps (rotations) happened. On failure info = (step, cell, cause) and the state is left
     at the last good sub-step (an activation outside [0, 1] or not finite: nothing is done,
     info = (-1, muscle, CAUSE_ACTIVATION)).
 
@@ -117,6 +118,7 @@ def after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, velocity):
 @njit(cache=True)
 def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, imp, info):
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
+    xp, vp = st.x_prev, st.v_prev  # (BDF2's history: a third buffer, rotated with the other two)
     a_st = st.activation          # the activation state (the commands are its excitations when tau_act > 0)
     work, act_t = scratch.cell_work, scratch.act_t
     for n in range(acts.shape[0]):
@@ -148,7 +150,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             xe = x
             hs, xs, vs = h, x, v       # the implicit solve's step length and start (BDF2: 2h/3 from its combination)
             if imp.on and imp.bdf2:    # (its start and the prediction y in one pass)
-                IM.bdf2_start(h, x, v, st.x_prev, st.v_prev, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)
+                IM.bdf2_start(h, x, v, xp, vp, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)
                 hs, xs, vs = imp.hs, imp.xh, imp.vh      # (implicit.solve_length)
             elif imp.on:
                 IM.predict(x, v, imp.y, imp.yc, imp.yg)
@@ -173,8 +175,8 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             st.contact_wrench[:] = 0.0    # (applied: stage 3's sheath correction and stage 4 write this sub-step's)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
             if imp.on:             # implicit: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
-                fast = IM.integrate(hs, xs, vs, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
-                                    st.seg_t, sk.gravity, num.vel_damp, num.vmax2)
+                fast = IM.integrate(hs, xs, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
+                                    st.seg_t, num.vmax2)
                 for _ in range(1, imp.iters):
                     if fast or not ok:
                         break
@@ -213,10 +215,13 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
                 CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
                 CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
-            if imp.on and imp.bdf2:    # the sub-step is taken: it is BDF2's history for the next one
-                IM.bdf2_history(h, x, v, xb, vb, st.x_prev, st.v_prev, st.history_h, cwork.moved, cwork.n_moved)
-            x, xb = xb, x
-            v, vb = vb, v
+            if imp.on and imp.bdf2:    # the sub-step is taken: it is BDF2's history for the next one, and the
+                IM.bdf2_history(h, xb, vb, x, v, st.history_h, cwork.moved, cwork.n_moved)     # buffers rotate
+                x, xb, xp = xb, xp, x
+                v, vb, vp = vb, vp, v
+            else:
+                x, xb = xb, x
+                v, vb = vb, v
             swaps += 1
     CK.from_lanes(work, cells, st.quat, st.pressure, st.cell_energy, st.cell_length)
     if tissue.enc_size.shape[0] > 0:        # (the enclosed-volume energy of the last force evaluation)
@@ -359,7 +364,11 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
     if info[2] == CAUSE_LOCK_TARGET:
         raise ValueError(f'joint_target must be finite where joint_lock is set; joint {int(info[1])} '
                          f'({sim.tissue.joint_names[int(info[1])]!r}) has {target[int(info[1])]}')
-    if swaps % 2:
+    if p.integrator == 'implicit' and p.implicit_scheme == 'bdf2':     # (the buffers rotate: _advance)
+        for _ in range(swaps % 3):
+            state.x, state.x_back, state.x_prev = state.x_back, state.x_prev, state.x
+            state.v, state.v_back, state.v_prev = state.v_back, state.v_prev, state.v
+    elif swaps % 2:
         state.x, state.x_back = state.x_back, state.x
         state.v, state.v_back = state.v_back, state.v
     done = int(info[0]) if info[0] >= 0 else n_steps
