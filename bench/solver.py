@@ -533,12 +533,12 @@ def stage_times(tm, iterations, reps=None):
     @njit
     def start_n(n, h, x, v, xp, vp, hh, imp):
         for _ in range(n):
-            IM.bdf2_start(h, x, v, xp, vp, hh, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)
+            IM.bdf2_start(h, x, v, xp, vp, hh, imp.xh, imp.vh, imp.y, imp.yc, imp.yg, imp.hs)
 
     @njit
     def predict_n(n, x, v, imp):
         for _ in range(n):
-            IM.predict(x, v, imp.y, imp.yc, imp.yg)
+            IM.predict(x, v, imp.y, imp.yc, imp.yg, imp.hs)
 
     @njit
     def cells_n(n, x, v, f, cells, lam, act, num, work):

@@ -57,7 +57,7 @@ s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather f
 starting point (bdf2_start; scratch). The point via rings held inside the solve (via_correct; empty without
 rings or with Params.implicit_via_correction off): via_u (V, R) A^-1 C^T (C: each ring's centroid of its free
 vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (R, 3) scratch.
-yc, yg (V, 3): the prediction's coefficients at hs, y = x + yc v + yg (predict)."""
+yc, yg (V, 3): the prediction's coefficients at hs, y = x + yc v + yg (predict; empty: y = x + hs v)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -298,17 +298,32 @@ def solve_length(p, h: float) -> float:
 
 
 @njit(cache=True, fastmath={'contract'})
-def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg):
+def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg, hs):
     """BDF2's starting point of a sub-step of length h from the last two, xh = (4 x - x_prev) / 3, vh = (4 v - v_prev) / 3
-    (the step is then backward Euler's from (xh, vh) over 2h/3), and its prediction y = xh + yc vh + yg (predict) in
-    the same pass. Without a history at h (history_h[0] != h: the first sub-step, or h changed) the past is taken at
-    constant velocity, x_prev = x - h v, v_prev = v: then xh = x + h v / 3, vh = v, and the prediction
-    xh + (2h/3) vh = x + h v is backward Euler's. One flat loop over the arrays (it vectorises; a third multiplies:
-    the division was bound by the divider)."""
+    (the step is then backward Euler's from (xh, vh) over hs = 2h/3), and its prediction y = xh + yc vh + yg (predict)
+    in the same pass (yc empty: y = xh + hs vh, prediction). Without a history at h (history_h[0] != h: the first
+    sub-step, or h changed) the past is taken at constant velocity, x_prev = x - h v, v_prev = v: then xh = x + h v /
+    3, vh = v, and the prediction xh + (2h/3) vh = x + h v is backward Euler's. Flat loops over the arrays (they
+    vectorise; a third multiplies: the division was bound by the divider)."""
     xf, vf, xpf, vpf, xhf, vhf = x.reshape(-1), v.reshape(-1), x_prev.reshape(-1), v_prev.reshape(-1), xh.reshape(-1), vh.reshape(-1)
     yf, ycf, ygf = y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
     third = 1.0 / 3.0
-    if history_h[0] != h:
+    fresh = history_h[0] != h
+    if ycf.shape[0] == 0:           # (the common case, as its own loops: two arrays fewer to read)
+        if fresh:
+            for k in range(xf.shape[0]):
+                xa = xf[k] + h * vf[k] * third
+                xhf[k] = xa
+                vhf[k] = vf[k]
+                yf[k] = xa + hs * vf[k]
+        else:
+            for k in range(xf.shape[0]):
+                xa = (4.0 * xf[k] - xpf[k]) * third
+                va = (4.0 * vf[k] - vpf[k]) * third
+                xhf[k] = xa
+                vhf[k] = va
+                yf[k] = xa + hs * va
+    elif fresh:
         for k in range(xf.shape[0]):
             xa = xf[k] + h * vf[k] * third
             xhf[k] = xa
@@ -415,7 +430,10 @@ def _transposed(Ls):
 
 def prediction(sim, h: float) -> tuple:
     """(yc, yg) (V, 3), the prediction's coefficients at step length h (predict): free vertices yc = h (1 - h c_v),
-    yg = h^2 (1 - h c_v) g; bone-attached ones yc = h, yg = 0."""
+    yg = h^2 (1 - h c_v) g; bone-attached ones yc = h, yg = 0. Both empty where they are uniform (no velocity damping
+    and no gravity, as in both presets): then y = x + h v for every vertex."""
+    if sim.params.velocity_damping == 0.0 and not np.any(np.asarray(sim.gravity, float)):
+        return np.zeros((0, 3)), np.zeros((0, 3))
     free = (sim.inv_mass > 0)[:, None]
     damp = 1.0 - h * sim.params.velocity_damping
     yc = np.where(free, h * damp, h) * np.ones(3)
@@ -424,15 +442,19 @@ def prediction(sim, h: float) -> tuple:
 
 
 @njit(cache=True, fastmath={'contract'})
-def predict(x, v, y, yc, yg):
-    """y = x + yc v + yg (implicit.prediction's coefficients at hs): y = x + h (1 - h c_v)(v + h g) for the free
-    vertices, y = x + h v for the bone-attached ones (their segment's motion continued): the positions the step's
-    forces are evaluated at (the same free positions integration.integrate writes with a zero force). The bones must be
-    predicted too: with them where they are, tissue moving with a bone would lie h v ahead of it and pull it on (a
-    negative damping k h: the knee diverged in 24 steps). One flat loop (it vectorises)."""
+def predict(x, v, y, yc, yg, hs):
+    """y = x + yc v + yg (implicit.prediction's coefficients at hs; yc empty: y = x + hs v): y = x + h (1 - h c_v)(v +
+    h g) for the free vertices, y = x + h v for the bone-attached ones (their segment's motion continued): the
+    positions the step's forces are evaluated at (the same free positions integration.integrate writes with a zero
+    force). The bones must be predicted too: with them where they are, tissue moving with a bone would lie h v ahead of
+    it and pull it on (a negative damping k h: the knee diverged in 24 steps). One flat loop (it vectorises)."""
     xf, vf, yf, ycf, ygf = x.reshape(-1), v.reshape(-1), y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
-    for k in range(xf.shape[0]):
-        yf[k] = xf[k] + ycf[k] * vf[k] + ygf[k]
+    if ycf.shape[0] == 0:
+        for k in range(xf.shape[0]):
+            yf[k] = xf[k] + hs * vf[k]
+    else:
+        for k in range(xf.shape[0]):
+            yf[k] = xf[k] + ycf[k] * vf[k] + ygf[k]
 
 
 @njit(cache=True, fastmath={'contract'})

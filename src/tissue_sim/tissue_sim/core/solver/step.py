@@ -150,10 +150,10 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             xe = x
             hs, xs, vs = h, x, v       # the implicit solve's step length and start (BDF2: 2h/3 from its combination)
             if imp.on and imp.bdf2:    # (its start and the prediction y in one pass)
-                IM.bdf2_start(h, x, v, xp, vp, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg)
+                IM.bdf2_start(h, x, v, xp, vp, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg, imp.hs)
                 hs, xs, vs = imp.hs, imp.xh, imp.vh      # (implicit.solve_length)
             elif imp.on:
-                IM.predict(x, v, imp.y, imp.yc, imp.yg)
+                IM.predict(x, v, imp.y, imp.yc, imp.yg, imp.hs)
             if imp.on:
                 xe = imp.y
             muscle_tension(q, a_st, mvel, tissue, num, scratch)
