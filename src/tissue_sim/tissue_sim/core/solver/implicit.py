@@ -460,7 +460,7 @@ def predict(x, v, y, yc, yg, hs):
 @njit(cache=True, fastmath={'contract'})
 def _solve(imp, f, xk, y, first, xs, vn, ih, vmax2):
     """The implicit solve A w = rhs on the free vertices, and their velocities: L z' = rhs (formed row by row as the
-    forward pass reaches it), then L^T w = D^-1 z' (_backward_step: each w_p final when the backward pass leaves row
+    forward pass reaches it), then L^T w = D^-1 z' (_backward: each w_p final when the backward pass leaves row
     p, and the vertex updated there). first: the step's first iteration, from the prediction: rhs = f on the
     vertices' rows (xk = y there: its free rows are not read) and, on the cells' rows, the bones' motion beyond the
     prediction, keff_c sum (xk_a - y_a); xk_free = y + w. Otherwise rhs = f - M (xk - y)/h^2, xk_free += w. Either
@@ -486,7 +486,7 @@ def _solve(imp, f, xk, y, first, xs, vn, ih, vmax2):
                 k = keff[row_c[p]]
                 s0 *= k; s1 *= k; s2 *= k
         _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2)
-    return _backward_step(imp.Up, imp.Uj, imp.Ux, imp.dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2)
+    return _backward(imp.Up, imp.Uj, imp.Ux, imp.dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2)
 
 
 @njit(inline='always')
@@ -500,26 +500,11 @@ def _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2):
 
 
 @njit(cache=True, fastmath={'contract'})
-def _backward(Up, Uj, Ux, dinv, row_v, z, xk):
-    """The backward pass of _solve and _solve_sheath: w = L^-T D^-1 z in gather form (row p of L^T: w_p = z_p / D_p
-    - sum_j>p L_jp w_j, w in place of z), each w_p final when its row is done: xk[row_v[p]] += w_p there."""
-    for p in range(z.shape[0] - 1, -1, -1):
-        d = dinv[p]
-        s0, s1, s2 = z[p, 0] * d, z[p, 1] * d, z[p, 2] * d
-        for q in range(Up[p], Up[p + 1]):
-            j = Uj[q]
-            l = Ux[q]
-            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
-        z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
-        i = row_v[p]
-        if i >= 0:
-            xk[i, 0] += s0; xk[i, 1] += s1; xk[i, 2] += s2
-
-
-@njit(cache=True, fastmath={'contract'})
-def _backward_step(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2):
-    """_backward for the step's solve (_solve), the vertices updated where their rows are left: xk_free = y + w
-    (first) or xk_free += w, and vn_free = (xk - xs) ih; returns how many are faster than sqrt(vmax2) or not finite."""
+def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2):
+    """The backward pass of _solve and _solve_sheath: w = L^-T D^-1 z in gather form (row p of L^T: w_p = z_p / D_p -
+    sum_j>p L_jp w_j, w in place of z), each w_p final when its row is done; its vertex i = row_v[p] (-1: a cell row)
+    updated there, xk_i = y_i + w_p (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. Returns how many are faster
+    than sqrt(vmax2) or not finite."""
     nfast = 0
     for p in range(z.shape[0] - 1, -1, -1):
         d = dinv[p]
@@ -566,9 +551,10 @@ def correct(h, x, f, xn, vn, imp, vmax2):
 
 
 @njit(cache=True, fastmath={'contract'})
-def _solve_sheath(imp, xk):
+def _solve_sheath(imp, xk, xs, vn, ih, vmax2):
     """xk += w over sheath_region's vertices, A' w = k_s d (imp.sd, the sheathed vertices' way back; A' = A +
-    diag(k_s) over the region, the rest held): the forward pass, D^-1 and the backward pass of _solve on its factor."""
+    diag(k_s) over the region, the rest held), and their velocities vn = (xk - xs) ih: the forward pass, D^-1 and the
+    backward pass of _solve on its factor. Returns how many are faster than sqrt(vmax2) or not finite."""
     z, Lp, Lj, Lx, dinv, row_v, ks, d = imp.s_z, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_dinv, imp.s_row_v, imp.ks, imp.sd
     n = z.shape[0]
     for p in range(n):
@@ -579,7 +565,7 @@ def _solve_sheath(imp, xk):
             if k > 0.0:
                 s0, s1, s2 = k * d[i, 0], k * d[i, 1], k * d[i, 2]
         _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2)
-    _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, dinv, row_v, z, xk)
+    return _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, dinv, row_v, z, xk, xk, False, xs, vn, ih, vmax2)
 
 
 @njit(cache=True)
@@ -596,11 +582,6 @@ def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2, wr):
         return 0
     for i in cg.s_idx:
         imp.sd[i, 3], imp.sd[i, 4], imp.sd[i, 5] = xn[i, 0], xn[i, 1], xn[i, 2]
-    _solve_sheath(imp, xn)
-    CT.sheath_reaction(xn, cg, imp.ks, imp.sd, wr)
-    nfast = 0                   # (the velocities of the region's vertices: the others did not move)
-    ih = 1.0 / h
-    for i in imp.s_row_v:
-        if i >= 0:
-            nfast += _velocity(i, ih, x, xn, vn, vmax2)
+    nfast = _solve_sheath(imp, xn, x, vn, 1.0 / h, vmax2)     # (the velocities: of the region's vertices, the
+    CT.sheath_reaction(xn, cg, imp.ks, imp.sd, wr)             # others did not move)
     return nfast
