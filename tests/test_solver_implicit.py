@@ -313,3 +313,28 @@ def test_the_via_correction_is_the_constrained_solve_and_moves_the_tissue_round_
     assert np.allclose(vn[free], (xn - x0)[free] / h)
     off = IM.make(solver.compile_model(default_tm, _implicit(implicit_via_correction=False)), sim.params.dt)
     assert off.via_sinv.shape == (0, 0)
+
+
+def test_row_dot4_is_the_plain_sum_over_the_row():
+    """simd.row_dot4 (the solves' one LLVM kernel) against the plain loop: rows of every length round its four
+    accumulators (0 to 11 entries), unsigned column indices, a fourth column of z that is only carried along."""
+    from numba import njit
+    from tissue_sim.core.solver.simd import row_dot4
+
+    @njit
+    def rows(Lx, Lj, z, Lp):
+        out = np.empty((Lp.size - 1, 4))
+        for p in range(Lp.size - 1):
+            out[p, 0], out[p, 1], out[p, 2], out[p, 3] = row_dot4(Lx, Lj, z, Lp[p], Lp[p + 1])
+        return out
+
+    rng = np.random.default_rng(3)
+    lengths = np.arange(12)
+    Lp = np.concatenate([[0], np.cumsum(lengths)]).astype(np.uint64)
+    Lj = rng.integers(0, 50, int(Lp[-1])).astype(np.uint32)
+    Lx = rng.standard_normal(int(Lp[-1]))
+    z = rng.standard_normal((50, 4))
+    got = rows(Lx, Lj, z, Lp)
+    want = np.array([Lx[a:b] @ z[Lj[a:b]] for a, b in zip(Lp[:-1], Lp[1:])]).reshape(-1, 4)
+    assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max()
+    assert np.all(got[0] == 0.0)

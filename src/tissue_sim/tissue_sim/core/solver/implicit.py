@@ -40,6 +40,7 @@ import scipy.sparse.linalg as sla
 from numba import njit
 
 from tissue_sim.core.solver import contact as CT, integration as IK
+from tissue_sim.core.solver.simd import row_dot4
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
                                   'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh '
@@ -48,7 +49,7 @@ Implicit.__doc__ = """What the compiled step reads for the implicit integrator a
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), per row p of the factor
 (elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
 weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
-star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 3) scratch; n_lnz its entries (informative).
+star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 4) scratch (simd.row_dot4: a fourth column, unused); n_lnz its entries (informative).
 The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [N/m] k_s of each vertex
 (sheath_weights), sd (V, 6) scratch (each sheathed vertex's way back, its position before the correction), the factor of A' = A + diag(ks) in the same
 star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
@@ -402,14 +403,14 @@ def make(sim, h: float) -> Implicit:
         s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsr()[keep][:, keep].tocsc())
         s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
         sheath = (ks, np.zeros((V, 6)), s_rows, *_csr(sLs), 1.0 / sd_,
-                  np.zeros((keep.size, 3)))
+                  np.zeros((keep.size, 4)))
         sU = _transposed(sLs)
     else:
         sheath = (e_f, np.zeros((0, 6)), e_i, e_q, e_u, e_f, e_f, np.zeros((0, 3)))
         sU = (e_q, e_u, e_f)
     imp = Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, *_csr(Ls), 1.0 / d,
-                    np.zeros((n, 3)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
+                    np.zeros((n, 4)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
                     np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)),
                     *prediction(sim, h))
     return imp._replace(**dict(zip(('via_u', 'via_sinv', 'via_g'), via_system(sim, imp))))
@@ -491,12 +492,10 @@ def _solve(imp, f, xk, y, first, xs, vn, ih, vmax2):
 
 @njit(inline='always')
 def _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2):
-    """Row p of the forward pass of _solve and _solve_sheath: z_p = s - sum_j<p L_pj z_j (s: the row's right-hand side)."""
-    for q in range(Lp[p], Lp[p + 1]):
-        j = Lj[q]
-        l = Lx[q]
-        s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
-    z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+    """Row p of the forward pass of _solve and _solve_sheath: z_p = s - sum_j<p L_pj z_j (s: the row's right-hand side;
+    the sum simd.row_dot4's, z (n, 4): its fourth column unused)."""
+    a0, a1, a2, _ = row_dot4(Lx, Lj, z, Lp[p], Lp[p + 1])
+    z[p, 0] = s0 - a0; z[p, 1] = s1 - a1; z[p, 2] = s2 - a2
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -508,11 +507,8 @@ def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2):
     nfast = 0
     for p in range(z.shape[0] - 1, -1, -1):
         d = dinv[p]
-        s0, s1, s2 = z[p, 0] * d, z[p, 1] * d, z[p, 2] * d
-        for q in range(Up[p], Up[p + 1]):
-            j = Uj[q]
-            l = Ux[q]
-            s0 -= l * z[j, 0]; s1 -= l * z[j, 1]; s2 -= l * z[j, 2]
+        a0, a1, a2, _ = row_dot4(Ux, Uj, z, Up[p], Up[p + 1])
+        s0, s1, s2 = z[p, 0] * d - a0, z[p, 1] * d - a1, z[p, 2] * d - a2
         z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
         i = row_v[p]
         if i >= 0:
