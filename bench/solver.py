@@ -583,6 +583,13 @@ def stage_times(tm, iterations, reps=None):
             CT.fold_contact(h, xn, vn, seg_R, seg_t, cg, cw, inv_den, wr)
             CT.bone_contact(h, xn, vn, seg_R, seg_t, cg, cw, inv_den, wr)
 
+    @njit
+    def copies_n(n, x, v, xn, vn, both):
+        for _ in range(n):
+            xn[:] = x
+            if both:
+                vn[:] = v
+
     stages = [
         ('muscle stages (activation, force-length, tension)',
          lambda n: muscles_n(n, act, a_st, h, lam, st.q, mvel, tissue, num, scratch)),
@@ -606,10 +613,15 @@ def stage_times(tm, iterations, reps=None):
     ]
     res = {}
     print(f'implicit step, {iterations} iteration(s), {sim.n_vertices} vertices, {sim.n_cells} cells; factor '
-          f'{imp.n_lnz:,} entries, sheath region factor {imp.s_Lx.size + imp.s_dinv.size:,}; microseconds per call:')
+          f'{imp.n_lnz:,} entries, sheath region factor {imp.s_Lx.size + imp.s_dinv.size:,}; microseconds per call '
+          '(the harness\'s copies that restore the state between calls subtracted):')
+    n = reps or max(5, int(2e5 / sim.n_vertices))
+    copy = [1e6 / rate(lambda: copies_n(n, x, v, xn, vn, both), 1.0) / n for both in (False, True)]
+    restored = {'point via forces and centroids (stages 2, 3b)': copy[0],
+                'sheath correction (offsets, region solve, velocities)': copy[0],
+                'point via correction (centroids, A^-1 C^T, velocities)': copy[0], 'fold + bone contact (stage 4)': copy[1]}
     for name, fn in stages:
-        n = reps or max(5, int(2e5 / sim.n_vertices))
-        res[name] = 1e6 / rate(lambda: fn(n), 1.0) / n
+        res[name] = max(0.0, 1e6 / rate(lambda: fn(n), 1.0) / n - restored.get(name, 0.0))
         print(f'  {name:55s} {res[name]:9.1f}', flush=True)
     whole = 1e6 / (10 * rate(lambda: solver.step(sim, st, ctrl, n_steps=10), 3.0))
     res['whole step'] = whole
