@@ -305,38 +305,24 @@ def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg, hs):
     in the same pass (yc empty: y = xh + hs vh, prediction). Without a history at h (history_h[0] != h: the first
     sub-step, or h changed) the past is taken at constant velocity, x_prev = x - h v, v_prev = v: then xh = x + h v /
     3, vh = v, and the prediction xh + (2h/3) vh = x + h v is backward Euler's. Flat loops over the arrays (they
-    vectorise; a third multiplies: the division was bound by the divider)."""
+    vectorise; a third multiplies: the division was bound by the divider; with yc empty two arrays fewer are read)."""
     xf, vf, xpf, vpf, xhf, vhf = x.reshape(-1), v.reshape(-1), x_prev.reshape(-1), v_prev.reshape(-1), xh.reshape(-1), vh.reshape(-1)
     yf, ycf, ygf = y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
     third = 1.0 / 3.0
-    fresh = history_h[0] != h
-    if ycf.shape[0] == 0:           # (the common case, as its own loops: two arrays fewer to read)
-        if fresh:
-            for k in range(xf.shape[0]):
-                xa = xf[k] + h * vf[k] * third
-                xhf[k] = xa
-                vhf[k] = vf[k]
-                yf[k] = xa + hs * vf[k]
-        else:
-            for k in range(xf.shape[0]):
-                xa = (4.0 * xf[k] - xpf[k]) * third
-                va = (4.0 * vf[k] - vpf[k]) * third
-                xhf[k] = xa
-                vhf[k] = va
-                yf[k] = xa + hs * va
-    elif fresh:
+    uniform = ycf.shape[0] == 0     # (a loop-invariant test: the compiler makes a loop of each case)
+    if history_h[0] != h:
         for k in range(xf.shape[0]):
             xa = xf[k] + h * vf[k] * third
             xhf[k] = xa
             vhf[k] = vf[k]
-            yf[k] = xa + ycf[k] * vf[k] + ygf[k]
+            yf[k] = xa + hs * vf[k] if uniform else xa + ycf[k] * vf[k] + ygf[k]
     else:
         for k in range(xf.shape[0]):
             xa = (4.0 * xf[k] - xpf[k]) * third
             va = (4.0 * vf[k] - vpf[k]) * third
             xhf[k] = xa
             vhf[k] = va
-            yf[k] = xa + ycf[k] * va + ygf[k]
+            yf[k] = xa + hs * va if uniform else xa + ycf[k] * va + ygf[k]
 
 
 @njit(cache=True)
@@ -450,12 +436,9 @@ def predict(x, v, y, yc, yg, hs):
     force). The bones must be predicted too: with them where they are, tissue moving with a bone would lie h v ahead of
     it and pull it on (a negative damping k h: the knee diverged in 24 steps). One flat loop (it vectorises)."""
     xf, vf, yf, ycf, ygf = x.reshape(-1), v.reshape(-1), y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
-    if ycf.shape[0] == 0:
-        for k in range(xf.shape[0]):
-            yf[k] = xf[k] + hs * vf[k]
-    else:
-        for k in range(xf.shape[0]):
-            yf[k] = xf[k] + ycf[k] * vf[k] + ygf[k]
+    uniform = ycf.shape[0] == 0
+    for k in range(xf.shape[0]):
+        yf[k] = xf[k] + hs * vf[k] if uniform else xf[k] + ycf[k] * vf[k] + ygf[k]
 
 
 @njit(cache=True, fastmath={'contract'})
