@@ -277,6 +277,22 @@ def test_executables_print_usage():
     assert r.returncode == 2 and 'publish_rate out of range' in r.stderr and 'Traceback' not in r.stderr
 
 
+def test_a_model_that_diverges_from_rest_is_a_set_up_error(tmp_path):
+    """The knee phantom, true masses, one 10-ms explicit sub-step under gravity: the node's warm-up diverges at step
+    3; the node says so in one line with what to do and exits 2 (was a traceback)."""
+    import subprocess
+    params = tmp_path / 'unstable.yaml'
+    params.write_text('preset: physical\nintegrator: explicit\nsubsteps: 1\ngravity: [0.0, 0.0, -9.81]\n'
+                      'bone_contact: false\nfold_contact: ""\nsheath_group: ""\nsheath_below: ""\n')
+    r = subprocess.run([str(rosutil.exe_path('simulator')), '--ros-args', '-p', 'model:=phantom:knee',
+                        '-p', f'params:={params}', '-p', 'dt:=0.01'], capture_output=True, text=True, timeout=120,
+                       env=rosutil.ros_env(0))
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith('error:')]
+    assert r.returncode == 2 and 'Traceback' not in r.stderr, r.stderr
+    assert len(lines) == 1 and 'does not run with these parameters' in lines[0] and 'diverged at step' in lines[0]
+    assert 'integrator implicit' in lines[0]
+
+
 def test_replay_of_a_simulator_run_restores_state_clock_and_topology(knee_model, tmp_path):
     """Record a real simulator run, then replay it at 2x from 0.5 s in: the same TissueState bytes in
     order, /clock equal to their stamps, the topology delivered to a late (transient-local) joiner."""

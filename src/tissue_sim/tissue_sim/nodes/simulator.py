@@ -129,8 +129,13 @@ class Simulator(Node):
         self.steps_done = 0
         self.pacer = realtime.Pacer(self.run_steps, self.dt)
         warm = solver.make_state(self.sim)
-        solver.step(self.sim, warm, self.ctrl, self.dt)
-        self.pacer.warm_up(lambda k: solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=k))
+        try:
+            solver.step(self.sim, warm, self.ctrl, self.dt)
+            self.pacer.warm_up(lambda k: solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=k))
+        except solver.DivergenceError as e:     # (from rest: the model cannot run with these parameters at all)
+            from ..errors import UserError
+            raise UserError(f'the model does not run with these parameters: from rest, {e}; a finer model or a longer '
+                            f'dt needs integrator implicit (or more substeps)') from None
         if self.marker_enc is not None:
             self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'],
                                    self.corner_colours(self.state.x))
