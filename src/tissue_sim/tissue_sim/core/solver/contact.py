@@ -427,30 +427,6 @@ def _gather(mask, F, cand):
 
 
 @njit(cache=True, fastmath={'contract'})
-def _prefetch(n, cand, free_idx, x, b, cg, r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz, stats):
-    """bone_contact's candidates' grid memory read ahead of their narrow phase, in a pass of independent loads (their
-    block minimum and first sample's cell rows), so that its cache misses overlap instead of coming one candidate
-    after another (the grids are MBs, read at a few hundred places per sub-step: ~5 % of the implicit step)."""
-    nx, ny, nz = cg.g_dims[b, 0], cg.g_dims[b, 1], cg.g_dims[b, 2]
-    ox, oy, oz, ih, base = cg.g_origin[b, 0], cg.g_origin[b, 1], cg.g_origin[b, 2], cg.g_inv_h[b], cg.g_off[b]
-    phi = cg.g_phi
-    acc = 0.0
-    for k in range(n):
-        i = free_idx[cand[k]]
-        dx, dy, dz = x[i, 0] - tx, x[i, 1] - ty, x[i, 2] - tz
-        gx = (r00 * dx + r10 * dy + r20 * dz - ox) * ih
-        gy = (r01 * dx + r11 * dy + r21 * dz - oy) * ih
-        gz = (r02 * dx + r12 * dy + r22 * dz - oz) * ih
-        if gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= nx - 1 and gy <= ny - 1 and gz <= nz - 1:
-            i_, j_, k_ = _corner(gx, gy, gz, nx, ny, nz)
-            q = base + (i_ * ny + j_) * nz + k_
-            acc += cg.c_min[_block_index(cg, b, i_, j_, k_)] + phi[q] + phi[q + nz] + phi[q + ny * nz] \
-                + phi[q + ny * nz + nz]
-    if acc == 1.2345e300:       # (never, a sum of distances of a few metres: the compiler keeps the loads)
-        stats[0] += 1
-
-
-@njit(cache=True, fastmath={'contract'})
 def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
     """Stage 4 of the step: project every free vertex closer to a bone than its floor (the margin)
     back onto it along the distance gradient, in place on (x, v) (the positions and velocities the
@@ -488,7 +464,6 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
         n = _broad(xf, qc[b], slack[b], r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz, mask)
         if n > 0:
             n = _gather(mask, F, cand)
-            _prefetch(n, cand, free_idx, x, b, cg, r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz, stats)
         stats[1] += n
         for k in range(n):
             ii = cand[k]
