@@ -18,11 +18,14 @@ phantom scaled up) in its own ROS domain, then this process subscribes to /joint
 
 --compare runs each configuration twice, the solver in a thread of its own (solver_thread: true; the node's default is false)
 and in the frame timer's callback (solver_thread: false), one after the other: the old and the new stepping
-loop side by side under the same load. Several runs print a markdown table of them at the end.
+loop side by side under the same load. --participants both runs each configuration with the markers from a DDS
+participant of their own (markers_own_participant: true, the default) and from the node's, one after the other: the
+small topics' p99 gaps show what the markers' shared-memory traffic does to them. Several runs print a markdown
+table of them at the end.
 
 Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom | --refine R[,R...]]
       [--params paper|physical|FILE] [--integrator NAME] [--as-fast-as-possible] [--paused] [--no-objects]
-      [--compare | --no-solver-thread] [--solver-only]
+      [--compare | --no-solver-thread] [--participants own|shared|both] [--solver-only]
 Last line: one JSON object (a list of them with several runs).
 """
 import argparse
@@ -87,7 +90,7 @@ def python_object_markers(tm, x, reps=2):
     return best * 1e3, numpy_s * 1e3, enc.nbytes
 
 
-def measure(a, model, tm, params, solver_thread):
+def measure(a, model, tm, params, solver_thread, own_participant=True):
     """One run of the simulator node: the figures of the module docstring as a dict."""
     import rclpy
     import rclpy.executors
@@ -105,7 +108,8 @@ def measure(a, model, tm, params, solver_thread):
     log = open(tmp / 'simulator.log', 'w+')
     sim = subprocess.Popen([str(EXE / 'simulator'), '--ros-args', '-p', f'model:={model}',
                             '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}',
-                            '-p', f'solver_thread:={str(solver_thread).lower()}']
+                            '-p', f'solver_thread:={str(solver_thread).lower()}',
+                            '-p', f'markers_own_participant:={str(own_participant).lower()}']
                            + (['-p', f'params:={params}'] if params else [])
                            + (['-p', 'realtime:=false'] if a.as_fast_as_possible else [])
                            + (['-p', 'start_paused:=true'] if a.paused else []),
@@ -157,7 +161,7 @@ def measure(a, model, tm, params, solver_thread):
     js, mkst = rates['js'], rates['mk']
     out = {
         'model': tm.name, 'refine': a.refine_now, 'params': a.params or 'default', 'integrator': a.integrator or "the set's",
-        'solver_thread': solver_thread, 'paused': a.paused, 'realtime': not a.as_fast_as_possible,
+        'solver_thread': solver_thread, 'markers_own_participant': own_participant, 'paused': a.paused, 'realtime': not a.as_fast_as_possible,
         'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
         'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2),
         'publish_rate_target_hz': a.rate,
@@ -177,7 +181,7 @@ def measure(a, model, tm, params, solver_thread):
         'markers_ok_34hz': bool(mkst['rate_hz'] >= 34.0), 'marker_under_5ms': bool(num('marker_ms_mean') < 5.0),
     }
     print(f"model {out['model']} (refine {out['refine']:g}): {out['vertices']} vertices, MarkerArray "
-          f"{out['marker_bytes'] / 1e6:.2f} MB; solver_thread {solver_thread}")
+          f"{out['marker_bytes'] / 1e6:.2f} MB; solver_thread {solver_thread}; markers_own_participant {own_participant}")
     for k, name in (('js', '/joint_states'), ('state', '/tissue/state'), ('tf', '/tf'), ('mk', '/tissue/markers')):
         r = rates[k]
         print(f"{name:16s} {r['rate_hz']:.2f} Hz  p50 {r['p50_ms']} ms  p99 {r['p99_ms']} ms")
@@ -262,12 +266,14 @@ def solver_only(model, params, seconds, windows=3):
 
 
 TABLE = (('refine', 'refine', '{:g}'), ('vertices', 'vertices', '{}'), ('solver thread', 'solver_thread', '{}'),
+         ('markers own participant', 'markers_own_participant', '{}'),
          ('RTF', 'real_time_factor', '{:.2f}'), ('steps/s', 'steps_per_s', '{:.0f}'),
          ('stepping share', 'stepping_share', '{:.2f}'), ('steps/CPU-s', 'steps_per_cpu_s', '{:.0f}'),
          ('CPU % of a core', 'simulator_cpu_percent_of_one_core', '{:.0f}'),
          ('/joint_states Hz', ('joint_states', 'rate_hz'), '{:.1f}'), ('/tissue/state Hz', ('tissue_state', 'rate_hz'), '{:.1f}'),
          ('/tf Hz', ('tf', 'rate_hz'), '{:.1f}'), ('/tissue/markers Hz', ('markers', 'rate_hz'), '{:.1f}'),
-         ('markers p99 ms', ('markers', 'p99_ms'), '{}'), ('frame ms', 'frame_ms', '{:.1f}'), ('frame CPU ms', 'frame_cpu_ms', '{:.1f}'),
+         ('/joint_states p99 ms', ('joint_states', 'p99_ms'), '{}'), ('/tissue/state p99 ms', ('tissue_state', 'p99_ms'), '{}'),
+         ('/tf p99 ms', ('tf', 'p99_ms'), '{}'), ('markers p99 ms', ('markers', 'p99_ms'), '{}'), ('frame ms', 'frame_ms', '{:.1f}'), ('frame CPU ms', 'frame_cpu_ms', '{:.1f}'),
          ('marker build+publish ms', 'node_marker_ms_mean', '{:.2f}'),
          ('... per 10k vertices', 'node_marker_ms_per_10k_vertices', '{:.2f}'),
          ('numpy encode ms per 10k vertices', 'marker_numpy_ms_per_10k_vertices', '{:.3f}'),
@@ -311,6 +317,9 @@ def main():
     g = ap.add_mutually_exclusive_group()
     g.add_argument('--compare', action='store_true', help='each run with the solver thread and without it (side by side)')
     g.add_argument('--no-solver-thread', action='store_true', help='solver_thread:=false (step in the frame timer)')
+    ap.add_argument('--participants', choices=('own', 'shared', 'both'), default='own',
+                    help="the markers from a DDS participant of their own (markers_own_participant:=true, the node's "
+                         "default), from the node's (shared), or each run with both, one after the other")
     ap.add_argument('--solver-only', action='store_true',
                     help='no ROS: the node\'s stepping path against one solver.step() per step, in this process (solver_only())')
     a = ap.parse_args()
@@ -361,7 +370,8 @@ def main():
             runs.append(solver_only(model, params, max(1.0, a.seconds / 3)))
             continue
         for threaded in ((False, True) if a.compare else (not a.no_solver_thread,)):
-            runs.append(measure(a, model, tm, params, threaded))
+            for own in {'own': (True,), 'shared': (False,), 'both': (True, False)}[a.participants]:
+                runs.append(measure(a, model, tm, params, threaded, own))
     if len(runs) > 1:
         print(table(runs))
     print(json.dumps(runs[0] if len(runs) == 1 else runs))

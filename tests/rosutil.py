@@ -239,6 +239,20 @@ def wait_for_publishers(node, subscription, count: int = 1, timeout: float = 20.
                       f'{count} publisher(s) to match subscription on {subscription.topic_name}')
 
 
+def assert_own_participant(node, topic: str, node_name: str, other_topic: str, other_node: str) -> None:
+    """The graph says ``topic`` is published by ``node_name`` alone and ``other_topic`` by ``other_node``, from two
+    DDS participants (ros.common.OwnParticipant): their writers' GUID prefixes, the first 12 bytes of an endpoint's
+    GUID, which name its participant, differ."""
+    def info(t, who):       # the endpoint shows before its node's name does (ros_discovery_info comes later)
+        seen = []
+        try:
+            spin_until(lambda: seen.append([p.node_name for p in node.get_publishers_info_by_topic(t)]) or
+                       seen[-1] == [who], node, 20, f'{who} as the one publisher of {t}')
+        except AssertionError as e:
+            raise AssertionError(f'{e}; the graph: {seen[-1] if seen else None}') from None
+        return bytes(node.get_publishers_info_by_topic(t)[0].endpoint_gid[:12])
+    assert info(topic, node_name) != info(other_topic, other_node)
+
 # ---------------------------------------------------------------------------------------------
 # Processes
 # ---------------------------------------------------------------------------------------------

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import rosutil  # noqa: F401  (activates the workspace before rclpy; skips if not built)
-from rosutil import isolated_domain, ros_context, run_executable, spin_until, wait_for_publishers, wait_for_subscribers
+from rosutil import (assert_own_participant, isolated_domain, ros_context, run_executable, spin_until,
+                     wait_for_publishers, wait_for_subscribers)
 
 pytestmark = pytest.mark.ros
 
@@ -101,6 +102,9 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         r_tf, n_tf = tf.rate_over(t0, t0 + 5.0)
         print(f'joint_states {r_js:.2f} Hz ({n_js}), markers {r_mk:.2f} Hz ({n_mk}), tf {r_tf:.2f} Hz ({n_tf})')
         assert r_js >= 34.0 and r_mk >= 34.0 and r_tf >= 34.0
+        # the markers from a DDS participant of their own (markers_own_participant), the frame's small topics from the
+        # node's (bench/ros_rate.py --participants both: what the shared one did to /joint_states and /tf)
+        assert_own_participant(node, '/tissue/markers', 'simulator_markers', '/joint_states', 'simulator')
         # markers: the soft tissue in 'world' each frame (muscle opaque, skin/fat translucent); the bones
         # once, opaque, in their segments' TF frames, frame-locked (viewers move them with /tf)
         from rclpy.serialization import deserialize_message

@@ -18,7 +18,7 @@ from rclpy.node import Node
 
 from ..core import mcapio
 from ..core.cdr import CdrReader
-from ..ros.common import TOPIC_CLOCK, TOPIC_TOPOLOGY, qos_latched, qos_stream
+from ..ros.common import TOPIC_CLOCK, TOPIC_MARKERS, TOPIC_TOPOLOGY, OwnParticipant, qos_latched, qos_stream
 from ..ros.common import main as node_main
 
 
@@ -69,10 +69,13 @@ class Replay(Node):
             raise ValueError(f'{args.input}: no messages')
         super().__init__('replay')
         self.pubs = {}
+        # the full-mesh markers from a participant of their own, as the simulator sends them (ros.common.OwnParticipant)
+        self.markers_participant = OwnParticipant(self, 'markers') if TOPIC_MARKERS in topics else None
         for t, typ in topics.items():
             if t == TOPIC_CLOCK and not args.no_clock:
                 continue
-            self.pubs[t] = self.create_publisher(get_message(typ), t, self._replay_qos(summary, t))
+            by = self.markers_participant if t == TOPIC_MARKERS else self
+            self.pubs[t] = by.create_publisher(get_message(typ), t, self._replay_qos(summary, t))
         self.Clock = Clock
         self.pub_clock = None if args.no_clock else self.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
         self.start_ns = summary.start_ns
@@ -98,6 +101,11 @@ class Replay(Node):
         else:
             latched = topic == TOPIC_TOPOLOGY
         return qos_latched() if latched else qos_stream(100)
+
+    def destroy_node(self):
+        if self.markers_participant is not None:
+            self.markers_participant.close()
+        return super().destroy_node()
 
     def wait(self, timeout):
         import rclpy

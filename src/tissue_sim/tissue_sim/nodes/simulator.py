@@ -40,7 +40,8 @@ from ..core import measures, realtime, urdf
 from ..core.activation import REASONS, Muscles
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
                           TOPIC_BONE_MARKERS, TOPIC_ROBOT_DESCRIPTION, TOPIC_STATE, TOPIC_TF, TOPIC_TF_STATIC,
-                          TOPIC_MUSCLES, TOPIC_TOPOLOGY, Param, add_flags, declare, overrides, qos_latched, qos_stream)
+                          TOPIC_MUSCLES, TOPIC_TOPOLOGY, OwnParticipant, Param, add_flags, declare, overrides,
+                          qos_latched, qos_stream)
 from ..ros.common import main as node_main
 
 SLOW_PUBLISH_S = 0.1        # a publish() call longer than this is logged (the DDS layer held the frame loop)
@@ -61,6 +62,9 @@ PARAMS = (
     Param('publish_markers', True, 'publish /tissue/markers (full deformed mesh)', aliases=(('--no-markers', False),)),
     Param('marker_rate', 0.0, 'publish /tissue/markers at most this often [Hz of wall time]; 0 = every frame '
           '(a full-mesh frame is ~0.8 MB: a recorder or a remote viewer may want fewer)', lo=0.0, hi=240.0),
+    Param('markers_own_participant', True, 'publish /tissue/markers from a DDS participant of its own '
+          '(node <name>_markers): the full-mesh frames then do not hold up the small topics in Fast DDS\'s shared '
+          'memory (ros.common.OwnParticipant); false: from the node\'s participant', read_only=True),
     Param('publish_state', True, 'publish /tissue/state (compact state, for recording)'),
     Param('marker_colouring', 'none', 'skin colouring: none, skin_area (Fig. 8) or fat_deformation (Fig. 9)',
           choices=mk.COLOURINGS, read_only=True, aliases=('--colouring',)),
@@ -148,7 +152,10 @@ class Simulator(Node):
         self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
         self.pub_joints = self.create_publisher(JointState, TOPIC_JOINTS, qos_stream())
         self.pub_state = self.create_publisher(TissueState, TOPIC_STATE, qos_stream())
-        self.pub_markers = self.create_publisher(MarkerArray, TOPIC_MARKERS, qos_stream(2))
+        self.markers_participant = (OwnParticipant(self, 'markers') if self.marker_enc is not None
+                                    and P['markers_own_participant'] else None)
+        self.pub_markers = (self.markers_participant or self).create_publisher(MarkerArray, TOPIC_MARKERS,
+                                                                               qos_stream(2))
         self.pub_bone_markers = (self.create_publisher(MarkerArray, TOPIC_BONE_MARKERS, qos_latched())
                                  if self.marker_enc is not None else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, qos_stream())
@@ -268,6 +275,11 @@ class Simulator(Node):
     def on_shutdown(self):
         if self.stepper is not None:
             self.stepper.stop()
+
+    def destroy_node(self):
+        if self.markers_participant is not None:
+            self.markers_participant.close()
+        return super().destroy_node()
 
     def stepper_settings(self):
         st = self.stepper

@@ -70,6 +70,36 @@ def qos_stream(depth: int = 10):
                       durability=DurabilityPolicy.VOLATILE)
 
 
+class OwnParticipant:
+    """A DDS participant of its own for a node's large messages (the full-mesh markers): a second rclpy context on
+    the node's domain with one node, ``<node name>_<suffix>`` in the node's namespace, whose publishers are made on
+    the names the node resolves (its remappings apply).
+
+    Why. Fast DDS puts every sample a participant sends through shared memory into that participant's one segment
+    (512 KB, Fast DDS's default; under ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` rmw_fastrtps builds the transports
+    itself, so an XML profile cannot enlarge it). A 0.8-MB MarkerArray, sent as fragments that each fill most of the
+    segment, left no room for the small samples of the same participant: /joint_states, /tf and /tissue/state
+    reached a subscriber in bursts after 150-300-ms gaps while the markers flowed (docs/ros.md "Performance"). From a
+    participant of their own the markers use a segment of their own. ``close()`` destroys the node and shuts the
+    context down."""
+
+    def __init__(self, node, suffix: str):
+        import rclpy
+        self._node = node
+        self.context = rclpy.Context()
+        self.context.init(args=[], domain_id=node.context.get_domain_id())
+        self.node = rclpy.create_node(f'{node.get_name()}_{suffix}', namespace=node.get_namespace(),
+                                      context=self.context, start_parameter_services=False)
+
+    def create_publisher(self, msg_type, topic: str, qos):
+        return self.node.create_publisher(msg_type, self._node.resolve_topic_name(topic), qos)
+
+    def close(self) -> None:
+        if self.context.ok():
+            self.node.destroy_node()
+            self.context.shutdown()
+
+
 @dataclasses.dataclass(frozen=True)
 class Param:
     """One node parameter, declared once: the ROS parameter (with its descriptor: description, range,
