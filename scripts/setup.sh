@@ -246,6 +246,9 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE
 : "${RMW_IMPLEMENTATION:=rmw_fastrtps_cpp}"
 export RMW_IMPLEMENTATION
 EOF
+  # Fast DDS's participant profile, unless the caller names one: announcements every 0.5 s (config/fastdds.xml)
+  printf ': "${FASTRTPS_DEFAULT_PROFILES_FILE:=%s}"\nexport FASTRTPS_DEFAULT_PROFILES_FILE\n' \
+    "$ROOT/src/tissue_sim/tissue_sim/config/fastdds.xml"
 } >"$ENV_TMP"
 if cmp -s "$ENV_TMP" "$ROOT/env.sh"; then rm -f "$ENV_TMP"; else mv -f "$ENV_TMP" "$ROOT/env.sh"; fi
 

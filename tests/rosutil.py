@@ -46,7 +46,8 @@ VENV_PYTHON = ROOT / '.venv' / 'bin' / 'python'
 # range: 0-101 and 215-232. 0 is the default every ROS user is on: never used by tests.
 DOMAIN_IDS = tuple(range(1, 102)) + tuple(range(215, 233))
 ENV_KEYS = ('TISSUE_SIM_ROOT', 'VIRTUAL_ENV', 'PATH', 'AMENT_PREFIX_PATH', 'CMAKE_PREFIX_PATH',
-            'PYTHONPATH', 'LD_LIBRARY_PATH', 'RMW_IMPLEMENTATION', 'ROS_AUTOMATIC_DISCOVERY_RANGE')
+            'PYTHONPATH', 'LD_LIBRARY_PATH', 'RMW_IMPLEMENTATION', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
+            'FASTRTPS_DEFAULT_PROFILES_FILE')
 
 
 class WorkspaceMissing(RuntimeError):
@@ -177,8 +178,7 @@ def ros_env(domain_id: int, extra: dict | None = None) -> dict:
     env = dict(os.environ)
     env.pop('ROS_LOCALHOST_ONLY', None)
     env.pop('ROS_STATIC_PEERS', None)
-    env.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
-    env.pop('FASTDDS_DEFAULT_PROFILES_FILE', None)
+    env.pop('FASTDDS_DEFAULT_PROFILES_FILE', None)      # FASTRTPS_DEFAULT_PROFILES_FILE: env.sh's, as activate() set it
     env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                PYTHONUNBUFFERED='1', RCUTILS_COLORIZED_OUTPUT='0')
     if extra:

@@ -55,6 +55,31 @@ def test_env_file_sets_workspace_and_venv_under_set_u():
     assert module.startswith('tissue_msgs.msg')
 
 
+def test_env_file_names_the_fast_dds_profile_and_fast_dds_parses_it():
+    """env.sh names the package's Fast DDS profile (config/fastdds.xml: announcements every 0.5 s, docs/ros.md) unless
+    the caller names one; a participant made with it prints no XML parser error (a bad profile prints Fast DDS's
+    "XMLPARSER Error" lines, checked here with a copy that has one broken value)."""
+    profile = ROOT / 'src' / 'tissue_sim' / 'tissue_sim' / 'config' / 'fastdds.xml'
+    node = 'import rclpy; rclpy.init(); rclpy.create_node("profile_probe"); print("made"); rclpy.shutdown()'
+
+    def run(pre=''):
+        script = f'set -eu; {pre}. ./env.sh; printf "%s\\n" "$FASTRTPS_DEFAULT_PROFILES_FILE"; python -c \'{node}\''
+        env = {'PATH': '/usr/bin:/bin', 'HOME': os.environ.get('HOME', '/tmp'), 'ROS_DOMAIN_ID': '231'}
+        res = subprocess.run(['bash', '-c', script], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+        assert res.returncode == 0, res.stdout + res.stderr
+        return res.stdout.splitlines()[0], res.stdout + res.stderr
+    named, out = run()
+    assert named == str(profile) and 'made' in out and 'XMLPARSER' not in out, out
+    assert '<leaseAnnouncement>' in profile.read_text()
+    bad = ROOT / 'ros_ws' / 'build' / 'fastdds_bad_profile.xml'
+    bad.write_text(profile.read_text().replace('<sec>0</sec>', '<sec>zero</sec>'))
+    try:
+        named, out = run(f'export FASTRTPS_DEFAULT_PROFILES_FILE={bad}; ')
+    finally:
+        bad.unlink()
+    assert named == str(bad) and 'XMLPARSER' in out, out
+
+
 def test_message_definitions_are_the_built_ones():
     from tissue_msgs.msg import MuscleActivation, TissueState, TissueTopology
     msg = MuscleActivation(muscle_names=['vastus_lateralis', 'biceps_femoris_lh'],
