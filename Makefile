@@ -73,7 +73,8 @@ test-ros: ros2-tools
 bench: setup
 	@$(ENV) && n=0 && for f in bench/*.py; do \
 	  [ -e "$$f" ] || continue; n=$$((n + 1)); \
-	  case "$$f" in bench/convergence.py|bench/markers.py|bench/mesh_quality.py|bench/iterations.py) args=--quick;; *) args=;; esac; \
+	  case "$$f" in bench/convergence.py|bench/markers.py|bench/mesh_quality.py|bench/iterations.py) args=--quick;; \
+	    bench/ros_rate.py) args='--participants both';; *) args=;; esac; \
 	  echo "== $$f $$args"; python "$$f" $$args; \
 	done; [ "$$n" -gt 0 ] || { echo 'make bench: no bench/*.py yet' >&2; exit 1; }
 
