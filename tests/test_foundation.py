@@ -55,7 +55,7 @@ def test_env_file_sets_workspace_and_venv_under_set_u():
     assert module.startswith('tissue_msgs.msg')
 
 
-def test_env_file_names_the_fast_dds_profile_and_fast_dds_parses_it():
+def test_env_file_names_the_fast_dds_profile_and_fast_dds_parses_it(tmp_path):
     """env.sh names the package's Fast DDS profile (config/fastdds.xml: announcements every 0.5 s, docs/ros.md) unless
     the caller names one; a participant made with it prints no XML parser error (a bad profile prints Fast DDS's
     "XMLPARSER Error" lines, checked here with a copy that has one broken value)."""
@@ -71,12 +71,9 @@ def test_env_file_names_the_fast_dds_profile_and_fast_dds_parses_it():
     named, out = run()
     assert named == str(profile) and 'made' in out and 'XMLPARSER' not in out, out
     assert '<leaseAnnouncement>' in profile.read_text()
-    bad = ROOT / 'ros_ws' / 'build' / 'fastdds_bad_profile.xml'
+    bad = tmp_path / 'fastdds_bad_profile.xml'
     bad.write_text(profile.read_text().replace('<sec>0</sec>', '<sec>zero</sec>'))
-    try:
-        named, out = run(f'export FASTRTPS_DEFAULT_PROFILES_FILE={bad}; ')
-    finally:
-        bad.unlink()
+    named, out = run(f'export FASTRTPS_DEFAULT_PROFILES_FILE={bad}; ')
     assert named == str(bad) and 'XMLPARSER' in out, out
 
 
