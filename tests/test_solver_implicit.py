@@ -46,6 +46,45 @@ def test_the_star_form_factor_solves_the_written_out_system(default_tm):
     assert imp.n_lnz < A.nnz                  # sparser than the vertices' matrix itself (39k against 108k entries)
 
 
+def test_the_split_factor_solves_the_same_system_in_two_independent_blocks(default_tm, monkeypatch):
+    """split_order (the vertices below and above a plane across the limb, the cells coupling both last): the factor's
+    two blocks do not read each other (_factor checks it), and the solve is the written-out system's, with the
+    sheath's factor split too."""
+    monkeypatch.setattr(IM, 'SPLIT_MIN_UNKNOWNS', 500)
+    sim = solver.compile_model(default_tm, _implicit())
+    h = sim.params.dt
+    imp = IM.make(sim, h)
+    n = imp.z.shape[0]
+    b0, b1, b2 = int(imp.split[1]), int(imp.split[2]) - int(imp.split[1]), n - int(imp.split[2])
+    assert min(b0, b1) > 0.3 * n and 0 < b2 < 0.05 * n          # two large blocks, a thin separator
+    assert 0 < imp.s_split[1] < imp.s_split[2] < imp.s_split[3]
+    Lp, Lj = imp.Lp.astype(np.int64), imp.Lj.astype(np.int64)
+    rows = np.repeat(np.arange(n), np.diff(Lp))
+    assert not np.any((rows >= b0) & (rows < b0 + b1) & (Lj < b0))    # block 1 reads nothing of block 0
+    A, Lf, free = IM.system_matrix(sim, IM.solve_length(sim.params, h))
+    rng = np.random.default_rng(1)
+    f = rng.standard_normal((sim.n_vertices, 3))
+    y = sim.rest.copy()
+    xk = y.copy()
+    IM._solve(imp, f, xk, y, True, y, np.zeros_like(y), 0.0, 0.0)
+    w = sla.spsolve(A, f[free])
+    assert np.abs((xk - y)[free] - w).max() <= 1e-9 * np.abs(w).max()
+
+
+def test_split_solves_change_the_motion_only_by_rounding(default_tm, monkeypatch):
+    """The bundled limb stepped with its factors split (as a finer model's are) and whole: the same motion to
+    rounding (20 steps of a full hamstring contraction)."""
+    whole = _run(solver.compile_model(default_tm, _implicit()), 20)
+    monkeypatch.setattr(IM, 'SPLIT_MIN_UNKNOWNS', 500)
+    sim = solver.compile_model(default_tm, _implicit())
+    split = _run(sim, 20)
+    assert split.workspace.implicit(sim.params.dt).split[1] < split.workspace.implicit(sim.params.dt).split[3]
+    motion = np.abs(whole.x - sim.rest).max()
+    assert motion > 1e-3
+    assert np.abs(split.x - whole.x).max() <= 1e-9 * motion and not np.array_equal(split.x, whole.x)
+    assert np.allclose(split.q, whole.q, rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.parametrize('scheme', ['bdf2', 'euler'])
 @pytest.mark.parametrize('iterations', [1, 2])
 def test_fast_step_matches_the_reference_step_on_the_knee_phantom(iterations, scheme):

@@ -1,14 +1,15 @@
-"""The thread-parallel cell pass (cells.lane_forces_par, Params.threads): bit-identical to the serial kernel
+"""The thread-parallel step (Params.threads): the cell pass (cells.lane_forces_par) bit-identical to the serial kernel
 (cells.lane_forces, itself checked against reference.cell_forces in tests/test_solver_kernel.py) and to itself for
 1 and 2 threads (real numba runs with numba.set_num_threads; no timing), with the tasks cut at every position (every
-ring a cut ring) as well as at the default cut; the whole step likewise, paper and physical set (mass_scaled and
-implicit). Speed: bench/solver.py --threads 1,2."""
+ring a cut ring) and every few positions as well as at the default units; the whole step likewise, paper and
+physical set (mass_scaled and implicit, the implicit solves whole and split: implicit.split_order). Speed:
+bench/solver.py --threads 1,2."""
 import numba
 import numpy as np
 import pytest
 
 from tissue_sim.core import solver
-from tissue_sim.core.solver import cells as K
+from tissue_sim.core.solver import cells as K, implicit as IM
 
 two_threads = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason='needs NUMBA_NUM_THREADS >= 2')
 
@@ -58,11 +59,13 @@ def deformed(default_tm):
 
 
 @two_threads
-@pytest.mark.parametrize('per_task', [1, 3, K.TASK_POSITIONS])
+@pytest.mark.parametrize('per_task', [1, 3, None])
 def test_parallel_pass_is_bit_identical_to_the_serial_one_for_1_and_2_threads(deformed, per_task):
     sim, x, v, lam, act = deformed
     cells = _with_tasks(sim, per_task)
-    assert cells.tasks.shape[0] > cells.groups.shape[0]          # cut rings present
+    assert set(cells.tasks[:, 3]) == {0, 1}                     # two units
+    if per_task:
+        assert cells.tasks.shape[0] > cells.groups.shape[0]      # cut rings present
     serial = _pass(K.lane_forces, sim, cells, x, v, lam, act)
     assert serial[0] == -1 and np.abs(serial[1]).max() > 0 and np.all(np.isfinite(serial[1]))
     one = _pass(K.lane_forces_par, sim, cells, x, v, lam, act, threads=1)
@@ -85,6 +88,22 @@ def test_parallel_pass_names_the_same_bad_cell(deformed):
         assert _pass(K.lane_forces_par, sim, cells, xb, v, lam, act, threads=threads, calls=1)[0] == serial[0]
 
 
+def test_units_end_between_groups_or_cut_one_where_their_costs_meet():
+    """pack_cells' units (cells._tasks): two groups of about equal cost split between them (no cut ring); one group
+    that dominates is cut where the costs meet; with task_positions every group is cut into runs and the units
+    between runs. Each unit's tasks are consecutive."""
+    g = lambda n, L: (n, L, 0, 0, 0)                            # (n, positions, first blocks, kind: unused)
+    even = K._tasks([g(8, 306), g(66, 70)])                     # the 3x limb's fat and muscle groups
+    assert even.tolist() == [[0, 0, 306, 0], [1, 0, 70, 1]]
+    cut = K._tasks([g(8, 40), g(66, 70)])
+    assert cut.shape[0] == 3 and cut[1, 0] == cut[2, 0] == 1 and cut[1, 2] == cut[2, 1]
+    cost = lambda t: sum(K.BLK * ((66 if gi == 1 else 8) // 2 * K.COST_SLOT + K.COST_CELL) * (j1 - j0)
+                         for gi, j0, j1, u in cut if u == t)
+    assert abs(cost(0) - cost(1)) <= 0.02 * (cost(0) + cost(1))
+    runs = K._tasks([g(8, 40), g(66, 70)], 8)
+    assert np.all(np.diff(runs[:, 3]) >= 0) and set(runs[:, 3]) == {0, 1} and runs.shape[0] == 5 + 9
+
+
 def _run(tm, params, steps=15):
     sim = solver.compile_model(tm, params)
     st, ctrl = solver.make_state(sim), solver.make_control(sim)
@@ -98,8 +117,10 @@ def _run(tm, params, steps=15):
 @pytest.mark.parametrize('kw', [dict(preset='paper'), dict(preset='physical'),
                                 dict(preset='physical', integrator='implicit', substeps=1)],
                          ids=['paper', 'physical', 'physical-implicit'])
-def test_step_does_not_depend_on_the_threads(default_tm, kw):
+def test_step_does_not_depend_on_the_threads(default_tm, kw, monkeypatch):
     kw = dict(kw)
+    if kw.get('integrator') == 'implicit':      # the solves split in two blocks, as a finer model's are
+        monkeypatch.setattr(IM, 'SPLIT_MIN_UNKNOWNS', 500)
     make = solver.Params.physical if kw.pop('preset') == 'physical' else solver.Params.paper
     runs = [_run(default_tm, make(threads=n, **kw)) for n in (1, 2, 0)]
     for other in runs[1:]:

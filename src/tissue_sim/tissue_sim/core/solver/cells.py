@@ -303,8 +303,12 @@ lane_forces_par's: tw, trs0, trs1, tgv0, tgv1 the same scratch per thread (row =
 (CellLayout.tasks) bh the top-ring share of its last cell, bb the bottom-ring share of its first cell, bgv and bro
 its first ring's gathered vertices and sums (the ring whose map needs the previous task's bh); fr the forces of
 every ring slot ((r0 + s) * 3 + axis) * BLK + lane; tbad each task's lowest bad cell."""
-TASK_POSITIONS = 8          # positions (cell blocks) per task of lane_forces_par: a fixed cut of every group, so the
-                            # results do not depend on the number of threads (a cut costs one ring's sums twice)
+UNITS = 2                   # lane_forces_par's units: two runs of tasks of about equal cost, one per thread; a cut
+                            # that depends on the model only, so the results do not depend on the number of threads
+COST_SLOT, COST_CELL = 1.0, 6.0     # the relative cost of a ring slot and of a cell's algebra, per lane (measured on
+                                    # the 3x limb: 94 ns a fat cell of 4-vertex rings, 362 ns a muscle cell of 33)
+BOUNDARY_SLACK = 0.1        # units end at a group's end if their costs are then within 50 +- 10 % of the whole
+                            # (the fat and the muscle groups share fewer vertices than two halves of one group)
 
 
 def _second_moments(off, X0):
@@ -317,7 +321,7 @@ def _second_moments(off, X0):
 
 
 def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_ff, rest_length, fibre, Qinv,
-               task_positions=TASK_POSITIONS, volume_cap=None):
+               task_positions=None, volume_cap=None):
     """The layout lane_forces reads (numpy, at compile time). Returns a CellLayout (groups, ids, rings,
     ring_idx, ring_X0, par, lane_muscle, lane_of, tasks, excl, gvert, gptr, gsrc):
 
@@ -333,9 +337,12 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     - par (Bc, N_PAR * BLK): per-lane constants (P_* rows, 0 for a dummy; volume_cap (C,): P_VCAP, None = zeros);
     - lane_muscle (Bc, BLK) int32: muscle of each lane (-1: fat or dummy);
     - lane_of (C,) int64: the lane of each cell, b * BLK + lane (the order of the kernel's per-cell state);
-    - tasks (T, 3) int64: lane_forces_par's tasks, group and positions j0 .. j1 - 1 (task_positions per task);
+    - tasks (T, 4) int64: lane_forces_par's tasks, group, positions j0 .. j1 - 1 and unit: every group whole but the
+      one where the UNITS units' estimated costs (COST_SLOT, COST_CELL) meet, cut there (task_positions k: every
+      group cut into runs of k positions, the units cut between tasks); a unit's tasks are consecutive and it runs
+      them in order on one thread;
     - excl (R, BLK) uint8: 1 where the slot's vertex gets all its ring forces from one unit of lane_forces_par
-      (one task, or the cut rings' pass), which then adds them into f itself;
+      (one unit's tasks, or the cut rings' pass), which then adds them into f itself;
     - gvert (S,), gptr (S + 1,), gsrc (E,) int64: the other (shared) vertices and per shared vertex (CSR) the
       offsets in CellWork.fr of its ring slots' forces, in the order lane_forces adds them.
 
@@ -456,16 +463,15 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     lane_of = np.zeros(C, np.int64)
     real = ids >= 0
     lane_of[ids[real]] = np.flatnonzero(real.reshape(-1))
-    # lane_forces_par: each group's positions cut into tasks of TASK_POSITIONS, and per vertex its ring slots'
-    # forces in the order lane_forces adds them (ring blocks, then slots, then lanes: ascending flat offsets)
-    tasks = np.array([(gi, j0, min(j0 + task_positions, g[1])) for gi, g in enumerate(groups)
-                      for j0 in range(0, g[1], task_positions)], np.int64).reshape(-1, 3)
-    unit = np.zeros(Br, np.int64)                       # the unit that forces each ring block: its task, or T (cuts)
-    for t, (gi, j0, j1) in enumerate(tasks):
+    # lane_forces_par: its tasks and units, and per vertex its ring slots' forces in the order lane_forces adds them
+    # (ring blocks, then slots, then lanes: ascending flat offsets)
+    tasks = _tasks(groups, task_positions)
+    unit = np.zeros(Br, np.int64)                       # the unit that forces each ring block, or UNITS (cut rings)
+    for gi, j0, j1, u in tasks:
         q0, L = groups[gi][3], groups[gi][1]
-        unit[q0 + j0:q0 + j1 + (1 if j1 == L else 0)] = t
+        unit[q0 + j0:q0 + j1 + (1 if j1 == L else 0)] = u
         if j0 > 0:
-            unit[q0 + j0] = len(tasks)
+            unit[q0 + j0] = UNITS
     src, dst, uni = [], [], []
     for q in range(Br):
         m_real, r0, cnt = rings[q, 0], rings[q, 2], rings[q, 3]
@@ -495,6 +501,33 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     for arr in out:
         arr.flags.writeable = False
     return out
+
+
+def _tasks(groups, task_positions=None) -> np.ndarray:
+    """pack_cells' tasks (T, 4): group, j0, j1, unit (see there)."""
+    cost = [BLK * ((g[0] // 2) * COST_SLOT + COST_CELL) for g in groups]       # per position
+    total = sum(c * g[1] for c, g in zip(cost, groups))
+    if task_positions is None:
+        ends = np.cumsum([c * g[1] for c, g in zip(cost, groups)])
+        k = int(np.argmin(abs(ends - total / 2))) if len(groups) else 0
+        if len(groups) > 1 and abs(ends[k] - total / 2) <= BOUNDARY_SLACK * total:
+            runs = [(gi, 0, g[1]) for gi, g in enumerate(groups)]        # the units split between groups k, k + 1
+            return np.array([(gi, j0, j1, int(gi > k)) for gi, j0, j1 in runs], np.int64).reshape(-1, 4)
+        runs, acc = [], 0.0
+        for gi, g in enumerate(groups):
+            L = g[1]
+            jc = int(round((total / UNITS - acc) / cost[gi])) if acc < total / UNITS < acc + cost[gi] * L else 0
+            runs += [(gi, 0, jc), (gi, jc, L)] if 0 < jc < L else [(gi, 0, L)]
+            acc += cost[gi] * L
+    else:
+        runs = [(gi, j0, min(j0 + task_positions, g[1])) for gi, g in enumerate(groups)
+                for j0 in range(0, g[1], task_positions)]
+    out, acc = [], 0.0
+    for gi, j0, j1 in runs:
+        c = cost[gi] * (j1 - j0)
+        out.append((gi, j0, j1, min(int((acc + 0.5 * c) * UNITS / total), UNITS - 1) if total > 0 else 0))
+        acc += c
+    return np.array(out, np.int64).reshape(-1, 4)
 
 
 def _fill_lanes(chains, nxt, L):
@@ -699,15 +732,15 @@ def _scatter(ff, gv, idx, n, cnt):
 def lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, work):
     """lane_forces over numba's threads (numba.set_num_threads), bit-identical to it for any number of threads.
 
-    Three passes, two of them parallel. (1) The tasks (cells.tasks: every group's positions cut into runs of TASK_POSITIONS, a cut that
-    does not depend on the number of threads) in parallel, each as lane_forces runs its positions, with the
-    thread's own scratch: its rings' sums, its cells' algebra and state (each cell block belongs to one task),
+    Three passes, two of them parallel. (1) The units (cells.tasks: UNITS runs of tasks of about equal cost, a cut
+    that does not depend on the number of threads) in parallel, each running its tasks in order, each task as
+    lane_forces runs its positions, with the thread's own scratch: its rings' sums, its cells' algebra and state (each cell block belongs to one task),
     and the forces of the rings it completes, added into f or stored per ring slot (work.fr, see below). The ring
     at a cut gets its map from two tasks: the task above stores its share and the ring's gathered vertices
     (bb, bgv, bro), the task below the share of its last cell (bh). (2) Those rings (serially: one ring block per
     cut, a few per cent of the work; a parallel region costs more where the cores are shared): map = bh of
     the task below + bb. The maps are the same sums as lane_forces' (0 + share, then share below + that), so
-    every slot's force is the same number. A vertex whose ring forces all come from one task (or all from the
+    every slot's force is the same number. A vertex whose ring forces all come from one unit (or all from the
     cut rings) gets them added into f by it, in lane_forces' order (cells.excl); the others' are stored per slot.
     (3) Per shared vertex in parallel, its slots' forces added in lane_forces' order (cells.gvert/gptr/gsrc):
     f is bit-identical to lane_forces', with no two threads writing one vertex. Returns the lowest bad cell or -1, as lane_forces."""
@@ -721,11 +754,13 @@ def lane_forces_par(x, v, f, cells, lam, act, volume_actual, iters, vol_gain, wo
     excl = cells.excl
     f[:] = 0.0
     xf, vf, ff = x.reshape(-1), v.reshape(-1), f.reshape(-1)
-    for t in prange(tasks.shape[0]):
+    for u in prange(UNITS):
         tid = numba.get_thread_id()
-        tbad[t] = _task_forces(xf, vf, ff, groups, ids, rings, ring_idx, ring_X0, par, lane_muscle, tasks, excl, lam,
-                               act, volume_actual, iters, vol_gain, tw[tid], trs0[tid], trs1[tid], tgv0[tid], tgv1[tid],
-                               lq, lp, le, ll, fr, bh, bb, bgv, bro, t)
+        for t in range(tasks.shape[0]):         # (the unit's tasks, in order)
+            if tasks[t, 3] == u:
+                tbad[t] = _task_forces(xf, vf, ff, groups, ids, rings, ring_idx, ring_X0, par, lane_muscle, tasks,
+                                       excl, lam, act, volume_actual, iters, vol_gain, tw[tid], trs0[tid], trs1[tid],
+                                       tgv0[tid], tgv1[tid], lq, lp, le, ll, fr, bh, bb, bgv, bro, t)
     for t in range(tasks.shape[0]):             # (a few rings: serially, one parallel region less)
         if tasks[t, 1] > 0:
             _cut_ring_forces(ff, cells, work, t, 0)

@@ -9,7 +9,9 @@ A = M/h^2 + Lhat_ff, Lhat = sum over cells of (k_c + k_active,c)(1 + volume term
 operator (I - 1 1^T / n) (the Hessian of the shape-matching energy with the cell's rotation held fixed, plus the
 deformation damping's over h; the same for x, y and z), the bone-attached vertices predicted as ya = xa + h va and
 xa1 - ya their motion beyond that (the skeleton's step, between the force evaluation and the solve).
-A is constant per model and h: factored once (scipy's SuperLU, no pivoting: A is SPD). ``implicit_iterations`` > 1
+A is constant per model and h: factored once (scipy's SuperLU, no pivoting: A is SPD; a large system in two
+independent blocks and their separator, ``split_order``, whose triangular passes run on two threads in
+``parallel_kernels``' copy of the step's kernels). ``implicit_iterations`` > 1
 repeats the correction from the last iterate (residual f(x1, v1) - M (x1 - y)/h^2): local/global iterations.
 One iteration is stable while every stiffness stays within keff; the one that grows without bound with a cell's shear,
 the volume term's, is capped for this integrator in the cell kernel (Params.implicit_volume_cap, SimModel.volume_cap:
@@ -37,14 +39,14 @@ import collections
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
-from numba import njit
+from numba import njit, prange
 
 from tissue_sim.core.solver import contact as CT, integration as IK
 from tissue_sim.core.solver.simd import row_dot4
 
 Implicit = collections.namedtuple('Implicit', 'on iters y mh2 row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
                                   'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh '
-                                  'via_u via_sinv via_g yc yg')
+                                  'via_u via_sinv via_g yc yg split sep_e sep_part s_split s_sep_e s_sep_part')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), per row p of the factor
 (elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
@@ -58,7 +60,11 @@ s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather f
 starting point (bdf2_start; scratch). The point via rings held inside the solve (via_correct; empty without
 rings or with Params.implicit_via_correction off): via_u (V, R) A^-1 C^T (C: each ring's centroid of its free
 vertices' share, per vertex; 0 on bone-attached vertices), via_sinv (R, R) (C A^-1 C^T)^-1, via_g (R, 3) scratch.
-yc, yg (V, 3): the prediction's coefficients at hs, y = x + yc v + yg (predict; empty: y = x + hs v)."""
+yc, yg (V, 3): the prediction's coefficients at hs, y = x + yc v + yg (predict; empty: y = x + hs v).
+split (4,) int64 (s_split: the sheath factor's): the rows [split[0], split[1]) and [split[1], split[2]) of the factor
+are two independent blocks, [split[2], split[3]) their separator (split_order; [0, n, n, n]: not split); sep_e (ns, 2)
+uint64: where each separator row's entries of the second block and of the separator begin; sep_part (ns, 3, 4):
+scratch: each block's share of a separator row's sum and its rhs (_forward)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -238,17 +244,22 @@ def reference_via_solve(sim, h: float, x, places):
     return -AiCt @ np.linalg.solve(C @ AiCt, g)
 
 
-_CACHE = {}
+_CACHE, _MADE = {}, {}
+
+
+def _per_model(cache, sim, h, build):
+    """build(sim, h), made once per model and h (the last few kept)."""
+    key = (id(sim), h)
+    hit = cache.get(key)
+    if hit is None or hit[0] is not sim:
+        if len(cache) > 4:
+            cache.clear()
+        hit = cache[key] = (sim, build(sim, h))
+    return hit[1]
 
 
 def _system_cached(sim, h):
-    key = (id(sim), h)
-    hit = _CACHE.get(key)
-    if hit is None or hit[0] is not sim:
-        if len(_CACHE) > 4:
-            _CACHE.clear()
-        hit = _CACHE[key] = (sim, system_matrix(sim, h))
-    return hit[1]
+    return _per_model(_CACHE, sim, h, system_matrix)
 
 
 def star_system(sim, h: float):
@@ -273,10 +284,61 @@ def star_system(sim, h: float):
     return A.tocsc(), free, keff
 
 
-def _factor(A):
-    """A = L D L^T (SuperLU, minimum degree on A^T + A, no pivoting: A is SPD; checked). Returns (perm: the unknown
-    of each row of the factor, L strictly lower (CSR, sorted), D's diagonal)."""
-    lu = sla.splu(A, permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+SPLIT_MIN_UNKNOWNS = 8000    # a system with fewer unknowns is factored whole (minimum degree), not split (split_order)
+
+
+def split_order(A, nv: int, coord) -> tuple | None:
+    """A nested-dissection split of a star-form system (its first nv unknowns vertices at coordinates coord along
+    the model's long axis, the rest cells; vertices are coupled only through cells): the vertices below and above a
+    plane across the axis, each cell with the vertices it couples (both sides: the separator). Returns (order, split):
+    order the unknowns block 0 (in minimum-degree order of its own), block 1 (the same), separator; split =
+    [0, n0, n0 + n1, n]. The two blocks' rows of the factor are then independent (none reads the other's), so the
+    triangular passes run them on two threads (_forward, _backward); the plane is placed where the two blocks' own
+    factors have the same number of entries (bisection on the quantile). None below SPLIT_MIN_UNKNOWNS unknowns."""
+    n = A.shape[0]
+    if n < SPLIT_MIN_UNKNOWNS or nv < 2:
+        return None
+    A = A.tocsr()
+    B = (A[nv:, :nv] != 0).astype(np.int64)
+
+    def parts(frac):
+        upper = coord > np.quantile(coord, frac)
+        lo, hi = B @ (~upper).astype(np.int64) > 0, B @ upper.astype(np.int64) > 0
+        side = np.concatenate([upper.astype(np.int64), np.where(lo & hi, 2, np.where(hi & ~lo, 1, 0))])
+        return [np.flatnonzero(side == k) for k in range(3)]
+
+    def mmd(idx):
+        if idx.size == 0:
+            return idx, 0
+        lu = sla.splu(A[idx][:, idx].tocsc(), permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0,
+                      options=dict(SymmetricMode=True))
+        return idx[np.argsort(lu.perm_c)], lu.L.nnz
+
+    a, b = 0.3, 0.7
+    for _ in range(6):                  # (to 0.6 % of the unknowns)
+        frac = 0.5 * (a + b)
+        p0, p1, _sep = parts(frac)
+        if mmd(p0)[1] > mmd(p1)[1]:
+            b = frac
+        else:
+            a = frac
+    p0, p1, sep = parts(0.5 * (a + b))
+    order = np.concatenate([mmd(p0)[0], mmd(p1)[0], sep])
+    return order, np.array([0, p0.size, p0.size + p1.size, n], np.int64)
+
+
+def _factor(A, split=None):
+    """A = L D L^T (SuperLU, no pivoting: A is SPD; checked), in minimum-degree order on A^T + A, or in split's order
+    (split_order's (order, split): two independent blocks and their separator). Returns (perm: the unknown of each
+    row of the factor, L strictly lower (CSR, sorted), D's diagonal, split: the block bounds, [0, n, n, n] whole)."""
+    n = A.shape[0]
+    if split is None:
+        order, bounds = np.arange(n), np.array([0, n, n, n], np.int64)
+        lu = sla.splu(A, permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    else:
+        order, bounds = split
+        lu = sla.splu(A.tocsr()[order][:, order].tocsc(), permc_spec='NATURAL', diag_pivot_thresh=0.0,
+                      options=dict(SymmetricMode=True))
     if not np.array_equal(lu.perm_r, lu.perm_c):
         raise RuntimeError('implicit integrator: SuperLU pivoted the SPD system (perm_r != perm_c)')
     Lf = sp.csr_matrix(lu.L)
@@ -288,8 +350,33 @@ def _factor(A):
         raise RuntimeError('implicit integrator: the factor is not symmetric (U != D L^T)')
     Ls = sp.tril(Lf, k=-1).tocsr()
     Ls.sort_indices()
-    # row p of the factor is unknown perm_c[p] of A (Pr A Pc = L U, perm_r == perm_c)
-    return np.argsort(lu.perm_c), Ls, d
+    rows = np.repeat(np.arange(n), np.diff(Ls.indptr))
+    if np.any((rows >= bounds[1]) & (rows < bounds[2]) & (Ls.indices < bounds[1])):
+        raise RuntimeError('implicit integrator: the split blocks of the factor are not independent')
+    # row p of the factor is unknown order[perm_c[p]] of A (Pr A Pc = L U, perm_r == perm_c)
+    return order[np.argsort(lu.perm_c)], Ls, d, bounds
+
+
+def _separator_entries(Lp, Lj, split):
+    """(ns, 2) uint64: where each separator row's entries in the second block's columns and in the separator's
+    begin (_forward sums a separator row's three spans apart)."""
+    b1, b2, n = int(split[1]), int(split[2]), int(split[3])
+    e = np.zeros((n - b2, 2), np.uint64)
+    for s in range(n - b2):
+        lo, hi = int(Lp[b2 + s]), int(Lp[b2 + s + 1])
+        e[s, 0] = lo + np.searchsorted(Lj[lo:hi], b1)
+        e[s, 1] = lo + np.searchsorted(Lj[lo:hi], b2)
+    return e
+
+
+def long_axis(sim) -> np.ndarray:
+    """The unit direction of the free vertices' largest extent at rest (the principal axis; split_order's)."""
+    x = np.asarray(sim.rest)[sim.inv_mass > 0]
+    if x.shape[0] < 2:
+        return np.array([0.0, 0.0, 1.0])
+    w, u = np.linalg.eigh(np.cov((x - x.mean(0)).T))
+    a = u[:, -1]
+    return a if a[np.argmax(abs(a))] > 0 else -a
 
 
 def solve_length(p, h: float) -> float:
@@ -310,19 +397,22 @@ def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg, hs):
     yf, ycf, ygf = y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
     third = 1.0 / 3.0
     uniform = ycf.shape[0] == 0     # (a loop-invariant test: the compiler makes a loop of each case)
-    if history_h[0] != h:
-        for k in range(xf.shape[0]):
-            xa = xf[k] + h * vf[k] * third
-            xhf[k] = xa
-            vhf[k] = vf[k]
-            yf[k] = xa + hs * vf[k] if uniform else xa + ycf[k] * vf[k] + ygf[k]
-    else:
-        for k in range(xf.shape[0]):
-            xa = (4.0 * xf[k] - xpf[k]) * third
-            va = (4.0 * vf[k] - vpf[k]) * third
-            xhf[k] = xa
-            vhf[k] = va
-            yf[k] = xa + hs * va if uniform else xa + ycf[k] * va + ygf[k]
+    n = xf.shape[0]
+    for t in prange(2):             # (two halves: on two threads in parallel_kernels' copy; the same numbers)
+        lo, hi = (0, n // 2) if t == 0 else (n // 2, n)
+        if history_h[0] != h:
+            for k in range(lo, hi):
+                xa = xf[k] + h * vf[k] * third
+                xhf[k] = xa
+                vhf[k] = vf[k]
+                yf[k] = xa + hs * vf[k] if uniform else xa + ycf[k] * vf[k] + ygf[k]
+        else:
+            for k in range(lo, hi):
+                xa = (4.0 * xf[k] - xpf[k]) * third
+                va = (4.0 * vf[k] - vpf[k]) * third
+                xhf[k] = xa
+                vhf[k] = va
+                yf[k] = xa + hs * va if uniform else xa + ycf[k] * va + ygf[k]
 
 
 @njit(cache=True)
@@ -344,7 +434,18 @@ def bdf2_history(h, xn, vn, x_old, v_old, history_h, moved, n_moved):
 
 def make(sim, h: float) -> Implicit:
     """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators); its system at
-    solve_length(h)."""
+    solve_length(h). Its constants (the factors, the point vias' columns) are made once per model and h and shared
+    by every State of the model; each call gets scratch arrays of its own."""
+    imp = _per_model(_MADE, sim, h, _make)
+    fresh = {name: np.zeros_like(getattr(imp, name)) for name in SCRATCH}
+    return imp._replace(**fresh)
+
+
+SCRATCH = ('y', 'z', 'sd', 's_z', 'xh', 'vh', 'via_g', 'sep_part', 's_sep_part')    # Implicit's scratch arrays
+
+
+def _make(sim, h: float) -> Implicit:
+    """make's Implicit, made afresh."""
     V = sim.n_vertices
     e_i, e_f, e_p = np.zeros(0, np.int32), np.zeros(0), np.zeros(1, np.int64)
     e_u, e_q = np.zeros(0, np.uint32), np.zeros(1, np.uint64)       # (a factor's index arrays: _csr)
@@ -352,12 +453,14 @@ def make(sim, h: float) -> Implicit:
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), e_i, e_i, e_f, e_p,
                         e_i, e_q, e_u, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_q, e_u, e_f, e_f,
                         np.zeros((0, 3)), e_q, e_u, e_f, e_q, e_u, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)),
-                        np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
+                        np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
+                        *(np.zeros(4, np.int64), np.zeros((0, 2), np.uint64), np.zeros((0, 3, 4))) * 2)
     bdf2 = sim.params.implicit_scheme == 'bdf2'
     h = solve_length(sim.params, h)
     A, free, keff = star_system(sim, h)
     nf, n = free.size, A.shape[0]
-    unk, Ls, d = _factor(A)
+    axis = long_axis(sim)
+    unk, Ls, d, split = _factor(A, split_order(A, nf, np.asarray(sim.rest)[free] @ axis))
     row_v = np.where(unk < nf, free[np.minimum(unk, nf - 1)] if nf else -1, -1).astype(np.int32)
     row_c = np.where(unk >= nf, unk - nf, -1).astype(np.int32)
     # the bone-attached vertices of each cell row (their motion enters that row: keff_c sum of displacements)
@@ -386,19 +489,24 @@ def make(sim, h: float) -> Implicit:
         touch = np.zeros(sim.n_cells, bool)
         touch[cell[np.isin(sim.cv, free[reg])]] = True
         keep = np.concatenate([reg, nf + np.flatnonzero(touch)])
-        s_unk, sLs, sd_ = _factor((A + sp.diags(add)).tocsr()[keep][:, keep].tocsc())
+        As = (A + sp.diags(add)).tocsr()[keep][:, keep].tocsc()
+        s_unk, sLs, sd_, s_split = _factor(As, split_order(As, reg.size, np.asarray(sim.rest)[free[reg]] @ axis))
         s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
         sheath = (ks, np.zeros((V, 6)), s_rows, *_csr(sLs), 1.0 / sd_,
                   np.zeros((keep.size, 4)))
         sU = _transposed(sLs)
+        s_sep = _separator_entries(sLs.indptr, sLs.indices, s_split)
+        s_parts = (s_split, s_sep, np.zeros((s_sep.shape[0], 3, 4)))
     else:
         sheath = (e_f, np.zeros((0, 6)), e_i, e_q, e_u, e_f, e_f, np.zeros((0, 3)))
         sU = (e_q, e_u, e_f)
+        s_parts = (np.array([0, 0, 0, 0], np.int64), np.zeros((0, 2), np.uint64), np.zeros((0, 3, 4)))
+    sep = _separator_entries(Ls.indptr, Ls.indices, split)
     imp = Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, row_v, row_c,
                     np.ascontiguousarray(keff), ptr, idx, *_csr(Ls), 1.0 / d,
                     np.zeros((n, 4)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
                     np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)),
-                    *prediction(sim, h))
+                    *prediction(sim, h), split, sep, np.zeros((sep.shape[0], 3, 4)), *s_parts)
     return imp._replace(**dict(zip(('via_u', 'via_sinv', 'via_g'), via_system(sim, imp))))
 
 
@@ -444,54 +552,76 @@ def predict(x, v, y, yc, yg, hs):
 @njit(cache=True, fastmath={'contract'})
 def _solve(imp, f, xk, y, first, xs, vn, ih, vmax2):
     """The implicit solve A w = rhs on the free vertices, and their velocities: L z' = rhs (formed row by row as the
-    forward pass reaches it), then L^T w = D^-1 z' (_backward: each w_p final when the backward pass leaves row
-    p, and the vertex updated there). first: the step's first iteration, from the prediction: rhs = f on the
+    forward pass reaches it, _forward), then L^T w = D^-1 z' (_backward: each w_p final when the backward pass leaves
+    row p, and the vertex updated there). first: the step's first iteration, from the prediction: rhs = f on the
     vertices' rows (xk = y there: its free rows are not read) and, on the cells' rows, the bones' motion beyond the
     prediction, keff_c sum (xk_a - y_a); xk_free = y + w. Otherwise rhs = f - M (xk - y)/h^2, xk_free += w. Either
     way vn_free = (xk - xs) ih (_velocity). Returns how many free vertices are faster than sqrt(vmax2) or not finite."""
-    z, Lp, Lj, Lx = imp.z, imp.Lp, imp.Lj, imp.Lx
-    row_v, row_c, mh2, keff, att_ptr, att_idx = imp.row_v, imp.row_c, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx
-    n = z.shape[0]
-    for p in range(n):
-        i = row_v[p]
-        if i >= 0:
-            s0, s1, s2 = f[i, 0], f[i, 1], f[i, 2]
-            if not first:
-                m = mh2[i]
-                s0 -= m * (xk[i, 0] - y[i, 0])
-                s1 -= m * (xk[i, 1] - y[i, 1])
-                s2 -= m * (xk[i, 2] - y[i, 2])
-        else:
+    _forward(False, imp.row_v, imp.row_c, f, xk, y, first, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx, imp.ks,
+             imp.sd, imp.Lp, imp.Lj, imp.Lx, imp.z, imp.split, imp.sep_e, imp.sep_part)
+    return _backward(imp.Up, imp.Uj, imp.Ux, imp.dinv, imp.row_v, imp.z, xk, y, first, xs, vn, ih, vmax2, imp.split)
+
+
+@njit(cache=True, fastmath={'contract'})
+def _forward(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, z, split, sep_e,
+             sep_part):
+    """The forward pass L z = rhs of _solve (sheath False) and _solve_sheath (True: rhs = k_s d on a sheathed vertex's
+    row, 0 elsewhere), z (n, 4) (simd.row_dot4: its fourth column unused), in split's blocks (split_order): each
+    block's rows, z_p = rhs_p - sum_j<p L_pj z_j, and its share of each separator row's sum, apart (prange: on two
+    threads in parallel_kernels' copy, here one after the other; block 0 also forms the separator rows' rhs, into
+    sep_part[:, 2]); then the separator's rows, z_p = rhs_p - ((share 0 + share 1) + the separator's own entries).
+    The same sums in the same order for any number of threads. Not split ([0, n, n, n]): every row in block 0."""
+    b2, n = split[2], split[3]
+    for t in prange(2):
+        m = split[t + 1] - split[t]
+        for j in range(m + (n - b2 if t == 0 else 0)):     # (the rhs written out once: a call per row costs 10x)
+            p = split[t] + j if j < m else b2 + j - m
+            i = row_v[p]
             s0 = s1 = s2 = 0.0
-            if first:
+            if sheath:
+                if i >= 0:
+                    k = ks[i]
+                    if k > 0.0:
+                        s0, s1, s2 = k * d[i, 0], k * d[i, 1], k * d[i, 2]
+            elif i >= 0:
+                s0, s1, s2 = f[i, 0], f[i, 1], f[i, 2]
+                if not first:
+                    mm = mh2[i]
+                    s0 -= mm * (xk[i, 0] - y[i, 0])
+                    s1 -= mm * (xk[i, 1] - y[i, 1])
+                    s2 -= mm * (xk[i, 2] - y[i, 2])
+            elif first:
                 for q in range(att_ptr[p], att_ptr[p + 1]):
                     a = att_idx[q]
                     s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
                 k = keff[row_c[p]]
                 s0 *= k; s1 *= k; s2 *= k
-        _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2)
-    return _backward(imp.Up, imp.Uj, imp.Ux, imp.dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2)
-
-
-@njit(inline='always')
-def _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2):
-    """Row p of the forward pass of _solve and _solve_sheath: z_p = s - sum_j<p L_pj z_j (s: the row's right-hand side;
-    the sum simd.row_dot4's, z (n, 4): its fourth column unused)."""
-    a0, a1, a2, _ = row_dot4(Lx, Lj, z, Lp[p], Lp[p + 1])
-    z[p, 0] = s0 - a0; z[p, 1] = s1 - a1; z[p, 2] = s2 - a2
+            if j < m:
+                a0, a1, a2, _ = row_dot4(Lx, Lj, z, Lp[p], Lp[p + 1])
+                z[p, 0] = s0 - a0; z[p, 1] = s1 - a1; z[p, 2] = s2 - a2
+            else:
+                sep_part[j - m, 2, 0] = s0; sep_part[j - m, 2, 1] = s1; sep_part[j - m, 2, 2] = s2
+        for k in range(n - b2):
+            lo = Lp[b2 + k] if t == 0 else sep_e[k, 0]
+            a0, a1, a2, _ = row_dot4(Lx, Lj, z, lo, sep_e[k, t])
+            sep_part[k, t, 0] = a0; sep_part[k, t, 1] = a1; sep_part[k, t, 2] = a2
+    for k in range(n - b2):
+        p = b2 + k
+        a0, a1, a2, _ = row_dot4(Lx, Lj, z, sep_e[k, 1], Lp[p + 1])
+        z[p, 0] = sep_part[k, 2, 0] - ((sep_part[k, 0, 0] + sep_part[k, 1, 0]) + a0)
+        z[p, 1] = sep_part[k, 2, 1] - ((sep_part[k, 0, 1] + sep_part[k, 1, 1]) + a1)
+        z[p, 2] = sep_part[k, 2, 2] - ((sep_part[k, 0, 2] + sep_part[k, 1, 2]) + a2)
 
 
 @njit(cache=True, fastmath={'contract'})
-def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2):
-    """The backward pass of _solve and _solve_sheath: w = L^-T D^-1 z in gather form (row p of L^T: w_p = z_p / D_p -
-    sum_j>p L_jp w_j, w in place of z), each w_p final when its row is done; its vertex i = row_v[p] (-1: a cell row)
-    updated there, xk_i = y_i + w_p (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. Returns how many are faster
-    than sqrt(vmax2) or not finite."""
+def _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, lo, hi):
+    """Rows hi - 1 down to lo of _backward; how many of their vertices are too fast or not finite. (A range per call:
+    a call per row costs several times the row.)"""
     nfast = 0
-    for p in range(z.shape[0] - 1, -1, -1):
-        d = dinv[p]
+    for p in range(hi - 1, lo - 1, -1):
+        dd = dinv[p]
         a0, a1, a2, _ = row_dot4(Ux, Uj, z, Up[p], Up[p + 1])
-        s0, s1, s2 = z[p, 0] * d - a0, z[p, 1] * d - a1, z[p, 2] * d - a2
+        s0, s1, s2 = z[p, 0] * dd - a0, z[p, 1] * dd - a1, z[p, 2] * dd - a2
         z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
         i = row_v[p]
         if i >= 0:
@@ -500,6 +630,19 @@ def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2):
             else:
                 xk[i, 0] += s0; xk[i, 1] += s1; xk[i, 2] += s2
             nfast += _velocity(i, ih, xs, xk, vn, vmax2)
+    return nfast
+
+
+@njit(cache=True, fastmath={'contract'})
+def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split):
+    """The backward pass of _solve and _solve_sheath: w = L^-T D^-1 z in gather form (row p of L^T: w_p = z_p / D_p -
+    sum_j>p L_jp w_j, w in place of z), each w_p final when its row is done; its vertex i = row_v[p] (-1: a cell row)
+    updated there, xk_i = y_i + w_p (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. The separator's rows first,
+    then split's two blocks (prange: in parallel in parallel_kernels' copy; a block's rows read only its own and the
+    separator's). Returns how many are faster than sqrt(vmax2) or not finite."""
+    nfast = _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[2], split[3])
+    for t in prange(2):
+        nfast += _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[t], split[t + 1])
     return nfast
 
 
@@ -534,17 +677,10 @@ def _solve_sheath(imp, xk, xs, vn, ih, vmax2):
     """xk += w over sheath_region's vertices, A' w = k_s d (imp.sd, the sheathed vertices' way back; A' = A +
     diag(k_s) over the region, the rest held), and their velocities vn = (xk - xs) ih: the forward pass, D^-1 and the
     backward pass of _solve on its factor. Returns how many are faster than sqrt(vmax2) or not finite."""
-    z, Lp, Lj, Lx, dinv, row_v, ks, d = imp.s_z, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_dinv, imp.s_row_v, imp.ks, imp.sd
-    n = z.shape[0]
-    for p in range(n):
-        i = row_v[p]
-        s0 = s1 = s2 = 0.0
-        if i >= 0:
-            k = ks[i]
-            if k > 0.0:
-                s0, s1, s2 = k * d[i, 0], k * d[i, 1], k * d[i, 2]
-        _forward_row(Lp, Lj, Lx, z, p, s0, s1, s2)
-    return _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, dinv, row_v, z, xk, xk, False, xs, vn, ih, vmax2)
+    _forward(True, imp.s_row_v, imp.row_c, xk, xk, xk, False, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx, imp.ks,
+             imp.sd, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_z, imp.s_split, imp.s_sep_e, imp.s_sep_part)
+    return _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, imp.s_dinv, imp.s_row_v, imp.s_z, xk, xk, False, xs, vn, ih, vmax2,
+                     imp.s_split)
 
 
 @njit(cache=True)
@@ -564,3 +700,27 @@ def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2, wr):
     nfast = _solve_sheath(imp, xn, x, vn, 1.0 / h, vmax2)     # (the velocities: of the region's vertices, the
     CT.sheath_reaction(xn, cg, imp.ks, imp.sd, wr)             # others did not move)
     return nfast
+
+
+_PARALLEL = []
+
+
+def parallel_kernels() -> tuple:
+    """(bdf2_start, integrate, correct, sheath_correct) on numba's threads (step.parallel_advance; Params.threads != 1):
+    the same code, compiled once per process from these functions with bdf2_start, _forward and _backward compiled
+    parallel (their prange loops: two halves of the arrays, the passes' two blocks of split), not cached
+    on disk (as step.parallel_advance). The results are the serial ones, bit for bit: every row's sum is the same in
+    the same order."""
+    if not _PARALLEL:
+        import types
+        g = dict(globals())
+        for name in ('_forward', '_backward', 'bdf2_start'):
+            g[name] = njit(types.FunctionType(globals()[name].py_func.__code__, g, name + '_parallel'),
+                           parallel=True, fastmath={'contract'})
+        for name in ('_solve', '_solve_sheath'):
+            g[name] = njit(types.FunctionType(globals()[name].py_func.__code__, g, name + '_parallel'),
+                           fastmath={'contract'})
+        _PARALLEL.append((g['bdf2_start'],) + tuple(
+            njit(types.FunctionType(globals()[name].py_func.__code__, g, name + '_parallel'))
+            for name in ('integrate', 'correct', 'sheath_correct')))
+    return _PARALLEL[0]

@@ -1,5 +1,5 @@
 """The one kernel written in LLVM IR: a sparse row times a block of four right-hand sides, for the implicit
-integrator's triangular solves (implicit._forward_row, implicit._backward; docs/solver.md "Implicit integrator").
+integrator's triangular solves (implicit._forward, implicit._backward; docs/solver.md "Implicit integrator").
 
 Written in numba, the row's sum over its entries, s_c -= L_pq z[q, c] for the three coordinates, compiles to three
 scalar loads and multiply-adds per entry: LLVM does not vectorise a reduction over the three right-hand sides, and

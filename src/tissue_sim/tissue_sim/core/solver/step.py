@@ -60,6 +60,9 @@ Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mle
 
 
 _cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: cells.lane_forces_par)
+_im_bdf2_start, _im_integrate, _im_correct, _im_sheath_correct = (
+    IM.bdf2_start, IM.integrate, IM.correct, IM.sheath_correct)   # (parallel_advance: implicit.parallel_kernels,
+# BDF2's start and the triangular passes on the threads)
 
 
 @njit(cache=True, nogil=True)     # nogil: the simulator node steps in a thread of its own (core/realtime.py)
@@ -150,7 +153,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             xe = x
             hs, xs, vs = h, x, v       # the implicit solve's step length and start (BDF2: 2h/3 from its combination)
             if imp.on and imp.bdf2:    # (its start and the prediction y in one pass)
-                IM.bdf2_start(h, x, v, xp, vp, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg, imp.hs)
+                _im_bdf2_start(h, x, v, xp, vp, st.history_h, imp.xh, imp.vh, imp.y, imp.yc, imp.yg, imp.hs)
                 hs, xs, vs = imp.hs, imp.xh, imp.vh      # (implicit.solve_length)
             elif imp.on:
                 IM.predict(x, v, imp.y, imp.yc, imp.yg, imp.hs)
@@ -175,7 +178,7 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
             st.contact_wrench[:] = 0.0    # (applied: stage 3's sheath correction and stage 4 write this sub-step's)
             # 3. soft tissue: free vertices integrate (v += h f inv_den, x += h v), attached ones follow the bones
             if imp.on:             # implicit: x1 = y + A^-1 (f - Lhat_fa dxa); further local/global iterations
-                fast = IM.integrate(hs, xs, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
+                fast = _im_integrate(hs, xs, f, xb, vb, imp, tissue.att_idx, tissue.att_seg, tissue.rest, st.seg_R,
                                     st.seg_t, num.vmax2)
                 for _ in range(1, imp.iters):
                     if fast or not ok:
@@ -184,9 +187,9 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
                         fast = 1       # (reported as a blow-up: the iterate is not finite)
                         break
                     after_cells(xb, f, h, lam, mlen, mvel, tissue, num, scratch, False)
-                    fast = IM.correct(hs, xs, f, xb, vb, imp, num.vmax2)
+                    fast = _im_correct(hs, xs, f, xb, vb, imp, num.vmax2)
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
-                    fast = IM.sheath_correct(hs, xs, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
+                    fast = _im_sheath_correct(hs, xs, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
                 if ok and not fast:    # the point via rings inside it (implicit.via_correct; none: nothing done)
                     fast = IM.via_correct(hs, xs, xb, vb, imp, tissue.via_off, tissue.via_idx, tissue.via_seg,
                                           tissue.via_local, st.seg_R, st.seg_t, num.vmax2)
@@ -242,6 +245,7 @@ def parallel_advance():
         import types
         g = dict(globals())
         g['_cell_pass'] = CK.lane_forces_par
+        g['_im_bdf2_start'], g['_im_integrate'], g['_im_correct'], g['_im_sheath_correct'] = IM.parallel_kernels()
         inner = types.FunctionType(_advance.py_func.__code__, g, '_advance_parallel')
         g['_advance'] = njit(inner)
         _PARALLEL.append(njit(types.FunctionType(advance.py_func.__code__, g, 'advance_parallel'), nogil=True))
