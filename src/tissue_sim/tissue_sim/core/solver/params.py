@@ -172,10 +172,12 @@ class Params:
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
-    threads: int = 1                      # threads of the step's cell pass (1: the serial kernel; 0: numba's default, all cores;
-                                          # n: n, at most NUMBA_NUM_THREADS); the results do not depend on it (bit-identical).
-                                          # 1 by default: on cores shared with other busy processes 2 threads were 4-7x slower
-                                          # (measured; docs/solver.md "Threads")
+    threads: int = 1                      # threads of the step (1: serial; 0: numba's default, all cores; n: n, at most
+                                          # NUMBA_NUM_THREADS; the parallel parts are two: the cell pass, and with the
+                                          # implicit integrator BDF2's start and the triangular passes, so more than 2 change
+                                          # nothing); the results do not depend on it (bit-identical). 1 by default: 2 pay on
+                                          # finer models (the 34k-vertex limb 1.33x, implicit), not on the bundled one
+                                          # (0.92-0.97x), and lose on cores that other busy processes share (docs/solver.md "Threads")
 
     # ------------------------------------------------------------------------------ presets
     @classmethod

@@ -236,8 +236,9 @@ _PARALLEL = []
 
 
 def parallel_advance():
-    """advance with the thread-parallel cell pass (cells.lane_forces_par; Params.threads != 1): the same code,
-    compiled from it with _cell_pass bound to the parallel kernel, once per process and not cached on disk. (numba
+    """advance with the thread-parallel kernels (Params.threads != 1): the same code, compiled from it with
+    _cell_pass bound to cells.lane_forces_par and the implicit integrator's kernels to implicit.parallel_kernels',
+    once per process and not cached on disk. (numba
     caches parallel kernels, but a cached function that calls one segfaulted when loaded in a later process if it
     had been compiled against a callee loaded from the cache: measured with advance itself; so advance, cached,
     never calls a parallel kernel.) The first call compiles it (about as long as advance's cold compile)."""
@@ -433,8 +434,8 @@ _MAX_THREADS = int(numba.config.NUMBA_NUM_THREADS)
 
 
 def set_threads(n: int) -> int:
-    """numba's threads for the cell pass (Params.threads): n, at most NUMBA_NUM_THREADS; 0: all of them. Returns the
-    number set. Only the speed depends on it (cells.lane_forces_par is bit-identical for any number)."""
+    """numba's threads for the parallel step (Params.threads): n, at most NUMBA_NUM_THREADS; 0: all of them. Returns
+    the number set. Only the speed depends on it (parallel_advance is bit-identical for any number)."""
     n = _MAX_THREADS if n <= 0 else min(int(n), _MAX_THREADS)
     if numba.get_num_threads() != n:
         numba.set_num_threads(n)
