@@ -395,24 +395,34 @@ def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg, hs):
     vectorise; a third multiplies: the division was bound by the divider; with yc empty two arrays fewer are read)."""
     xf, vf, xpf, vpf, xhf, vhf = x.reshape(-1), v.reshape(-1), x_prev.reshape(-1), v_prev.reshape(-1), xh.reshape(-1), vh.reshape(-1)
     yf, ycf, ygf = y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
-    third = 1.0 / 3.0
-    uniform = ycf.shape[0] == 0     # (a loop-invariant test: the compiler makes a loop of each case)
+    uniform = ycf.shape[0] == 0
+    fresh = history_h[0] != h
     n = xf.shape[0]
+    m = n // 2
     for t in prange(2):             # (two halves: on two threads in parallel_kernels' copy; the same numbers)
-        lo, hi = (0, n // 2) if t == 0 else (n // 2, n)
-        if history_h[0] != h:
-            for k in range(lo, hi):
-                xa = xf[k] + h * vf[k] * third
-                xhf[k] = xa
-                vhf[k] = vf[k]
-                yf[k] = xa + hs * vf[k] if uniform else xa + ycf[k] * vf[k] + ygf[k]
-        else:
-            for k in range(lo, hi):
-                xa = (4.0 * xf[k] - xpf[k]) * third
-                va = (4.0 * vf[k] - vpf[k]) * third
-                xhf[k] = xa
-                vhf[k] = va
-                yf[k] = xa + hs * va if uniform else xa + ycf[k] * va + ygf[k]
+        lo, hi = m * t, m + (n - m) * t
+        _bdf2_span(h, hs, fresh, uniform, xf[lo:hi], vf[lo:hi], xpf[lo:hi], vpf[lo:hi], xhf[lo:hi], vhf[lo:hi],
+                   yf[lo:hi], ycf if uniform else ycf[lo:hi], ygf if uniform else ygf[lo:hi])
+
+
+@njit(cache=True, fastmath={'contract'})
+def _bdf2_span(h, hs, fresh, uniform, xf, vf, xpf, vpf, xhf, vhf, yf, ycf, ygf):
+    """bdf2_start over one span of the flat arrays. (Views and a loop from 0: a loop over range(lo, hi) of the whole
+    arrays measured 10-15 % slower, not vectorised as well.)"""
+    third = 1.0 / 3.0
+    if fresh:
+        for k in range(xf.shape[0]):
+            xa = xf[k] + h * vf[k] * third
+            xhf[k] = xa
+            vhf[k] = vf[k]
+            yf[k] = xa + hs * vf[k] if uniform else xa + ycf[k] * vf[k] + ygf[k]
+    else:
+        for k in range(xf.shape[0]):
+            xa = (4.0 * xf[k] - xpf[k]) * third
+            va = (4.0 * vf[k] - vpf[k]) * third
+            xhf[k] = xa
+            vhf[k] = va
+            yf[k] = xa + hs * va if uniform else xa + ycf[k] * va + ygf[k]
 
 
 @njit(cache=True)
