@@ -64,7 +64,7 @@ yc, yg (V, 3): the prediction's coefficients at hs, y = x + yc v + yg (predict; 
 split (4,) int64 (s_split: the sheath factor's): the rows [split[0], split[1]) and [split[1], split[2]) of the factor
 are two independent blocks, [split[2], split[3]) their separator (split_order; [0, n, n, n]: not split); sep_e (ns, 2)
 uint64: where each separator row's entries of the second block and of the separator begin; sep_part (ns, 3, 4):
-scratch: each block's share of a separator row's sum and its rhs (_forward)."""
+scratch: each block's share of a separator row's sum (_forward)."""
 
 
 def cell_weights(sim, h: float) -> np.ndarray:
@@ -578,14 +578,13 @@ def _forward(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx,
     """The forward pass L z = rhs of _solve (sheath False) and _solve_sheath (True: rhs = k_s d on a sheathed vertex's
     row, 0 elsewhere), z (n, 4) (simd.row_dot4: its fourth column unused), in split's blocks (split_order): each
     block's rows, z_p = rhs_p - sum_j<p L_pj z_j, and its share of each separator row's sum, apart (prange: on two
-    threads in parallel_kernels' copy, here one after the other; block 0 also forms the separator rows' rhs, into
-    sep_part[:, 2]); then the separator's rows, z_p = rhs_p - ((share 0 + share 1) + the separator's own entries).
-    The same sums in the same order for any number of threads. Not split ([0, n, n, n]): every row in block 0."""
+    threads in parallel_kernels' copy, here one after the other); then the separator's rows (cells: their rhs the
+    bones' motion beyond the prediction, first iteration only), z_p = rhs_p - ((share 0 + share 1) + the separator's
+    own entries). The same sums in the same order for any number of threads. Not split ([0, n, n, n]): every row
+    in block 0."""
     b2, n = split[2], split[3]
     for t in prange(2):
-        m = split[t + 1] - split[t]
-        for j in range(m + (n - b2 if t == 0 else 0)):     # (the rhs written out once: a call per row costs 10x)
-            p = split[t] + j if j < m else b2 + j - m
+        for p in range(split[t], split[t + 1]):
             i = row_v[p]
             s0 = s1 = s2 = 0.0
             if sheath:
@@ -601,26 +600,33 @@ def _forward(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx,
                     s1 -= mm * (xk[i, 1] - y[i, 1])
                     s2 -= mm * (xk[i, 2] - y[i, 2])
             elif first:
-                for q in range(att_ptr[p], att_ptr[p + 1]):
-                    a = att_idx[q]
-                    s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
-                k = keff[row_c[p]]
-                s0 *= k; s1 *= k; s2 *= k
-            if j < m:
-                a0, a1, a2, _ = row_dot4(Lx, Lj, z, Lp[p], Lp[p + 1])
-                z[p, 0] = s0 - a0; z[p, 1] = s1 - a1; z[p, 2] = s2 - a2
-            else:
-                sep_part[j - m, 2, 0] = s0; sep_part[j - m, 2, 1] = s1; sep_part[j - m, 2, 2] = s2
+                s0, s1, s2 = _cell_rhs(p, row_c, xk, y, keff, att_ptr, att_idx)
+            a0, a1, a2, _ = row_dot4(Lx, Lj, z, Lp[p], Lp[p + 1])
+            z[p, 0] = s0 - a0; z[p, 1] = s1 - a1; z[p, 2] = s2 - a2
         for k in range(n - b2):
             lo = Lp[b2 + k] if t == 0 else sep_e[k, 0]
             a0, a1, a2, _ = row_dot4(Lx, Lj, z, lo, sep_e[k, t])
             sep_part[k, t, 0] = a0; sep_part[k, t, 1] = a1; sep_part[k, t, 2] = a2
     for k in range(n - b2):
         p = b2 + k
+        s0 = s1 = s2 = 0.0
+        if first and not sheath:
+            s0, s1, s2 = _cell_rhs(p, row_c, xk, y, keff, att_ptr, att_idx)
         a0, a1, a2, _ = row_dot4(Lx, Lj, z, sep_e[k, 1], Lp[p + 1])
-        z[p, 0] = sep_part[k, 2, 0] - ((sep_part[k, 0, 0] + sep_part[k, 1, 0]) + a0)
-        z[p, 1] = sep_part[k, 2, 1] - ((sep_part[k, 0, 1] + sep_part[k, 1, 1]) + a1)
-        z[p, 2] = sep_part[k, 2, 2] - ((sep_part[k, 0, 2] + sep_part[k, 1, 2]) + a2)
+        z[p, 0] = s0 - ((sep_part[k, 0, 0] + sep_part[k, 1, 0]) + a0)
+        z[p, 1] = s1 - ((sep_part[k, 0, 1] + sep_part[k, 1, 1]) + a1)
+        z[p, 2] = s2 - ((sep_part[k, 0, 2] + sep_part[k, 1, 2]) + a2)
+
+
+@njit(cache=True)
+def _cell_rhs(p, row_c, xk, y, keff, att_ptr, att_idx):
+    """A cell row's right-hand side on the first iteration: keff_c sum over its bone-attached vertices of (xk - y)."""
+    s0 = s1 = s2 = 0.0
+    for q in range(att_ptr[p], att_ptr[p + 1]):
+        a = att_idx[q]
+        s0 += xk[a, 0] - y[a, 0]; s1 += xk[a, 1] - y[a, 1]; s2 += xk[a, 2] - y[a, 2]
+    k = keff[row_c[p]]
+    return s0 * k, s1 * k, s2 * k
 
 
 @njit(cache=True, fastmath={'contract'})
@@ -650,6 +656,8 @@ def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split
     updated there, xk_i = y_i + w_p (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. The separator's rows first,
     then split's two blocks (prange: in parallel in parallel_kernels' copy; a block's rows read only its own and the
     separator's). Returns how many are faster than sqrt(vmax2) or not finite."""
+    if split[1] == split[3]:            # not split: one block (no parallel region)
+        return _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, 0, split[3])
     nfast = _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[2], split[3])
     for t in prange(2):
         nfast += _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[t], split[t + 1])
