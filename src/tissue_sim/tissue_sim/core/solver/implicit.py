@@ -442,6 +442,9 @@ def bdf2_history(h, xn, vn, x_old, v_old, history_h, moved, n_moved):
     history_h[0] = h
 
 
+SCRATCH = ('y', 'z', 'sd', 's_z', 'xh', 'vh', 'via_g', 'sep_part', 's_sep_part')    # Implicit's scratch arrays
+
+
 def make(sim, h: float) -> Implicit:
     """The Implicit tuple for sub-step length h (an inert one, on = False, for the other integrators); its system at
     solve_length(h). Its constants (the factors, the point vias' columns) are made once per model and h and shared
@@ -449,9 +452,6 @@ def make(sim, h: float) -> Implicit:
     imp = _per_model(_MADE, sim, h, _make)
     fresh = {name: np.zeros_like(getattr(imp, name)) for name in SCRATCH}
     return imp._replace(**fresh)
-
-
-SCRATCH = ('y', 'z', 'sd', 's_z', 'xh', 'vh', 'via_g', 'sep_part', 's_sep_part')    # Implicit's scratch arrays
 
 
 def _make(sim, h: float) -> Implicit:
@@ -656,8 +656,6 @@ def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split
     updated there, xk_i = y_i + w_p (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. The separator's rows first,
     then split's two blocks (prange: in parallel in parallel_kernels' copy; a block's rows read only its own and the
     separator's). Returns how many are faster than sqrt(vmax2) or not finite."""
-    if split[1] == split[3]:            # not split: one block (no parallel region)
-        return _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, 0, split[3])
     nfast = _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[2], split[3])
     for t in prange(2):
         nfast += _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[t], split[t + 1])
@@ -720,6 +718,13 @@ def sheath_correct(h, x, xn, vn, imp, seg_R, seg_t, cg, vmax2, wr):
     return nfast
 
 
+def recompiled(fn, g: dict, name: str, **options):
+    """A numba function compiled afresh from fn's Python code with the globals g (its callees as g names them), not
+    cached: how step.parallel_advance and parallel_kernels make parallel copies of cached serial code."""
+    import types
+    return njit(types.FunctionType(fn.py_func.__code__, g, name), **options)
+
+
 _PARALLEL = []
 
 
@@ -730,15 +735,11 @@ def parallel_kernels() -> tuple:
     on disk (as step.parallel_advance). The results are the serial ones, bit for bit: every row's sum is the same in
     the same order."""
     if not _PARALLEL:
-        import types
         g = dict(globals())
         for name in ('_forward', '_backward', 'bdf2_start'):
-            g[name] = njit(types.FunctionType(globals()[name].py_func.__code__, g, name + '_parallel'),
-                           parallel=True, fastmath={'contract'})
+            g[name] = recompiled(globals()[name], g, name + '_parallel', parallel=True, fastmath={'contract'})
         for name in ('_solve', '_solve_sheath'):
-            g[name] = njit(types.FunctionType(globals()[name].py_func.__code__, g, name + '_parallel'),
-                           fastmath={'contract'})
-        _PARALLEL.append((g['bdf2_start'],) + tuple(
-            njit(types.FunctionType(globals()[name].py_func.__code__, g, name + '_parallel'))
-            for name in ('integrate', 'correct', 'sheath_correct')))
+            g[name] = recompiled(globals()[name], g, name + '_parallel', fastmath={'contract'})
+        _PARALLEL.append((g['bdf2_start'],) + tuple(recompiled(globals()[name], g, name + '_parallel')
+                                                    for name in ('integrate', 'correct', 'sheath_correct')))
     return _PARALLEL[0]

@@ -243,13 +243,11 @@ def parallel_advance():
     had been compiled against a callee loaded from the cache: measured with advance itself; so advance, cached,
     never calls a parallel kernel.) The first call compiles it (about as long as advance's cold compile)."""
     if not _PARALLEL:
-        import types
         g = dict(globals())
         g['_cell_pass'] = CK.lane_forces_par
         g['_im_bdf2_start'], g['_im_integrate'], g['_im_correct'], g['_im_sheath_correct'] = IM.parallel_kernels()
-        inner = types.FunctionType(_advance.py_func.__code__, g, '_advance_parallel')
-        g['_advance'] = njit(inner)
-        _PARALLEL.append(njit(types.FunctionType(advance.py_func.__code__, g, 'advance_parallel'), nogil=True))
+        g['_advance'] = IM.recompiled(_advance, g, '_advance_parallel')
+        _PARALLEL.append(IM.recompiled(advance, g, 'advance_parallel', nogil=True))
     return _PARALLEL[0]
 
 
