@@ -44,6 +44,9 @@ def test_the_star_form_factor_solves_the_written_out_system(default_tm):
     assert np.abs((xk - y)[free] - w).max() <= 1e-9 * np.abs(w).max()
     assert np.array_equal(xk[~free] - y[~free], moved[~free])           # the bones are not touched
     assert imp.n_lnz < A.nnz                  # sparser than the vertices' matrix itself (39k against 108k entries)
+    for name in IM.SCRATCH:                   # each State's scratch starts on a cache line (z's rows: one line each)
+        assert getattr(imp, name).ctypes.data % 64 == 0 or getattr(imp, name).size == 0, name
+    assert IM.make(sim, h).z is not imp.z     # and is its own
 
 
 def test_the_split_factor_solves_the_same_system_in_two_independent_blocks(default_tm, monkeypatch):
