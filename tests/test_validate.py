@@ -371,7 +371,10 @@ def test_validate_kinematics_command(tmp_path, capsys):
     knee's centre). The walker column is the validation's OpenSim reference (the same model and coordinate); the hinge
     changes the long head's moment arm at 30 deg by > 25 % and turns tensor fasciae latae a flexor at 120 deg (the
     reasons the physical set follows the walker knee, docs/validation.md); nothing else of the source model changes
-    (its length at 0 deg, where both kinematics coincide)."""
+    (its length at 0 deg, where both kinematics coincide). Without the wrap objects (unwrapped_source_model) the
+    short head stays a flexor at 120 deg (its wrap over the gastrocnemius, BF_at_gastroc_r, turns it) and the
+    gastrocnemius medialis turns extensor at 0 deg (its wrap round the condyles); muscles without wrap objects
+    (tensor fasciae latae) do not change."""
     assert main(['validate', '--kinematics', '--angles', '0,30,60,90,120', '-o', str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert 'walker knee / plain hinge' in out and 'plain hinge changes' in out
@@ -384,3 +387,10 @@ def test_validate_kinematics_command(tmp_path, capsys):
     assert tfl['walker_moment_arm'][-1] < 0 < tfl['hinge_moment_arm'][-1]
     assert {c['muscle'] for c in res['sign_changes']} == {'tensor_fasciae_latae'}
     assert any(not r['within_tolerance'] and r['muscle'] == 'biceps_femoris_long_head' for r in res['hamstrings'])
+    assert 'without the wrap objects' in out
+    bfsh = res['muscles']['biceps_femoris_short_head']
+    assert bfsh['walker_moment_arm'][-1] < 0 < bfsh['unwrapped_moment_arm'][-1]
+    assert res['muscles']['gastrocnemius_medialis']['unwrapped_moment_arm'][0] < 0
+    assert tfl['unwrapped_moment_arm'] == tfl['walker_moment_arm']
+    changed = {(c['muscle'], c['angle_deg']) for c in res['wrap_sign_changes']}
+    assert ('biceps_femoris_short_head', 120) in changed and ('gastrocnemius_medialis', 0) in changed

@@ -29,8 +29,8 @@ def add_arguments(p):
                         '(default 0:120:15, settle 0.5 s) against the source model with passive fibre force on and '
                         'Riener & Edrich 1999; writes passive_<params>.json and .png')
     p.add_argument('--kinematics', action='store_true',
-                   help='instead: the source model\'s own moment arms with its walker knee and with the plain hinge of the '
-                        'paper set (no elastic model); writes kinematics.json and .png')
+                   help='instead: the source model\'s own moment arms with its walker knee, with the plain hinge of the '
+                        'paper set and with its wrap objects removed (no elastic model); writes kinematics.json and .png')
     p.add_argument('--no-via-points', dest='via_points', action='store_false',
                    help='the bundled limb built without the builder setting via_points (only the muscles\' end rings fixed to '
                         'their bones, as the paper; docs/builder.md "Via points")')
@@ -105,13 +105,15 @@ def _run_kinematics(args, con, out, V, angles):
     res['wall_s'] = round(time.perf_counter() - t0, 1)
     jpath, ppath = _write(out, 'kinematics', res, V.jsonable, V.plot_kinematics)
     from rich.table import Table
-    t = Table(title='source model moment arms [mm] (+ flexor): walker knee / plain hinge (the paper set\'s knee)')
+    t = Table(title='source model moment arms [mm] (+ flexor): walker knee / plain hinge (the paper set\'s knee) / '
+                    'walker knee without the wrap objects')
     shown = [i for i, a in enumerate(res['angles_deg']) if a % 30 == 0] or list(range(len(res['angles_deg'])))
     t.add_column('muscle')
     for i in shown:                                     # (every angle is in the JSON)
         t.add_column(f'{res["angles_deg"][i]:g}°', justify='right')
     for name, d in res['muscles'].items():
-        t.add_row(name, *(f'{d["walker_moment_arm"][i] * 1e3:+.1f} / {d["hinge_moment_arm"][i] * 1e3:+.1f}' for i in shown))
+        t.add_row(name, *(f'{d["walker_moment_arm"][i] * 1e3:+.1f} / {d["hinge_moment_arm"][i] * 1e3:+.1f} / '
+                          f'{d["unwrapped_moment_arm"][i] * 1e3:+.1f}' for i in shown))
     if not args.quiet:
         con.print(t)
     n_out = sum(not r['within_tolerance'] for r in res['hamstrings'])
@@ -121,6 +123,9 @@ def _run_kinematics(args, con, out, V, angles):
               f'{V.MOMENT_ARM_TOLERANCE:.0%} of the walker knee\'s: '
               + ', '.join(f'{r["muscle"]} {r["angle_deg"]:g}° {r["rel_difference"]:+.0%}' for r in res['hamstrings']
                           if not r['within_tolerance']))
+    con.print(f'without the wrap objects {len(res["wrap_sign_changes"])} moment-arm signs change: '
+              + (', '.join(f'{c["muscle"]} {c["angle_deg"]:g}° ({c["walker_mm"]:+.1f} -> {c["unwrapped_mm"]:+.1f} mm)'
+                           for c in res['wrap_sign_changes']) or 'none'))
     con.print(f'wrote {jpath} and {ppath} ({res["wall_s"]} s)')
     return 0
 

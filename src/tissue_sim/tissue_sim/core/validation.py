@@ -880,29 +880,54 @@ def hinge_source_model(osim_path, centre_model, out_path) -> Path:
     return Path(out_path)
 
 
+def unwrapped_source_model(osim_path, muscles: list, out_path) -> Path:
+    """Write a copy of the source model whose knee muscles (their OpenSim parts) have no wrap objects: each path its
+    points alone, straight between them, as our chains are before the tissue round them shapes them."""
+    import xml.etree.ElementTree as ET
+    tree = ET.parse(osim_path)
+    parts = {p for km in muscles for p in km.opensim}
+    for el in tree.getroot().iter():
+        if el.get('name') in parts:
+            for objects in el.iterfind('.//PathWrapSet/objects'):
+                for w in list(objects):
+                    objects.remove(w)
+    tree.write(out_path)
+    return Path(out_path)
+
+
 def run_kinematics(angles_deg=None, osim_path=None, model=None) -> dict:
     """What the knee's kinematics alone do to the moment arms (docs/validation.md "The knee's kinematics"): the source
     model's own muscle paths (wrapping included) evaluated with its walker knee and with the walker knee replaced by
     the plain hinge of the paper set (``hinge_source_model``): per knee muscle the moment arm (computeMomentArm) with
     each; the angles where the hinge changes its sign; the target hamstrings' (hinge - walker) / |walker| at the issue's
-    angles. No elastic model is run."""
+    angles. Beside them the walker knee with the knee muscles' wrap objects removed (``unwrapped_source_model``) and
+    the angles where that changes the sign: what the source model's wrap surfaces alone decide. No elastic model is
+    run."""
     import tempfile
     angles, osim_path, tm, muscles = _inputs(angles_deg, osim_path, model)
     j = list(tm.joint_names).index(KNEE_JOINT)
     with tempfile.TemporaryDirectory() as tmp:
         hinge = hinge_source_model(osim_path, tm.joint_centre[j], Path(tmp) / 'hinge.osim')
+        unwrapped = unwrapped_source_model(osim_path, muscles, Path(tmp) / 'unwrapped.osim')
         walker_ref = opensim_reference(osim_path, muscles, angles, {})
         hinge_ref = opensim_reference(hinge, muscles, angles, {}, log_level='error')   # (its bone meshes are not found
                                                                                        # from the temporary folder)
+        bare_ref = opensim_reference(unwrapped, muscles, angles, {}, log_level='error')
     out = {'angles_deg': angles, 'osim': str(osim_path), 'hinge_centre_m': [float(v) for v in tm.joint_centre[j]],
-           'hinge_axis': [float(v) for v in tm.joint_axis[j]], 'muscles': {}, 'sign_changes': [], 'hamstrings': []}
+           'hinge_axis': [float(v) for v in tm.joint_axis[j]], 'muscles': {}, 'sign_changes': [], 'hamstrings': [],
+           'wrap_sign_changes': []}
     for km in muscles:
         w = np.asarray(walker_ref['muscles'][km.name]['moment_arm'])
         h = np.asarray(hinge_ref['muscles'][km.name]['moment_arm'])
-        out['muscles'][km.name] = {'walker_moment_arm': list(w), 'hinge_moment_arm': list(h)}
-        for a, x, y in zip(angles, w, h):
+        u = np.asarray(bare_ref['muscles'][km.name]['moment_arm'])
+        out['muscles'][km.name] = {'walker_moment_arm': list(w), 'hinge_moment_arm': list(h),
+                                   'unwrapped_moment_arm': list(u)}
+        for a, x, y, z in zip(angles, w, h, u):
             if np.sign(x) != np.sign(y):
                 out['sign_changes'].append({'muscle': km.name, 'angle_deg': a, 'walker_mm': x * 1e3, 'hinge_mm': y * 1e3})
+            if np.sign(x) != np.sign(z):
+                out['wrap_sign_changes'].append({'muscle': km.name, 'angle_deg': a, 'walker_mm': x * 1e3,
+                                                 'unwrapped_mm': z * 1e3})
         if km.name in TARGET_HAMSTRINGS:
             for a in TARGET_ANGLES:
                 x, y = _at(angles, w, a), _at(angles, h, a)
@@ -914,7 +939,8 @@ def run_kinematics(angles_deg=None, osim_path=None, model=None) -> dict:
 
 
 def plot_kinematics(res: dict, path) -> None:
-    """Moment arms of the knee muscles in the source model, walker knee (solid) against the plain hinge (dashed)."""
+    """Moment arms of the knee muscles in the source model, walker knee (solid) against the plain hinge (dashed) and
+    the walker knee without the wrap objects (dotted)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -924,10 +950,12 @@ def plot_kinematics(res: dict, path) -> None:
         c = f'C{k % 10}'
         ax.plot(res['angles_deg'], np.asarray(d['walker_moment_arm']) * 1e3, '-', color=c, label=name)
         ax.plot(res['angles_deg'], np.asarray(d['hinge_moment_arm']) * 1e3, '--', color=c)
+        ax.plot(res['angles_deg'], np.asarray(d['unwrapped_moment_arm']) * 1e3, ':', color=c)
     for ax, title in zip(axes, ('hamstrings', 'the other knee muscles')):
         ax.axhline(0.0, color='k', lw=0.5)
         ax.set_xlabel('knee flexion [deg]'); ax.set_ylabel('moment arm [mm] (+ flexor)')
-        ax.set_title(f'source model, {title}: walker knee (solid), plain hinge (dashed)', fontsize=9)
+        ax.set_title(f'source model, {title}: walker knee (solid), plain hinge (dashed), no wrap objects (dotted)',
+                     fontsize=8)
         ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
