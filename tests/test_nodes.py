@@ -442,6 +442,30 @@ def test_a_stop_during_start_up_is_a_stop_not_a_traceback(capsys):
         a_real_failure()
 
 
+def test_a_sigint_inside_take_message_is_a_stop_any_other_failure_is_not():
+    """A SIGINT whose KeyboardInterrupt lands inside a subscription's take_message reaches common.spin as pybind11's
+    RuntimeError ('Unable to convert call argument'), possibly before rclpy's own thread has shut the context down:
+    spin counts it as the stop once the context goes down (here 0.1 s later, as rclpy's handler does); with the
+    context still up after the wait, or any other RuntimeError, it is a failure and propagates."""
+    import threading
+    import rclpy
+    from tissue_sim.ros.common import _shutdown_race
+    race = RuntimeError("Unable to convert call argument '0' to Python object (#define PYBIND11_DETAILED_ERROR_MESSAGES "
+                        "or compile in debug mode for details)")
+    rclpy.init()
+    try:
+        assert not _shutdown_race(race)                 # the context stays up: a real fault
+        assert not _shutdown_race(RuntimeError('boom'))
+        timer = threading.Timer(0.1, rclpy.shutdown)
+        timer.start()
+        assert _shutdown_race(race)
+        timer.join()
+        assert not _shutdown_race(RuntimeError('boom'))  # other errors are faults even then
+    finally:
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
 def test_a_burst_of_sigints_is_one_clean_stop(tmp_path, bundled_names_knee):
     """`ros2 launch` forwards a Ctrl-C to its nodes while the terminal's (or a killpg's) reaches them too,
     and users press it twice: six SIGINTs 10 ms apart end a running simulator and a running recorder
