@@ -239,7 +239,7 @@ def spin(node, on_shutdown=None, run=None) -> int:
         run() if run is not None else rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
         pass
-    except Exception as e:                  # the executor racing SIGINT: the context is already shut down
+    except Exception as e:                  # the executor racing SIGINT/SIGTERM (_shutdown_race): a stop
         if not _shutdown_race(e):
             raise
     finally:

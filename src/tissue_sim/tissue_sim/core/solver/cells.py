@@ -431,7 +431,7 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
     Bc, Br = len(cell_blocks), len(ring_blocks)
     ids = np.full((Bc, BLK), -1, np.int32)
     lane_muscle = np.full((Bc, BLK), -1, np.int32)
-    par = aligned_zeros(Bc * N_PAR * BLK).reshape(Bc, N_PAR, BLK)
+    par = aligned_zeros((Bc, N_PAR, BLK))
     for b, cells in enumerate(cell_blocks):
         real = cells >= 0
         ids[b, real] = cells[real]
@@ -448,7 +448,7 @@ def pack_cells(off, cv, X0, cell_muscle, k, k_active, damp_b, k_volume, q_tr, q_
         rings[q] = m_real, m_real + m_real % 2, r0, cnt
         r0 += m_real + m_real % 2
     ring_idx = np.zeros((r0, BLK), np.uint32)
-    ring_X0 = aligned_zeros(r0 * 3 * BLK).reshape(r0, 3, BLK)
+    ring_X0 = aligned_zeros((r0, 3, BLK))
     pad_vertex = 3 * int(cv[0]) if cv.size else 0
     for q, ring in enumerate(ring_blocks):
         m_real, m, a = rings[q, 0], rings[q, 1], rings[q, 2]
@@ -571,7 +571,7 @@ def cell_work(cells: CellLayout) -> CellWork:
     slots = int(cells.ring_idx.shape[0])
 
     def rows(k, size):
-        return aligned_zeros(k * size).reshape(k, size)
+        return aligned_zeros((k, size))
     return CellWork(aligned_zeros(N_W * BLK), aligned_zeros(N_R * BLK), aligned_zeros(N_R * BLK),
                     aligned_zeros(6 * m_max * BLK), aligned_zeros(6 * m_max * BLK), lq, aligned_zeros(n_lanes),
                     aligned_zeros(n_lanes), aligned_zeros(n_lanes),

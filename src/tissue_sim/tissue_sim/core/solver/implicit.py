@@ -585,7 +585,7 @@ def _forward(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx,
     own entries). The same sums in the same order for any number of threads. Not split ([0, n, n, n]): one range
     of rows (_forward_rows; the block structure measured +5 us, 20 %, on the bundled limb)."""
     b2, n = split[2], split[3]
-    if split[1] == n:
+    if split[1] == split[3]:
         _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, z, 0, n)
         return
     for t in prange(2):
