@@ -62,7 +62,7 @@ ros2-tools: setup
 	@bash tools/ros2/install_tools.sh
 
 test: anatomy-deps validation-deps ros2-tools
-	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest $(PYTEST_ARGS)
+	@$(ENV) && bash scripts/test.sh $(PYTEST_ARGS)
 
 test-fast: setup
 	@$(ENV) && TISSUE_SIM_REQUIRE_WS=1 python -m pytest -m 'not slow' $(PYTEST_ARGS)
