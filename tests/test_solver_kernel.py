@@ -270,6 +270,25 @@ def test_bit_identical_across_processes(preset):
     assert here['digest'] == there.stdout.strip()
 
 
+def test_a_stale_advance_cache_is_dropped_in_numba_cache_dir_too(tmp_path, monkeypatch):
+    """advance()'s cached code embeds the kernels of cells.py and the others, which numba does not check: step.py
+    deletes it when one of them is newer, beside the sources and in NUMBA_CACHE_DIR (make test's second worker)."""
+    import importlib
+    import os
+    step = importlib.import_module('tissue_sim.core.solver.step')      # (the package exports the function step)
+    folder = tmp_path / 'solver_0123abcd'
+    folder.mkdir()
+    newest = max(Path(step.__file__).with_name(n).stat().st_mtime for n in ('cells.py', 'implicit.py', 'contact.py'))
+    stale, fresh = folder / 'step.advance-300.py311.nbi', folder / 'step._advance-120.py311.1.nbc'
+    other = folder / 'step.set_threads-431.py311.nbi'          # not advance's: kept whatever its age
+    for f, t in ((stale, newest - 60), (fresh, newest + 60), (other, newest - 60)):
+        f.write_bytes(b'x')
+        os.utime(f, (t, t))
+    monkeypatch.setenv('NUMBA_CACHE_DIR', str(tmp_path))
+    step._drop_stale_advance_cache()
+    assert not stale.exists() and fresh.exists() and other.exists()
+
+
 def test_the_fused_gather_is_compiled_noalias():
     """The pinned numba takes the noalias option (else the fused gather silently stays scalar: right
     results, ~10 % slower), and _ring_moments is compiled with it: every array argument noalias in its IR."""

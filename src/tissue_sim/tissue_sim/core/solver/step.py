@@ -19,13 +19,19 @@ from numba import njit
 
 def _drop_stale_advance_cache() -> None:
     """numba validates advance()'s on-disk cache against this file only, but the cached machine code embeds
-    the kernels of the modules it calls: drop that cache whenever one of them is newer."""
+    the kernels of the modules it calls: drop that cache whenever one of them is newer (in the cache beside the
+    sources and in NUMBA_CACHE_DIR's, where numba keeps it in a folder named after this one: solver_<hash>)."""
+    import os
     from pathlib import Path
     here = Path(__file__).resolve()
+    user = os.environ.get('NUMBA_CACHE_DIR')
     try:
         newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py',
                                                                  'muscle.py', 'implicit.py', 'volume.py'))
-        for f in (here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'):     # advance and _advance
+        cached = list((here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'))     # advance and _advance
+        if user:
+            cached += Path(user).glob(f'{here.parent.name}_*/step.*advance-*.nb[ic]')
+        for f in cached:
             if f.stat().st_mtime < newest:
                 f.unlink(missing_ok=True)
     except OSError:
