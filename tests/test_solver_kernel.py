@@ -275,13 +275,13 @@ def test_a_stale_advance_cache_is_dropped_in_numba_cache_dir_too(tmp_path, monke
     deletes it when one of them is newer, beside the sources and in NUMBA_CACHE_DIR (make test's second worker)."""
     import importlib
     import os
+    import time
     step = importlib.import_module('tissue_sim.core.solver.step')      # (the package exports the function step)
     folder = tmp_path / 'solver_0123abcd'
     folder.mkdir()
-    newest = max(Path(step.__file__).with_name(n).stat().st_mtime for n in ('cells.py', 'implicit.py', 'contact.py'))
     stale, fresh = folder / 'step.advance-300.py311.nbi', folder / 'step._advance-120.py311.1.nbc'
     other = folder / 'step.set_threads-431.py311.nbi'          # not advance's: kept whatever its age
-    for f, t in ((stale, newest - 60), (fresh, newest + 60), (other, newest - 60)):
+    for f, t in ((stale, 1.0), (fresh, time.time() + 3600.0), (other, 1.0)):     # older / newer than any source
         f.write_bytes(b'x')
         os.utime(f, (t, t))
     monkeypatch.setenv('NUMBA_CACHE_DIR', str(tmp_path))
