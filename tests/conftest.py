@@ -11,9 +11,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # Under scripts/test.sh's first phase (TISSUE_SIM_TEST_OWN_NUMBA_CACHE=1) each pytest-xdist worker but the first (and
 # every process it starts) compiles into and loads from a numba cache of its own, .cache/numba/<worker>; the first
 # uses the cache beside the sources, as a serial run does, and leaves it warm for the nodes of the second phase. No
-# worker then sees kernels that another one compiled or wrote at the same time. (With one shared cache, cold, the
-# thread tests' serial and parallel cell passes differed in the last bits of cell_energy in 2 of 3 runs; the cause
-# was not found: docs/solver.md, "Threads".) Set before anything imports numba, which reads NUMBA_CACHE_DIR once.
+# worker then writes a function's cache while another one writes it too (numba's index of a function's cache is not
+# made for that: entries get lost). Set before anything imports numba, which reads NUMBA_CACHE_DIR once.
 _WORKER = os.environ.get('PYTEST_XDIST_WORKER', 'gw0')
 if os.environ.get('TISSUE_SIM_TEST_OWN_NUMBA_CACHE') == '1' and _WORKER != 'gw0' and 'numba' not in sys.modules:
     os.environ['NUMBA_CACHE_DIR'] = str(ROOT / '.cache' / 'numba' / _WORKER)

@@ -3,7 +3,12 @@
 1 and 2 threads (real numba runs with numba.set_num_threads; no timing), with the tasks cut at every position (every
 ring a cut ring) and every few positions as well as at the default units; the whole step likewise, paper and
 physical set (mass_scaled and implicit, the implicit solves whole and split: implicit.split_order). Speed:
-bench/solver.py --threads 1,2."""
+bench/solver.py --threads 1,2.
+
+The cell energies (a diagnostic: no force depends on them) are compared within 1e-10 of the largest, everything else
+bit for bit: the same kernel loaded from numba's on-disk cache and compiled in the process can give energies that
+differ in their last bits (docs/solver.md, "Threads"), and which of the two a kernel here is depends on what ran
+before it."""
 import numba
 import numpy as np
 import pytest
@@ -44,8 +49,16 @@ def _pass(kernel, sim, cells, x, v, lam, act, threads=None, calls=3):
         numba.set_num_threads(old)
 
 
+def _energies_match(a, b):
+    """Cell energies equal within 1e-10 of the largest (measured: up to 1.1e-12 of it, the paper set after 15 steps; the
+    energy is a difference of larger moment terms, so its last bits show; see the module's note)."""
+    return a.shape == b.shape and np.all(np.abs(a - b) <= 1e-10 * np.abs(a).max())
+
+
 def _same(a, b):
-    return a[0] == b[0] and all(np.array_equal(u, w) for u, w in zip(a[1:], b[1:]))
+    """Two _pass results: the bad cell, forces, rotations, pressures and lengths bit for bit, the energies matching."""
+    return (a[0] == b[0] and all(np.array_equal(u, w) for i, (u, w) in enumerate(zip(a[1:], b[1:])) if i != 3)
+            and _energies_match(a[4], b[4]))
 
 
 @pytest.fixture(scope='module')
@@ -124,8 +137,9 @@ def test_step_does_not_depend_on_the_threads(default_tm, kw, monkeypatch):
     make = solver.Params.physical if kw.pop('preset') == 'physical' else solver.Params.paper
     runs = [_run(default_tm, make(threads=n, **kw)) for n in (1, 2, 0)]
     for other in runs[1:]:
-        for name in ('x', 'v', 'q', 'qd', 'quat', 'pressure', 'cell_energy', 'muscle_velocity'):
+        for name in ('x', 'v', 'q', 'qd', 'quat', 'pressure', 'muscle_velocity'):
             assert np.array_equal(getattr(runs[0], name), getattr(other, name)), name
+        assert _energies_match(runs[0].cell_energy, other.cell_energy)
 
 
 def test_threads_parameter_is_checked():
