@@ -3,9 +3,10 @@
 Builds the bundled lower limb with default ("paper") settings (or, while the bundled anatomy is
 absent, the synthetic 'limb' phantom of tests/phantoms.py), prints the build time (first build in
 this process, including imports, and the median of the following runs), the Table-1 rows side by
-side with the paper and their ratios. Last line: one JSON object.
+side with the paper and their ratios, and the build time of the limb built R times finer (--refine, one build each:
+wall and CPU seconds, vertices, cells). Last line: one JSON object.
 
-    .venv/bin/python bench/build.py [--runs 3]
+    .venv/bin/python bench/build.py [--runs 3] [--refine 3[,6]]
 """
 from __future__ import annotations
 
@@ -24,7 +25,12 @@ sys.path.insert(0, str(ROOT / 'tests'))
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--runs', type=int, default=3)
+    ap.add_argument('--refine', default='3', help="refinements R to time, e.g. 3,6 ('none': skip)")
     args = ap.parse_args()
+    try:
+        refine = [] if args.refine == 'none' else [int(r) for r in args.refine.split(',')]
+    except ValueError:
+        ap.error(f'--refine: not a comma-separated list of integers: {args.refine!r}')
     t_import = time.perf_counter()
     from tissue_sim.core import builder
     import_s = time.perf_counter() - t_import
@@ -63,13 +69,23 @@ def main():
               f'p95 {sh["slant_p95"]}, max {sh["slant_max"]}')
     for w in q['warnings']:
         print(f'quality warning: {w}')
+    finer = []
+    if refine and src == 'bundled anatomy':
+        print(f'{"R":>3}{"vertices":>10}{"cells":>8}{"wall s":>9}{"CPU s":>8}')
+        for r in refine:
+            t0, c0 = time.perf_counter(), time.process_time()
+            fm, _ = builder.build_model(*inputs, refine=r)
+            finer.append({'refine': r, 'vertices': int(len(fm.rest_positions)), 'cells': int(fm.n_cells),
+                          'wall_s': round(time.perf_counter() - t0, 2), 'cpu_s': round(time.process_time() - c0, 2)})
+            f = finer[-1]
+            print(f'{r:>3}{f["vertices"]:>10,}{f["cells"]:>8,}{f["wall_s"]:>9.1f}{f["cpu_s"]:>8.1f}')
     within = all(abs(r - 1) <= 0.25 for k, r in ratios.items() if k not in ('bones', 'muscles'))
     print(json.dumps({'bench': 'build', 'input': src, 'build_s_first': round(first, 3), 'build_s_median': round(med, 3),
                       'target_s': 5.0, 'under_target': first < 5.0 and med < 5.0, 'table1': t1,
                       'paper_table1': builder.PAPER_TABLE1, 'ratio_to_paper': ratios, 'within_25pct': within,
                       'inverted_cells': rep['cells']['inverted'], 'closed_surfaces': rep['closed_surfaces'],
                       'volume_ratio': vr, 'shear': q['shear'], 'chain_breaks': len(q['breaks']),
-                      'quality_warnings': q['warnings']}))
+                      'quality_warnings': q['warnings'], 'finer': finer}))
 
 
 if __name__ == '__main__':

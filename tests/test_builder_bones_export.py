@@ -96,3 +96,21 @@ def test_vtu_write_failure_is_one_error_and_no_vtk_output(tmp_path, capfd):
     out, err = capfd.readouterr()
     assert err == '' and out == '', err
     assert not (tmp_path / 'afile' / 'x.vtu').exists()
+
+
+def test_winding_number_is_one_inside_a_closed_mesh_and_a_solid_angle_outside_one():
+    """bones.winding_number (the builder's and the contact checks' inside test): 1 inside a closed mesh, 0 outside,
+    and for one triangle the solid angle over 4 pi: a cube's face seen from its centre is 1/6 of the sphere."""
+    from tissue_sim.core.builder.bones import winding_number
+    box = trimesh.creation.box(extents=(0.02, 0.03, 0.04))
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    rng = np.random.default_rng(0)
+    for mesh, inside in ((box, rng.uniform(-0.009, 0.009, (50, 3)) * [1, 1.5, 2]),
+                         (sphere, rng.normal(size=(50, 3)) * 0.01)):
+        V, T = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        assert np.allclose(winding_number(V, T, inside), 1.0, atol=1e-9)
+        assert np.allclose(winding_number(V, T, inside + [0.2, 0.0, 0.0]), 0.0, atol=1e-9)
+    cube = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    top = np.asarray(cube.faces)[np.all(np.asarray(cube.vertices)[cube.faces][:, :, 2] > 0.5, axis=1)]   # the +z face
+    assert len(top) == 2
+    assert winding_number(np.asarray(cube.vertices), top, np.zeros((1, 3)))[0] == pytest.approx(1 / 6, abs=1e-12)

@@ -131,6 +131,74 @@ def test_fat_inner_ring_keeps_its_vertices_apart_where_a_long_skin_faces_a_small
     assert np.abs(p - 0.6 * ring).max() < 1e-9
 
 
+def _pair_dp_numpy(I, dist, outer, g, G, even):
+    """contours._pair_dp written with numpy over the fine points (each step's candidates at once): the reference."""
+    m1, n = dist.shape
+    m = m1 - 1
+    tri2 = CT._tri2
+    cost = np.full(m1, np.inf)
+    cost[0] = dist[0, 0]
+    back = np.zeros((n, m1), dtype=np.int64)
+    for k in range(n):
+        ob, oa = outer[(k + 1) % n], outer[k]
+        new, arg = np.full(m1, np.inf), np.zeros(m1, dtype=np.int64)
+        t = np.flatnonzero(np.isfinite(cost))
+        if t.size == 0:
+            break
+        for dlt in range(g, G + 1):
+            u = t + dlt
+            ok = (u == m) if k == n - 1 else (u <= m - g * (n - 1 - k))
+            tt, uu = t[ok], u[ok]
+            ia, ib = I[tt], I[uu]
+            valid = ((tri2(ia, ib, ob) < 0) & (tri2(ia, ob, oa) < 0)) | ((tri2(ia, ib, oa) < 0) & (tri2(ib, ob, oa) < 0))
+            tt, uu = tt[valid], uu[valid]
+            c = cost[tt] + (dist[uu, (k + 1) % n] if k < n - 1 else 0.0) + (dlt / even - 1.0) ** 2
+            better = c < new[uu]
+            new[uu[better]] = c[better]
+            arg[uu[better]] = tt[better]
+        cost, back[k] = new, arg
+    idx = np.zeros(n, dtype=np.int64)
+    if not np.isfinite(cost[m]):
+        return np.inf, idx
+    u = m
+    for k in range(n - 1, 0, -1):
+        u = back[k][u]
+        idx[k] = u
+    return cost[m], idx
+
+
+@pytest.mark.parametrize('case', ['foot', 'circles', 'star'])
+def test_pairing_kernel_matches_the_numpy_reference(case):
+    """contours._pair_dp (numba) gives the numpy reference's cost and pairing bit for bit, from every start that
+    pair_inner tries, on the foot-like outline, concentric circles and a skin outline no pairing can face."""
+    n = 36 if case != 'star' else 40
+    t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    if case == 'foot':
+        outer, inner = _foot(n)
+    elif case == 'circles':
+        a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        outer = np.stack([0.05 * np.cos(a), 0.05 * np.sin(a)], 1)
+        inner = CT.resample(np.stack([0.03 * np.cos(t), 0.03 * np.sin(t)], 1), CT.FINE * n)
+    else:
+        r = 0.05 * (1 + 0.6 * np.cos(5 * t))
+        outer, _ = CT.best_ring(CT.resample(np.stack([r * np.cos(t), r * np.sin(t)], 1), CT.FINE * n), n, None, None)
+        inner = CT.resample(np.stack([0.065 + 0.004 * np.cos(t), 0.004 * np.sin(t)], 1), CT.FINE * n)
+    m = len(inner)
+    even = m / n
+    g = max(1, int(np.ceil(CT.INNER_FLOOR * even)))
+    G = max(g, min(m // 2, int(np.ceil(6 * even))))
+    d2 = np.sum((inner[:, None, :] - outer[None]) ** 2, axis=2)
+    d2 *= CT.INNER_NEAR / (float(np.mean(np.min(d2, axis=0))) + 1e-24)
+    found = 0
+    for s0 in np.argsort(d2[:, 0], kind='stable')[:16]:
+        off = (s0 + np.arange(m + 1)) % m
+        c, idx = CT._pair_dp(inner[off], d2[off], outer, g, G, even)
+        c_ref, idx_ref = _pair_dp_numpy(inner[off], d2[off], outer, g, G, even)
+        assert c == c_ref and np.array_equal(idx, idx_ref)
+        found += np.isfinite(c)
+    assert (found == 0) == (case == 'star')
+
+
 def test_fat_inner_ring_none_where_no_layer_of_cells_can_face_the_skin():
     """A skin outline that is not star-shaped from the inner region (a notch facing away from it): no monotone pairing
     gives valid quads, and the builder falls back to rays on that slice (reported)."""

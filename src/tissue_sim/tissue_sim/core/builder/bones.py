@@ -3,7 +3,10 @@ cubes (scikit-image) of the bone's label, on ``step``-voxel block means (1 = ful
 centred on the label, closed and outward."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 from scipy import ndimage
 
 from tissue_sim.errors import UserError
@@ -48,17 +51,31 @@ def _load_mesh(path):
 
 
 def winding_number(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Generalised winding number of points w.r.t. a triangle mesh (1 inside, 0 outside a closed mesh)."""
-    out = np.zeros(len(pts))
-    step = max(1, 200_000 // max(len(f), 1))
-    for i0 in range(0, len(pts), step):
-        P = pts[i0:i0 + step, None, None, :]
-        A, B, C = (v[f[:, k]][None] - P[:, 0] for k in range(3))
-        la, lb, lc = (np.linalg.norm(X, axis=-1) for X in (A, B, C))
-        num = np.einsum('pfi,pfi->pf', A, np.cross(B, C))
-        den = la * lb * lc + np.einsum('pfi,pfi->pf', A, B) * lc + np.einsum('pfi,pfi->pf', B, C) * la \
-            + np.einsum('pfi,pfi->pf', C, A) * lb
-        out[i0:i0 + step] = np.arctan2(num, den).sum(axis=1) / (2 * np.pi)
+    """Generalised winding number of points w.r.t. a triangle mesh (1 inside, 0 outside a closed mesh): the sum of
+    the triangles' solid angles (Van Oosterom and Strackee's formula) over 4 pi."""
+    return _winding(np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(f, dtype=np.int64),
+                    np.ascontiguousarray(np.reshape(pts, (-1, 3)), dtype=np.float64))
+
+
+@njit(cache=True)
+def _winding(v, f, pts):
+    out = np.zeros(pts.shape[0])
+    for p in range(pts.shape[0]):
+        px, py, pz = pts[p, 0], pts[p, 1], pts[p, 2]
+        s = 0.0
+        for t in range(f.shape[0]):
+            i, j, k = f[t, 0], f[t, 1], f[t, 2]
+            ax, ay, az = v[i, 0] - px, v[i, 1] - py, v[i, 2] - pz
+            bx, by, bz = v[j, 0] - px, v[j, 1] - py, v[j, 2] - pz
+            cx, cy, cz = v[k, 0] - px, v[k, 1] - py, v[k, 2] - pz
+            la = math.sqrt(ax * ax + ay * ay + az * az)
+            lb = math.sqrt(bx * bx + by * by + bz * bz)
+            lc = math.sqrt(cx * cx + cy * cy + cz * cz)
+            num = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+            den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (bx * cx + by * cy + bz * cz) * la
+                   + (cx * ax + cy * ay + cz * az) * lb)
+            s += math.atan2(num, den)
+        out[p] = s / (2 * np.pi)
     return out
 
 

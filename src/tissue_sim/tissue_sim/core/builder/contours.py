@@ -11,6 +11,7 @@ region's target area (the chord polygon of a convex outline loses area, of a con
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy import ndimage
 from skimage import measure
 
@@ -366,6 +367,65 @@ def pair_by_angle(fine: np.ndarray, outer: np.ndarray) -> np.ndarray:
     return fine[np.argmin(dif, axis=1)]
 
 
+@njit(cache=True)
+def _pair_dp(I, dist, outer, g, G, even):
+    """pair_inner's dynamic programme for one start: I (m + 1, 2) the fine points from the start (the last the start
+    again), dist (m + 1, n) the weighted squared pairing lengths. Skin vertex k + 1 pairs with fine point u, reached
+    from k's t = u - dlt (g <= dlt <= G), when the quad (I[t], I[u], outer[k + 1], outer[k]) is a simple clockwise
+    quad; the cost adds dist[u, k + 1] (the last step: u = m, the start) and (dlt / even - 1)^2. Returns (least cost
+    at the start, inf when none, and the fine index of each skin vertex). Ties go to the smaller dlt, then the
+    smaller t (the order in which they are tried)."""
+    m1, n = dist.shape
+    m = m1 - 1
+    cost = np.full(m1, np.inf)
+    cost[0] = dist[0, 0]
+    back = np.zeros((n, m1), dtype=np.int64)
+    new = np.empty(m1)
+    for k in range(n):
+        obx, oby = outer[(k + 1) % n, 0], outer[(k + 1) % n, 1]
+        oax, oay = outer[k, 0], outer[k, 1]
+        new[:] = np.inf
+        arg = back[k]
+        found = False
+        for t in range(m1):
+            if cost[t] < np.inf:
+                found = True
+                break
+        if not found:
+            break
+        last = m if k == n - 1 else m - g * (n - 1 - k)     # room left for the other steps (the last: u = m)
+        for dlt in range(g, G + 1):
+            for t in range(m1):
+                if not cost[t] < np.inf:
+                    continue
+                u = t + dlt
+                if (u != m) if k == n - 1 else (u > last):
+                    continue
+                ax, ay, bx, by = I[t, 0], I[t, 1], I[u, 0], I[u, 1]
+                if not (((_tri2s(ax, ay, bx, by, obx, oby) < 0) and (_tri2s(ax, ay, obx, oby, oax, oay) < 0))
+                        or ((_tri2s(ax, ay, bx, by, oax, oay) < 0) and (_tri2s(bx, by, obx, oby, oax, oay) < 0))):
+                    continue
+                c = cost[t] + (dist[u, (k + 1) % n] if k < n - 1 else 0.0) + (dlt / even - 1.0) ** 2
+                if c < new[u]:
+                    new[u] = c
+                    arg[u] = t
+        cost[:] = new
+    idx = np.zeros(n, dtype=np.int64)
+    if not cost[m] < np.inf:
+        return np.inf, idx
+    u = m
+    for k in range(n - 1, 0, -1):
+        u = back[k, u]
+        idx[k] = u
+    return cost[m], idx
+
+
+@njit(cache=True, inline='always')
+def _tri2s(ax, ay, bx, by, cx, cy):
+    """_tri2 of one triangle, from scalars."""
+    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+
+
 def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, n_starts: int = 16) -> np.ndarray | None:
     """The fat layer's inner ring paired with the skin ring ``outer`` (n, 2, CCW) on the fine inner outline ``fine``
     (m, 2, CCW): indices in order along the outline, each step at least ``floor`` x and at most 6 x the even spacing
@@ -387,38 +447,9 @@ def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, 
     for s0 in np.argsort(d2[:, 0], kind='stable')[:n_starts]:
         off = (s0 + np.arange(m + 1)) % m                           # offsets 0 .. m from the start (m: the start again)
         I, dist = fine[off], d2[off]
-        cost = np.full(m + 1, np.inf)
-        cost[0] = dist[0, 0]
-        back = np.zeros((n, m + 1), dtype=np.int64)
-        for k in range(n):
-            ob, oa = outer[(k + 1) % n], outer[k]
-            new = np.full(m + 1, np.inf)
-            arg = np.zeros(m + 1, dtype=np.int64)
-            t = np.flatnonzero(np.isfinite(cost))
-            if t.size == 0:
-                break
-            for dlt in range(g, G + 1):
-                u = t + dlt
-                ok = (u == m) if k == n - 1 else (u <= m - g * (n - 1 - k))    # room left for the other steps
-                if not ok.any():
-                    continue
-                tt, uu = t[ok], u[ok]
-                ia, ib = I[tt], I[uu]
-                valid = (((_tri2(ia, ib, ob) < 0) & (_tri2(ia, ob, oa) < 0))
-                         | ((_tri2(ia, ib, oa) < 0) & (_tri2(ib, ob, oa) < 0)))
-                tt, uu = tt[valid], uu[valid]
-                c = cost[tt] + (dist[uu, (k + 1) % n] if k < n - 1 else 0.0) + (dlt / even - 1.0) ** 2
-                better = c < new[uu]
-                new[uu[better]] = c[better]
-                arg[uu[better]] = tt[better]
-            cost, back[k] = new, arg
-        if np.isfinite(cost[m]) and cost[m] < best_cost:
-            idx = np.zeros(n, dtype=np.int64)
-            u = m
-            for k in range(n - 1, 0, -1):
-                u = back[k][u]
-                idx[k] = u
-            best_cost, best = cost[m], I[idx]
+        c, idx = _pair_dp(I, dist, outer, g, G, even)
+        if np.isfinite(c) and c < best_cost:
+            best_cost, best = c, I[idx]
     return None if best is None else best.copy()
 
 
