@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from numba import njit
 import yaml
 from scipy import ndimage
 
@@ -277,6 +278,22 @@ def cover_shifts(skins, lab, clearance):
     return np.round(shifts).astype(int)
 
 
+@njit(cache=True)
+def _assign(D, w, lab, a):
+    """One step of partition's dual ascent: pixel p to the muscle m with the least D[m, p] - w[m] (the first on a tie:
+    np.argmin(D - w[:, None], 0)) into lab, the muscles' pixel counts into a (np.bincount(lab, minlength=M))."""
+    M, N = D.shape
+    a[:] = 0
+    for p in range(N):
+        j, v = 0, D[0, p] - w[0]
+        for m in range(1, M):
+            x = D[m, p] - w[m]
+            if x < v:
+                j, v = m, x
+        lab[p] = j
+        a[j] += 1
+
+
 def partition(region, seeds_px, targets, iters=400):
     """Split region pixels among muscles to match target areas: a geodesic power diagram.
 
@@ -298,13 +315,13 @@ def partition(region, seeds_px, targets, iters=400):
         D[m] = np.where(np.isfinite(d), d, 1e6) ** 2
     tgt = targets / targets.sum() * len(idx)
     w = np.zeros(M)
+    lab, a = np.empty(len(idx), dtype=np.int64), np.empty(M, dtype=np.int64)
     best, best_err = None, np.inf
     for it in range(iters):
-        lab = np.argmin(D - w[:, None], 0)
-        a = np.bincount(lab, minlength=M)
+        _assign(D, w, lab, a)
         err = np.abs(a - tgt).sum()
         if err < best_err:
-            best, best_err = lab, err
+            best, best_err = lab.copy(), err
             if err <= max(2.0, 0.01 * len(idx)):
                 break
         w += (2.0 / (1.0 + it / 50.0)) * (tgt - a) / np.pi

@@ -11,6 +11,7 @@ the pose2sim model have only plain PathPoints; wrapping is ignored, see README).
 """
 from __future__ import annotations
 
+import functools
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -159,6 +160,12 @@ def transform_axis(joint, name, coordinate):
     return axis / np.linalg.norm(axis)
 
 
+@functools.lru_cache(maxsize=4)
+def _parsed(path: str):
+    """The .osim file's XML tree, parsed once per process (load only reads it; the generator poses the model ~70 times)."""
+    return ET.parse(path).getroot()
+
+
 def load(path, coords=None):
     """Parse the .osim file. coords: coordinate values in rad/m (default: all 0, full extension).
 
@@ -166,7 +173,7 @@ def load(path, coords=None):
     'mass', 'com', 'inertia'}}, 'joints' {name: element info}, 'muscles' {name: {...}}.
     """
     coords = dict(coords or {})
-    root = ET.parse(path).getroot()
+    root = _parsed(str(path))
     model = root.find('Model')
     bodies = {}
     for b in model.find('BodySet/objects'):
