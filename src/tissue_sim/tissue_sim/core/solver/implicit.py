@@ -429,7 +429,7 @@ def _bdf2_span(h, hs, fresh, uniform, xf, vf, xpf, vpf, xhf, vhf, yf, ycf, ygf):
 @njit(cache=True)
 def bdf2_history(h, xn, vn, x_old, v_old, history_h, moved, n_moved):
     """After a BDF2 sub-step from (x_old, v_old) to (xn, vn): the next one's history is (x_old, v_old) itself (the
-    step rotates its buffers, step._advance: nothing is copied), except for the vertices a stage after the solve
+    step rotates its buffers, step.advance: nothing is copied), except for the vertices a stage after the solve
     moved or whose velocity it changed (the fold and bone contact, stage 4: their indices are moved[:n_moved[0]],
     contact.mark): their past is taken at constant velocity, x_prev = xn - h vn, v_prev = vn, written into x_old,
     v_old (a projection is not motion: carried in the history, BDF2's extrapolation would turn the jump into

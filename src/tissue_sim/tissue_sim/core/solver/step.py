@@ -28,7 +28,7 @@ def _drop_stale_advance_cache() -> None:
     try:
         newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py',
                                                                  'muscle.py', 'implicit.py', 'volume.py'))
-        cached = list((here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'))     # advance and _advance
+        cached = list((here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'))
         if user:
             cached += Path(user).glob(f'{here.parent.name}_*/step.*advance-*.nb[ic]')
         for f in cached:
@@ -85,47 +85,9 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
     tuple of arrays in its C fast path, a named tuple through Python: ~7 us more per call) and are named here;
     contact = (the model's contact.ContactGrids, the Workspace's contact.ContactWork); imp = implicit.Implicit (the
     implicit integrator's factor and buffers; on = False for the others)."""
-    return _advance(n_steps, n_sub, h, acts, lock, target, Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue),
-                    SK.Skeleton(*sk), Numbers(*num), Scratch(CK.CellWork(*scratch[0]), *scratch[1:]),
-                    CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1]), IM.Implicit(*imp), info)
-
-
-@njit(inline='always')
-def muscle_tension(q, a_st, mvel, tissue, num, scratch):
-    """Stage 1 before the cell pass: the active force-length's fibre lengths of the source-model paths at the joint
-    coordinates q, the passive fibre force as joint torques (scratch.tau_pe), and each muscle's active tension factor
-    (activation x force-velocity x force-length) into scratch.act_t."""
-    if num.fl_on or num.pe_on:
-        MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
-                         tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
-                         scratch.path_dlen, scratch.part_l, scratch.fibre)
-        if num.pe_on:
-            MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
-                               scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
-                               scratch.tau_pe, scratch.passive)
-    MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
-                             num.fl_gamma, scratch.act_t)
-
-
-@njit(inline='always')
-def after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, velocity):
-    """Stage 1 after the cell pass at x: the muscle cells' enclosed-volume forces, the partly bound end rings' shift,
-    and (velocity) the muscles' length and velocity from the cell pass's axial lengths."""
-    if tissue.enc_size.shape[0] > 0:
-        VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
-                          tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
-                          scratch.enc_energy)
-    if tissue.end_cell.shape[0] > 0:
-        CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
-                          tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
-                          tissue.end_bound_off, tissue.end_bound, lam, scratch.act_t)
-    if velocity and num.fv_on:
-        CK.muscle_velocity(scratch.cell_work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
-                           num.fv_alpha, scratch.muscle_sums)
-
-
-@njit(cache=True)
-def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, cgrid, cwork, imp, info):
+    st, cells, tissue, sk, num = Arrays(*st), CK.CellLayout(*cells), Tissue(*tissue), SK.Skeleton(*sk), Numbers(*num)
+    scratch, imp = Scratch(CK.CellWork(*scratch[0]), *scratch[1:]), IM.Implicit(*imp)
+    cgrid, cwork = CT.ContactGrids(*contact[0]), CT.ContactWork(*contact[1])
     x, v, xb, vb, f, q, qd, lam, mlen, mvel = st.x, st.v, st.xb, st.vb, st.f, st.q, st.qd, st.lam, st.muscle_length, st.muscle_velocity
     xp, vp = st.x_prev, st.v_prev  # (BDF2's history: a third buffer, rotated with the other two)
     a_st = st.activation          # the activation state (the commands are its excitations when tau_act > 0)
@@ -238,6 +200,40 @@ def _advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, 
     return swaps
 
 
+@njit(inline='always')
+def muscle_tension(q, a_st, mvel, tissue, num, scratch):
+    """Stage 1 before the cell pass: the active force-length's fibre lengths of the source-model paths at the joint
+    coordinates q, the passive fibre force as joint torques (scratch.tau_pe), and each muscle's active tension factor
+    (activation x force-velocity x force-length) into scratch.act_t."""
+    if num.fl_on or num.pe_on:
+        MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
+                         tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
+                         scratch.path_dlen, scratch.part_l, scratch.fibre)
+        if num.pe_on:
+            MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
+                               scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
+                               scratch.tau_pe, scratch.passive)
+    MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
+                             num.fl_gamma, scratch.act_t)
+
+
+@njit(inline='always')
+def after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, velocity):
+    """Stage 1 after the cell pass at x: the muscle cells' enclosed-volume forces, the partly bound end rings' shift,
+    and (velocity) the muscles' length and velocity from the cell pass's axial lengths."""
+    if tissue.enc_size.shape[0] > 0:
+        VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
+                          tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
+                          scratch.enc_energy)
+    if tissue.end_cell.shape[0] > 0:
+        CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
+                          tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
+                          tissue.end_bound_off, tissue.end_bound, lam, scratch.act_t)
+    if velocity and num.fv_on:
+        CK.muscle_velocity(scratch.cell_work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
+                           num.fv_alpha, scratch.muscle_sums)
+
+
 _PARALLEL = []
 
 
@@ -252,7 +248,6 @@ def parallel_advance():
         g = dict(globals())
         g['_cell_pass'] = CK.lane_forces_par
         g['_im_bdf2_start'], g['_im_integrate'], g['_im_correct'], g['_im_sheath_correct'] = IM.parallel_kernels()
-        g['_advance'] = IM.recompiled(_advance, g, '_advance_parallel')
         _PARALLEL.append(IM.recompiled(advance, g, 'advance_parallel', nogil=True))
     return _PARALLEL[0]
 
@@ -373,7 +368,7 @@ def _run(sim: SimModel, state: State, acts: np.ndarray, dt: float, n_steps: int 
     if info[2] == CAUSE_LOCK_TARGET:
         raise ValueError(f'joint_target must be finite where joint_lock is set; joint {int(info[1])} '
                          f'({sim.tissue.joint_names[int(info[1])]!r}) has {target[int(info[1])]}')
-    if p.integrator == 'implicit' and p.implicit_scheme == 'bdf2':     # (the buffers rotate: _advance)
+    if p.integrator == 'implicit' and p.implicit_scheme == 'bdf2':     # (the buffers rotate: advance)
         for _ in range(swaps % 3):
             state.x, state.x_back, state.x_prev = state.x_back, state.x_prev, state.x
             state.v, state.v_back, state.v_prev = state.v_back, state.v_prev, state.v
