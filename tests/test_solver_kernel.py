@@ -279,7 +279,7 @@ def test_a_stale_advance_cache_is_dropped_in_numba_cache_dir_too(tmp_path, monke
     step = importlib.import_module('tissue_sim.core.solver.step')      # (the package exports the function step)
     folder = tmp_path / 'solver_0123abcd'
     folder.mkdir()
-    stale, fresh = folder / 'step.advance-300.py311.nbi', folder / 'step._advance-120.py311.1.nbc'
+    stale, fresh = folder / 'step.advance-300.py311.nbi', folder / 'step.advance-120.py311.1.nbc'
     other = folder / 'step.set_threads-431.py311.nbi'          # not advance's: kept whatever its age
     for f, t in ((stale, 1.0), (fresh, time.time() + 3600.0), (other, 1.0)):     # older / newer than any source
         f.write_bytes(b'x')

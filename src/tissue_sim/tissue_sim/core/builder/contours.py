@@ -90,9 +90,15 @@ def polygon_perimeter(xy: np.ndarray) -> float:
     return float(gaps(xy).sum())
 
 
+@njit(cache=True, inline='always')
+def _tri2s(ax, ay, bx, by, cx, cy):
+    """Twice the signed area of the triangle (a, b, c) from its coordinates (also on arrays: _tri2)."""
+    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+
+
 def _tri2(a, b, c):
-    """Twice the signed area of triangles (a, b, c) (arrays of xy, broadcast)."""
-    return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+    """Twice the signed area of triangles (a, b, c) (arrays of xy, broadcast): _tri2s on the coordinates."""
+    return _tri2s.py_func(a[..., 0], a[..., 1], b[..., 0], b[..., 1], c[..., 0], c[..., 1])
 
 
 def is_simple(xy: np.ndarray) -> bool:
@@ -418,12 +424,6 @@ def _pair_dp(I, dist, outer, g, G, even):
         u = back[k, u]
         idx[k] = u
     return cost[m], idx
-
-
-@njit(cache=True, inline='always')
-def _tri2s(ax, ay, bx, by, cx, cy):
-    """_tri2 of one triangle, from scalars."""
-    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
 
 
 def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, n_starts: int = 16) -> np.ndarray | None:

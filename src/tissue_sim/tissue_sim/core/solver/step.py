@@ -71,6 +71,40 @@ _im_bdf2_start, _im_integrate, _im_correct, _im_sheath_correct = (
 # BDF2's start and the triangular passes on the threads)
 
 
+@njit(inline='always')
+def muscle_tension(q, a_st, mvel, tissue, num, scratch):
+    """Stage 1 before the cell pass: the active force-length's fibre lengths of the source-model paths at the joint
+    coordinates q, the passive fibre force as joint torques (scratch.tau_pe), and each muscle's active tension factor
+    (activation x force-velocity x force-length) into scratch.act_t."""
+    if num.fl_on or num.pe_on:
+        MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
+                         tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
+                         scratch.path_dlen, scratch.part_l, scratch.fibre)
+        if num.pe_on:
+            MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
+                               scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
+                               scratch.tau_pe, scratch.passive)
+    MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
+                             num.fl_gamma, scratch.act_t)
+
+
+@njit(inline='always')
+def after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, velocity):
+    """Stage 1 after the cell pass at x: the muscle cells' enclosed-volume forces, the partly bound end rings' shift,
+    and (velocity) the muscles' length and velocity from the cell pass's axial lengths."""
+    if tissue.enc_size.shape[0] > 0:
+        VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
+                          tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
+                          scratch.enc_energy)
+    if tissue.end_cell.shape[0] > 0:
+        CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
+                          tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
+                          tissue.end_bound_off, tissue.end_bound, lam, scratch.act_t)
+    if velocity and num.fv_on:
+        CK.muscle_velocity(scratch.cell_work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
+                           num.fv_alpha, scratch.muscle_sums)
+
+
 @njit(cache=True, nogil=True)     # nogil: the simulator node steps in a thread of its own (core/realtime.py)
 def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, scratch, contact, imp, info):
     """n_steps steps of n_sub sub-steps of length h under activations acts (n_steps, M) or (1, M) (the
@@ -198,40 +232,6 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
     if tissue.enc_size.shape[0] > 0:        # (the enclosed-volume energy of the last force evaluation)
         st.cell_energy[:] += scratch.enc_energy
     return swaps
-
-
-@njit(inline='always')
-def muscle_tension(q, a_st, mvel, tissue, num, scratch):
-    """Stage 1 before the cell pass: the active force-length's fibre lengths of the source-model paths at the joint
-    coordinates q, the passive fibre force as joint torques (scratch.tau_pe), and each muscle's active tension factor
-    (activation x force-velocity x force-length) into scratch.act_t."""
-    if num.fl_on or num.pe_on:
-        MU.fibre_lengths(q, tissue.path_muscle, tissue.path_data, tissue.path_powers, tissue.path_coef,
-                         tissue.path_shift, tissue.l_rest, scratch.path_mono, scratch.path_dmono, scratch.path_len,
-                         scratch.path_dlen, scratch.part_l, scratch.fibre)
-        if num.pe_on:
-            MU.passive_torques(tissue.path_muscle, tissue.path_data, scratch.path_len, scratch.path_dlen,
-                               scratch.part_l, tissue.path_shift, tissue.fmax, num.pe_k, num.pe_eps0, num.pe_curve,
-                               scratch.tau_pe, scratch.passive)
-    MU.tension_activation_of(a_st, mvel, tissue.inv_vl0, num.fv_on, num.fv_max, scratch.fibre, num.fl_on,
-                             num.fl_gamma, scratch.act_t)
-
-
-@njit(inline='always')
-def after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, velocity):
-    """Stage 1 after the cell pass at x: the muscle cells' enclosed-volume forces, the partly bound end rings' shift,
-    and (velocity) the muscles' length and velocity from the cell pass's axial lengths."""
-    if tissue.enc_size.shape[0] > 0:
-        VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
-                          tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
-                          scratch.enc_energy)
-    if tissue.end_cell.shape[0] > 0:
-        CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
-                          tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
-                          tissue.end_bound_off, tissue.end_bound, lam, scratch.act_t)
-    if velocity and num.fv_on:
-        CK.muscle_velocity(scratch.cell_work.ll, tissue.mlanes, tissue.mcell_muscle, tissue.mcell_weight, mlen, mvel, h,
-                           num.fv_alpha, scratch.muscle_sums)
 
 
 _PARALLEL = []
