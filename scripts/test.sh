@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # `make test`: the whole suite in two phases, so that it uses both cores of a 2-core machine.
 #   1. every test not marked `ros` on TISSUE_SIM_TEST_WORKERS pytest-xdist workers (default 2), one file per
-#      worker at a time (--dist loadfile: a module's fixtures are built once), each worker with a numba cache of
-#      its own but the first, which uses the one beside the sources (tests/conftest.py);
+#      worker at a time (--dist loadfile: a module's fixtures are built once), all with the numba cache beside the
+#      sources (tissue_sim.core.numba_cache makes it safe for processes compiling at once; tests/conftest.py orders
+#      the files so that only one worker compiles the solver's step);
 #   2. the `ros` tests (real nodes over DDS: mostly waiting on discovery and rates) on as many workers, after
 #      phase 1, so that no node shares the cores with a CPU-bound test; first one short headless run compiles
 #      what the simulator node runs into the cache beside the sources, if phase 1 left anything of it out.
@@ -14,7 +15,7 @@ export TISSUE_SIM_REQUIRE_WS=1
 if [ "$workers" = 0 ]; then
   exec python -m pytest "$@"
 fi
-TISSUE_SIM_TEST_OWN_NUMBA_CACHE=1 python -m pytest -m 'not ros' -n "$workers" --dist loadfile "$@"; a=$?
+python -m pytest -m 'not ros' -n "$workers" --dist loadfile "$@"; a=$?
 if [ "$a" -ne 0 ] && [ "$a" -ne 5 ]; then exit "$a"; fi
 warm="$(mktemp -d)"
 tissue-sim simulate --duration 0.01 --activate hamstrings=1 -o "$warm/warm.mcap" > /dev/null; w=$?

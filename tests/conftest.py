@@ -1,21 +1,11 @@
-"""Test set-up: make the source tree's tissue_sim importable (the colcon install symlinks to it); under
-scripts/test.sh's first phase give each pytest-xdist worker a numba cache of its own."""
-import os
+"""Test set-up: make the source tree's tissue_sim importable (the colcon install symlinks to it); order the files so
+that pytest-xdist's two workers do not both compile the solver's step at the start."""
 import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-
-# Under scripts/test.sh's first phase (TISSUE_SIM_TEST_OWN_NUMBA_CACHE=1) each pytest-xdist worker but the first (and
-# every process it starts) compiles into and loads from a numba cache of its own, .cache/numba/<worker>; the first
-# uses the cache beside the sources, as a serial run does, and leaves it warm for the nodes of the second phase. No
-# worker then writes a function's cache while another one writes it too (numba's index of a function's cache is not
-# made for that: entries get lost). Set before anything imports numba, which reads NUMBA_CACHE_DIR once.
-_WORKER = os.environ.get('PYTEST_XDIST_WORKER', 'gw0')
-if os.environ.get('TISSUE_SIM_TEST_OWN_NUMBA_CACHE') == '1' and _WORKER != 'gw0' and 'numba' not in sys.modules:
-    os.environ['NUMBA_CACHE_DIR'] = str(ROOT / '.cache' / 'numba' / _WORKER)
 SRC = ROOT / 'src' / 'tissue_sim'
 if str(SRC) not in sys.path:
     sys.path.insert(0, str(SRC))
@@ -29,3 +19,16 @@ def default_tm():
         return builder.default_model()
     except FileNotFoundError as e:
         pytest.skip(f'bundled anatomy not available: {e}')
+
+
+# Every process compiles into and loads from the numba cache beside the sources; tissue_sim.core.numba_cache makes
+# that safe for processes that compile at the same time. Under `make test` (scripts/test.sh: --dist loadfile) the first
+# file goes to one worker and the second to the other: the first compiles the step (about 80 s on a cold cache) while
+# the second, the anatomy regenerated from its sources (about 110 s), needs no solver, so the other worker loads the
+# step from the cache instead of compiling it too. Otherwise the files keep pytest's order.
+FIRST_FILES = ('test_solver.py', 'test_anatomy.py')
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: k for k, name in enumerate(FIRST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))     # stable: the rest keep their order

@@ -272,7 +272,7 @@ def test_bit_identical_across_processes(preset):
 
 def test_a_stale_advance_cache_is_dropped_in_numba_cache_dir_too(tmp_path, monkeypatch):
     """advance()'s cached code embeds the kernels of cells.py and the others, which numba does not check: step.py
-    deletes it when one of them is newer, beside the sources and in NUMBA_CACHE_DIR (make test's second worker)."""
+    deletes it when one of them is newer, beside the sources and in NUMBA_CACHE_DIR."""
     import importlib
     import os
     import time

@@ -31,8 +31,11 @@ import struct
 import numpy as np
 from numba import njit
 
+from tissue_sim.core import numba_cache
 from tissue_sim.core.cdr import CdrWriter
 from tissue_sim.core.model import TISSUE_MUSCLE
+
+numba_cache.install()     # before gather_corners is compiled or loaded
 
 TRIANGLE_LIST = 11
 ADD = 0

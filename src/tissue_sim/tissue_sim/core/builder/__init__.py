@@ -16,6 +16,10 @@ import os
 import tempfile
 from pathlib import Path
 
+from tissue_sim.core import numba_cache
+
+numba_cache.install()     # before any kernel of the package is compiled or loaded
+
 from .assemble import DEFAULTS, build, settings_with_defaults
 from .io import LabelVolume, load_labels
 from .quality import PAPER_TABLE1, TABLE1_LABELS, table1

@@ -9,6 +9,10 @@ MuJoCo/Newton-style API (docs/ARCHITECTURE.md, docs/solver.md)::
     reference_step(sim, state, activation)              # the same step in plain numpy (the readable definition)
     for t, s in simulate(sim, 3.0, {'hamstrings': [(0, 1)]}, every=10): ...
 """
+from tissue_sim.core import numba_cache
+
+numba_cache.install()     # before any kernel of the package is compiled or loaded
+
 from tissue_sim.core.solver.model import (Control, DivergenceError, SimModel, State, compile_model,
                                           make_control, make_state, muscle_indices, reset,
                                           set_joint_positions)
