@@ -106,7 +106,7 @@ SIM_P=(-p "params:=$PARAMS" -p "marker_rate:=$MARKER_HZ")
   "${SIM_P[@]}" -p start_paused:=true >"$RUN/logs/simulator.log" 2>&1 &
 SIM=$!; PIDS+=("$SIM")
 
-echo "demo: loading the model (a first run builds the bundled anatomy and compiles the solver: can take a minute)"
+echo "demo: loading the model (a first run builds the bundled anatomy and compiles the solver: about 1.5 minutes on 2 cores)"
 for _ in $(seq $((TIMEOUT * 5))); do
   grep -q 'simulator ready' "$RUN/logs/simulator.log" && break
   if ! kill -0 "$SIM" 2>/dev/null; then
