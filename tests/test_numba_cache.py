@@ -20,7 +20,7 @@ KERNEL = textwrap.dedent('''
         return x + x
 ''')
 
-# One process: (optionally) the lock, numba's index write slowed by 1 s (its read comes before, in the same save),
+# One process: (optionally) the lock, numba's index write slowed by 2 s (its read comes before, in the same save),
 # start at a given time, compile twice() for one argument type, save it.
 COMPILE = textwrap.dedent('''
     import sys, time
@@ -31,7 +31,7 @@ COMPILE = textwrap.dedent('''
         assert numba_cache.install()
     save_index = caching.IndexDataCacheFile._save_index
     def slow(self, overloads):
-        time.sleep(1.0)
+        time.sleep(2.0)
         save_index(self, overloads)
     caching.IndexDataCacheFile._save_index = slow
     import kernel
@@ -59,7 +59,7 @@ def _race(tmp_path, lock: bool):
     (folder / 'cache').mkdir(parents=True)
     (folder / 'kernel.py').write_text(KERNEL)
     env = dict(os.environ, NUMBA_CACHE_DIR=str(folder / 'cache'))
-    start = str(time.time() + 4.0)     # after both have imported numba
+    start = str(time.time() + 3.0)     # after both have imported numba (~1 s)
     procs = [subprocess.Popen([sys.executable, '-c', COMPILE, str(folder), str(SRC), 'lock' if lock else 'none', kind,
                                start], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for kind in ('int', 'float')]
