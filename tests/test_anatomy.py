@@ -397,3 +397,4 @@ def test_regenerates(tmp_path, data):
                            for k, v in labels.items()}
     assert ends(t_new) == ends(data['labels'])
     assert {k: v.get('via_points') for k, v in t_new.items()} == {k: v.get('via_points') for k, v in data['labels'].items()}
+    assert {k: v.get('wrap_surfaces') for k, v in t_new.items()} == {k: v.get('wrap_surfaces') for k, v in data['labels'].items()}

@@ -134,11 +134,33 @@ def muscle_table(model):
         vias = [(b, os_to_model(pt)) for p in parts for b, pt in zip(model['muscles'][p]['bodies'][1:-1],
                                                                     np.asarray(model['muscles'][p]['points'])[1:-1])
                 if b in BODY_SEGMENT]
+        # the wrap cylinders any part's path goes over (in path order, once each) on a body of the limb's segments
+        wraps = list(dict.fromkeys(w for p in parts for w in model['muscles'][p]['wraps']
+                                   if w in model['wrap_objects'] and model['wrap_objects'][w]['body'] in BODY_SEGMENT))
         table.append({'name': name, 'parts': parts, 'group': group, 'belly': belly,
                       'origin_body': first[0], 'insertion_body': first[-1],
                       'max_isometric_force': F, 'volume': V,
-                      'optimal_fibre_length': V * MU.SPECIFIC_TENSION / F, 'paths': paths, 'vias': vias})
+                      'optimal_fibre_length': V * MU.SPECIFIC_TENSION / F, 'paths': paths, 'vias': vias,
+                      'wraps': [(w, model['wrap_objects'][w]) for w in wraps]})
     return table
+
+
+def wrap_surface(name, w):
+    """tissues.yaml wrap_surfaces entry of osim.load's wrap cylinder w (rest pose, model frame): its centre, unit axis
+    (the cylinder frame's local z), radius, length and quadrant (the local axis OpenSim's quadrant string names, '-'
+    negated; null for 'all')."""
+    T = w['T']
+    q = w['quadrant'].strip().lower()
+    quad = None
+    if q != 'all':
+        quad = (-1.0 if q.startswith('-') else 1.0) * T[:3, 'xyz'.index(q.lstrip('+-'))]
+
+    def unit(v):
+        return [round(float(x), 6) + 0.0 for x in os_to_model(v / np.linalg.norm(v))]   # + 0.0: no -0.0
+    return {'name': name, 'segment': BODY_SEGMENT[w['body']], 'body': w['body'],
+            'centre_m': [round(float(x), 5) + 0.0 for x in os_to_model(T[:3, 3])], 'axis': unit(T[:3, 2]),
+            'radius_m': round(float(w['radius']), 5), 'length_m': round(float(w['length']), 5),
+            'quadrant': None if quad is None else unit(quad)}
 
 
 def slice_targets(table, s_mm, dz, knee_z, ankle_z):
@@ -681,6 +703,8 @@ def write_outputs(out_dir, lab, affine, table, area, model, bones, fat_t, knee_m
         if t['vias']:   # the source model's intermediate path points at rest (builder setting via_points)
             labels[lbl]['via_points'] = [{'segment': BODY_SEGMENT[b], 'body': b, 'at_m': [round(float(x), 5) for x in p]}
                                          for b, p in t['vias']]
+        if t['wraps']:  # the source model's wrap cylinders its parts' paths go over, at rest (contact surfaces)
+            labels[lbl]['wrap_surfaces'] = [wrap_surface(n, w) for n, w in t['wraps']]
         if m in tendon_slices:  # output slices run upwards: original slice k is K - 1 - k
             ks = [lab.shape[2] - 1 - k for k in tendon_slices[m]]
             labels[lbl]['tendon'] = {

@@ -6,8 +6,9 @@ PinJoint; WeldJoint) and composing parent/child offset frames.  Gives each body'
 into the *femur_r frame* (origin = right hip joint centre; x anterior, y up, z right; metres),
 the muscles' path points in that frame, and their DeGroote-Fregly parameters.
 
-Wrap objects, conditional and moving path points are not evaluated (the right-leg muscles of
-the pose2sim model have only plain PathPoints; wrapping is ignored, see README).
+Conditional and moving path points are not evaluated (the right-leg muscles of the pose2sim model
+have only plain PathPoints) and neither is wrapping (see README); the wrap cylinders are read (pose,
+size and quadrant, load()['wrap_objects']), the muscles' paths do not go round them here.
 """
 from __future__ import annotations
 
@@ -170,7 +171,9 @@ def load(path, coords=None):
     """Parse the .osim file. coords: coordinate values in rad/m (default: all 0, full extension).
 
     Returns dict with 'bodies' {name: {'T': 4x4 in femur_r frame, 'meshes': [(file, scale)],
-    'mass', 'com', 'inertia'}}, 'joints' {name: element info}, 'muscles' {name: {...}}.
+    'mass', 'com', 'inertia'}}, 'joints' {name: element info}, 'muscles' {name: {...}},
+    'wrap_objects' {name: {'body', 'T': 4x4 of the cylinder's frame in the femur_r frame (its axis: local z),
+    'radius', 'length', 'quadrant': OpenSim's string, 'all', 'x', '-y', ...}} (every WrapCylinder).
     """
     coords = dict(coords or {})
     root = _parsed(str(path))
@@ -212,6 +215,17 @@ def load(path, coords=None):
         if name in rel:
             bodies[name]['T'] = ref @ ground_T(name)
 
+    wrap_objects = {}
+    for b in model.find('BodySet/objects'):
+        for w in b.findall('WrapObjectSet/objects/*'):
+            if w.tag != 'WrapCylinder':       # WrapEllipsoid (the torso's): no muscle of the leg wraps over one
+                continue
+            wrap_objects[w.get('name')] = {
+                'body': b.get('name'),
+                'T': bodies[b.get('name')]['T'] @ _frame(_vec(w, 'translation'), _vec(w, 'xyz_body_rotation')),
+                'radius': float(w.find('radius').text), 'length': float(w.find('length').text),
+                'quadrant': (w.find('quadrant').text or 'all').strip() if w.find('quadrant') is not None else 'all'}
+
     muscles = {}
     for m in model.find('ForceSet/objects'):
         name = m.get('name')
@@ -237,4 +251,4 @@ def load(path, coords=None):
             'pennation_angle': float(m.find('pennation_angle_at_optimal').text),
             'wraps': wraps,
         }
-    return {'bodies': bodies, 'joints': joints, 'muscles': muscles, 'path': str(path)}
+    return {'bodies': bodies, 'joints': joints, 'muscles': muscles, 'wrap_objects': wrap_objects, 'path': str(path)}

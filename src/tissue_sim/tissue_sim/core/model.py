@@ -241,6 +241,16 @@ class TissueModel(TissueTopology):
     via_point_vertices: np.ndarray = None   # (N,) int32
     via_point_segment: np.ndarray = None    # (R,) int32
     via_point_muscle: np.ndarray = None     # (R,) int32
+    # wrap surfaces (the source model's wrap cylinders; docs/contact.md "Wrap surfaces"): surface w is a cylinder fixed in
+    # segment wrap_segment[w]'s frame (its rest frame is the model frame at rest); wrap_geometry[w] = centre (3) [m], unit
+    # axis (3), unit quadrant direction (3; zeros: every side), radius [m], length [m]; it keeps out the free vertices of
+    # the cells of muscles wrap_muscles[wrap_muscle_offsets[w]:wrap_muscle_offsets[w + 1]]; wrap_names[w] its name.
+    # None / absent from a file: none (W = 0)
+    wrap_names: tuple = None              # (W,) str
+    wrap_segment: np.ndarray = None       # (W,) int32
+    wrap_geometry: np.ndarray = None      # (W, 11) float64
+    wrap_muscle_offsets: np.ndarray = None   # (W+1,) int64
+    wrap_muscles: np.ndarray = None       # (N,) int32
 
     def __post_init__(self):
         J = len(self.joint_names)
@@ -257,6 +267,10 @@ class TissueModel(TissueTopology):
                               ('via_point_vertices', lambda: np.zeros(0, np.int32)),
                               ('via_point_segment', lambda: np.zeros(0, np.int32)),
                               ('via_point_muscle', lambda: np.zeros(0, np.int32)),
+                              ('wrap_names', lambda: ()), ('wrap_segment', lambda: np.zeros(0, np.int32)),
+                              ('wrap_geometry', lambda: np.zeros((0, 11))),
+                              ('wrap_muscle_offsets', lambda: np.zeros(1, np.int64)),
+                              ('wrap_muscles', lambda: np.zeros(0, np.int32)),
                               ('path_coef', lambda: np.zeros((len(self.path_muscle) if self.path_muscle is not None
                                                               else 0, 0)))):
             if getattr(self, name) is None:
@@ -316,6 +330,22 @@ class TissueModel(TissueTopology):
         need(np.all((self.via_point_segment >= 0) & (self.via_point_segment < S))
              and np.all((self.via_point_muscle >= 0) & (self.via_point_muscle < M)),
              'via_point_segment or via_point_muscle out of range')
+        W = len(self.wrap_names)
+        wg, wo, wm = self.wrap_geometry, self.wrap_muscle_offsets, self.wrap_muscles
+        need(self.wrap_segment.shape == (W,) and wg.shape == (W, 11) and wo.shape == (W + 1,) and wm.ndim == 1
+             and wo[0] == 0 and wo[-1] == wm.shape[0] and np.all(np.diff(wo) >= 0),
+             'wrap arrays inconsistent (wrap_segment (W,), wrap_geometry (W, 11), wrap_muscle_offsets (W+1,) into '
+             'wrap_muscles, one row per wrap_names)')
+        need(np.all((self.wrap_segment >= 0) & (self.wrap_segment < S)) and np.all((wm >= 0) & (wm < M)),
+             'wrap_segment or wrap_muscles out of range')
+        need(len(set(self.wrap_names)) == W, 'wrap names must be unique')
+        need(np.all(np.isfinite(wg)), 'wrap_geometry has non-finite values')
+        if W:
+            quad = np.linalg.norm(wg[:, 6:9], axis=1)
+            need(np.allclose(np.linalg.norm(wg[:, 3:6], axis=1), 1.0, atol=1e-6)
+                 and np.all(np.isclose(quad, 1.0, atol=1e-6) | (quad == 0.0)),
+                 'wrap_geometry axes must be unit vectors, quadrant directions unit or zero')
+            need(np.all(wg[:, 9:11] > 0), 'wrap_geometry radius and length must be > 0')
         need(self.skin_quads.ndim == 2 and self.skin_quads.shape[1] == 4 and self.skin_quad_cell.shape == (self.skin_quads.shape[0],),
              'skin_quads must be (Q, 4) with skin_quad_cell (Q,)')
         need(self.surface_triangles.ndim == 2 and self.surface_triangles.shape[1] == 3, 'surface_triangles must be (T, 3)')
@@ -462,12 +492,14 @@ class TissueModel(TissueTopology):
                         'bone_segment', 'bone_vertex_offsets', 'bone_triangle_offsets', 'bone_triangles',
                         'segment_parent', 'joint_type', 'joint_parent', 'joint_child', 'joint_driver',
                         'coupling_offsets', 'path_muscle', 'path_powers', 'joint_path_offsets',
-                        'via_point_offsets', 'via_point_vertices', 'via_point_segment', 'via_point_muscle'}
+                        'via_point_offsets', 'via_point_vertices', 'via_point_segment', 'via_point_muscle',
+                        'wrap_segment', 'wrap_muscle_offsets', 'wrap_muscles'}
         optional = {'joint_driver', 'coupling_offsets', 'coupling_table',      # a model without coupled joints
                     'joint_path_offsets', 'joint_path_table', 'joint_path_axes',  # no hinge with a path
                     'muscle_rest_fibre_length',                             # a file written before the field: 1.0
                     'path_muscle', 'path_data', 'path_powers', 'path_coef',  # no muscle paths
-                    'via_point_offsets', 'via_point_vertices', 'via_point_segment', 'via_point_muscle'}   # none
+                    'via_point_offsets', 'via_point_vertices', 'via_point_segment', 'via_point_muscle',   # none
+                    'wrap_names', 'wrap_segment', 'wrap_geometry', 'wrap_muscle_offsets', 'wrap_muscles'}  # no wrap surfaces
         kw = {}
         for f in dataclasses.fields(cls):
             if f.name in ('name', 'meta'):

@@ -28,7 +28,7 @@ from .table import load_joints, load_tissue_table
 __all__ = ['build_model', 'default_model', 'default_inputs', 'DEFAULTS', 'PAPER_TABLE1', 'TABLE1_LABELS',
            'LabelVolume', 'load_labels', 'load_tissue_table', 'load_joints', 'table1']
 
-BUILDER_VERSION = 19    # bump when the builder's output changes for the same input (invalidates the cache)
+BUILDER_VERSION = 20    # bump when the builder's output changes for the same input (invalidates the cache)
 
 
 def build_model(labels, tissues, progress=None, **settings):

@@ -598,6 +598,34 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
     return out
 
 
+def _wrap_arrays(tab, mlabels, seg_names) -> dict:
+    """The TissueModel's wrap_* fields from the table's wrap_surfaces of the model's muscles (mlabels, in muscle order):
+    one surface per name, in the order they first appear, with the geometry of its first entry; its muscles those that
+    list it. UserError where two entries of one name differ or a segment is not the skeleton's."""
+    surf, users = {}, {}
+    for m, lab in enumerate(mlabels):
+        for e in tab[lab].get('wrap_surfaces', []):
+            if e['segment'] not in seg_names:
+                raise UserError(f'label {lab} ({tab[lab]["name"]}): wrap surface {e["name"]!r}: segment {e["segment"]!r} '
+                                f'is not a segment of the skeleton (has {", ".join(seg_names)})')
+            q = np.zeros(3) if e['quadrant'] is None else e['quadrant']
+            row = np.concatenate([e['centre'], e['axis'], q, [e['radius'], e['length']]])
+            seg = seg_names.index(e['segment'])
+            if e['name'] in surf:
+                if surf[e['name']][0] != seg or np.max(np.abs(surf[e['name']][1] - row)) > 1e-9:
+                    raise UserError(f'label {lab} ({tab[lab]["name"]}): wrap surface {e["name"]!r} differs from the one '
+                                    f'of that name another muscle lists (segment or geometry)')
+            else:
+                surf[e['name']] = (seg, row)
+            if m not in users.setdefault(e['name'], []):
+                users[e['name']].append(m)
+    names = list(surf)
+    return {'wrap_names': tuple(names), 'wrap_segment': np.array([surf[n][0] for n in names], np.int32),
+            'wrap_geometry': np.array([surf[n][1] for n in names], np.float64).reshape(-1, 11),
+            'wrap_muscle_offsets': np.concatenate([[0], np.cumsum([len(users[n]) for n in names])]).astype(np.int64),
+            'wrap_muscles': np.array([m for n in names for m in users[n]], np.int32)}
+
+
 def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=None) -> tuple[M.TissueModel, dict]:
     """Build the TissueModel. ``progress(step_name, fraction)`` is called as the build advances."""
     t0 = time.perf_counter()
@@ -1082,6 +1110,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         n_wrapped = _bind_wrapped(pos, vseg, glides, ctiss, cmus_k, verts_k, offsets_k, bseg, bvo, bverts, bto, btris)
 
     cell_vol = vols[kc]
+    wraps = _wrap_arrays(tab, muscle_labels_used, skel['segment_names'])
     tm = M.TissueModel(
         name=table['name'],
         rest_positions=pos, vertex_segment=vseg, vertex_flags=flags,
@@ -1090,6 +1119,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         via_point_vertices=(np.concatenate([r for _, r, _ in point_rings]) if point_rings else np.zeros(0)).astype(np.int32),
         via_point_segment=np.array([sg for _, _, sg in point_rings], np.int32),
         via_point_muscle=np.array([m for m, _, _ in point_rings], np.int32),
+        **wraps,
         cell_tissue=ctiss, cell_muscle=cell_muscle_all[kc], cell_fibre=fib,
         cell_slice=cell_slice_all[kc], cell_k_scale=k_all[kc],
         skin_quads=quads, skin_quad_cell=qcell,

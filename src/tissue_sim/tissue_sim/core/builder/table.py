@@ -5,7 +5,7 @@
     {'name': str, 'base': Path | None,
      'labels': {label: {'name', 'tissue', 'segment', 'group', 'max_isometric_force',
                         'optimal_fibre_length', 'rest_fibre_length', 'stiffness_scale', 'mesh',
-                        'origin', 'insertion', 'via_points'}},
+                        'origin', 'insertion', 'via_points', 'wrap_surfaces'}},
      'skeleton': {...}}   # from load_joints
 
 All coordinates of the joints file are model frame metres (REP-103), angles in degrees in the file,
@@ -153,6 +153,7 @@ def load_tissue_table(src) -> dict:
                     raise UserError(f'{w} ({name}): via_points[{k}] needs "segment" and "at_m": 3 finite numbers [m], '
                                     f'got {vp!r}')
                 out['via_points'].append((seg, np.array(at)))
+        out['wrap_surfaces'] = _wrap_surfaces(ent.get('wrap_surfaces'), tissue, f'{w} ({name})')
         labels[lab] = out
     kinds = [e['tissue'] for e in labels.values()]
     if 'fat' not in kinds:
@@ -177,6 +178,10 @@ def load_tissue_table(src) -> dict:
             if seg not in segs:
                 raise UserError(f'{where}: label {lab} ({e["name"]}): via point segment {seg!r} is not in the joints file '
                                 f'(has {", ".join(skel["segment_names"])})')
+        for ws in e.get('wrap_surfaces', []):
+            if ws['segment'] not in segs:
+                raise UserError(f'{where}: label {lab} ({e["name"]}): wrap surface {ws["name"]!r} segment {ws["segment"]!r} '
+                                f'is not in the joints file (has {", ".join(skel["segment_names"])})')
         for end in ('origin', 'insertion'):
             if e.get(end) is not None and e[end] not in segs:
                 raise UserError(f'{where}: label {lab} ({e["name"]}): {end} segment {e[end]!r} is not in the joints file '
@@ -190,6 +195,48 @@ def load_tissue_table(src) -> dict:
     paths = load_muscle_paths(mp, skel['joint_names'], {e['name'] for e in labels.values() if e['tissue'] == 'muscle'},
                               f'{where} muscle_paths') if mp is not None else {}
     return {'name': tname, 'base': base, 'source': where, 'labels': labels, 'skeleton': skel, 'muscle_paths': paths}
+
+
+def _wrap_surfaces(wraps, tissue: str, w: str) -> list:
+    """A muscle entry's ``wrap_surfaces`` (the source model's wrap cylinders its path goes over; docs/FORMATS.md): a list
+    of dicts name, segment, centre (3,) [m], axis (3,) unit, radius, length [m], quadrant (3,) unit or None (every
+    side); [] when absent. w: the entry's place for the messages."""
+    if wraps is None:
+        return []
+    if tissue != 'muscle' or not isinstance(wraps, list):
+        raise UserError(f'{w}: wrap_surfaces must be a list of {{name, segment, centre_m, axis, radius_m, length_m, '
+                        f'quadrant}} on a muscle')
+    out = []
+    for k, e in enumerate(wraps):
+        wk = f'{w}: wrap_surfaces[{k}]'
+        if not isinstance(e, dict):
+            raise UserError(f'{wk} must be a mapping with name, segment, centre_m, axis, radius_m, length_m, got {e!r}')
+        for key in ('name', 'segment'):
+            if not isinstance(e.get(key), str) or not e[key].strip():
+                raise UserError(f'{wk} needs "{key}": a non-empty text string, got {e.get(key)!r}')
+
+        def vec(key, nonzero):
+            v = e.get(key)
+            try:
+                v = [float(x) for x in v]
+            except (TypeError, ValueError):
+                v = None
+            if v is None or len(v) != 3 or not all(map(math.isfinite, v)) or (nonzero and np.linalg.norm(v) < 1e-9):
+                raise UserError(f'{wk} ({e["name"]}) needs "{key}": 3 finite numbers{", not all zero" if nonzero else ""}, '
+                                f'got {e.get(key)!r}')
+            v = np.array(v)
+            return v / np.linalg.norm(v) if nonzero else v
+
+        def length(key):
+            v = e.get(key)
+            x = float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else float('nan')
+            if not (math.isfinite(x) and x > 0):
+                raise UserError(f'{wk} ({e["name"]}) needs "{key}": a finite number > 0 [m], got {v!r}')
+            return x
+        out.append({'name': e['name'], 'segment': e['segment'], 'centre': vec('centre_m', False),
+                    'axis': vec('axis', True), 'radius': length('radius_m'), 'length': length('length_m'),
+                    'quadrant': None if e.get('quadrant') is None else vec('quadrant', True)})
+    return out
 
 
 def load_muscle_paths(data, joint_names, muscles, where) -> dict:
