@@ -16,7 +16,9 @@ Stage 4a, before it, ``fold_contact``: the tissue-tissue contact in the fold of 
 ``Params.fold_contact`` (flexion-side tissue kept behind the axis and, with ``fold_plane``, on its side of the plane
 bisecting the two segments) and the sheath of ``Params.sheath_group`` and ``Params.sheath_below`` (a retinaculum
 holding muscles near their rest lines above and below the hinge); docs/contact.md "Tissue-tissue contact in the fold,
-and the sheath".
+and the sheath". Stage 4b, between them, ``wrap_contact``: the source model's wrap cylinders named in
+``Params.wrap_surfaces`` keep the free vertices of the muscles that wrap over them outside (docs/contact.md "Wrap
+surfaces").
 """
 from __future__ import annotations
 
@@ -27,7 +29,8 @@ import numpy as np
 from numba import njit
 
 ContactGrids = collections.namedtuple('ContactGrids', 'g_seg g_origin g_inv_h g_dims g_off g_phi c_dims c_off c_min '
-                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane s_off s_idx s_X s_side s_r')
+                                      'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane s_off s_idx s_X s_side s_r '
+                                      'w_seg w_geo w_off w_idx w_floor')
 """Constants (SimModel.contact, read-only): per grid b (B grids, one per segment with bones) its segment
 g_seg (B,) int32, origin (B, 3) [m], 1/spacing g_inv_h (B,), dims (B, 3) int64, values g_phi[g_off[b]:g_off[b+1]]
 (float32, C order, negative inside); the broad phase's block minima c_min[c_off[b]:...] over blocks of BLOCK^3
@@ -41,7 +44,12 @@ and lowest allowed signed distance to the bisector plane f_floor [m] and to thei
 normal to e f_wfloor [m]; f_plane (1,) bool: the bisector plane on (Params.fold_plane; off: only the flexion side).
 The sheath (``sheath_group`` above, ``sheath_below`` below), per folding hinge k: its vertices s_idx[s_off[k]:s_off[k+1]] (int32) with their rest
 positions s_X (N, 3) [m] and side s_side (+1: held in the parent's frame, above the hinge; -1: the child's, below),
-kept within s_r (1,) [m] of their rest line along n0 in that segment's frame."""
+kept within s_r (1,) [m] of their rest line along n0 in that segment's frame.
+The wrap surfaces (``wrap_contact``, Params.wrap_surfaces, docs/contact.md "Wrap surfaces"), per surface w (W): a
+cylinder fixed in segment w_seg (W,) int32, w_geo (W, 11) = centre (3) [m] and unit axis (3) in that segment's rest
+frame, unit quadrant direction (3; zeros: every side), radius [m], half length [m]; its vertices w_idx[w_off[w]:
+w_off[w+1]] (int32) and their lowest allowed distance from the axis w_floor [m] (the radius, or less where the rest
+shape already lies inside)."""
 ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats xf mask moved n_moved flag')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, 3, F) (rest-frame point where a vertex was last tested, by coordinate) and slack (B,
@@ -486,6 +494,26 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
     return hits
 
 
+@njit(cache=True, inline='always')
+def _move(cw, x, i, d, nx, ny, nz):
+    """A stage's projection: vertex i moves by d along the unit direction n, and is listed as moved (mark)."""
+    x[i, 0] += d * nx
+    x[i, 1] += d * ny
+    x[i, 2] += d * nz
+    mark(cw, i)
+
+
+@njit(cache=True, inline='always')
+def _stop(wr, s, x, v, i, m_h, vn, nx, ny, nz):
+    """Vertex i's velocity relative to a surface of segment s moving inwards along the unit normal n at vn < 0: that
+    part removed (none otherwise), and s takes the reaction (_react, m_h = m / h)."""
+    if vn < 0.0:
+        _react(wr, s, 1.0, x, i, m_h, -vn * nx, -vn * ny, -vn * nz)
+        v[i, 0] -= vn * nx
+        v[i, 1] -= vn * ny
+        v[i, 2] -= vn * nz
+
+
 # ------------------------------------------------------------------------------- the fold (tissue-tissue) stage
 FOLD_MIN_COS = 0.25     # below this cos(theta/2) (knee flexed beyond ~150 deg) a fold vertex is pushed along the plane's normal
 
@@ -683,18 +711,64 @@ def fold_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
                 lim = cg.f_wfloor[ii]
                 if w >= lim:
                     continue
-                x[i, 0] += (lim - w) * ex
-                x[i, 1] += (lim - w) * ey
-                x[i, 2] += (lim - w) * ez
+                _move(cw, x, i, lim - w, ex, ey, ez)
                 hits += 1
-                mark(cw, i)
                 vn = (ex * v[i, 0] + ey * v[i, 1] + ez * v[i, 2] + ((ex - fx) * x[i, 0] + (ey - fy) * x[i, 1]
                                                                     + (ez - fz) * x[i, 2]) * ih + eb)
-                if vn < 0.0:
-                    _react(wr, seg, 1.0, x, i, 1.0 / (inv_den[i] * h), -vn * ex, -vn * ey, -vn * ez)
-                    v[i, 0] -= vn * ex
-                    v[i, 1] -= vn * ey
-                    v[i, 2] -= vn * ez
+                _stop(wr, seg, x, v, i, 1.0 / (inv_den[i] * h), vn, ex, ey, ez)
+    return hits
+
+
+@njit(cache=True, fastmath={'contract'})
+def wrap_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
+    """Stage 4b of the step, the wrap surfaces (docs/contact.md "Wrap surfaces"), in place on (x, v): a vertex i of
+    wrap cylinder w (centre c, unit axis a, radius r, half length l, in segment s's rest frame) whose rest-frame point
+    p = R_s^T (x_i - t_s) lies within the length (|a.(p - c)| <= l), on the quadrant's side (d.q >= 0, q the
+    quadrant direction, zeros: every side) and nearer the axis than its floor (|d| < floor_i, d = p - c - (a.(p - c))
+    a) moves radially onto the floor, R_s d / |d|; its velocity relative to the cylinder (the segment's velocity there,
+    from its pose at the sub-step's start cw.R0 cw.t0 and now) loses its inward radial part (frictionless, as
+    OpenSim's wrapping), and the segment takes the reaction (_react; inv_den the integrator's 1/m). Returns the
+    projections made. reference.wrap_stage is the same stage in numpy."""
+    W = cg.w_seg.shape[0]
+    hits = 0
+    ih = 1.0 / h
+    for w in range(W):
+        s = cg.w_seg[w]
+        g = cg.w_geo[w]
+        cx, cy, cz, ax, ay, az, qx, qy, qz, half = g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[10]
+        r00, r01, r02 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2]
+        r10, r11, r12 = seg_R[s, 1, 0], seg_R[s, 1, 1], seg_R[s, 1, 2]
+        r20, r21, r22 = seg_R[s, 2, 0], seg_R[s, 2, 1], seg_R[s, 2, 2]
+        tx, ty, tz = seg_t[s, 0], seg_t[s, 1], seg_t[s, 2]
+        for ii in range(cg.w_off[w], cg.w_off[w + 1]):
+            i = cg.w_idx[ii]
+            ex, ey, ez = x[i, 0] - tx, x[i, 1] - ty, x[i, 2] - tz
+            px = r00 * ex + r10 * ey + r20 * ez
+            py = r01 * ex + r11 * ey + r21 * ez
+            pz = r02 * ex + r12 * ey + r22 * ez
+            ux, uy, uz = px - cx, py - cy, pz - cz
+            along = ux * ax + uy * ay + uz * az
+            if along > half or along < -half:
+                continue
+            dx, dy, dz = ux - along * ax, uy - along * ay, uz - along * az
+            if dx * qx + dy * qy + dz * qz < 0.0:
+                continue
+            rho = math.sqrt(dx * dx + dy * dy + dz * dz)
+            lim = cg.w_floor[ii]
+            if rho >= lim or not rho > 0.0:
+                continue
+            # the cylinder's velocity at the vertex: (x - (R0 p + t0)) / h
+            bx = (x[i, 0] - (cw.R0[s, 0, 0] * px + cw.R0[s, 0, 1] * py + cw.R0[s, 0, 2] * pz + cw.t0[s, 0])) * ih
+            by = (x[i, 1] - (cw.R0[s, 1, 0] * px + cw.R0[s, 1, 1] * py + cw.R0[s, 1, 2] * pz + cw.t0[s, 1])) * ih
+            bz = (x[i, 2] - (cw.R0[s, 2, 0] * px + cw.R0[s, 2, 1] * py + cw.R0[s, 2, 2] * pz + cw.t0[s, 2])) * ih
+            dx, dy, dz = dx / rho, dy / rho, dz / rho
+            n0 = r00 * dx + r01 * dy + r02 * dz
+            n1 = r10 * dx + r11 * dy + r12 * dz
+            n2 = r20 * dx + r21 * dy + r22 * dz
+            _move(cw, x, i, lim - rho, n0, n1, n2)
+            hits += 1
+            vn = (v[i, 0] - bx) * n0 + (v[i, 1] - by) * n1 + (v[i, 2] - bz) * n2
+            _stop(wr, s, x, v, i, 1.0 / (inv_den[i] * h), vn, n0, n1, n2)
     return hits
 
 
@@ -831,13 +905,57 @@ def build(tm, p, rest: np.ndarray, vertex_segment: np.ndarray) -> ContactGrids:
         for a in fold.values():
             a.flags.writeable = False
         cg = cg._replace(**fold)
+    if p.wrap_surfaces:         # the model's wrap cylinders named (wrap_surfaces)
+        cg = cg._replace(**wrap_vertices(tm, p.wrap_surfaces, rest, vertex_segment))
     return cg
+
+
+def wrap_vertices(tm, names: str, rest: np.ndarray, vertex_segment) -> dict:
+    """The wrap surfaces' constants (w_seg, w_geo, w_off, w_idx, w_floor; ContactGrids) for the model's wrap surfaces
+    named in `names` (comma-separated TissueModel.wrap_names; 'all': every one; a name the model does not have is
+    skipped, as a preset names the bundled limb's): per surface the free vertices of the cells of its muscles
+    (TissueModel.wrap_muscles; a point via ring's vertices excepted, as in the sheath: the via holds the ring), each
+    with its floor: the radius, or its rest distance from the axis where the rest shape already lies inside (within
+    the length, on the quadrant's side)."""
+    want = [n.strip() for n in str(names).split(',') if n.strip()]
+    wn = list(getattr(tm, 'wrap_names', ()) or ())
+    vs = np.asarray(vertex_segment)
+    via = np.asarray(tm.via_point_vertices)
+    segs, geos, off, idx, floors = [], [], [0], [], []
+    for w, name in enumerate(wn):
+        if name not in want and 'all' not in want:
+            continue
+        g = np.asarray(tm.wrap_geometry[w], np.float64)
+        c, a, q, r, half = g[:3], g[3:6], g[6:9], float(g[9]), 0.5 * float(g[10])
+        mus = np.asarray(tm.wrap_muscles)[tm.wrap_muscle_offsets[w]:tm.wrap_muscle_offsets[w + 1]]
+        cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
+        cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[k]:tm.cell_offsets[k + 1]] for k in cells])
+                         if len(cells) else np.zeros(0, np.int64))
+        cand = cand[(vs[cand] < 0) & ~np.isin(cand, via)].astype(np.int32)
+        u = rest[cand] - c
+        along = u @ a
+        d = u - along[:, None] * a
+        rho = np.linalg.norm(d, axis=1)
+        inside = (np.abs(along) <= half) & (d @ q >= 0.0) & (rho < r)
+        segs.append(int(tm.wrap_segment[w]))
+        geos.append(np.concatenate([c, a, q, [r, half]]))
+        idx.append(cand)
+        floors.append(np.where(inside, rho, r))
+        off.append(off[-1] + len(cand))
+    out = dict(w_seg=np.array(segs, np.int32), w_geo=np.array(geos, np.float64).reshape(-1, 11),
+               w_off=np.array(off, np.int64),
+               w_idx=np.concatenate(idx).astype(np.int32) if idx else np.zeros(0, np.int32),
+               w_floor=np.concatenate(floors) if floors else np.zeros(0))
+    for a_ in out.values():
+        a_.flags.writeable = False
+    return out
 
 
 NO_FOLD = dict(f_seg=np.zeros((0, 2), np.int32), f_geo=np.zeros((0, 9)), f_off=np.zeros(1, np.int64),
                f_idx=np.zeros(0, np.int32), f_side=np.zeros(0), f_floor=np.zeros(0), f_wfloor=np.zeros(0),
                f_plane=np.zeros(1, np.bool_), s_off=np.zeros(1, np.int64), s_idx=np.zeros(0, np.int32),
-               s_X=np.zeros((0, 3)), s_side=np.zeros(0), s_r=np.zeros(1))
+               s_X=np.zeros((0, 3)), s_side=np.zeros(0), s_r=np.zeros(1), w_seg=np.zeros(0, np.int32),
+               w_geo=np.zeros((0, 11)), w_off=np.zeros(1, np.int64), w_idx=np.zeros(0, np.int32), w_floor=np.zeros(0))
 
 
 def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: float, rest: np.ndarray,

@@ -169,6 +169,9 @@ class Params:
                                           # segment's frame ('' none)
     sheath_shared: bool = True            # the sheath holds the vertices the named muscles share with other muscles' cells too
                                           # (False: only their own and those shared with fat, docs/contact.md "The sheath")
+    wrap_surfaces: str = ''               # the model's wrap surfaces (the source model's wrap cylinders, TissueModel.wrap_names;
+                                          # comma-separated, 'all' every one, '' none: the paper) that keep the free vertices
+                                          # of the muscles wrapping over them outside (docs/contact.md "Wrap surfaces")
     # --- numerics / safety -----------------------------------------------------------------
     rotation_iterations: int = 1          # max iterations of the warm-started rotation extraction per cell and step (Newton: 1 tracks the rotation to ~(change per step)^2)
     max_speed: float = 200.0              # [m/s] a vertex faster than this is reported as divergence (energy blow-up)
@@ -195,7 +198,7 @@ class Params:
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
-                    sheath_below='sartorius,gracilis,semitendinosus', sheath_radius=1e-3,
+                    sheath_below='sartorius,gracilis,semitendinosus', sheath_radius=1e-3, wrap_surfaces='KnExt_at_fem_r',
                     active_length='path', length_measure='centre_line', volume_measure='enclosed',
                     end_ring_pull='bound', joint_paths=True)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge

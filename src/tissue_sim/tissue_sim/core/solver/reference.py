@@ -262,10 +262,11 @@ def reference_step(sim: SimModel, state: State, activation, dt: float | None = N
             via_stage(sim, hs, state.x, state.v, state.seg_R, state.seg_t, inv_den)
         # 4. fold contact (Params.fold_contact), then bone contact: free vertices closer to a bone than their floor are
         # projected out (Params.bone_contact); the segments take the reaction of each velocity change, for the next sub-step
-        if sim.contact.g_seg.size or sim.contact.f_seg.size:
+        if sim.contact.g_seg.size or sim.contact.f_seg.size or sim.contact.w_seg.size:
             before = state.x.copy(), state.v.copy()
             m = np.divide(1.0, inv_den, out=np.zeros_like(inv_den), where=inv_den > 0)
             fold_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h, m, state.contact_wrench)
+            wrap_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h, m, state.contact_wrench)
             contact_stage(sim.contact, state.x, state.v, state.seg_R, state.seg_t, R0, t0, h, m, state.contact_wrench)
             if implicit and p.implicit_scheme == 'bdf2':     # a projection is not motion: BDF2 restarts there
                 jump = np.any((state.x != before[0]) | (state.v != before[1]), axis=1)
@@ -402,6 +403,32 @@ def contact_stage(cg, x, v, seg_R, seg_t, R0, t0, h, m=None, wr=None):
         if wr is not None:
             react(wr, s, 1.0, x[i], m[i], v_new - v[i], h)
         v[i] = v_new
+
+
+def wrap_stage(cg, x, v, seg_R, seg_t, R0, t0, h, m=None, wr=None):
+    """Stage 4b, the wrap surfaces (docs/contact.md "Wrap surfaces"), in place: cylinder by cylinder (cg.w_*; none:
+    nothing), each of its vertices within its length, on its quadrant's side and nearer its axis than its floor moves
+    radially onto the floor; its velocity relative to the cylinder (the segment's velocity there, from its pose R0 t0 at
+    the sub-step's start) loses its inward radial part; the segment takes the reaction (react, masses m, into wr).
+    contact.wrap_contact is the same stage compiled."""
+    for w, s in enumerate(cg.w_seg):
+        c, a, q, half = cg.w_geo[w, :3], cg.w_geo[w, 3:6], cg.w_geo[w, 6:9], cg.w_geo[w, 10]
+        i = cg.w_idx[cg.w_off[w]:cg.w_off[w + 1]]
+        floor = cg.w_floor[cg.w_off[w]:cg.w_off[w + 1]]
+        p = (x[i] - seg_t[s]) @ seg_R[s]                                    # rest-frame points R^T (x - t)
+        along = (p - c) @ a
+        d = (p - c) - along[:, None] * a
+        rho = np.linalg.norm(d, axis=1)
+        hit = (np.abs(along) <= half) & (d @ q >= 0.0) & (rho < floor) & (rho > 0.0)
+        i, p, d, rho, floor = i[hit], p[hit], d[hit], rho[hit], floor[hit]
+        v_surf = (x[i] - (p @ R0[s].T + t0[s])) / h
+        n = (d / rho[:, None]) @ seg_R[s].T                                 # world radial directions
+        x[i] += (floor - rho)[:, None] * n
+        vn = np.sum((v[i] - v_surf) * n, axis=1)
+        dv = np.where((vn < 0)[:, None], -vn[:, None] * n, 0.0)
+        if wr is not None:
+            react(wr, s, 1.0, x[i], m[i], dv, h)
+        v[i] += dv
 
 
 def fold_plane(cg, k, seg_R, seg_t):

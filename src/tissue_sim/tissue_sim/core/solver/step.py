@@ -212,13 +212,15 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
                                    st.seg_R, st.seg_t, tissue.inv_den)
             # 4. bone contact: free vertices closer to a bone than the margin are projected out, their inward
             # velocity relative to the bone removed (the bone's pose at the sub-step's start: forward kinematics of q0)
-            # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane);
+            # (4a: first the fold contact keeps flexion-side tissue on its side of each folding hinge's bisector plane,
+            # 4b: the wrap cylinders keep the muscles that wrap over them outside);
             # each velocity change's reaction goes to the segment that made it, for the next sub-step's skeleton step
             if imp.on and imp.bdf2:    # (stage 4 lists the vertices it moves: BDF2's history, implicit.bdf2_history)
                 CT.unmark(cwork)
-            if cgrid.g_seg.shape[0] > 0 or cgrid.f_seg.shape[0] > 0:
+            if cgrid.g_seg.shape[0] > 0 or cgrid.f_seg.shape[0] > 0 or cgrid.w_seg.shape[0] > 0:
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
                 CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
+                CT.wrap_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
                 CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
             if imp.on and imp.bdf2:    # the sub-step is taken: it is BDF2's history for the next one, and the
                 IM.bdf2_history(h, xb, vb, x, v, st.history_h, cwork.moved, cwork.n_moved)     # buffers rotate
