@@ -203,6 +203,10 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     (['--osim', 'missing.osim'], 'no such file'),
     (['--passive', '--kinematics'], 'choose one'),
     (['--no-via-points', '--kinematics'], 'evaluates the source model only'),
+    (['--set', 'bogus=1'], '--set: solver parameters: unknown field(s) bogus'),
+    (['--set', 'wrap_surfaces'], '--set: '),
+    (['--set', 'bone_contact=maybe'], 'bone_contact must be a bool'),
+    (['--set', 'fold_contact=', '--kinematics'], '--kinematics evaluates the source model only'),
 ])
 def test_bad_arguments_one_line_exit_2(tmp_path, capsys, argv, msg):
     out = tmp_path / 'out'
@@ -224,6 +228,19 @@ def test_validate_no_via_points_validates_the_ends_only_build(tmp_path, capsys):
     assert main(['validate', '-o', str(out), '--no-via-points', '--angles', '0,60', '--settle', '0.2', '--quiet']) == 0
     res = json.loads((out / 'validation_physical.json').read_text())
     assert res['via_points'] is False and len(res['torque']['hamstrings_active']) == 2
+
+
+def test_set_changes_the_parameter_set_and_the_json_records_it(tmp_path, capsys):
+    """--set NAME=VALUE validates the bundled limb with a field of the parameter set changed (here without the
+    quadriceps' wrap surface, docs/contact.md "Wrap surfaces"); the JSON says which. Reduced: two angles, short holds."""
+    out = tmp_path / 'v'
+    assert main(['validate', '-o', str(out), '--set', 'wrap_surfaces=', '--angles', '0,60', '--settle', '0.2',
+                 '--quiet']) == 0
+    res = json.loads((out / 'validation_physical.json').read_text())
+    assert res['overrides'] == ['wrap_surfaces='] and len(res['torque']['hamstrings_active']) == 2
+    from tissue_sim.core import validation as V
+    assert V.parameter_set('physical', ['wrap_surfaces=']).wrap_surfaces == ''
+    assert V.parameter_set('physical', []) == V.parameter_set('physical') and V.parameter_set('physical').wrap_surfaces
 
 
 def test_output_must_be_a_folder(tmp_path, capsys):

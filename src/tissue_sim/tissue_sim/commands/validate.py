@@ -34,6 +34,9 @@ def add_arguments(p):
     p.add_argument('--no-via-points', dest='via_points', action='store_false',
                    help='the bundled limb built without the builder setting via_points (only the muscles\' end rings fixed to '
                         'their bones, as the paper; docs/builder.md "Via points")')
+    p.add_argument('--set', action='append', default=[], metavar='NAME=VALUE', dest='overrides',
+                   help='change a field of the parameter set (repeatable; VALUE read as YAML, e.g. wrap_surfaces= or '
+                        'fold_contact=knee; docs/solver.md); the JSON records them')
     p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
     p.add_argument('--quiet', action='store_true', help='print only the targets')
 
@@ -44,6 +47,10 @@ def run(args) -> int:
         angles = V.parse_angles(args.angles)
         if args.osim and not Path(args.osim).is_file():
             raise V.ValidationError(f'--osim {args.osim}: no such file')
+        if args.overrides and args.kinematics:
+            raise V.ValidationError('--set and --kinematics: --kinematics evaluates the source model only')
+        if not args.kinematics:
+            V.parameter_set(args.params, args.overrides)     # a bad --set: one line, before anything runs
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     out = Path(args.output)
@@ -73,7 +80,7 @@ def run(args) -> int:
         return _run_kinematics(args, con, out, V, angles)
     try:
         res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, model=model,
-                               progress=progress)
+                               progress=progress, overrides=args.overrides)
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
@@ -136,7 +143,7 @@ def _run_passive(args, con, out, V, progress, model=None):
     t0 = time.perf_counter()
     try:
         res = V.run_passive_validation(args.params, angles, settle, args.ramp_speed, osim_path=args.osim,
-                                       model=model, progress=progress)
+                                       model=model, progress=progress, overrides=args.overrides)
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)

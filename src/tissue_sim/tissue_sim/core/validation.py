@@ -374,12 +374,24 @@ def _built_with_via_points(tm) -> bool:
     return bool(tm.meta.get('settings', {}).get('via_points'))
 
 
-def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
-                   osim_path=None, model=None, progress=None) -> dict:
-    """Everything docs/validation.md reports, as one JSON-able dict (see ``evaluate`` for the targets)."""
+def parameter_set(params: str, overrides=()):
+    """Params of the named set ('physical' or 'paper') with NAME=VALUE overrides (the command's --set; as
+    Params.from_assignments); ValidationError naming a bad set or assignment."""
     from tissue_sim.core import solver
     if params not in ('physical', 'paper'):
         raise ValidationError(f'--params {params!r}: expected physical or paper')
+    try:
+        return solver.Params.from_assignments(params, list(overrides))
+    except ValueError as e:
+        raise ValidationError(f'--set: {e}') from None
+
+
+def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
+                   osim_path=None, model=None, progress=None, overrides=()) -> dict:
+    """Everything docs/validation.md reports, as one JSON-able dict (see ``evaluate`` for the targets); overrides:
+    NAME=VALUE changes of the parameter set (parameter_set)."""
+    from tissue_sim.core import solver
+    base = parameter_set(params, overrides)
     if not (settle > 0 and math.isfinite(settle)):
         raise ValidationError(f'--settle {settle}: must be a positive number of seconds')
     if not (ramp_speed > 0 and math.isfinite(ramp_speed)):
@@ -389,12 +401,12 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
     others = [km.name for km in muscles if km.name not in HAMSTRINGS]
     active_sets = {'hamstrings': hams, 'others': others}
     ref = opensim_reference(osim_path, muscles, angles, active_sets)
-    sim = solver.compile_model(tm, getattr(solver.Params, params)())
+    sim = solver.compile_model(tm, base)
     runs = {}
     for key, act in (('passive', []), ('hamstrings', hams), ('others', others)):
         runs[key] = hold_sweep(sim, muscles, angles, act, settle, ramp_speed,
                                progress=(lambda d, k=key: progress(k, d)) if progress else None)
-    out = {'params': params, 'angles_deg': angles, 'settle_s': settle, 'ramp_speed_deg_s': ramp_speed,
+    out = {'params': params, 'overrides': list(overrides), 'angles_deg': angles, 'settle_s': settle, 'ramp_speed_deg_s': ramp_speed,
            'model': tm.name, 'via_points': _built_with_via_points(tm), 'n_substeps': sim.n_substeps, 'opensim': ref, 'active_sets': active_sets,
            'muscles': {}, 'torque': {}}
     for i, km in enumerate(muscles):
@@ -735,19 +747,18 @@ PASSIVE_VARIANTS = {'thelen (k 5, eps0 0.6)': dict(fl_passive_curve='thelen', fl
 
 
 def run_passive_validation(params: str = 'physical', angles_deg=None, settle: float = 0.5, ramp_speed: float = 200.0,
-                           osim_path=None, model=None, progress=None) -> dict:
+                           osim_path=None, model=None, progress=None, overrides=()) -> dict:
     """The passive knee moment of the whole model (tissue + passive fibre force; no activation, knee held by the joint
     lock at each angle, ankle at 0, hip 0 as the bundled limb has it) against the source model with its passive
     fibre force on (opensim_passive_moments) and against Riener & Edrich 1999 (riener_edrich_knee). Measured: the
     total moment = minus the lock's torque (hold_sweep); the passive fibres' part = muscle.passive_state at the angle
     (it depends on the joint angles only), the tissue's part = the rest. The other passive curves
     (PASSIVE_VARIANTS) are reported as tissue + their fibre moment. Also the ankle at knee 0: the fibres' moment
-    against OpenSim's (the tissue's ankle moment is not measured here)."""
+    against OpenSim's (the tissue's ankle moment is not measured here). overrides: as run_validation's."""
     from tissue_sim.core import solver
     from tissue_sim.core.builder import default_model
     from tissue_sim.core.solver.muscle import passive_state
-    if params not in ('physical', 'paper'):
-        raise ValidationError(f'--params {params!r}: expected physical or paper')
+    base = parameter_set(params, overrides)
     if not (settle > 0 and math.isfinite(settle)):
         raise ValidationError(f'--settle {settle}: must be a positive number of seconds')
     angles = list(angles_deg) if angles_deg is not None else list(PASSIVE_ANGLES)
@@ -755,7 +766,6 @@ def run_passive_validation(params: str = 'physical', angles_deg=None, settle: fl
     if not osim_path.is_file():
         raise ValidationError(f'source model not found: {osim_path}')
     tm = model if model is not None else default_model()
-    base = getattr(solver.Params, params)()
     sim = solver.compile_model(tm, base)
     j, ja = list(tm.joint_names).index(KNEE_JOINT), list(tm.joint_names).index(ANKLE_JOINT)
     run = hold_sweep(sim, [], angles, [], settle, ramp_speed, progress=(lambda d: progress('passive', d)) if progress else None)
@@ -782,7 +792,8 @@ def run_passive_validation(params: str = 'physical', angles_deg=None, settle: fl
     ref = opensim_passive_moments(osim_path, angles, [0.0] * len(angles))
     ank = opensim_passive_moments(osim_path, [0.0] * len(ANKLE_ANGLES), ANKLE_ANGLES)
     re = riener_edrich_knee(np.asarray(angles))
-    out = {'params': params, 'angles_deg': angles, 'settle_s': settle, 'model': tm.name, 'via_points': _built_with_via_points(tm),
+    out = {'params': params, 'overrides': list(overrides), 'angles_deg': angles, 'settle_s': settle, 'model': tm.name,
+           'via_points': _built_with_via_points(tm),
            'passive_force_length': bool(sim.params.passive_force_length),
            'passive_curve': dict(curve=sim.params.fl_passive_curve, k=sim.params.fl_passive_shape,
                                  eps0=sim.params.fl_passive_strain),
