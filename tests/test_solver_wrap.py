@@ -121,21 +121,26 @@ def test_fast_step_matches_the_reference_step_with_a_wrap_surface():
 
 def test_wrap_surfaces_of_the_bundled_limb(default_tm):
     """The bundled limb carries its source model's wrap cylinders; the physical set uses KnExt_at_fem_r (on the
-    thigh) for the free vertices of the four quadriceps' cells, the paper set none; 'all' every surface; a name the
-    model does not have, none."""
+    thigh) for the free vertices of the four quadriceps' cells and ST_at_condyles_r (on the shank) for
+    semitendinosus', the paper set none; 'all' every surface; a name the model does not have, none."""
     tm = default_tm
     names = list(tm.wrap_names)
-    w = names.index('KnExt_at_fem_r')
-    mus = tm.wrap_muscles[tm.wrap_muscle_offsets[w]:tm.wrap_muscle_offsets[w + 1]]
-    assert sorted(tm.muscle_names[m] for m in mus) == ['rectus_femoris', 'vastus_intermedius', 'vastus_lateralis',
-                                                        'vastus_medialis']
     cg = solver.compile_model(tm, solver.Params.physical()).contact
-    assert cg.w_seg.tolist() == [list(tm.segment_names).index('thigh')]
-    cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
-    verts = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells]))
-    verts = verts[(tm.vertex_segment[verts] < 0) & ~np.isin(verts, tm.via_point_vertices)]
-    assert np.array_equal(np.sort(cg.w_idx), verts)
-    assert np.all(cg.w_floor <= tm.wrap_geometry[w, 9]) and np.all(cg.w_floor > 0)
+    expect = {'KnExt_at_fem_r': ('thigh', ['rectus_femoris', 'vastus_intermedius', 'vastus_lateralis', 'vastus_medialis']),
+              'ST_at_condyles_r': ('shank', ['semitendinosus'])}
+    assert cg.w_seg.size == 2
+    for k, (name, (seg, muscles)) in enumerate(expect.items()):
+        w = names.index(name)
+        mus = tm.wrap_muscles[tm.wrap_muscle_offsets[w]:tm.wrap_muscle_offsets[w + 1]]
+        assert sorted(tm.muscle_names[m] for m in mus) == muscles
+        assert cg.w_seg[k] == list(tm.segment_names).index(seg) == tm.wrap_segment[w]
+        cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
+        verts = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells]))
+        verts = verts[(tm.vertex_segment[verts] < 0) & ~np.isin(verts, tm.via_point_vertices)]
+        idx = cg.w_idx[cg.w_off[k]:cg.w_off[k + 1]]
+        assert np.array_equal(np.sort(idx), verts)
+        floor = cg.w_floor[cg.w_off[k]:cg.w_off[k + 1]]
+        assert np.all(floor <= tm.wrap_geometry[w, 9]) and np.all(floor > 0)
     assert solver.compile_model(tm, solver.Params.paper()).contact.w_seg.size == 0
     assert solver.compile_model(tm, solver.Params.physical(wrap_surfaces='all')).contact.w_seg.size == len(names)
     assert solver.compile_model(tm, solver.Params.physical(wrap_surfaces='no_such_wrap')).contact.w_seg.size == 0

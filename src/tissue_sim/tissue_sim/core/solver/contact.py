@@ -53,7 +53,8 @@ shape already lies inside)."""
 ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats xf mask moved n_moved flag')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, 3, F) (rest-frame point where a vertex was last tested, by coordinate) and slack (B,
-F) (0: test it); scratch: cand (F,) int32, xf (3, F) the free vertices' positions by coordinate, mask (F rounded up to
+F) (0: test it), float32 (the broad phase streams them every sub-step; SLACK_MARGIN covers their rounding); scratch:
+cand (F,) int32, xf (3, F) float32 the free vertices' positions by coordinate, mask (F rounded up to
 8,) uint8; stats (2,) int64 = (calls, vertex-grid tests so far); the vertices the stage moved since unmark, each once (mark):
 moved (V,) int32, the first n_moved[0] (int64 (1,)) of it, flag (V,) uint8 (1: listed); V = 0 where nothing reads the
 list (work's n_listed: only BDF2 does)."""
@@ -320,6 +321,10 @@ LIPSCHITZ = 1.7320508075688772 + 1e-6   # bound on |grad| of a trilinear interpo
 PROJECTIONS = 4         # at most this many projections of a vertex per grid and sub-step (beyond the exact band the
                         # grid's distance is approximate, so one projection from deep inside can fall short)
 PROJECTION_TOL = 1e-6   # [m] a projected vertex this close below its floor is done
+SLACK_MARGIN = 1e-5     # [m] taken off every broad-phase slack, for its float32 rounding: the record and the position each
+                        # move a rest-frame point by at most sqrt(3) 2^-24 r (r the largest coordinate), the transform
+                        # R^T (x - t) by at most ~7 sqrt(3) 2^-24 r, the slack by 2^-24 of itself: for r <= 5 m LIPSCHITZ x
+                        # their sum < 8e-6 m, so a vertex the broad phase skips is one a full test leaves alone too
 
 
 @njit(cache=True, inline='always')
@@ -403,10 +408,15 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den
 
 
 @njit(cache=True, fastmath={'contract'})
-def _broad(xf, qc, slack, r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz, mask):
+def _broad(xf, qc, slack, R, t, mask):
     """bone_contact's broad phase for one grid, in flat loops the compiler vectorises: mask[ii] = 1 where free vertex
     ii is to be tested (its record's slack is 0, or its rest-frame point R^T (x - t) has moved from the record qc (3,
-    F) by at least the slack); returns how many."""
+    F) by at least the slack); returns how many. In float32 (twice the SIMD lanes; SLACK_MARGIN bounds the rounding):
+    R (3, 3) and t (3,) the segment's pose."""
+    f4 = np.float32
+    r00, r01, r02, r10, r11, r12 = f4(R[0, 0]), f4(R[0, 1]), f4(R[0, 2]), f4(R[1, 0]), f4(R[1, 1]), f4(R[1, 2])
+    r20, r21, r22, tx, ty, tz = f4(R[2, 0]), f4(R[2, 1]), f4(R[2, 2]), f4(t[0]), f4(t[1]), f4(t[2])
+    zero = f4(0.0)
     n = 0
     for ii in range(xf.shape[1]):
         dx, dy, dz = xf[0, ii] - tx, xf[1, ii] - ty, xf[2, ii] - tz
@@ -414,7 +424,7 @@ def _broad(xf, qc, slack, r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, t
         ey = r01 * dx + r11 * dy + r21 * dz - qc[1, ii]
         ez = r02 * dx + r12 * dy + r22 * dz - qc[2, ii]
         q = slack[ii]
-        m = np.uint8((q <= 0.0) | (ex * ex + ey * ey + ez * ez >= q * q))
+        m = np.uint8((q <= zero) | (ex * ex + ey * ey + ez * ez >= q * q))
         mask[ii] = m
         n += m
     return n
@@ -447,9 +457,9 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
 
     Broad phase, per grid b and vertex: a record, the rest-frame point qc[b, i] where the vertex was
     last tested and a slack (a lower bound there of the grid's sampled distance above the vertex's
-    floor, or of the distance to the grid's box; stored as (slack - 1e-6) / LIPSCHITZ). A vertex is
-    tested again only once its rest-frame point has moved by LIPSCHITZ |p - qc| + 1e-6 >= slack,
-    and its record is renewed. The grid is 1-Lipschitz between grid points, its trilinear
+    floor, or of the distance to the grid's box; stored as (slack - SLACK_MARGIN) / LIPSCHITZ). A vertex is
+    tested again only once its rest-frame point has moved by LIPSCHITZ |p - qc| + SLACK_MARGIN >= slack,
+    and its record is renewed (records and positions in float32: SLACK_MARGIN bounds their rounding). The grid is 1-Lipschitz between grid points, its trilinear
     interpolation sqrt(3)-Lipschitz: the result is that of testing every vertex every sub-step,
     whatever the history (reference.contact_stage does that)."""
     g_seg, g_origin, g_inv_h, g_dims, free_idx = cg.g_seg, cg.g_origin, cg.g_inv_h, cg.g_dims, cg.free_idx
@@ -469,7 +479,7 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
         tx, ty, tz = seg_t[s, 0], seg_t[s, 1], seg_t[s, 2]
         ox, oy, oz, ih = g_origin[b, 0], g_origin[b, 1], g_origin[b, 2], g_inv_h[b]
         mx, my, mz = g_dims[b, 0] - 1.0, g_dims[b, 1] - 1.0, g_dims[b, 2] - 1.0
-        n = _broad(xf, qc[b], slack[b], r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz, mask)
+        n = _broad(xf, qc[b], slack[b], seg_R[s], seg_t[s], mask)
         if n > 0:
             n = _gather(mask, F, cand)
         stats[1] += n
@@ -490,7 +500,7 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
             else:                       # outside the box: a lower bound of the distance to it
                 d, hit = max(max(-gx, gx - mx), max(max(-gy, gy - my), max(-gz, gz - mz))) / ih, False
             qc[b, 0, ii], qc[b, 1, ii], qc[b, 2, ii] = px, py, pz
-            slack[b, ii] = 0.0 if hit else (d - 1e-6) * (1.0 / LIPSCHITZ)    # projected: tested again next sub-step
+            slack[b, ii] = 0.0 if hit else (d - SLACK_MARGIN) * (1.0 / LIPSCHITZ)    # projected: tested again next sub-step
     return hits
 
 
@@ -1001,8 +1011,9 @@ def work(cg: ContactGrids, n_segments: int, n_listed: int = 0) -> ContactWork:
     """Fresh mutable buffers of the contact stage for one State (records empty: every vertex tested first); n_listed:
     the model's vertices where the moved vertices are to be listed (mark), else 0."""
     S, B, F, V = max(int(n_segments), 1), cg.g_seg.shape[0], cg.free_idx.shape[0], int(n_listed)
-    return ContactWork(np.tile(np.eye(3), (S, 1, 1)), np.zeros((S, 3)), np.zeros((B, 3, F)), np.zeros((B, F)),
-                       np.zeros(F, np.int32), np.zeros(2, np.int64), np.zeros((3, F)), np.zeros(-(-F // 8) * 8, np.uint8),
+    return ContactWork(np.tile(np.eye(3), (S, 1, 1)), np.zeros((S, 3)), np.zeros((B, 3, F), np.float32),
+                       np.zeros((B, F), np.float32), np.zeros(F, np.int32), np.zeros(2, np.int64), np.zeros((3, F), np.float32),
+                       np.zeros(-(-F // 8) * 8, np.uint8),
                        np.zeros(V, np.int32), np.zeros(1, np.int64), np.zeros(V, np.uint8))
 
 

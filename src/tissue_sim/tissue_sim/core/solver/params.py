@@ -198,7 +198,7 @@ class Params:
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
-                    sheath_below='sartorius,gracilis,semitendinosus', sheath_radius=1e-3, wrap_surfaces='KnExt_at_fem_r',
+                    sheath_below='sartorius,gracilis,semitendinosus', sheath_radius=1e-3, wrap_surfaces='KnExt_at_fem_r,ST_at_condyles_r',
                     active_length='path', length_measure='centre_line', volume_measure='enclosed',
                     end_ring_pull='bound', joint_paths=True)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
