@@ -581,6 +581,7 @@ def stage_times(tm, iterations, reps=None):
             SK.forward_kinematics(q, sk, cw.R0, cw.t0)
             CT.unmark(cw)
             CT.fold_contact(h, xn, vn, seg_R, seg_t, cg, cw, inv_den, wr)
+            CT.wrap_contact(h, xn, vn, seg_R, seg_t, cg, cw, inv_den, wr)
             CT.bone_contact(h, xn, vn, seg_R, seg_t, cg, cw, inv_den, wr)
 
     @njit
