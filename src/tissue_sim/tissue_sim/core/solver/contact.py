@@ -839,6 +839,26 @@ def fold_vertices(tm, joints: str, reach: float, margin: float, rest: np.ndarray
 SHEATH_FROM = 0.005     # [m] the sheath holds a group's vertices from this height above the hinge centre (along n0) up
 
 
+def muscle_free_vertices(tm, muscles, vertex_segment) -> np.ndarray:
+    """The free vertices (vertex_segment < 0) of the cells of the given muscles (indices), ascending int32, a point via
+    ring's vertices excepted (the via holds the ring's centroid and lets it turn; docs/solver.md "Point vias"): what
+    the sheath holds and a wrap surface keeps out."""
+    cells = np.flatnonzero(np.isin(tm.cell_muscle, muscles))
+    cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
+                     if len(cells) else np.zeros(0, np.int64))
+    keep = (np.asarray(vertex_segment)[cand] < 0) & ~np.isin(cand, np.asarray(tm.via_point_vertices))
+    return cand[keep].astype(np.int32)
+
+
+def cylinder_coordinates(p: np.ndarray, c: np.ndarray, a: np.ndarray) -> tuple:
+    """Points p (N, 3) relative to a cylinder through c with unit axis a: (along (N,), the coordinate along the axis;
+    d (N, 3), the radial vector; rho (N,), its length). wrap_contact computes the same per vertex."""
+    u = p - c
+    along = u @ a
+    d = u - along[:, None] * a
+    return along, d, np.linalg.norm(d, axis=1)
+
+
 def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, rest: np.ndarray, vertex_segment,
                     below: str = '', shared: bool = True) -> dict:
     """The sheath's constants (s_off, s_idx, s_X, s_r; ContactGrids) for the folding hinges in fold (fold_vertices):
@@ -851,21 +871,16 @@ def sheath_vertices(tm, fold: dict, group: str, radius: float, reach: float, res
     the knee's 120-deg stop. shared False: a vertex these muscles share with another muscle's cells is not sheathed
     (the sheath holds their own tissue; a shared vertex would hold the neighbour's too, e.g. a calf muscle's pull
     passed to the tibia through sartorius' sheath below the knee)."""
-    vs = np.asarray(vertex_segment)
-    via = np.asarray(tm.via_point_vertices)
     cm = np.asarray(tm.cell_muscle)[np.repeat(np.arange(len(tm.cell_offsets) - 1), np.diff(tm.cell_offsets))]
 
     def free_vertices(spec):
         names = [g.strip() for g in str(spec).split(',') if g.strip()]
         mus = [m for m in range(len(tm.muscle_names)) if tm.muscle_groups[m] in names or tm.muscle_names[m] in names]
-        cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
-        cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells])
-                         if len(cells) else np.zeros(0, np.int64))
-        keep = (vs[cand] < 0) & ~np.isin(cand, via)
+        cand = muscle_free_vertices(tm, mus, vertex_segment)
         if not shared:          # not on another muscle's cell (fat cells are no muscle: cell_muscle -1)
             other = np.asarray(tm.cell_vertices)[(cm >= 0) & ~np.isin(cm, mus)]
-            keep &= ~np.isin(cand, other)
-        return cand[keep]
+            cand = cand[~np.isin(cand, other)]
+        return cand
     up, down = free_vertices(group), free_vertices(below)
     cand = np.union1d(up, down)
     held = {1.0: np.isin(cand, up), -1.0: np.isin(cand, down)}
@@ -928,24 +943,15 @@ def wrap_vertices(tm, names: str, rest: np.ndarray, vertex_segment) -> dict:
     with its floor: the radius, or its rest distance from the axis where the rest shape already lies inside (within
     the length, on the quadrant's side)."""
     want = [n.strip() for n in str(names).split(',') if n.strip()]
-    wn = list(getattr(tm, 'wrap_names', ()) or ())
-    vs = np.asarray(vertex_segment)
-    via = np.asarray(tm.via_point_vertices)
     segs, geos, off, idx, floors = [], [], [0], [], []
-    for w, name in enumerate(wn):
+    for w, name in enumerate(tm.wrap_names):
         if name not in want and 'all' not in want:
             continue
         g = np.asarray(tm.wrap_geometry[w], np.float64)
         c, a, q, r, half = g[:3], g[3:6], g[6:9], float(g[9]), 0.5 * float(g[10])
         mus = np.asarray(tm.wrap_muscles)[tm.wrap_muscle_offsets[w]:tm.wrap_muscle_offsets[w + 1]]
-        cells = np.flatnonzero(np.isin(tm.cell_muscle, mus))
-        cand = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[k]:tm.cell_offsets[k + 1]] for k in cells])
-                         if len(cells) else np.zeros(0, np.int64))
-        cand = cand[(vs[cand] < 0) & ~np.isin(cand, via)].astype(np.int32)
-        u = rest[cand] - c
-        along = u @ a
-        d = u - along[:, None] * a
-        rho = np.linalg.norm(d, axis=1)
+        cand = muscle_free_vertices(tm, mus, vertex_segment)
+        along, d, rho = cylinder_coordinates(rest[cand], c, a)
         inside = (np.abs(along) <= half) & (d @ q >= 0.0) & (rho < r)
         segs.append(int(tm.wrap_segment[w]))
         geos.append(np.concatenate([c, a, q, [r, half]]))

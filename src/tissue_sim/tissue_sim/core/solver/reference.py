@@ -416,9 +416,7 @@ def wrap_stage(cg, x, v, seg_R, seg_t, R0, t0, h, m=None, wr=None):
         i = cg.w_idx[cg.w_off[w]:cg.w_off[w + 1]]
         floor = cg.w_floor[cg.w_off[w]:cg.w_off[w + 1]]
         p = (x[i] - seg_t[s]) @ seg_R[s]                                    # rest-frame points R^T (x - t)
-        along = (p - c) @ a
-        d = (p - c) - along[:, None] * a
-        rho = np.linalg.norm(d, axis=1)
+        along, d, rho = CT.cylinder_coordinates(p, c, a)
         hit = (np.abs(along) <= half) & (d @ q >= 0.0) & (rho < floor) & (rho > 0.0)
         i, p, d, rho, floor = i[hit], p[hit], d[hit], rho[hit], floor[hit]
         v_surf = (x[i] - (p @ R0[s].T + t0[s])) / h
