@@ -7,9 +7,9 @@ from t = 0) on the bundled limb built 1x, 3x and 6x finer (`build-model --refine
                                               [--build NAME=VALUE ...] [--torques]
 
 For each refinement: vertices, cells, sub-steps per 1-ms step, steps per CPU second (one thread, the
-stepping alone), the knee angle every 10 ms (or the step where the run diverged). Then the knee-angle
-differences between successive refinements (max and RMS over the run, degrees): a converging scheme
-shows them shrinking. Writes DIR/convergence.json and DIR/convergence.png (knee angle vs time per
+stepping alone), the knee angle every 10 ms (or the step where the run diverged), the cells inside out at the end
+(V/V0 < 0; a finer limb's defects show there). Then the knee-angle differences between successive refinements (max
+and RMS over the run, degrees): a converging scheme shows them shrinking (the flag: both, pair after pair). Writes DIR/convergence.json and DIR/convergence.png (knee angle vs time per
 refinement); default DIR bench/out/. Last line: one JSON object.
 
 --integrator: default 'implicit' where core/solver has it (issue 23), else the physical set's own
@@ -49,6 +49,7 @@ from tissue_sim.core.solver import params as P  # noqa: E402
 
 SAMPLE_EVERY = 10          # steps between knee samples (10 ms at the physical set's 1-ms step)
 SERIES = {False: ('knee_deg', 'deg'), True: ('knee_torque_Nm', 'N m')}   # what a run records (--isometric: True)
+LOW_VOLUME = 0.2           # cells below this share of their rest volume are counted at the end (cell_health)
 UNSCALED_TOL = 1e-3        # --substeps unscaled: mass_scaled adds less than this share of the true mass
 
 
@@ -124,6 +125,7 @@ def run_one(tm, params, duration, label, isometric=False, torques=False):
     solver.step(sim, warm, solver.make_control(sim))          # numba compile / caches outside the timing
     t, q, diverged, src = [], [], None, []
     n = int(round(duration / params.dt))
+    st = None
     c0, w0 = time.process_time(), time.perf_counter()
     last = w0
     try:
@@ -148,12 +150,13 @@ def run_one(tm, params, duration, label, isometric=False, torques=False):
     except solver.DivergenceError as e:
         diverged = {'step': e.step, 'time_s': round(e.step * params.dt, 4), 'cause': e.cause}
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    mesh = cell_health(sim, st) if st is not None and diverged is None else None
     done = (len(t) - 1) * SAMPLE_EVERY if diverged is None else diverged['step']
     out = dict(label=label, vertices=int(tm.n_vertices), cells=int(tm.n_cells), integrator=params.integrator,
                substeps=int(sim.n_substeps), added_mass_percent=round(100 * added_mass_share(sim, sim.n_substeps), 3), omega_max_dt=round(float(sim.omega_max * params.dt), 2),
                steps=int(done), steps_requested=n, cpu_s=round(cpu, 2), wall_s=round(wall, 2),
                steps_per_cpu_s=round(done / max(cpu, 1e-9), 1), t=t, series=SERIES[isometric][0],
-               diverged=diverged)
+               diverged=diverged, cells_at_end=mesh)
     out[out['series']] = [round(v, 4) for v in q]
     if torques:
         out['torque_sources_Nm'] = {k: [round(d[k], 3) for d in src] for k in TORQUE_SOURCES}
@@ -161,8 +164,22 @@ def run_one(tm, params, duration, label, isometric=False, torques=False):
     print(f'{label}: {out["vertices"]:,} vertices, {out["cells"]:,} cells, {params.integrator} x{out["substeps"]} '
           f'(omega_max dT {out["omega_max_dt"]}, added mass {out["added_mass_percent"]} %): '
           f'{out["steps_per_cpu_s"]:.1f} steps/CPU s, knee {fin}'
+          + (f'; cells at the end: {mesh["inverted"]} inverted, {mesh["below_0.2"]} below 0.2 V0 (least V/V0 '
+             f'{mesh["least_volume_ratio"]:.2f})' if mesh else '')
           + (f'; DIVERGED at step {diverged["step"]} ({diverged["cause"]})' if diverged else ''), flush=True)
     return out, sim
+
+
+def cell_health(sim, st) -> dict:
+    """The cells' state at the end of a run (the finer limbs' meshes, docs/convergence.md): how many are inside out
+    (V/V0 < 0) and below LOW_VOLUME of their rest volume, split fat / muscle, and the least V/V0
+    (measures.cell_volumes, the one prism-volume definition)."""
+    from tissue_sim.core.solver.measures import cell_volumes
+    r = cell_volumes(sim, st.x) / cell_volumes(sim, sim.rest)
+    fat = np.asarray(sim.tissue.cell_muscle) < 0
+    inv = r < 0
+    return {'inverted': int(inv.sum()), 'inverted_fat': int((inv & fat).sum()), 'inverted_muscle': int((inv & ~fat).sum()),
+            'below_0.2': int((r < LOW_VOLUME).sum()), 'least_volume_ratio': round(float(r.min()), 3)}
 
 
 TORQUE_SOURCES = ('tissue on bound vertices', 'point via rings', 'contact and sheath reaction', 'passive fibres')
@@ -202,6 +219,14 @@ def differences(a, b):
             'up_to_s': a['t'][n - 1]}
 
 
+def shrinking(diffs) -> bool:
+    """Whether the differences between successive refinements shrink: both the max and the RMS of each pair below
+    the pair's before it (at least two pairs, every run compared)."""
+    if len(diffs) < 2 or not all(diffs):
+        return False
+    return all(b['max_deg'] < a['max_deg'] and b['rms_deg'] < a['rms_deg'] for a, b in zip(diffs, diffs[1:]))
+
+
 def plot(runs, path, title):
     import matplotlib
     matplotlib.use('Agg')
@@ -224,8 +249,9 @@ def plot(runs, path, title):
 
 def markdown(out) -> str:
     unit = 'deg' if not out['runs'] or out['runs'][0]['series'] == 'knee_deg' else 'N m'
-    rows = [f'| model | vertices | cells | integrator, sub-steps | added mass | steps/CPU s | knee at end | diff. to next finer: max / RMS [{unit}] |',
-            '|---|---|---|---|---|---|---|---|']
+    rows = [f'| model | vertices | cells | integrator, sub-steps | added mass | steps/CPU s | knee at end | '
+            f'cells inverted at end (fat / muscle; least V/V0) | diff. to next finer: max / RMS [{unit}] |',
+            '|---|---|---|---|---|---|---|---|---|']
     for i, r in enumerate(out['runs']):
         d = out['differences'][i] if i < len(out['differences']) else None
         k = r['series']
@@ -233,8 +259,11 @@ def markdown(out) -> str:
         if r['diverged']:
             end += f', diverged at step {r["diverged"]["step"]}'
         dd = f'{d["max_deg"]} / {d["rms_deg"]}' if d else '-'
+        m = r.get('cells_at_end')
+        inv = (f'{m["inverted"]} ({m["inverted_fat"]} / {m["inverted_muscle"]}; {m["least_volume_ratio"]:.2f})'
+               if m else '-')
         rows.append(f'| {r["label"]} | {r["vertices"]:,} | {r["cells"]:,} | {r["integrator"]} x{r["substeps"]} | '
-                    f'{r["added_mass_percent"]:g} % | {r["steps_per_cpu_s"]:,.1f} | {end} | {dd} |')
+                    f'{r["added_mass_percent"]:g} % | {r["steps_per_cpu_s"]:,.1f} | {end} | {inv} | {dd} |')
     return '\n'.join(rows)
 
 
@@ -340,8 +369,7 @@ def main():
                          '--activate hamstrings=1)' + ('; the knee held at 0 deg, its torque' if a.isometric else ''), 'integrator': integ, 'substeps_mode': mode,
            'duration_s': a.duration, 'stiffness': a.stiffness, 'set': list(a.set), 'build': build, 'isometric': a.isometric, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
-    shrink = [d['max_deg'] for d in diffs if d]
-    out['differences_shrink'] = bool(len(shrink) >= 2 and all(b < a_ for a_, b in zip(shrink, shrink[1:])))
+    out['differences_shrink'] = shrinking(diffs)
     od = Path(a.out)
     od.mkdir(parents=True, exist_ok=True)
     (od / 'convergence.json').write_text(json.dumps(out, indent=1))
@@ -359,7 +387,7 @@ def main():
         if d:
             print(f'{runs[i]["label"]} vs {runs[i + 1]["label"]}: max {d["max_deg"]} deg, RMS {d["rms_deg"]} deg '
                   f'(up to {d["up_to_s"]} s)')
-    print(f'differences shrink with refinement: {out["differences_shrink"]}; {cpu}; load average '
+    print(f'differences shrink with refinement (max and RMS): {out["differences_shrink"]}; {cpu}; load average '
           f'{out["load_average_1min"]}; written {od / "convergence.json"}, {od / "convergence.png"}')
     slim = dict(out, runs=[{k: v for k, v in r.items() if k not in ('t', r['series'])} for r in runs])
     print(json.dumps(slim))
