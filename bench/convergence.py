@@ -179,7 +179,7 @@ def cell_health(sim, st) -> dict:
     fat = np.asarray(sim.tissue.cell_muscle) < 0
     inv = r < 0
     return {'inverted': int(inv.sum()), 'inverted_fat': int((inv & fat).sum()), 'inverted_muscle': int((inv & ~fat).sum()),
-            'below_0.2': int((r < LOW_VOLUME).sum()), 'least_volume_ratio': round(float(r.min()), 3)}
+            f'below_{LOW_VOLUME:g}': int((r < LOW_VOLUME).sum()), 'least_volume_ratio': round(float(r.min()), 4)}
 
 
 TORQUE_SOURCES = ('tissue on bound vertices', 'point via rings', 'contact and sheath reaction', 'passive fibres')

@@ -26,10 +26,11 @@ sys.path.insert(0, str(ROOT / 'src' / 'tissue_sim'))
 import numpy as np  # noqa: E402
 
 from tissue_sim.core import builder, solver  # noqa: E402
-from tissue_sim.core.solver.measures import cell_volumes  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from convergence import LOW_VOLUME as LOW, cell_health  # noqa: E402  (the cells' count, one definition)
 
 SAMPLE_EVERY = 5           # steps between volume samples (5 ms at the physical set's 1-ms step)
-LOW = 0.2                  # a cell below this V/V0 is counted (and every inverted one, V/V0 < 0)
 
 
 def measure(R: float, duration: float) -> dict:
@@ -40,7 +41,6 @@ def measure(R: float, duration: float) -> dict:
     sim = solver.compile_model(tm, solver.Params.physical(integrator='implicit', substeps=1))
     st, c = solver.make_state(sim), solver.make_control(sim)
     c.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
-    v0 = cell_volumes(sim, sim.rest)
     n = int(round(duration / sim.params.dt))
     t, least, low, inverted, diverged = [], [], 0, 0, None
     while st.step < n:
@@ -49,10 +49,10 @@ def measure(R: float, duration: float) -> dict:
         except solver.DivergenceError as e:
             diverged = int(e.step)
             break
-        r = cell_volumes(sim, st.x) / v0
+        h = cell_health(sim, st)
         t.append(st.step * sim.params.dt)
-        least.append(float(r.min()))
-        low, inverted = int(np.count_nonzero(r < LOW)), int(np.count_nonzero(r < 0))
+        least.append(h['least_volume_ratio'])
+        low, inverted = h['below_0.2'], h['inverted']
     fat = q['shear'].get('fat', {})
     mus = q['shear'].get('muscle', {})
     return {'refine': R, 'vertices': int(tm.n_vertices), 'cells': int(tm.n_cells),
