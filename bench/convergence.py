@@ -164,7 +164,7 @@ def run_one(tm, params, duration, label, isometric=False, torques=False):
     print(f'{label}: {out["vertices"]:,} vertices, {out["cells"]:,} cells, {params.integrator} x{out["substeps"]} '
           f'(omega_max dT {out["omega_max_dt"]}, added mass {out["added_mass_percent"]} %): '
           f'{out["steps_per_cpu_s"]:.1f} steps/CPU s, knee {fin}'
-          + (f'; cells at the end: {mesh["inverted"]} inverted, {mesh["below_0.2"]} below 0.2 V0 (least V/V0 '
+          + (f'; cells at the end: {mesh["inverted"]} inverted, {mesh["below_low"]} below {LOW_VOLUME:g} V0 (least V/V0 '
              f'{mesh["least_volume_ratio"]:.2f})' if mesh else '')
           + (f'; DIVERGED at step {diverged["step"]} ({diverged["cause"]})' if diverged else ''), flush=True)
     return out, sim
@@ -179,7 +179,7 @@ def cell_health(sim, st) -> dict:
     fat = np.asarray(sim.tissue.cell_muscle) < 0
     inv = r < 0
     return {'inverted': int(inv.sum()), 'inverted_fat': int((inv & fat).sum()), 'inverted_muscle': int((inv & ~fat).sum()),
-            f'below_{LOW_VOLUME:g}': int((r < LOW_VOLUME).sum()), 'least_volume_ratio': round(float(r.min()), 4)}
+            'below_low': int((r < LOW_VOLUME).sum()), 'low_volume': LOW_VOLUME, 'least_volume_ratio': round(float(r.min()), 4)}
 
 
 TORQUE_SOURCES = ('tissue on bound vertices', 'point via rings', 'contact and sheath reaction', 'passive fibres')

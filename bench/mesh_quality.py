@@ -52,7 +52,7 @@ def measure(R: float, duration: float) -> dict:
         h = cell_health(sim, st)
         t.append(st.step * sim.params.dt)
         least.append(h['least_volume_ratio'])
-        low, inverted = h['below_0.2'], h['inverted']
+        low, inverted = h['below_low'], h['inverted']
     fat = q['shear'].get('fat', {})
     mus = q['shear'].get('muscle', {})
     return {'refine': R, 'vertices': int(tm.n_vertices), 'cells': int(tm.n_cells),
