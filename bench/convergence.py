@@ -164,22 +164,36 @@ def run_one(tm, params, duration, label, isometric=False, torques=False):
     print(f'{label}: {out["vertices"]:,} vertices, {out["cells"]:,} cells, {params.integrator} x{out["substeps"]} '
           f'(omega_max dT {out["omega_max_dt"]}, added mass {out["added_mass_percent"]} %): '
           f'{out["steps_per_cpu_s"]:.1f} steps/CPU s, knee {fin}'
-          + (f'; cells at the end: {mesh["inverted"]} inverted, {mesh["below_low"]} below {LOW_VOLUME:g} V0 (least V/V0 '
-             f'{mesh["least_volume_ratio"]:.2f})' if mesh else '')
+          + (f'; cells at the end: {mesh["inverted"]} inverted '
+             f'({", ".join(f"{k} {v}" for k, v in mesh["inverted_by_segment"].items()) or "none"}), '
+             f'{mesh["below_low"]} below {LOW_VOLUME:g} V0 (least V/V0 {mesh["least_volume_ratio"]:.2f})' if mesh else '')
           + (f'; DIVERGED at step {diverged["step"]} ({diverged["cause"]})' if diverged else ''), flush=True)
     return out, sim
 
 
 def cell_health(sim, st) -> dict:
     """The cells' state at the end of a run (the finer limbs' meshes, docs/convergence.md): how many are inside out
-    (V/V0 < 0) and below LOW_VOLUME of their rest volume, split fat / muscle, and the least V/V0
-    (measures.cell_volumes, the one prism-volume definition)."""
+    (V/V0 < 0), split fat / muscle and by the segment of the bone nearest each one's rest centroid, how many are below
+    LOW_VOLUME of their rest volume, and the least V/V0 (measures.cell_volumes, the one prism-volume definition)."""
+    from scipy.spatial import cKDTree
+
     from tissue_sim.core.solver.measures import cell_volumes
+    tm = sim.tissue
     r = cell_volumes(sim, st.x) / cell_volumes(sim, sim.rest)
-    fat = np.asarray(sim.tissue.cell_muscle) < 0
+    fat = np.asarray(tm.cell_muscle) < 0
     inv = r < 0
+    where = {}
+    if inv.any() and len(tm.bone_vertices):     # each inverted cell by the segment of the bone nearest its rest centroid
+        off, cv = np.asarray(tm.cell_offsets), np.asarray(tm.cell_vertices)
+        cells = np.flatnonzero(inv)
+        cen = np.array([tm.rest_positions[cv[off[c]:off[c + 1]]].mean(0) for c in cells])
+        seg_of_vertex = np.repeat(np.asarray(tm.bone_segment), np.diff(tm.bone_vertex_offsets))
+        near = seg_of_vertex[cKDTree(tm.bone_vertices).query(cen)[1]]
+        for sgm, n in zip(*np.unique(near, return_counts=True)):
+            where[tm.segment_names[sgm]] = int(n)
     return {'inverted': int(inv.sum()), 'inverted_fat': int((inv & fat).sum()), 'inverted_muscle': int((inv & ~fat).sum()),
-            'below_low': int((r < LOW_VOLUME).sum()), 'low_volume': LOW_VOLUME, 'least_volume_ratio': round(float(r.min()), 4)}
+            'inverted_by_segment': where, 'below_low': int((r < LOW_VOLUME).sum()), 'low_volume': LOW_VOLUME,
+            'least_volume_ratio': round(float(r.min()), 4)}
 
 
 TORQUE_SOURCES = ('tissue on bound vertices', 'point via rings', 'contact and sheath reaction', 'passive fibres')
