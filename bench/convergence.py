@@ -173,15 +173,15 @@ def run_one(tm, params, duration, label, isometric=False, torques=False):
 
 def cell_health(sim, st) -> dict:
     """The cells' state at the end of a run (the finer limbs' meshes, docs/convergence.md): how many are inside out
-    (V/V0 < 0), split fat / muscle and by the segment of the bone nearest each one's rest centroid, how many are below
-    LOW_VOLUME of their rest volume, and the least V/V0 (measures.cell_volumes, the one prism-volume definition)."""
+    (V/V0 <= 0, contact.inverted_cells), split fat / muscle and by the segment of the bone nearest each one's rest
+    centroid, how many are below LOW_VOLUME of their rest volume, and the least V/V0."""
     from scipy.spatial import cKDTree
 
-    from tissue_sim.core.solver.measures import cell_volumes
+    from tissue_sim.core.solver.contact import inverted_cells
     tm = sim.tissue
-    r = cell_volumes(sim, st.x) / cell_volumes(sim, sim.rest)
+    _, _, r = inverted_cells(sim, st.x)
     fat = np.asarray(tm.cell_muscle) < 0
-    inv = r < 0
+    inv = r <= 0
     where = {}
     if inv.any() and len(tm.bone_vertices):     # each inverted cell by the segment of the bone nearest its rest centroid
         off, cv = np.asarray(tm.cell_offsets), np.asarray(tm.cell_vertices)

@@ -601,13 +601,10 @@ def anchor_muscle_ends(vslice, slice_z, verts, offsets, ctiss, cmus, mlabels, ta
 def _wrap_arrays(tab, mlabels, seg_names) -> dict:
     """The TissueModel's wrap_* fields from the table's wrap_surfaces of the model's muscles (mlabels, in muscle order):
     one surface per name, in the order they first appear, with the geometry of its first entry; its muscles those that
-    list it. UserError where two entries of one name differ or a segment is not the skeleton's."""
+    list it (their segments checked by load_tissue_table). UserError where two entries of one name differ."""
     surf, users = {}, {}
     for m, lab in enumerate(mlabels):
         for e in tab[lab].get('wrap_surfaces', []):
-            if e['segment'] not in seg_names:
-                raise UserError(f'label {lab} ({tab[lab]["name"]}): wrap surface {e["name"]!r}: segment {e["segment"]!r} '
-                                f'is not a segment of the skeleton (has {", ".join(seg_names)})')
             q = np.zeros(3) if e['quadrant'] is None else e['quadrant']
             row = np.concatenate([e['centre'], e['axis'], q, [e['radius'], e['length']]])
             seg = seg_names.index(e['segment'])
