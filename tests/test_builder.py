@@ -465,6 +465,7 @@ def test_bad_via_points_are_a_clear_error(bad, msg):
 
 @pytest.mark.parametrize('setting,msg', [({'via_mm': -1.0}, 'via_mm must be a number >= 0'),
                                          ({'via_points': 'yes'}, 'via_points must be true or false'),
+                                         ({'fat_follow': 'yes'}, 'fat_follow must be true or false'),
                                          ({'point_vias': 'flexor'}, 'point_vias must be true, false or a list'),
                                          ({'point_vias': ['flexor', 3]}, 'point_vias must be true, false or a list')])
 def test_bad_via_settings_are_a_clear_error(setting, msg):

@@ -131,7 +131,7 @@ def test_fat_inner_ring_keeps_its_vertices_apart_where_a_long_skin_faces_a_small
     assert np.abs(p - 0.6 * ring).max() < 1e-9
 
 
-def _pair_dp_numpy(I, dist, outer, g, G, even):
+def _pair_dp_numpy(I, dist, outer, g, G, even, quads=True):
     """contours._pair_dp written with numpy over the fine points (each step's candidates at once): the reference."""
     m1, n = dist.shape
     m = m1 - 1
@@ -151,6 +151,7 @@ def _pair_dp_numpy(I, dist, outer, g, G, even):
             tt, uu = t[ok], u[ok]
             ia, ib = I[tt], I[uu]
             valid = ((tri2(ia, ib, ob) < 0) & (tri2(ia, ob, oa) < 0)) | ((tri2(ia, ib, oa) < 0) & (tri2(ib, ob, oa) < 0))
+            valid |= not quads
             tt, uu = tt[valid], uu[valid]
             c = cost[tt] + (dist[uu, (k + 1) % n] if k < n - 1 else 0.0) + (dlt / even - 1.0) ** 2
             better = c < new[uu]
@@ -167,14 +168,51 @@ def _pair_dp_numpy(I, dist, outer, g, G, even):
     return cost[m], idx
 
 
-@pytest.mark.parametrize('case', ['foot', 'circles', 'star'])
+def _grown_toes(n=36):
+    """The foot's skin outline (_foot) and the next slice's, its front half stretched by up to 40 mm (the toes), its
+    heel half where it was: (the even ring of the first (anterior start), the first's and the second's fine outlines)."""
+    t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    a = np.stack([0.125 * np.cos(t), 0.035 * np.sin(t) * (1 + 0.15 * np.cos(t))], 1)
+    b = a.copy()
+    b[:, 0] = np.where(a[:, 0] > 0.0, a[:, 0] + 0.04 * (a[:, 0] / 0.125) ** 2, a[:, 0])
+    fine_a = CT.resample(a, CT.FINE * n)
+    ring_a, _ = CT.best_ring(fine_a, n, None, None)
+    return ring_a, fine_a, CT.resample(b, CT.FINE * n)
+
+
+def test_follow_ring_moves_each_vertex_as_little_as_its_outline_moves():
+    """contours.follow_ring (builder setting fat_follow): where an outline grows at one end between slices (the toes),
+    the even ring from the least-twist start (best_ring) slides every vertex along it, the heel's by ~1 spacing
+    although the heel's outline did not move; the ring that follows its predecessor keeps them in place (< 0.1
+    spacing), moves none further than the outline moved, and keeps its neighbours apart (INNER_FLOOR)."""
+    n = 36
+    ring_a, fine_a, fine_b = _grown_toes(n)
+    spacing = CT.polygon_perimeter(fine_b) / n
+    heel = ring_a[:, 0] < 0.0
+    even, _ = CT.best_ring(fine_b, n, ring_a, None)
+    follow = CT.follow_ring(fine_b, ring_a)
+    d_even, d_follow = np.linalg.norm(even - ring_a, axis=1), np.linalg.norm(follow - ring_a, axis=1)
+    assert d_even[heel].max() > 0.8 * spacing
+    assert d_follow[heel].max() < 0.1 * spacing
+    assert d_follow.max() <= 0.04 * 1.01                # the toes' tip moved 40 mm (the fine outline: within 1 %)
+    assert CT.is_simple(follow) and polygon_area(follow) > 0
+    assert CT.gaps(follow).min() >= 0.95 * CT.INNER_FLOOR * CT.polygon_perimeter(fine_b) / n
+    # on the ring's own outline it is the ring itself
+    assert np.abs(CT.follow_ring(fine_a, ring_a) - ring_a).max() < 1e-12
+
+
+@pytest.mark.parametrize('case', ['foot', 'circles', 'star', 'follow'])
 def test_pairing_kernel_matches_the_numpy_reference(case):
     """contours._pair_dp (numba) gives the numpy reference's cost and pairing bit for bit, from every start that
-    pair_inner tries, on the foot-like outline, concentric circles and a skin outline no pairing can face."""
+    pair_inner tries, on the foot-like outline, concentric circles and a skin outline no pairing can face, and
+    without the quads' test from every start follow_ring tries (a ring of the slice below)."""
     n = 36 if case != 'star' else 40
     t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    quads = case != 'follow'
     if case == 'foot':
         outer, inner = _foot(n)
+    elif case == 'follow':
+        outer, _, inner = _grown_toes(n)
     elif case == 'circles':
         a = np.linspace(0, 2 * np.pi, n, endpoint=False)
         outer = np.stack([0.05 * np.cos(a), 0.05 * np.sin(a)], 1)
@@ -189,11 +227,13 @@ def test_pairing_kernel_matches_the_numpy_reference(case):
     G = max(g, min(m // 2, int(np.ceil(6 * even))))
     d2 = np.sum((inner[:, None, :] - outer[None]) ** 2, axis=2)
     d2 *= CT.INNER_NEAR / (float(np.mean(np.min(d2, axis=0))) + 1e-24)
+    if not quads:
+        d2 = CT._follow_cost(inner, outer)
     found = 0
     for s0 in np.argsort(d2[:, 0], kind='stable')[:16]:
         off = (s0 + np.arange(m + 1)) % m
-        c, idx = CT._pair_dp(inner[off], d2[off], outer, g, G, even)
-        c_ref, idx_ref = _pair_dp_numpy(inner[off], d2[off], outer, g, G, even)
+        c, idx = CT._pair_dp(inner[off], d2[off], outer, g, G, even, quads)
+        c_ref, idx_ref = _pair_dp_numpy(inner[off], d2[off], outer, g, G, even, quads)
         assert c == c_ref and np.array_equal(idx, idx_ref)
         found += np.isfinite(c)
     assert (found == 0) == (case == 'star')
@@ -403,3 +443,18 @@ def test_a_region_enclosing_a_hole_is_reported_and_keeps_its_area():
     assert 0.9 <= q['volume_ratio']['flexor'] <= 1.1
     holes = [d for d in q['sections_not_followed'] if d['muscle'] == 'flexor']
     assert len(holes) == len(tm.slice_z) and all('hole' in d['how'] for d in holes)
+
+
+def test_fat_follow_from_the_command_line(tmp_path):
+    """`tissue-sim build-model --fat-follow` builds with the setting (the model's settings say so) and valid fat
+    cells; the default is off (the even rings)."""
+    from phantoms import write_phantom
+    from tissue_sim.cli import main
+    lab, tab = write_phantom('column', tmp_path, 'nii')
+    for flag, want in (('--fat-follow', True), (None, False)):
+        out = tmp_path / f'm_{want}.npz'
+        assert main(['build-model', str(lab), '--tissues', str(tab), '-o', str(out), '--slice-mm', '25']
+                    + ([flag] if flag else [])) == 0
+        tm = M.TissueModel.load(out)
+        assert tm.meta['settings']['fat_follow'] is want
+        assert np.all(cell_volumes(tm) > 0)

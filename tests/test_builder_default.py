@@ -263,3 +263,24 @@ def test_no_free_vertex_inside_a_bone_at_rest(built):
     assert set(before) <= set(moved.tolist())      # (without the move one more is hidden by the tibia: bound there)
     assert np.all(np.linalg.norm(tm.rest_positions[moved] - raw.rest_positions[moved], axis=1) < 3.0e-3)
     assert "'free_vertices_moved_out_of_bones': %d" % len(moved) in str(rep) and len(moved) == 14
+
+
+@pytest.mark.slow
+def test_fat_rings_that_follow_the_slice_below(built):
+    """Builder setting fat_follow (docs/builder.md "Fat tube"): on the bundled limb the fat rings that follow their
+    predecessors slant less between slices (their cells' centroid offset over height: p95 and max lower than the even
+    rings'), no two neighbouring inner vertices crowd together (the even rings' foot ring: 2.4 % of the even spacing),
+    and the tube is the same: as many fat cells, none inverted, its volume within 3 % of the fat label's."""
+    from tissue_sim.core.builder import contours
+    lab, tis = builder.default_inputs()
+    tm, rep = builder.build_model(lab, tis, fat_follow=True)
+    even, follow = built[1]['quality'], rep['quality']
+    assert follow['shear']['fat']['slant_p95'] < even['shear']['fat']['slant_p95']
+    assert follow['shear']['fat']['slant_max'] < even['shear']['fat']['slant_max']
+    assert even['fat_inner_spacing']['min_ratio'] < 0.1
+    assert follow['fat_inner_spacing']['min_ratio'] >= 0.9 * contours.INNER_FLOOR
+    assert follow['shear']['fat']['cells'] == even['shear']['fat']['cells']
+    assert abs(follow['volume_ratio']['fat'] - 1.0) < 0.03
+    fat = tm.cell_tissue == M.TISSUE_FAT
+    from tissue_sim.core import geometry
+    assert np.all(geometry.prism_volumes(tm.rest_positions, tm.cell_offsets, tm.cell_vertices, fat) > 0)

@@ -40,6 +40,10 @@ def add_arguments(p):
     g.add_argument('--min-fat-mm', type=float, default=D['min_fat_mm'], help='minimum fat thickness [mm] (default %(default)s)')
     g.add_argument('--sections', choices=('contour', 'rays'), default=D['sections'],
                    help="cross-sections: the traced label outline (default) or the paper's rays from the centroid")
+    g.add_argument('--fat-follow', action=argparse.BooleanOptionalAction, default=D['fat_follow'],
+                   help="contour sections: each fat ring's vertices follow their predecessors on the slice below instead of "
+                        "an even ring from the least-twist start (default off; fewer sheared fat cells on finer models, "
+                        "--refine; docs/builder.md \"Fat tube\")")
     g.add_argument('--max-fragment', type=float, default=D['max_fragment'], metavar='SHARE',
                    help="a piece of a muscle cut off from its main part by slices without its label and holding at most this "
                         "share of its volume is left out with a warning (default %(default)s; 0: every such piece is a break)")
@@ -66,7 +70,7 @@ def _settings(args) -> dict:
             'via_points': args.via_points, 'min_area_mm2': args.min_area_mm2, 'min_fat_mm': args.min_fat_mm, 'ray_hit': args.ray_hit, 'ray_origin': args.ray_origin,
             'bone_mesh_step': args.bone_mesh_step, 'allow_missing': args.allow_missing, 'sections': args.sections,
             'allow_broken': args.allow_broken, 'shear_limit': args.shear_limit, 'refine': args.refine,
-            'max_fragment': args.max_fragment}
+            'max_fragment': args.max_fragment, 'fat_follow': args.fat_follow}
 
 
 def _check_arguments(args) -> dict:

@@ -59,6 +59,9 @@ DEFAULTS = {
     'min_fat_mm': 2.0,         # minimum fat thickness along a fat ray [mm]
     'min_cell_volume_mm3': 1.0,  # cells below this volume are degenerate (dropped, reported)
     'sections': 'contour',     # cross-sections: 'contour' (traced label outline, area kept) or 'rays' (the paper's)
+    'fat_follow': False,       # contour sections: each fat ring's vertices follow their predecessors on the slice below
+                               # (contours.follow_ring, pair_inner) instead of an even ring from the least-twist start
+                               # (fewer sheared fat cells on finer models; docs/builder.md "Fat tube")
     'allow_broken': False,     # a muscle whose chain breaks between slices: warning instead of error
     'tendon_frac': 0.3,        # a muscle section of at most this x the muscle's largest is thin (a tendon) ...
     'merge_tol': 0.25,         # ... and is one longer cell with its neighbours where it lies within this x the
@@ -217,7 +220,7 @@ def settings_with_defaults(settings: dict) -> dict:
         s['point_vias'] = sorted(set(s['point_vias']))
     elif not isinstance(s['point_vias'], bool):
         raise UserError(f'point_vias must be true, false or a list of muscle names, got {s["point_vias"]!r}')
-    for k in ('anchor_muscles', 'via_points'):
+    for k in ('anchor_muscles', 'via_points', 'fat_follow'):
         if not isinstance(s[k], bool):
             raise UserError(f'{k} must be true or false, got {s[k]!r}')
     if s['attach_mm'] is not None and not (math.isfinite(s['attach_mm']) and s['attach_mm'] >= 0):
@@ -832,7 +835,7 @@ def build(vol: LabelVolume, table: dict, settings: dict | None = None, progress=
         def fallback(zi, ref):          # contour rings that cross: the paper's rays on that slice, least twist (core)
             return CT.turn_rays(lambda off: S.fat_rays(vol.labels[:, :, ks[zi]], geoms[zi], bone_labels, fat_labels, nf,
                                                        s['min_fat_mm'] / 1000.0, off, FALLBACK_CORE), nf, ref)
-        fats, bad = CT.fat_rings(fats, nf, s['min_fat_mm'] / 1000.0, fallback)
+        fats, bad = CT.fat_rings(fats, nf, s['min_fat_mm'] / 1000.0, fallback, s['fat_follow'])
         for zi in bad:
             warnings.append(f'slice {zi}: the fat layer\'s outlines give crossing cells: rays used on this slice')
     fat_ring = []

@@ -7,6 +7,8 @@ ring is every ``FINE``-th of them from a start index chosen per chain so that co
 vertices of neighbouring slices lie as close as possible after the two centroids are aligned
 (least twist and shear). Each ring is then offset along its vertex normals until its area is the
 region's target area (the chord polygon of a convex outline loses area, of a concave one gains).
+With the builder setting ``fat_follow`` the fat tube's rings are placed vertex by vertex instead, each vertex near its
+predecessor on the slice below (``follow_ring``, ``pair_inner`` with ``prev``; docs/builder.md "Fat tube").
 """
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ INNER_FLOOR = 0.5        # pair_inner: least spacing of the fat layer's inner ve
 ANGLE_MIN_GAP = 0.02     # fat_rings: the pairing by angle is kept where its inner points are at least this x the even
                          # spacing apart (the bundled limb's foot ring: 0.024); closer, pair_inner replaces it
 INNER_NEAR = 0.1         # pair_inner: weight of the pairing lengths against the spacing's evenness
+FOLLOW_NEAR = 0.5        # follow_ring, pair_inner(prev=): weight of a vertex's squared distance from its predecessor on
+                         # the slice below (in even spacings) against the spacing's evenness (builder setting fat_follow)
 
 
 def outline_px(mask: np.ndarray) -> np.ndarray | None:
@@ -300,28 +304,42 @@ def chain_rings(chains: list, regions: list, lab: int, n: int, counts: np.ndarra
             ref = reg.ring[:, :2]
 
 
-def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tuple[list, list]:
+def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None, follow: bool = False) -> tuple[list, list]:
     """Fat tube rings from the slices' fine outlines (slices.fat_contours): the skin ring's start by
     least twist against the slice below, the inner ring's start by least distance to the skin ring
     of its slice (so that inner a and outer a face each other across the layer), both area-matched;
-    the inner point is kept ``min_thickness_m`` inside the outer one. Returns dicts like
+    the inner point is kept ``min_thickness_m`` inside the outer one. With ``follow`` (builder setting
+    fat_follow) each ring follows its predecessor on the slice below instead where that fits: the skin ring
+    by follow_ring, the inner ring by pair_inner with prev (facing the skin ring and near the inner ring below);
+    the even rings above where it does not. Returns dicts like
     slices.fat_rays (inner, outer (n, 3), origin, has_bone, fat_area_mm2), and the slices whose
     outlines still gave a crossing cell: there ``fallback(slice, outer ring below)`` (the paper's
     rays, turned to the least twist against the ring below) is used when given."""
-    out, ref, f_bad = [], None, []
+    out, ref, ref_in, f_bad = [], None, None, []
     for f in fats:
         ref_prev = ref
         if 'fine' not in f and 'outer_area' not in f:
             out.append(f)                           # ray fallback of an untraceable slice
-            ref = f['outer'][:, :2]
+            ref, ref_in = f['outer'][:, :2], f['inner'][:, :2]
             continue
         z = f['z']
-        o, _ = best_ring(f['outer'], n, ref, f['outer_area'])
+        o = follow_ring(f['outer'], ref) if follow and ref is not None else None
+        if o is not None:
+            o = match_area(o, f['outer_area'])
+            if not (is_simple(o) and polygon_area(o) > 0):
+                o = None
+        if o is None:
+            o, _ = best_ring(f['outer'], n, ref, f['outer_area'])
         if o is None:
             o = ring_at(f['outer'], anterior_start(f['outer'], n), n)
         co = o.mean(axis=0)
         inn, crowded = None, False
-        if f['inner'] is not None:
+        if f['inner'] is not None and follow and ref_in is not None:
+            p = pair_inner(f['inner'], o, prev=ref_in)
+            if p is not None:
+                pm = match_area(p, f['inner_area'])
+                inn = pm if fat_quads_valid(pm, o) else p
+        if f['inner'] is not None and inn is None:
             inn, _ = best_ring(f['inner'], n, o, f['inner_area'], centred=False)
             if inn is not None and not fat_quads_valid(inn, o):
                 # a small inner region off the skin's centre (the foot): pair by angle about it instead, and where
@@ -353,8 +371,10 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None) -> tupl
                 fb = fallback(len(out), ref_prev)
                 out.append(fb)
                 ref = ref_prev = fb['outer'][:, :2]
+                ref_in = fb['inner'][:, :2]
                 continue
         ref_prev = ref
+        ref_in = inn
 
         def pts(xy):
             return np.concatenate([xy, np.full((n, 1), z)], axis=1)
@@ -374,13 +394,14 @@ def pair_by_angle(fine: np.ndarray, outer: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _pair_dp(I, dist, outer, g, G, even):
-    """pair_inner's dynamic programme for one start: I (m + 1, 2) the fine points from the start (the last the start
-    again), dist (m + 1, n) the weighted squared pairing lengths. Skin vertex k + 1 pairs with fine point u, reached
-    from k's t = u - dlt (g <= dlt <= G), when the quad (I[t], I[u], outer[k + 1], outer[k]) is a simple clockwise
-    quad; the cost adds dist[u, k + 1] (the last step: u = m, the start) and (dlt / even - 1)^2. Returns (least cost
-    at the start, inf when none, and the fine index of each skin vertex). Ties go to the smaller dlt, then the
-    smaller t (the order in which they are tried)."""
+def _pair_dp(I, dist, outer, g, G, even, quads=True):
+    """pair_inner's (and follow_ring's) dynamic programme for one start: I (m + 1, 2) the fine points from the start
+    (the last the start again), dist (m + 1, n) the weighted squared pairing lengths. Vertex k + 1 of ``outer`` pairs
+    with fine point u, reached from k's t = u - dlt (g <= dlt <= G), when the quad (I[t], I[u], outer[k + 1],
+    outer[k]) is a simple clockwise quad (``quads``; False: any step, outer the ring of another slice); the cost adds
+    dist[u, k + 1] (the last step: u = m, the start) and (dlt / even - 1)^2. Returns (least cost at the start, inf
+    when none, and the fine index of each vertex of outer). Ties go to the smaller dlt, then the smaller t (the order
+    in which they are tried)."""
     m1, n = dist.shape
     m = m1 - 1
     cost = np.full(m1, np.inf)
@@ -408,7 +429,7 @@ def _pair_dp(I, dist, outer, g, G, even):
                 if (u != m) if k == n - 1 else (u > last):
                     continue
                 ax, ay, bx, by = I[t, 0], I[t, 1], I[u, 0], I[u, 1]
-                if not (((_tri2s(ax, ay, bx, by, obx, oby) < 0) and (_tri2s(ax, ay, obx, oby, oax, oay) < 0))
+                if quads and not (((_tri2s(ax, ay, bx, by, obx, oby) < 0) and (_tri2s(ax, ay, obx, oby, oax, oay) < 0))
                         or ((_tri2s(ax, ay, bx, by, oax, oay) < 0) and (_tri2s(bx, by, obx, oby, oax, oay) < 0))):
                     continue
                 c = cost[t] + (dist[u, (k + 1) % n] if k < n - 1 else 0.0) + (dlt / even - 1.0) ** 2
@@ -426,28 +447,56 @@ def _pair_dp(I, dist, outer, g, G, even):
     return cost[m], idx
 
 
-def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, n_starts: int = 16) -> np.ndarray | None:
+def pair_inner(fine: np.ndarray, outer: np.ndarray, floor: float = INNER_FLOOR, n_starts: int = 16,
+               prev: np.ndarray | None = None) -> np.ndarray | None:
     """The fat layer's inner ring paired with the skin ring ``outer`` (n, 2, CCW) on the fine inner outline ``fine``
     (m, 2, CCW): indices in order along the outline, each step at least ``floor`` x and at most 6 x the even spacing
     m/n, every quad (inner a, inner b, outer b, outer a) a simple clockwise quad (one diagonal inside), with the least
     sum of squared deviations (in even spacings) from the even spacing plus INNER_NEAR x the squared pairing lengths
-    (over the mean squared thickness).
+    (over the mean squared thickness), plus, with ``prev`` (n, 2: the inner ring of the slice below), FOLLOW_NEAR x
+    each inner vertex's squared distance from its predecessor there (in even spacings of the outline).
     A dynamic programme over the fine points, for the ``n_starts`` starts nearest to outer[0]. None when no pairing
     gives valid quads. The floor keeps neighbouring inner vertices apart where a long skin outline faces a short inner
     one (the foot): there, pairing by nearness or by angle makes near-degenerate wedge cells."""
+    d2 = np.sum((fine[:, None, :] - outer[None]) ** 2, axis=2)     # (m, n) squared pairing lengths
+    d2 *= INNER_NEAR / (float(np.mean(np.min(d2, axis=0))) + 1e-24)
+    if prev is not None:
+        d2 += _follow_cost(fine, prev)
+    return _least_pairing(fine, d2, outer, floor, n_starts, True)
+
+
+def follow_ring(fine: np.ndarray, prev: np.ndarray, floor: float = INNER_FLOOR, n_starts: int = 8) -> np.ndarray | None:
+    """The ring of n = len(prev) vertices on the fine outline ``fine`` (m, 2, CCW) that follows ``prev`` (n, 2: the
+    ring of the slice below): indices in order along the outline, each step at least ``floor`` x and at most 6 x the
+    even spacing m/n, with the least sum of FOLLOW_NEAR x each vertex's squared distance from its predecessor (in even
+    spacings of the outline) plus the squared deviations of the steps from the even spacing (_pair_dp without the
+    quads' test). Where an outline changes its shape between slices (the sole, the toes), an even ring from the best
+    start (best_ring) moves its vertices along the outline by many spacings; this one moves each as little as the
+    spacing allows. None when no pairing fits."""
+    return _least_pairing(fine, _follow_cost(fine, prev), prev, floor, n_starts, False)
+
+
+def _follow_cost(fine: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """(m, n) FOLLOW_NEAR x the squared distances of the fine points from the vertices of the ring below, in even
+    spacings of the fine outline (perimeter / n)."""
+    spacing = polygon_perimeter(fine) / len(prev)
+    return FOLLOW_NEAR * np.sum((fine[:, None, :] - prev[None]) ** 2, axis=2) / (spacing ** 2 + 1e-24)
+
+
+def _least_pairing(fine, dist, outer, floor, n_starts, quads):
+    """The least-cost pairing (_pair_dp) of the fine outline with the n vertices of ``outer`` over the ``n_starts``
+    starts of least dist to outer[0]; the paired fine points (n, 2), or None when no start gives one."""
     m, n = len(fine), len(outer)
     even = m / n
     g = max(1, int(np.ceil(floor * even)))
     G = max(g, min(m // 2, int(np.ceil(6 * even))))
     if g * n > m:
         return None
-    d2 = np.sum((fine[:, None, :] - outer[None]) ** 2, axis=2)     # (m, n) squared pairing lengths
-    d2 *= INNER_NEAR / (float(np.mean(np.min(d2, axis=0))) + 1e-24)
     best, best_cost = None, np.inf
-    for s0 in np.argsort(d2[:, 0], kind='stable')[:n_starts]:
+    for s0 in np.argsort(dist[:, 0], kind='stable')[:n_starts]:
         off = (s0 + np.arange(m + 1)) % m                           # offsets 0 .. m from the start (m: the start again)
-        I, dist = fine[off], d2[off]
-        c, idx = _pair_dp(I, dist, outer, g, G, even)
+        I, d = fine[off], dist[off]
+        c, idx = _pair_dp(I, d, outer, g, G, even, quads)
         if np.isfinite(c) and c < best_cost:
             best_cost, best = c, I[idx]
     return None if best is None else best.copy()
