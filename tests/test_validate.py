@@ -207,6 +207,10 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     (['--set', 'wrap_surfaces'], '--set: '),
     (['--set', 'bone_contact=maybe'], 'bone_contact must be a bool'),
     (['--set', 'fold_contact=', '--kinematics'], '--kinematics evaluates the source model only'),
+    (['--build', 'fat_follow=maybe'], '--build: fat_follow must be true or false'),
+    (['--build', 'bogus=1'], '--build: unknown builder setting(s): bogus'),
+    (['--build', 'fat_follow'], "--build: 'fat_follow': expected NAME=VALUE"),
+    (['--build', 'fat_follow=true', '--kinematics'], '--build and --kinematics'),
 ])
 def test_bad_arguments_one_line_exit_2(tmp_path, capsys, argv, msg):
     out = tmp_path / 'out'
@@ -228,6 +232,7 @@ def test_validate_no_via_points_validates_the_ends_only_build(tmp_path, capsys):
     assert main(['validate', '-o', str(out), '--no-via-points', '--angles', '0,60', '--settle', '0.2', '--quiet']) == 0
     res = json.loads((out / 'validation_physical.json').read_text())
     assert res['via_points'] is False and len(res['torque']['hamstrings_active']) == 2
+    assert res['build'] == {'via_points': False}           # (the same as --build via_points=false)
 
 
 def test_set_changes_the_parameter_set_and_the_json_records_it(tmp_path, capsys):

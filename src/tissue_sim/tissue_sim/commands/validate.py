@@ -34,6 +34,9 @@ def add_arguments(p):
     p.add_argument('--no-via-points', dest='via_points', action='store_false',
                    help='the bundled limb built without the builder setting via_points (only the muscles\' end rings fixed to '
                         'their bones, as the paper; docs/builder.md "Via points")')
+    p.add_argument('--build', action='append', default=[], metavar='NAME=VALUE',
+                   help='a builder setting of the bundled limb (repeatable; VALUE read as YAML, e.g. fat_follow=true; '
+                        'docs/builder.md): validates that build instead of the default one; the JSON records them')
     p.add_argument('--set', action='append', default=[], metavar='NAME=VALUE', dest='overrides',
                    help='change a field of the parameter set (repeatable; VALUE read as YAML, e.g. wrap_surfaces= or '
                         'fold_contact=knee; docs/solver.md); the JSON records them')
@@ -70,10 +73,12 @@ def run(args) -> int:
         raise UserError('--passive and --kinematics: choose one')
     if not args.via_points and args.kinematics:
         raise UserError('--no-via-points and --kinematics: --kinematics evaluates the source model only')
-    model = None
-    if not args.via_points:
+    if args.build and args.kinematics:
+        raise UserError('--build and --kinematics: --kinematics evaluates the source model only')
+    model, build = None, _build_settings(args)
+    if build:
         from tissue_sim.core.builder import default_model
-        model = default_model(via_points=False)
+        model = default_model(**build)
     if args.passive:
         return _run_passive(args, con, out, V, progress, model)
     if args.kinematics:
@@ -84,11 +89,30 @@ def run(args) -> int:
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
+    res['build'] = build
     jpath, ppath = _write(out, f'validation_{args.params}', res, V.jsonable, V.plot)
     _print(con, res, args.quiet)
     con.print(f'wrote {jpath} and {ppath} ({res["wall_s"]} s)')
     failed = [k for k, v in res['targets'].items() if v['pass'] is False]
     return 1 if (args.strict and failed) else 0
+
+
+def _build_settings(args) -> dict:
+    """The builder settings of --build (and --no-via-points) as a dict, checked before anything runs: UserError naming
+    the bad one (one line, exit 2)."""
+    from tissue_sim.core.builder import settings_with_defaults
+    from tissue_sim.core.solver.params import parse_assignments
+    try:
+        build = parse_assignments(args.build, '--build')
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    if not args.via_points:
+        build['via_points'] = False
+    try:
+        settings_with_defaults(build)
+    except UserError as e:
+        raise UserError(f'--build: {e}') from None
+    return build
 
 
 def _write(out, stem, res, jsonable, plot):
@@ -147,6 +171,7 @@ def _run_passive(args, con, out, V, progress, model=None):
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
+    res['build'] = _build_settings(args)
     jpath, ppath = _write(out, f'passive_{args.params}', res, V.jsonable, V.plot_passive)
     from rich.table import Table
     pc = res['passive_curve']
