@@ -4,7 +4,7 @@ from t = 0) on the bundled limb built 1x, 3x and 6x finer (`build-model --refine
 
     . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--integrator NAME] [--substeps unscaled|set|matched|N]
                                               [--duration 0.3] [--out DIR] [--quick] [--set NAME=VALUE ...] [--isometric]
-                                              [--build NAME=VALUE ...] [--torques]
+                                              [--build NAME=VALUE ...] [--torques] [--time-reference N]
 
 For each refinement: vertices, cells, sub-steps per 1-ms step, steps per CPU second (one thread, the
 stepping alone), the knee angle every 10 ms (or the step where the run diverged), the cells inside out at the end
@@ -25,6 +25,8 @@ field of the physical set changed (what a term costs: the same table with and wi
 at 0 deg by the joint lock; the series compared is the hamstrings' knee torque [N m] instead of the angle. --build
 NAME=VALUE (repeatable): a builder setting of the models (e.g. point_vias=false). --torques: the knee torque of each
 source the skeleton step takes (torque_sources), printed every 30 ms and in the JSON: where a lag comes from.
+--time-reference N: each model also run at N sub-steps per step, and the table gives each model's difference to that
+run (max / RMS): the time step's share of the differences, apart from the mesh's (docs/convergence.md).
 """
 from __future__ import annotations
 
@@ -263,9 +265,11 @@ def plot(runs, path, title):
 
 def markdown(out) -> str:
     unit = 'deg' if not out['runs'] or out['runs'][0]['series'] == 'knee_deg' else 'N m'
+    tr = next((r['time_reference']['substeps'] for r in out['runs'] if r.get('time_reference')), None)
     rows = [f'| model | vertices | cells | integrator, sub-steps | added mass | steps/CPU s | knee at end | '
-            f'cells inverted at end (fat / muscle; least V/V0) | diff. to next finer: max / RMS [{unit}] |',
-            '|---|---|---|---|---|---|---|---|---|']
+            f'cells inverted at end (fat / muscle; least V/V0) | diff. to next finer: max / RMS [{unit}] |'
+            + (f' at x{tr}: end; diff. max / RMS [{unit}] |' if tr else ''),
+            '|---|---|---|---|---|---|---|---|---|' + ('---|' if tr else '')]
     for i, r in enumerate(out['runs']):
         d = out['differences'][i] if i < len(out['differences']) else None
         k = r['series']
@@ -276,8 +280,14 @@ def markdown(out) -> str:
         m = r.get('cells_at_end')
         inv = (f'{m["inverted"]} ({m["inverted_fat"]} / {m["inverted_muscle"]}; {m["least_volume_ratio"]:.2f})'
                if m else '-')
+        ref = r.get('time_reference')
+        td = ''
+        if tr:
+            rd = ref['difference'] if ref else None
+            td = (f' {ref["at_end"]:.1f}; {rd["max_deg"]} / {rd["rms_deg"]} |' if rd and ref['at_end'] is not None
+                  else ' - |')
         rows.append(f'| {r["label"]} | {r["vertices"]:,} | {r["cells"]:,} | {r["integrator"]} x{r["substeps"]} | '
-                    f'{r["added_mass_percent"]:g} % | {r["steps_per_cpu_s"]:,.1f} | {end} | {inv} | {dd} |')
+                    f'{r["added_mass_percent"]:g} % | {r["steps_per_cpu_s"]:,.1f} | {end} | {inv} | {dd} |' + td)
     return '\n'.join(rows)
 
 
@@ -310,6 +320,9 @@ def main():
                     help='also the knee torque of each source the skeleton step takes (the bound vertices, the point '
                          'via rings, the contact and sheath reaction, the passive fibres), every 30 ms (its cost is '
                          'in the steps/CPU s then)')
+    ap.add_argument('--time-reference', type=int, default=None, metavar='N',
+                    help='also run each model at N sub-steps per step and give its difference to that run (the time '
+                         "step's share of the differences)")
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
     a = ap.parse_args()
     if a.quick:
@@ -326,6 +339,8 @@ def main():
     mode = a.substeps or ('unscaled' if integ == 'mass_scaled' else 'set')
     if mode not in ('set', 'matched', 'unscaled') and not (mode.isdigit() and int(mode) >= 1):
         sys.exit(f"error: --substeps {mode!r}: expected set, matched, unscaled or an integer >= 1")
+    if a.time_reference is not None and a.time_reference < 2:
+        sys.exit(f'error: --time-reference {a.time_reference}: expected an integer >= 2 (sub-steps per step)')
     if mode in ('matched', 'unscaled') and integ != 'mass_scaled':
         sys.exit(f'error: --substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
     from tissue_sim.core.builder import default_model
@@ -367,6 +382,16 @@ def main():
             w = solver.compile_model(tm, dataclasses.replace(base, substeps=1).validate()).omega_max
             params = dataclasses.replace(base, substeps=int(math.ceil(sub * w / omega1 - 1e-9))).validate()
         r, _ = run_one(tm, params, a.duration, f'{R:g}x', isometric=a.isometric, torques=a.torques and not a.isometric)
+        if a.time_reference:       # the same model at N sub-steps: the time step's share of the differences
+            ref, _ = run_one(tm, dataclasses.replace(params, substeps=a.time_reference).validate(), a.duration,
+                             f'{R:g}x at x{a.time_reference}', isometric=a.isometric)
+            k = r['series']
+            r['time_reference'] = {'substeps': a.time_reference, 'at_end': ref[k][-1] if ref[k] else None,
+                                   'diverged': ref['diverged'], 'difference': differences(r, ref)}
+            d = r['time_reference']['difference']
+            if d:
+                print(f'{R:g}x against x{a.time_reference}: max {d["max_deg"]}, RMS {d["rms_deg"]} (up to {d["up_to_s"]} s)',
+                      flush=True)
         if 'torque_sources_Nm' in r:
             print(f'{R:g}x: knee torque by source [N m, flexing +]:\n' + torque_table(r), flush=True)
         r['refine'] = R
@@ -381,7 +406,7 @@ def main():
         pass
     out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
                          '--activate hamstrings=1)' + ('; the knee held at 0 deg, its torque' if a.isometric else ''), 'integrator': integ, 'substeps_mode': mode,
-           'duration_s': a.duration, 'stiffness': a.stiffness, 'set': list(a.set), 'build': build, 'isometric': a.isometric, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
+           'duration_s': a.duration, 'time_reference_substeps': a.time_reference, 'stiffness': a.stiffness, 'set': list(a.set), 'build': build, 'isometric': a.isometric, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
     out['differences_shrink'] = shrinking(diffs)
     od = Path(a.out)
