@@ -291,6 +291,12 @@ def markdown(out) -> str:
     return '\n'.join(rows)
 
 
+def bad_argument(msg: str):
+    """A bad argument: one line on stderr, exit 2, nothing written."""
+    print(f'error: {msg}', file=sys.stderr)
+    sys.exit(2)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--refine', default='1,3,6', help='refinements of the bundled limb, comma-separated (default 1,3,6)')
@@ -331,26 +337,24 @@ def main():
     try:
         refs = parse_refinements(a.refine)
     except ValueError as e:
-        print(f'error: {e}', file=sys.stderr)
-        sys.exit(2)
+        bad_argument(str(e))
     if not (0 < a.duration <= 10):
-        sys.exit('error: --duration must be in (0, 10] s')
+        bad_argument('--duration must be in (0, 10] s')
     integ = a.integrator or default_integrator()
     mode = a.substeps or ('unscaled' if integ == 'mass_scaled' else 'set')
     if mode not in ('set', 'matched', 'unscaled') and not (mode.isdigit() and int(mode) >= 1):
-        sys.exit(f"error: --substeps {mode!r}: expected set, matched, unscaled or an integer >= 1")
+        bad_argument(f"--substeps {mode!r}: expected set, matched, unscaled or an integer >= 1")
     if a.time_reference is not None and a.time_reference < 2:
-        sys.exit(f'error: --time-reference {a.time_reference}: expected an integer >= 2 (sub-steps per step)')
+        bad_argument(f'--time-reference {a.time_reference}: expected an integer >= 2 (sub-steps per step)')
     if mode in ('matched', 'unscaled') and integ != 'mass_scaled':
-        sys.exit(f'error: --substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
+        bad_argument(f'--substeps {mode} is for mass_scaled (explicit takes its stable sub-steps itself: set)')
     from tissue_sim.core.builder import default_model
     from tissue_sim.errors import UserError
     try:
         build = P.parse_assignments(a.build, 'builder settings')
         base = P.Params.from_assignments('physical', a.set, integrator=integ)
     except ValueError as e:
-        print(f'error: {e}', file=sys.stderr)      # (names builder settings or solver parameters)
-        sys.exit(2)
+        bad_argument(str(e))      # (names builder settings or solver parameters)
     if a.active_length:
         base = dataclasses.replace(base, active_length=a.active_length).validate()
     if integ == 'explicit' and mode == 'set':
@@ -362,8 +366,7 @@ def main():
         try:
             tm = default_model(refine=R, **build)
         except UserError as e:        # a bad builder setting: one line, exit 2
-            print(f'error: --build: {e}', file=sys.stderr)
-            sys.exit(2)
+            bad_argument(f'--build: {e}')
         ratio = moment_ratio(tm, base)
         if a.stiffness == 'moment':
             tm = with_moment_stiffness(tm, base, c_ref)
