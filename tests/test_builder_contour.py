@@ -225,9 +225,10 @@ def test_pairing_kernel_matches_the_numpy_reference(case):
     even = m / n
     g = max(1, int(np.ceil(CT.INNER_FLOOR * even)))
     G = max(g, min(m // 2, int(np.ceil(6 * even))))
-    d2 = np.sum((inner[:, None, :] - outer[None]) ** 2, axis=2)
-    d2 *= CT.INNER_NEAR / (float(np.mean(np.min(d2, axis=0))) + 1e-24)
-    if not quads:
+    if quads:
+        d2 = np.sum((inner[:, None, :] - outer[None]) ** 2, axis=2)
+        d2 *= CT.INNER_NEAR / (float(np.mean(np.min(d2, axis=0))) + 1e-24)
+    else:
         d2 = CT._follow_cost(inner, outer)
     found = 0
     for s0 in np.argsort(d2[:, 0], kind='stable')[:16]:

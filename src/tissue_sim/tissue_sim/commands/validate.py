@@ -80,7 +80,7 @@ def run(args) -> int:
         from tissue_sim.core.builder import default_model
         model = default_model(**build)
     if args.passive:
-        return _run_passive(args, con, out, V, progress, model)
+        return _run_passive(args, con, out, V, progress, model, build)
     if args.kinematics:
         return _run_kinematics(args, con, out, V, angles)
     try:
@@ -161,7 +161,7 @@ def _run_kinematics(args, con, out, V, angles):
     return 0
 
 
-def _run_passive(args, con, out, V, progress, model=None):
+def _run_passive(args, con, out, V, progress, model=None, build=None):
     angles = None if args.angles == '0:120:10' else V.parse_angles(args.angles)
     settle = 0.5 if args.settle == 1.0 else args.settle
     t0 = time.perf_counter()
@@ -171,7 +171,7 @@ def _run_passive(args, con, out, V, progress, model=None):
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
-    res['build'] = _build_settings(args)
+    res['build'] = build or {}
     jpath, ppath = _write(out, f'passive_{args.params}', res, V.jsonable, V.plot_passive)
     from rich.table import Table
     pc = res['passive_curve']

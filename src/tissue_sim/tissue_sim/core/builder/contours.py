@@ -337,8 +337,7 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None, follow:
         if f['inner'] is not None and follow and ref_in is not None:
             p = pair_inner(f['inner'], o, prev=ref_in)
             if p is not None:
-                pm = match_area(p, f['inner_area'])
-                inn = pm if fat_quads_valid(pm, o) else p
+                inn = _matched_if_valid(p, f['inner_area'], o)
         if f['inner'] is not None and inn is None:
             inn, _ = best_ring(f['inner'], n, o, f['inner_area'], centred=False)
             if inn is not None and not fat_quads_valid(inn, o):
@@ -350,8 +349,7 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None, follow:
                 if not fat_quads_valid(inn, o) or gaps(inn).min() < ANGLE_MIN_GAP * even:
                     p = pair_inner(fi, o)
                     if p is not None:
-                        pm = match_area(p, f['inner_area'])
-                        inn = pm if fat_quads_valid(pm, o) else p
+                        inn = _matched_if_valid(p, f['inner_area'], o)
                     else:
                         crowded = True          # no pairing gives distinct points and valid quads: rays
         if inn is None:
@@ -381,6 +379,13 @@ def fat_rings(fats: list, n: int, min_thickness_m: float, fallback=None, follow:
         out.append({'origin': np.array([co[0], co[1], z]), 'inner': pts(inn), 'outer': pts(o), 'has_bone': f['has_bone'],
                     'fat_area_mm2': f['fat_area_mm2']})
     return out, f_bad
+
+
+def _matched_if_valid(inner: np.ndarray, area: float, outer: np.ndarray) -> np.ndarray:
+    """A paired inner ring area-matched to ``area`` (match_area) where its quads with the skin ring ``outer`` stay
+    valid (fat_quads_valid), else as paired."""
+    m = match_area(inner, area)
+    return m if fat_quads_valid(m, outer) else inner
 
 
 def pair_by_angle(fine: np.ndarray, outer: np.ndarray) -> np.ndarray:
