@@ -3,7 +3,7 @@ same step in plain numpy (solver.reference_step) and with pypbd's shape matching
 same cells; then the thread scaling of the step.
 
     .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3] [--fine FILE.npz] [--threads 1,2] [--refine R]
-                                     [--quick] [--ab N] [--stages I]
+                                     [--quick] [--ab N] [--stages I] [--sizes R,R,...]
 
 The physical set runs with its mass_scaled integrator (4 sub-steps) and, beside it, with the implicit integrator (one
 sub-step of 1 ms; docs/solver.md "Implicit integrator"). --fine: the same two on a finer model (e.g. from
@@ -20,7 +20,9 @@ resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only
 only the physical set, mass_scaled (affine and enclosed volume) beside implicit (all with the hamstring sheath) and
 implicit without it, N
 alternating rounds (ab_rates): the ratio the issue's target is about, on a shared machine. --stages I: the implicit
-step's stages timed one by one (stage_times; --refine R: on the refined limb), where its time goes.
+step's stages timed one by one (stage_times; --refine R: on the refined limb), where its time goes. --sizes R,R,...:
+the physical set's implicit step on the bundled limb built R times finer, one thread, with the bytes of the arrays a
+step reads and writes (size_scaling): how the cost per vertex changes once those outgrow the processor's caches.
 
 Model: tissue_sim.core.builder.default_model() (the bundled anatomy); if that is not available,
 the builder's synthetic paper-sized limb phantom (tests/phantoms.py). Prints the figures as lines, then as a
@@ -181,6 +183,8 @@ def main():
                     '(with and without the sheath), N alternating rounds of --seconds each (ab_rates)')
     ap.add_argument('--stages', type=int, default=0, metavar='I', help='only the implicit step\'s stages timed on '
                     'their own (I iterations; with --refine R on the refined limb) (stage_times)')
+    ap.add_argument('--sizes', metavar='R,R,...', help='only the implicit step on the bundled limb built R times finer '
+                    '(e.g. 1,2,2.6,3): time per step and per vertex beside the working set (size_scaling)')
     ap.add_argument('--scaling-child', help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.scaling_child:
@@ -201,6 +205,18 @@ def main():
         if path and not Path(path).is_file():
             print(f'error: {path}: no such model file', file=sys.stderr)
             sys.exit(2)
+    if args.sizes is not None:
+        from tissue_sim.core.builder import parse_refinements
+        try:
+            sizes = parse_refinements(args.sizes)
+        except ValueError:
+            print(f'error: --sizes {args.sizes!r}: expected refinements >= 1 separated by commas', file=sys.stderr)
+            sys.exit(2)
+        out = {'cpu': _cpu_name(), **_cpu(), 'timing': 'per CPU second of this process, one thread'}
+        print(f'CPU: {out["cpu"]} (numba compiles for {out["llvm_cpu"]}); {_caches()}')
+        out['sizes'] = size_scaling(sizes, args.seconds)
+        print(json.dumps(out))
+        return
     if args.quick:
         out = {'cpu': _cpu_name(), **_cpu(), 'timing': 'steps per wall second'}
         print(f'CPU: {out["cpu"]} ({os.cpu_count()} cores; numba compiles for {out["llvm_cpu"]})')
@@ -604,7 +620,7 @@ def stage_times(tm, iterations, reps=None):
         ('skeleton step', lambda n: skeleton_n(n, h, q, qd, f, x, sk, tissue, num, R, t, scratch, no_lock, q_target,
                                                lock_torque, st.contact_wrench)),
         ('bone-attached vertices posed', lambda n: pose_n(n, h, x, xn, vn, tissue, st.seg_R, st.seg_t)),
-        ('solve: rhs + L, D^-1, L^T, velocities (one)', lambda n: solve_n(n, h, x, imp, f, xn, vn)),
+        ('solve: rhs + G, G^T, velocities (one)', lambda n: solve_n(n, h, x, imp, f, xn, vn)),
         ('sheath correction (offsets, region solve, velocities)',
          lambda n: sheath_n(n, h, x, xn, vn, imp, st.seg_R, st.seg_t, cg, wr)),
         ('point via correction (centroids, A^-1 C^T, velocities)',
@@ -614,7 +630,7 @@ def stage_times(tm, iterations, reps=None):
     ]
     res = {}
     print(f'implicit step, {iterations} iteration(s), {sim.n_vertices} vertices, {sim.n_cells} cells; factor '
-          f'{imp.n_lnz:,} entries, sheath region factor {imp.s_Lx.size + imp.s_dinv.size:,}; microseconds per call '
+          f'{imp.n_lnz:,} entries, sheath region factor {imp.s_Lx.size + imp.s_ginv.size:,}; microseconds per call '
           '(the harness\'s copies that restore the state between calls subtracted):')
     n = reps or max(5, int(2e5 / sim.n_vertices))
     copy = [1e6 / rate(lambda: copies_n(n, x, v, xn, vn, both), 1.0) / n for both in (False, True)]
@@ -633,7 +649,7 @@ def stage_times(tm, iterations, reps=None):
                 if imp.bdf2 else res['prediction y = x + h v (backward Euler)'])
              + iterations * res['cell pass (rotations/polar, forces)']
              + res['skeleton step'] + res['bone-attached vertices posed']
-             + iterations * res['solve: rhs + L, D^-1, L^T, velocities (one)']
+             + iterations * res['solve: rhs + G, G^T, velocities (one)']
              + res['sheath correction (offsets, region solve, velocities)']
              + res['point via correction (centroids, A^-1 C^T, velocities)'] + res['fold + bone contact (stage 4)'])
     print(f'  {"sum of the parts (x iterations where repeated)":55s} {parts:9.1f}')
@@ -642,14 +658,63 @@ def stage_times(tm, iterations, reps=None):
     return {k: round(v, 1) for k, v in res.items()}
 
 
+def _caches() -> str:
+    """The processor's L2 and L3 sizes as lscpu reports them (the working set's yardstick), or ''."""
+    import subprocess
+    try:
+        text = subprocess.run(['lscpu'], capture_output=True, text=True, timeout=10).stdout
+    except (OSError, subprocess.SubprocessError):
+        return ''
+    return '; '.join(' '.join(line.split()) for line in text.splitlines() if line.strip().startswith(('L2', 'L3')))
+
+
+def working_set(st, h) -> tuple[int, int]:
+    """(bytes, of them the contact grids' values) of the arrays the step reads and writes: the Workspace's named
+    tuples at h (cells, tissue, skeleton, numbers, scratch, contact), the implicit integrator's, and the State's
+    vertex arrays. The grids' values (contact.ContactGrids.g_phi) are sampled only where vertices come near a bone."""
+    def size(o):
+        if isinstance(o, np.ndarray):
+            return o.nbytes
+        return sum(size(e) for e in o) if isinstance(o, tuple) else 0
+    ws = st.workspace
+    state = sum(a.nbytes for a in (st.x, st.v, st.x_back, st.v_back, st.x_prev, st.v_prev, st.f) if a is not None)
+    grids = ws.arrays(h)[5][0].g_phi.nbytes
+    return size(tuple(ws.arrays(h))) + size(tuple(ws.implicit(h))) + state, grids
+
+
+def size_scaling(refinements, seconds):
+    """--sizes: per refinement R of the bundled limb, the physical set with the implicit integrator (one sub-step,
+    one thread), 10-step calls after 100 steps of a full hamstring contraction: steps per CPU second, µs per step,
+    ns per vertex, and the working set (working_set). Where the cost per vertex jumps, the working set has outgrown
+    the last-level cache and the step waits on memory."""
+    from tissue_sim.core.builder import default_model
+    rows = []
+    print('refine | vertices | cells | steps/s | us/step | ns/vertex | working set [MB] (of it contact grids)')
+    for R in refinements:
+        tm = default_model(refine=R) if R != 1 else default_model()
+        sim = solver.compile_model(tm, solver.Params.physical(integrator='implicit', substeps=1, threads=1))
+        st, ctrl = solver.make_state(sim), solver.make_control(sim)
+        ctrl.activation[[m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0
+        solver.step(sim, st, ctrl, n_steps=100)
+        r = 10 * rate(lambda: solver.step(sim, st, ctrl, n_steps=10), seconds)
+        total, grids = working_set(st, sim.params.dt)
+        row = {'refine': R, 'vertices': sim.n_vertices, 'cells': sim.n_cells, 'steps_per_s': round(r, 1),
+               'us_per_step': round(1e6 / r, 1), 'ns_per_vertex': round(1e9 / r / sim.n_vertices, 1),
+               'working_set_mb': round(total / 1e6, 1), 'contact_grids_mb': round(grids / 1e6, 1)}
+        rows.append(row)
+        print(f'{R:6g} | {row["vertices"]:8,} | {row["cells"]:5,} | {row["steps_per_s"]:7,.0f} | {row["us_per_step"]:7,.0f} | '
+              f'{row["ns_per_vertex"]:9.1f} | {row["working_set_mb"]:.1f} ({row["contact_grids_mb"]:.1f})', flush=True)
+    return rows
+
+
 def implicit_factor(sim):
     """The implicit integrator's factor at params.dt: unknowns (free vertices + cells), entries, bytes, build time."""
     from tissue_sim.core.solver import implicit as IM
     t0 = time.perf_counter()
     imp = IM.make(sim, sim.params.dt)
     return {'unknowns': int(imp.z.shape[0]), 'entries': int(imp.n_lnz), 'bytes': int(imp.Lx.nbytes + imp.Lj.nbytes +
-            imp.Lp.nbytes + imp.dinv.nbytes), 'build_s': round(time.perf_counter() - t0, 3),
-            'sheath_entries': int(imp.s_Lx.size + imp.s_dinv.size)}     # the sheath correction's factor (0: none)
+            imp.Lp.nbytes + imp.ginv.nbytes), 'build_s': round(time.perf_counter() - t0, 3),
+            'sheath_entries': int(imp.s_Lx.size + imp.s_ginv.size)}     # the sheath correction's factor (0: none)
 
 
 def fine_model(path, solver_rate):

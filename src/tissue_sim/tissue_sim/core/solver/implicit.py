@@ -43,20 +43,21 @@ from numba import njit, prange
 
 from tissue_sim.core.solver import contact as CT, integration as IK
 from tissue_sim.core.solver.cells import aligned_zeros
-from tissue_sim.core.solver.simd import row_dot4
+from tissue_sim.core.solver.simd import row_axpy4, row_dot4
 
-Implicit = collections.namedtuple('Implicit', 'on iters y mh2 row_v row_c keff att_ptr att_idx Lp Lj Lx dinv z '
-                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_dinv s_z Up Uj Ux s_Up s_Uj s_Ux bdf2 hs xh vh '
+Implicit = collections.namedtuple('Implicit', 'on iters y mh2 row_v row_c keff att_ptr att_idx Lp Lj Lx ginv z '
+                                  'n_lnz ks sd s_row_v s_Lp s_Lj s_Lx s_ginv s_z bdf2 hs xh vh '
                                   'via_u via_sinv via_g yc yg split sep_e sep_part s_split s_sep_e s_sep_part')
 Implicit.__doc__ = """What the compiled step reads for the implicit integrator at one h: on (bool), iters (local/global
 iterations per step), y (V, 3) the prediction (scratch), mh2 (V,) m/h^2 of free vertices (0: bone-attached), per row p of the factor
 (elimination order) row_v[p] its vertex (-1: a cell row) and row_c[p] its cell (-1), keff (C,) [N/m] each cell's
-weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = L D L^T in the
-star form: L strictly lower in CSR (Lp, Lj, Lx), dinv = 1/D, z (n, 4) scratch (simd.row_dot4: a fourth column, unused); n_lnz its entries (informative).
+weight, att_ptr/att_idx the bone-attached vertices of each row's cell (CSR over rows), the factor A = G G^T in the
+star form (G = L D^1/2 of SuperLU's L D L^T: _cholesky): G strictly lower in CSR (Lp, Lj, Lx), ginv = D^-1/2 (1 over G's
+diagonal), z (n, 4) scratch (simd.row_dot4: a fourth column, unused); n_lnz its entries (informative). Both triangular
+passes read G by rows (the backward pass scatters, _backward), so the factor is stored once.
 The sheath correction (sheath_correct; empty arrays without a sheath): ks (V,) [N/m] k_s of each vertex
 (sheath_weights), sd (V, 6) scratch (each sheathed vertex's way back, its position before the correction), the factor of A' = A + diag(ks) in the same
-star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_dinv, s_z (scratch). Up, Uj, Ux (s_Up,
-s_Uj, s_Ux): L^T of each factor by rows (CSR), for the backward pass in gather form. bdf2 (bool): the scheme is BDF2
+star form: s_row_v (its rows' vertices, -1: a cell row), s_Lp, s_Lj, s_Lx, s_ginv, s_z (scratch). bdf2 (bool): the scheme is BDF2
 (the factor is then at solve_length(h) = 2h/3); hs [s] that solve length (h with backward Euler); xh, vh (V, 3) its
 starting point (bdf2_start; scratch). The point via rings held inside the solve (via_correct; empty without
 rings or with Params.implicit_via_correction off): via_u (V, R) A^-1 C^T (C: each ring's centroid of its free
@@ -464,7 +465,7 @@ def _make(sim, h: float) -> Implicit:
     if sim.params.integrator != 'implicit':
         return Implicit(False, 1, np.zeros((0, 3)), np.zeros(V), e_i, e_i, e_f, e_p,
                         e_i, e_q, e_u, e_f, e_f, np.zeros((0, 3)), 0, e_f, np.zeros((0, 3)), e_i, e_q, e_u, e_f, e_f,
-                        np.zeros((0, 3)), e_q, e_u, e_f, e_q, e_u, e_f, False, float(h), np.zeros((0, 3)), np.zeros((0, 3)),
+                        np.zeros((0, 3)), False, float(h), np.zeros((0, 3)), np.zeros((0, 3)),
                         np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
                         *(np.zeros(4, np.int64), np.zeros((0, 2), np.uint64), np.zeros((0, 3, 4))) * 2)
     bdf2 = sim.params.implicit_scheme == 'bdf2'
@@ -504,19 +505,16 @@ def _make(sim, h: float) -> Implicit:
         As = (A + sp.diags(add)).tocsr()[keep][:, keep].tocsc()
         s_unk, sLs, sd_, s_split = _factor(As, split_order(As, reg.size, np.asarray(sim.rest)[free[reg]] @ axis))
         s_rows = np.where(s_unk < reg.size, free[reg][np.minimum(s_unk, reg.size - 1)], -1).astype(np.int32)
-        sheath = (ks, np.zeros((V, 6)), s_rows, *_csr(sLs), 1.0 / sd_,
-                  np.zeros((keep.size, 4)))
-        sU = _transposed(sLs)
+        sheath = (ks, np.zeros((V, 6)), s_rows, *_cholesky(sLs, sd_), np.zeros((keep.size, 4)))
         s_sep = _separator_entries(sLs.indptr, sLs.indices, s_split)
         s_parts = (s_split, s_sep, np.zeros((s_sep.shape[0], 3, 4)))
     else:
         sheath = (e_f, np.zeros((0, 6)), e_i, e_q, e_u, e_f, e_f, np.zeros((0, 3)))
-        sU = (e_q, e_u, e_f)
         s_parts = (np.array([0, 0, 0, 0], np.int64), np.zeros((0, 2), np.uint64), np.zeros((0, 3, 4)))
     sep = _separator_entries(Ls.indptr, Ls.indices, split)
     imp = Implicit(True, int(sim.params.implicit_iterations), np.zeros((V, 3)), mh2, row_v, row_c,
-                    np.ascontiguousarray(keff), ptr, idx, *_csr(Ls), 1.0 / d,
-                    np.zeros((n, 4)), int(Ls.nnz + n), *sheath, *_transposed(Ls), *sU, bdf2, float(h),
+                    np.ascontiguousarray(keff), ptr, idx, *_cholesky(Ls, d),
+                    np.zeros((n, 4)), int(Ls.nnz + n), *sheath, bdf2, float(h),
                     np.zeros((V, 3)), np.zeros((V, 3)), np.zeros((V, 0)), np.zeros((0, 0)), np.zeros((0, 3)),
                     *prediction(sim, h), split, sep, np.zeros((sep.shape[0], 3, 4)), *s_parts)
     return imp._replace(**dict(zip(('via_u', 'via_sinv', 'via_g'), via_system(sim, imp))))
@@ -528,11 +526,15 @@ def _csr(M) -> tuple:
     return M.indptr.astype(np.uint64), M.indices.astype(np.uint32), M.data.copy()
 
 
-def _transposed(Ls):
-    """_csr of L^T: the backward pass reads row p's entries L_jp, j > p."""
-    U = Ls.T.tocsr()
-    U.sort_indices()
-    return _csr(U)
+def _cholesky(Ls, d) -> tuple:
+    """(Lp, Lj, Gx, ginv): A = L D L^T (_factor: L unit lower, Ls its strictly lower part) as A = G G^T, G = L D^1/2:
+    _csr of G's strictly lower part (column j of Ls times sqrt(D_j)) and ginv = D^-1/2 (1 over G's diagonal), the
+    form in which both triangular passes divide by the diagonal once per row (_forward, _backward)."""
+    g = np.sqrt(d)
+    G = Ls @ sp.diags(g)
+    G = sp.csr_matrix(G)
+    G.sort_indices()
+    return (*_csr(G), 1.0 / g)
 
 
 def prediction(sim, h: float) -> tuple:
@@ -570,26 +572,27 @@ def _solve(imp, f, xk, y, first, xs, vn, ih, vmax2):
     prediction, keff_c sum (xk_a - y_a); xk_free = y + w. Otherwise rhs = f - M (xk - y)/h^2, xk_free += w. Either
     way vn_free = (xk - xs) ih (_velocity). Returns how many free vertices are faster than sqrt(vmax2) or not finite."""
     _forward(False, imp.row_v, imp.row_c, f, xk, y, first, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx, imp.ks,
-             imp.sd, imp.Lp, imp.Lj, imp.Lx, imp.z, imp.split, imp.sep_e, imp.sep_part)
-    return _backward(imp.Up, imp.Uj, imp.Ux, imp.dinv, imp.row_v, imp.z, xk, y, first, xs, vn, ih, vmax2, imp.split)
+             imp.sd, imp.Lp, imp.Lj, imp.Lx, imp.ginv, imp.z, imp.split, imp.sep_e, imp.sep_part)
+    return _backward(imp.Lp, imp.Lj, imp.Lx, imp.ginv, imp.row_v, imp.z, xk, y, first, xs, vn, ih, vmax2, imp.split)
 
 
 @njit(cache=True, fastmath={'contract'})
-def _forward(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, z, split, sep_e,
-             sep_part):
-    """The forward pass L z = rhs of _solve (sheath False) and _solve_sheath (True: rhs = k_s d on a sheathed vertex's
+def _forward(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, ginv, z, split,
+             sep_e, sep_part):
+    """The forward pass G z = rhs of _solve (sheath False) and _solve_sheath (True: rhs = k_s d on a sheathed vertex's
     row, 0 elsewhere), z (n, 4) (simd.row_dot4: its fourth column unused), in split's blocks (split_order): each
-    block's rows, z_p = rhs_p - sum_j<p L_pj z_j, and its share of each separator row's sum, apart (prange: on two
+    block's rows, z_p = (rhs_p - sum_j<p G_pj z_j) ginv_p, and its share of each separator row's sum, apart (prange: on two
     threads in parallel_kernels' copy, here one after the other); then the separator's rows (cells: their rhs the
-    bones' motion beyond the prediction, first iteration only), z_p = rhs_p - ((share 0 + share 1) + the separator's
-    own entries). The same sums in the same order for any number of threads. Not split ([0, n, n, n]): one range
+    bones' motion beyond the prediction, first iteration only), z_p = (rhs_p - ((share 0 + share 1) + the separator's
+    own entries)) ginv_p. The same sums in the same order for any number of threads. Not split ([0, n, n, n]): one range
     of rows (_forward_rows; the block structure measured +5 us, 20 %, on the bundled limb)."""
     b2, n = split[2], split[3]
     if split[1] == split[3]:
-        _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, z, 0, n)
+        _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, ginv, z, 0,
+                      n)
         return
     for t in prange(2):
-        _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, z,
+        _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, ginv, z,
                       split[t], split[t + 1])
         for k in range(n - b2):
             lo = Lp[b2 + k] if t == 0 else sep_e[k, 0]
@@ -601,15 +604,17 @@ def _forward(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx,
         if first and not sheath:
             s0, s1, s2 = _cell_rhs(p, row_c, xk, y, keff, att_ptr, att_idx)
         a0, a1, a2, _ = row_dot4(Lx, Lj, z, sep_e[k, 1], Lp[p + 1])
-        z[p, 0] = s0 - ((sep_part[k, 0, 0] + sep_part[k, 1, 0]) + a0)
-        z[p, 1] = s1 - ((sep_part[k, 0, 1] + sep_part[k, 1, 1]) + a1)
-        z[p, 2] = s2 - ((sep_part[k, 0, 2] + sep_part[k, 1, 2]) + a2)
+        g = ginv[p]
+        z[p, 0] = (s0 - ((sep_part[k, 0, 0] + sep_part[k, 1, 0]) + a0)) * g
+        z[p, 1] = (s1 - ((sep_part[k, 0, 1] + sep_part[k, 1, 1]) + a1)) * g
+        z[p, 2] = (s2 - ((sep_part[k, 0, 2] + sep_part[k, 1, 2]) + a2)) * g
 
 
 @njit(cache=True, fastmath={'contract'})
-def _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, z, lo, hi):
-    """Rows lo to hi - 1 of _forward outside the separator: z_p = rhs_p - sum_j<p L_pj z_j. (A range per call, as
-    _backward_rows.)"""
+def _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att_idx, ks, d, Lp, Lj, Lx, ginv, z, lo,
+                  hi):
+    """Rows lo to hi - 1 of _forward outside the separator: z_p = (rhs_p - sum_j<p G_pj z_j) ginv_p. (A range per
+    call, as _backward_rows.)"""
     for p in range(lo, hi):
         i = row_v[p]
         s0 = s1 = s2 = 0.0
@@ -628,7 +633,8 @@ def _forward_rows(sheath, row_v, row_c, f, xk, y, first, mh2, keff, att_ptr, att
         elif first:
             s0, s1, s2 = _cell_rhs(p, row_c, xk, y, keff, att_ptr, att_idx)
         a0, a1, a2, _ = row_dot4(Lx, Lj, z, Lp[p], Lp[p + 1])
-        z[p, 0] = s0 - a0; z[p, 1] = s1 - a1; z[p, 2] = s2 - a2
+        g = ginv[p]
+        z[p, 0] = (s0 - a0) * g; z[p, 1] = (s1 - a1) * g; z[p, 2] = (s2 - a2) * g
 
 
 @njit(cache=True)
@@ -643,15 +649,15 @@ def _cell_rhs(p, row_c, xk, y, keff, att_ptr, att_idx):
 
 
 @njit(cache=True, fastmath={'contract'})
-def _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, lo, hi):
+def _backward_rows(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, lo, hi):
     """Rows hi - 1 down to lo of _backward; how many of their vertices are too fast or not finite. (A range per call:
     a call per row costs several times the row.)"""
     nfast = 0
     for p in range(hi - 1, lo - 1, -1):
-        dd = dinv[p]
-        a0, a1, a2, _ = row_dot4(Ux, Uj, z, Up[p], Up[p + 1])
-        s0, s1, s2 = z[p, 0] * dd - a0, z[p, 1] * dd - a1, z[p, 2] * dd - a2
+        g = ginv[p]
+        s0, s1, s2 = z[p, 0] * g, z[p, 1] * g, z[p, 2] * g
         z[p, 0] = s0; z[p, 1] = s1; z[p, 2] = s2
+        row_axpy4(Lx, Lj, z, Lp[p], Lp[p + 1], s0, s1, s2)
         i = row_v[p]
         if i >= 0:
             if first:
@@ -663,18 +669,18 @@ def _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, 
 
 
 @njit(cache=True, fastmath={'contract'})
-def _backward(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split):
-    """The backward pass of _solve and _solve_sheath: w = L^-T D^-1 z in gather form (row p of L^T: w_p = z_p / D_p -
-    sum_j>p L_jp w_j, w in place of z), each w_p final when its row is done; its vertex i = row_v[p] (-1: a cell row)
+def _backward(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split):
+    """The backward pass of _solve and _solve_sheath: G^T w = z in scatter form, reading G by rows as the forward pass
+    does (rows p from the last: w_p = z_p ginv_p, then z_j -= G_pj w_p for the row's entries j < p, w in place of z),
+    each w_p final when its row is reached; its vertex i = row_v[p] (-1: a cell row)
     updated there, xk_i = y_i + w_p (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. The separator's rows first,
-    then split's two blocks (prange: in parallel in parallel_kernels' copy; a block's rows read only its own and the
-    separator's). Not split: one range (the three calls measured +3.5 us, 10 %, on the bundled limb). Returns how many
+    then split's two blocks (prange: in parallel in parallel_kernels' copy; a block's rows write only its own). Not split: one range (the three calls measured +3.5 us, 10 %, on the bundled limb). Returns how many
     are faster than sqrt(vmax2) or not finite."""
     if split[1] == split[3]:
-        return _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, 0, split[3])
-    nfast = _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[2], split[3])
+        return _backward_rows(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, 0, split[3])
+    nfast = _backward_rows(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[2], split[3])
     for t in prange(2):
-        nfast += _backward_rows(Up, Uj, Ux, dinv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[t], split[t + 1])
+        nfast += _backward_rows(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[t], split[t + 1])
     return nfast
 
 
@@ -710,8 +716,8 @@ def _solve_sheath(imp, xk, xs, vn, ih, vmax2):
     diag(k_s) over the region, the rest held), and their velocities vn = (xk - xs) ih: the forward pass, D^-1 and the
     backward pass of _solve on its factor. Returns how many are faster than sqrt(vmax2) or not finite."""
     _forward(True, imp.s_row_v, imp.row_c, xk, xk, xk, False, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx, imp.ks,
-             imp.sd, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_z, imp.s_split, imp.s_sep_e, imp.s_sep_part)
-    return _backward(imp.s_Up, imp.s_Uj, imp.s_Ux, imp.s_dinv, imp.s_row_v, imp.s_z, xk, xk, False, xs, vn, ih, vmax2,
+             imp.sd, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_ginv, imp.s_z, imp.s_split, imp.s_sep_e, imp.s_sep_part)
+    return _backward(imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_ginv, imp.s_row_v, imp.s_z, xk, xk, False, xs, vn, ih, vmax2,
                      imp.s_split)
 
 

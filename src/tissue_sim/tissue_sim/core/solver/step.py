@@ -27,7 +27,7 @@ def _drop_stale_advance_cache() -> None:
     user = os.environ.get('NUMBA_CACHE_DIR')
     try:
         newest = max(here.with_name(n).stat().st_mtime for n in ('cells.py', 'skeleton.py', 'integration.py', 'contact.py',
-                                                                 'muscle.py', 'implicit.py', 'volume.py'))
+                                                                 'muscle.py', 'implicit.py', 'volume.py', 'simd.py'))
         cached = list((here.parent / '__pycache__').glob('step.*advance-*.nb[ic]'))
         if user:
             cached += Path(user).glob(f'{here.parent.name}_*/step.*advance-*.nb[ic]')
