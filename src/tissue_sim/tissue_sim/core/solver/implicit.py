@@ -565,8 +565,8 @@ def predict(x, v, y, yc, yg, hs):
 
 @njit(cache=True, fastmath={'contract'})
 def _solve(imp, f, xk, y, first, xs, vn, ih, vmax2):
-    """The implicit solve A w = rhs on the free vertices, and their velocities: L z' = rhs (formed row by row as the
-    forward pass reaches it, _forward), then L^T w = D^-1 z' (_backward: each w_p final when the backward pass leaves
+    """The implicit solve A w = rhs on the free vertices, and their velocities: G z = rhs (formed row by row as the
+    forward pass reaches it, _forward), then G^T w = z (_backward: each w_p final when the backward pass reaches
     row p, and the vertex updated there). first: the step's first iteration, from the prediction: rhs = f on the
     vertices' rows (xk = y there: its free rows are not read) and, on the cells' rows, the bones' motion beyond the
     prediction, keff_c sum (xk_a - y_a); xk_free = y + w. Otherwise rhs = f - M (xk - y)/h^2, xk_free += w. Either
