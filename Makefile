@@ -74,7 +74,7 @@ bench: setup
 	@$(ENV) && n=0 && failed= && for f in bench/*.py; do \
 	  [ -e "$$f" ] || continue; n=$$((n + 1)); \
 	  case "$$f" in bench/convergence.py|bench/markers.py|bench/mesh_quality.py|bench/iterations.py) args=--quick;; \
-	    bench/ros_rate.py) args='--participants both';; bench/solver.py) args='--refine 3';; *) args=;; esac; \
+	    bench/ros_rate.py) args='--participants both';; bench/solver.py) args='--refine 2.6';; *) args=;; esac; \
 	  echo "== $$f $$args"; python "$$f" $$args || failed="$$failed $$f"; \
 	done; [ "$$n" -gt 0 ] || { echo 'make bench: no bench/*.py yet' >&2; exit 1; }; \
 	[ -z "$$failed" ] || { echo "make bench: failed:$$failed" >&2; exit 1; }
