@@ -678,7 +678,8 @@ def working_set(st, h) -> tuple[int, int]:
         return sum(size(e) for e in o) if isinstance(o, tuple) else 0
     ws = st.workspace
     state = sum(a.nbytes for a in (st.x, st.v, st.x_back, st.v_back, st.x_prev, st.v_prev, st.f) if a is not None)
-    grids = ws.arrays(h)[5][0].g_phi.nbytes
+    cgrid, _ = ws.arrays(h)[5]
+    grids = cgrid.g_phi.nbytes
     return size(tuple(ws.arrays(h))) + size(tuple(ws.implicit(h))) + state, grids
 
 
@@ -691,7 +692,7 @@ def size_scaling(refinements, seconds):
     rows = []
     print('refine | vertices | cells | steps/s | us/step | ns/vertex | working set [MB] (of it contact grids)')
     for R in refinements:
-        tm = default_model(refine=R) if R != 1 else default_model()
+        tm = default_model(refine=R)
         sim = solver.compile_model(tm, solver.Params.physical(integrator='implicit', substeps=1, threads=1))
         st, ctrl = solver.make_state(sim), solver.make_control(sim)
         ctrl.activation[[m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]] = 1.0

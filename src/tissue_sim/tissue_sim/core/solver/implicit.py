@@ -531,8 +531,7 @@ def _cholesky(Ls, d) -> tuple:
     _csr of G's strictly lower part (column j of Ls times sqrt(D_j)) and ginv = D^-1/2 (1 over G's diagonal), the
     form in which both triangular passes divide by the diagonal once per row (_forward, _backward)."""
     g = np.sqrt(d)
-    G = Ls @ sp.diags(g)
-    G = sp.csr_matrix(G)
+    G = sp.csr_matrix(Ls @ sp.diags(g))
     G.sort_indices()
     return (*_csr(G), 1.0 / g)
 
@@ -672,10 +671,10 @@ def _backward_rows(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, 
 def _backward(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split):
     """The backward pass of _solve and _solve_sheath: G^T w = z in scatter form, reading G by rows as the forward pass
     does (rows p from the last: w_p = z_p ginv_p, then z_j -= G_pj w_p for the row's entries j < p, w in place of z),
-    each w_p final when its row is reached; its vertex i = row_v[p] (-1: a cell row)
-    updated there, xk_i = y_i + w_p (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. The separator's rows first,
-    then split's two blocks (prange: in parallel in parallel_kernels' copy; a block's rows write only its own). Not split: one range (the three calls measured +3.5 us, 10 %, on the bundled limb). Returns how many
-    are faster than sqrt(vmax2) or not finite."""
+    each w_p final when its row is reached; its vertex i = row_v[p] (-1: a cell row) updated there, xk_i = y_i + w_p
+    (first) or xk_i += w_p, and vn_i = (xk_i - xs_i) ih. The separator's rows first, then split's two blocks (prange:
+    in parallel in parallel_kernels' copy; a block's rows write only its own). Not split: one range (the three calls
+    measured +3.5 us, 10 %, on the bundled limb). Returns how many are faster than sqrt(vmax2) or not finite."""
     if split[1] == split[3]:
         return _backward_rows(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, 0, split[3])
     nfast = _backward_rows(Lp, Lj, Lx, ginv, row_v, z, xk, y, first, xs, vn, ih, vmax2, split[2], split[3])
@@ -713,8 +712,8 @@ def correct(h, x, f, xn, vn, imp, vmax2):
 @njit(cache=True, fastmath={'contract'})
 def _solve_sheath(imp, xk, xs, vn, ih, vmax2):
     """xk += w over sheath_region's vertices, A' w = k_s d (imp.sd, the sheathed vertices' way back; A' = A +
-    diag(k_s) over the region, the rest held), and their velocities vn = (xk - xs) ih: the forward pass, D^-1 and the
-    backward pass of _solve on its factor. Returns how many are faster than sqrt(vmax2) or not finite."""
+    diag(k_s) over the region, the rest held), and their velocities vn = (xk - xs) ih: the forward and the backward
+    pass of _solve on its factor. Returns how many are faster than sqrt(vmax2) or not finite."""
     _forward(True, imp.s_row_v, imp.row_c, xk, xk, xk, False, imp.mh2, imp.keff, imp.att_ptr, imp.att_idx, imp.ks,
              imp.sd, imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_ginv, imp.s_z, imp.s_split, imp.s_sep_e, imp.s_sep_part)
     return _backward(imp.s_Lp, imp.s_Lj, imp.s_Lx, imp.s_ginv, imp.s_row_v, imp.s_z, xk, xk, False, xs, vn, ih, vmax2,
