@@ -2,8 +2,9 @@
 (cells.lane_forces, itself checked against reference.cell_forces in tests/test_solver_kernel.py) and to itself for
 1 and 2 threads (real numba runs with numba.set_num_threads; no timing), with the tasks cut at every position (every
 ring a cut ring) and every few positions as well as at the default units; the whole step likewise, paper and
-physical set (mass_scaled and implicit, the implicit solves whole and split: implicit.split_order). Speed:
-bench/solver.py --threads 1,2.
+physical set (mass_scaled and implicit, the implicit solves whole and split: implicit.split_order); the bone contact's
+parallel copy (its broad and narrow phases in two halves) against the serial one on vertices in a random walk about
+two moving bones. Speed: bench/solver.py --threads 1,2.
 
 The cell energies (a diagnostic: no force depends on them) are compared within 1e-10 of the largest, everything else
 bit for bit: the same kernel loaded from numba's on-disk cache and compiled in the process can give energies that
@@ -12,9 +13,10 @@ before it."""
 import numba
 import numpy as np
 import pytest
+import trimesh
 
 from tissue_sim.core import solver
-from tissue_sim.core.solver import cells as K, implicit as IM
+from tissue_sim.core.solver import cells as K, contact as CT, implicit as IM
 
 two_threads = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason='needs NUMBA_NUM_THREADS >= 2')
 
@@ -148,3 +150,44 @@ def test_threads_parameter_is_checked():
     with pytest.raises(ValueError, match='threads'):
         solver.Params.from_dict({'threads': 1.5})
     assert solver.Params.from_dict({'threads': 2}).threads == 2
+
+
+@two_threads
+def test_parallel_bone_contact_is_bit_identical_to_the_serial_one():
+    """Vertices in a random walk about two bones on two segments, one turning (every sub-step many of them projected):
+    the parallel copy of the bone contact (implicit.parallel_kernels) on 2 threads gives the serial kernel's
+    positions, velocities, reactions and list of moved vertices bit for bit, sub-step after sub-step."""
+    rng = np.random.default_rng(7)
+    meshes = [tuple(np.asarray(a) for a in (m.vertices, m.faces)) for m in
+              (trimesh.creation.icosphere(3, 0.015), trimesh.creation.box((0.02, 0.02, 0.03)))]
+    meshes[1] = (meshes[1][0] + [0.04, 0.0, 0.0], meshes[1][1])
+    x0 = rng.normal(0, 0.012, (1000, 3)) * [2, 1, 1] + [0.02, 0, 0]
+    in_box = np.all(np.abs(x0 - [0.04, 0.0, 0.0]) < [0.012, 0.012, 0.017], axis=1)
+    x0 = x0[(np.linalg.norm(x0, axis=1) > 0.017) & ~in_box]       # 2 mm outside both bones
+    par = IM.parallel_kernels()[5]
+    runs, old = [], numba.get_num_threads()
+    numba.set_num_threads(2)
+    try:
+        for kernel in (CT.bone_contact, par):
+            cg = CT.build_grids(meshes, np.array([0, 1]), 5e-4, 0.2, 1.5e-3, x0, -np.ones(len(x0), np.int32))
+            cw = CT.work(cg, 2, len(x0))
+            seg_R, seg_t = np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3))
+            x, v, wr = x0.copy(), np.zeros_like(x0), np.zeros((2, 6))
+            r, hits, trace = np.random.default_rng(5), 0, []
+            for k in range(300):
+                cw.R0[:] = seg_R
+                cw.t0[:] = seg_t
+                a = 0.004 * k
+                seg_R[1] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+                v += r.normal(0, 0.3, v.shape)
+                x += 1e-3 * v
+                CT.unmark(cw)
+                hits += kernel(1e-3, x, v, seg_R, seg_t, cg, cw, np.ones(len(x)), wr)
+                trace.append((x.copy(), v.copy(), wr.copy(), cw.moved[:cw.n_moved[0]].copy()))
+            runs.append((hits, trace))
+    finally:
+        numba.set_num_threads(old)
+    (ha, ta), (hb, tb) = runs
+    assert ha == hb and ha > 300                  # vertices were projected, on both sides of the halves
+    for a, b in zip(ta, tb):
+        assert all(np.array_equal(p, q) for p, q in zip(a, b))

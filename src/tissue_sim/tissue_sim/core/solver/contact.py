@@ -26,7 +26,7 @@ import collections
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 ContactGrids = collections.namedtuple('ContactGrids', 'g_seg g_origin g_inv_h g_dims g_off g_phi c_dims c_off c_min '
                                       'floor free_idx par f_seg f_geo f_off f_idx f_side f_floor f_wfloor f_plane s_off s_idx s_X s_side s_r '
@@ -50,13 +50,14 @@ cylinder fixed in segment w_seg (W,) int32, w_geo (W, 11) = centre (3) [m] and u
 frame, unit quadrant direction (3; zeros: every side), radius [m], half length [m]; its vertices w_idx[w_off[w]:
 w_off[w+1]] (int32) and their lowest allowed distance from the axis w_floor [m] (the radius, or less where the rest
 shape already lies inside)."""
-ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats xf mask moved n_moved flag')
+ContactWork = collections.namedtuple('ContactWork', 'R0 t0 qc slack cand stats xf mask dv moved n_moved flag')
 """Mutable buffers (step.Workspace, one per State): the segment poses at the sub-step's start R0 (S, 3, 3), t0 (S, 3);
 the broad phase's records qc (B, 3, F) (rest-frame point where a vertex was last tested, by coordinate) and slack (B,
 F) (0: test it), float32 (the broad phase streams them every sub-step; SLACK_MARGIN covers their rounding); scratch:
 cand (F,) int32, xf (3, F) float32 the free vertices' positions by coordinate, mask (F rounded up to
-8,) uint8; stats (2,) int64 = (calls, vertex-grid tests so far); the vertices the stage moved since unmark, each once (mark):
-moved (V,) int32, the first n_moved[0] (int64 (1,)) of it, flag (V,) uint8 (1: listed); V = 0 where nothing reads the
+8,) uint8, dv (F, 4) each candidate's outcome (dv[k, 0] 0: not projected, 1: projected, 2: and its velocity changed
+by dv[k, 1:]); stats (2,) int64 = (calls, vertex-grid tests so far); the vertices the stage moved since unmark, each
+once (mark): moved (V,) int32, the first n_moved[0] (int64 (1,)) of it, flag (V,) uint8 (1: listed); V = 0 where nothing reads the
 list (work's n_listed: only BDF2 does)."""
 
 
@@ -343,10 +344,11 @@ def _react(wr, s, share, x, i, m_h, dvx, dvy, dvz):
 
 
 @njit(cache=True, fastmath={'contract'}, inline='always')
-def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den, wr):
+def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, out):
     """Vertex i inside grid b's box (rest-frame point p, grid coordinates g; s the segment): project
     it out when it is closer than its floor, again from where that put it while it is still below it
-    (at most PROJECTIONS times), and fix its velocity with the last normal (the segment takes the reaction, _react). Returns a lower bound of
+    (at most PROJECTIONS times), and fix its velocity with the last normal: out (4,) = (2, the velocity change) where
+    it changed (its reaction is bone_contact's to apply), out untouched otherwise. Returns a lower bound of
     (sampled distance - floor) before the projection, for the broad phase, and whether it was projected."""
     nx, ny, nz = cg.g_dims[b, 0], cg.g_dims[b, 1], cg.g_dims[b, 2]
     lim = cg.floor[i]
@@ -400,7 +402,7 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den
             keep = max(0.0, 1.0 - mu * (-vn) / vt) if vt > 0.0 else 0.0
             tx *= keep; ty *= keep; tz *= keep
         nvx, nvy, nvz = bx + tx, by + ty, bz + tz
-        _react(wr, s, 1.0, x, i, 1.0 / (inv_den[i] * h), nvx - v[i, 0], nvy - v[i, 1], nvz - v[i, 2])
+        out[0], out[1], out[2], out[3] = 2.0, nvx - v[i, 0], nvy - v[i, 1], nvz - v[i, 2]
         v[i, 0] = nvx
         v[i, 1] = nvy
         v[i, 2] = nvz
@@ -408,26 +410,107 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den
 
 
 @njit(cache=True, fastmath={'contract'})
-def _broad(xf, qc, slack, R, t, mask):
-    """bone_contact's broad phase for one grid, in flat loops the compiler vectorises: mask[ii] = 1 where free vertex
-    ii is to be tested (its record's slack is 0, or its rest-frame point R^T (x - t) has moved from the record qc (3,
-    F) by at least the slack); returns how many. In float32 (twice the SIMD lanes; SLACK_MARGIN bounds the rounding):
-    R (3, 3) and t (3,) the segment's pose."""
+def _narrow_span(lo, hi, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc, slack, xf, dv):
+    """bone_contact's narrow phase for grid b over its candidates lo <= k < hi (cand[k]: free vertex ii): each one
+    inside the grid's box is sampled and projected (_narrow; dv[k] its outcome) and its position by coordinate xf
+    renewed (the next grids see it), its record (qc (3, F), slack (F,): grid b's) renewed; returns how many were
+    projected. Each candidate writes its own rows only."""
+    s = cg.g_seg[b]
+    r00, r01, r02 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2]
+    r10, r11, r12 = seg_R[s, 1, 0], seg_R[s, 1, 1], seg_R[s, 1, 2]
+    r20, r21, r22 = seg_R[s, 2, 0], seg_R[s, 2, 1], seg_R[s, 2, 2]
+    tx, ty, tz = seg_t[s, 0], seg_t[s, 1], seg_t[s, 2]
+    ox, oy, oz, ih = cg.g_origin[b, 0], cg.g_origin[b, 1], cg.g_origin[b, 2], cg.g_inv_h[b]
+    mx, my, mz = cg.g_dims[b, 0] - 1.0, cg.g_dims[b, 1] - 1.0, cg.g_dims[b, 2] - 1.0
+    hits = 0
+    for k in range(lo, hi):
+        ii = cand[k]
+        i = cg.free_idx[ii]
+        dx, dy, dz = x[i, 0] - tx, x[i, 1] - ty, x[i, 2] - tz
+        px = r00 * dx + r10 * dy + r20 * dz
+        py = r01 * dx + r11 * dy + r21 * dz
+        pz = r02 * dx + r12 * dy + r22 * dz
+        gx, gy, gz = (px - ox) * ih, (py - oy) * ih, (pz - oz) * ih
+        dv[k, 0] = 0.0
+        if gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= mx and gy <= my and gz <= mz:
+            d, hit = _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, dv[k])
+            if hit:
+                hits += 1
+                dv[k, 0] = max(dv[k, 0], 1.0)
+            xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]     # (projected: the next grids see it)
+        else:                       # outside the box: a lower bound of the distance to it
+            d, hit = max(max(-gx, gx - mx), max(max(-gy, gy - my), max(-gz, gz - mz))) / ih, False
+        qc[0, ii], qc[1, ii], qc[2, ii] = px, py, pz
+        slack[ii] = 0.0 if hit else (d - SLACK_MARGIN) * (1.0 / LIPSCHITZ)    # projected: tested again next sub-step
+    return hits
+
+
+@njit(cache=True, fastmath={'contract'})
+def _narrow_halves(n, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc, slack, xf, dv):
+    """_narrow_span over grid b's n candidates in two halves (prange: on two threads in implicit.parallel_kernels'
+    copy of bone_contact, here one after the other; the same numbers: each candidate is a vertex of its own)."""
+    m = n // 2
+    hits = 0
+    for k in prange(2):
+        hits += _narrow_span(0 if k == 0 else m, m if k == 0 else n, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc,
+                             slack, xf, dv)
+    return hits
+
+
+@njit(cache=True, fastmath={'contract'})
+def _broad(lo, hi, xf, qc, slack, R, t, mask):
+    """bone_contact's broad phase for one grid over the free vertices lo <= ii < hi, in a flat loop the compiler
+    vectorises: mask[ii] = 1 where free vertex ii is to be tested (its record's slack is 0, or its rest-frame point
+    R^T (x - t) has moved from the record qc (3, F) by at least the slack); returns how many. In float32 (twice the
+    SIMD lanes; SLACK_MARGIN bounds the rounding): R (3, 3) and t (3,) the segment's pose."""
     f4 = np.float32
     r00, r01, r02, r10, r11, r12 = f4(R[0, 0]), f4(R[0, 1]), f4(R[0, 2]), f4(R[1, 0]), f4(R[1, 1]), f4(R[1, 2])
     r20, r21, r22, tx, ty, tz = f4(R[2, 0]), f4(R[2, 1]), f4(R[2, 2]), f4(t[0]), f4(t[1]), f4(t[2])
     zero = f4(0.0)
+    x0, x1, x2, q0, q1, q2 = xf[0, lo:hi], xf[1, lo:hi], xf[2, lo:hi], qc[0, lo:hi], qc[1, lo:hi], qc[2, lo:hi]
+    sl, mk = slack[lo:hi], mask[lo:hi]     # (views and a loop from 0: it vectorises as the whole arrays' loop)
     n = 0
-    for ii in range(xf.shape[1]):
-        dx, dy, dz = xf[0, ii] - tx, xf[1, ii] - ty, xf[2, ii] - tz
-        ex = r00 * dx + r10 * dy + r20 * dz - qc[0, ii]
-        ey = r01 * dx + r11 * dy + r21 * dz - qc[1, ii]
-        ez = r02 * dx + r12 * dy + r22 * dz - qc[2, ii]
-        q = slack[ii]
+    for k in range(hi - lo):
+        dx, dy, dz = x0[k] - tx, x1[k] - ty, x2[k] - tz
+        ex = r00 * dx + r10 * dy + r20 * dz - q0[k]
+        ey = r01 * dx + r11 * dy + r21 * dz - q1[k]
+        ez = r02 * dx + r12 * dy + r22 * dz - q2[k]
+        q = sl[k]
         m = np.uint8((q <= zero) | (ex * ex + ey * ey + ez * ez >= q * q))
-        mask[ii] = m
+        mk[k] = m
         n += m
     return n
+
+
+@njit(cache=True)
+def _halves(F):
+    """The two spans [0, m) and [m, F) of the broad phase's two halves, m a multiple of 64 (the halves write
+    separate cache lines of mask)."""
+    return min(F, ((F // 2 + 63) // 64) * 64)
+
+
+@njit(cache=True, fastmath={'contract'})
+def _broad_halves(xf, qc, slack, R, t, mask):
+    """_broad over all the free vertices, in two halves (prange: on two threads in implicit.parallel_kernels' copy
+    of bone_contact, here one after the other; the same mask and count)."""
+    F = xf.shape[1]
+    m = _halves(F)
+    n = 0
+    for k in prange(2):
+        n += _broad(0 if k == 0 else m, m if k == 0 else F, xf, qc, slack, R, t, mask)
+    return n
+
+
+@njit(cache=True)
+def _load_free(x, free_idx, xf):
+    """xf (3, F) float32: the free vertices' positions by coordinate (the broad phase's loads), in two halves (as
+    _broad_halves)."""
+    F = free_idx.shape[0]
+    m = _halves(F)
+    for k in prange(2):
+        for ii in range(0 if k == 0 else m, m if k == 0 else F):
+            i = free_idx[ii]
+            xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]
 
 
 @njit(cache=True)
@@ -462,45 +545,27 @@ def bone_contact(h, x, v, seg_R, seg_t, cg, cw, inv_den, wr):
     and its record is renewed (records and positions in float32: SLACK_MARGIN bounds their rounding). The grid is 1-Lipschitz between grid points, its trilinear
     interpolation sqrt(3)-Lipschitz: the result is that of testing every vertex every sub-step,
     whatever the history (reference.contact_stage does that)."""
-    g_seg, g_origin, g_inv_h, g_dims, free_idx = cg.g_seg, cg.g_origin, cg.g_inv_h, cg.g_dims, cg.free_idx
-    R0, t0, qc, slack, cand, stats, xf, mask = cw.R0, cw.t0, cw.qc, cw.slack, cw.cand, cw.stats, cw.xf, cw.mask
+    g_seg, free_idx = cg.g_seg, cg.free_idx
+    R0, t0, qc, slack, cand, stats, xf, mask, dv = cw.R0, cw.t0, cw.qc, cw.slack, cw.cand, cw.stats, cw.xf, cw.mask, cw.dv
     B = g_seg.shape[0]
     F = free_idx.shape[0]
     hits = 0
     stats[0] += 1
-    for ii in range(F):                 # the free vertices' positions by coordinate (the broad phase's loads)
-        i = free_idx[ii]
-        xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]
+    _load_free(x, free_idx, xf)
     for b in range(B):
         s = g_seg[b]
-        r00, r01, r02 = seg_R[s, 0, 0], seg_R[s, 0, 1], seg_R[s, 0, 2]
-        r10, r11, r12 = seg_R[s, 1, 0], seg_R[s, 1, 1], seg_R[s, 1, 2]
-        r20, r21, r22 = seg_R[s, 2, 0], seg_R[s, 2, 1], seg_R[s, 2, 2]
-        tx, ty, tz = seg_t[s, 0], seg_t[s, 1], seg_t[s, 2]
-        ox, oy, oz, ih = g_origin[b, 0], g_origin[b, 1], g_origin[b, 2], g_inv_h[b]
-        mx, my, mz = g_dims[b, 0] - 1.0, g_dims[b, 1] - 1.0, g_dims[b, 2] - 1.0
-        n = _broad(xf, qc[b], slack[b], seg_R[s], seg_t[s], mask)
-        if n > 0:
-            n = _gather(mask, F, cand)
+        n = _broad_halves(xf, qc[b], slack[b], seg_R[s], seg_t[s], mask)
+        if n == 0:
+            continue
+        n = _gather(mask, F, cand)
         stats[1] += n
-        for k in range(n):
-            ii = cand[k]
-            i = free_idx[ii]
-            dx, dy, dz = x[i, 0] - tx, x[i, 1] - ty, x[i, 2] - tz
-            px = r00 * dx + r10 * dy + r20 * dz
-            py = r01 * dx + r11 * dy + r21 * dz
-            pz = r02 * dx + r12 * dy + r22 * dz
-            gx, gy, gz = (px - ox) * ih, (py - oy) * ih, (pz - oz) * ih
-            if gx >= 0.0 and gy >= 0.0 and gz >= 0.0 and gx <= mx and gy <= my and gz <= mz:
-                d, hit = _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, inv_den, wr)
-                hits += hit
-                if hit:
-                    mark(cw, i)
-                xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]     # (projected: the next grids see it)
-            else:                       # outside the box: a lower bound of the distance to it
-                d, hit = max(max(-gx, gx - mx), max(max(-gy, gy - my), max(-gz, gz - mz))) / ih, False
-            qc[b, 0, ii], qc[b, 1, ii], qc[b, 2, ii] = px, py, pz
-            slack[b, ii] = 0.0 if hit else (d - SLACK_MARGIN) * (1.0 / LIPSCHITZ)    # projected: tested again next sub-step
+        hits += _narrow_halves(n, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc[b], slack[b], xf, dv)
+        for k in range(n):          # in the candidates' order: the moved list and the reactions (the sums of one thread)
+            if dv[k, 0] > 0.0:
+                i = free_idx[cand[k]]
+                if dv[k, 0] > 1.0:
+                    _react(wr, s, 1.0, x, i, 1.0 / (inv_den[i] * h), dv[k, 1], dv[k, 2], dv[k, 3])
+                mark(cw, i)
     return hits
 
 
@@ -1019,7 +1084,7 @@ def work(cg: ContactGrids, n_segments: int, n_listed: int = 0) -> ContactWork:
     S, B, F, V = max(int(n_segments), 1), cg.g_seg.shape[0], cg.free_idx.shape[0], int(n_listed)
     return ContactWork(np.tile(np.eye(3), (S, 1, 1)), np.zeros((S, 3)), np.zeros((B, 3, F), np.float32),
                        np.zeros((B, F), np.float32), np.zeros(F, np.int32), np.zeros(2, np.int64), np.zeros((3, F), np.float32),
-                       np.zeros(-(-F // 8) * 8, np.uint8),
+                       np.zeros(-(-F // 8) * 8, np.uint8), np.zeros((F, 4)),
                        np.zeros(V, np.int32), np.zeros(1, np.int64), np.zeros(V, np.uint8))
 
 

@@ -222,10 +222,29 @@ def via_correct(h, x, xn, vn, imp, via_off, via_idx, via_seg, via_local, seg_R, 
         for q in range(R):
             l0 += si[r, q] * g[q, 0]; l1 += si[r, q] * g[q, 1]; l2 += si[r, q] * g[q, 2]
         lm[r, 0], lm[r, 1], lm[r, 2] = l0, l1, l2
+    return _via_move(1.0 / h, x, xn, vn, u, lm, mh2, vmax2)
+
+
+@njit(cache=True, fastmath={'contract'})
+def _via_move(ih, x, xn, vn, u, lm, mh2, vmax2):
+    """via_correct's moves, xn_i -= sum_r u[i, r] lm[r] on the free vertices (u is 0 on the bone-attached ones), and
+    their velocities, in one pass over two halves of the vertices (prange: on two threads in parallel_kernels' copy,
+    here one after the other; the same numbers). Returns how many are too fast or not finite."""
+    n = xn.shape[0]
+    m = n // 2
     nfast = 0
-    ih = 1.0 / h
-    for i in range(xn.shape[0]):                # the rings' columns' moves and the velocities, in one pass
-        if mh2[i] > 0.0:                        # (u is 0 on the bone-attached vertices)
+    for t in prange(2):
+        nfast += _via_move_span(m * t, m + (n - m) * t, ih, x, xn, vn, u, lm, mh2, vmax2)
+    return nfast
+
+
+@njit(cache=True, fastmath={'contract'})
+def _via_move_span(lo, hi, ih, x, xn, vn, u, lm, mh2, vmax2):
+    """_via_move over the vertices lo <= i < hi."""
+    R = lm.shape[0]
+    nfast = 0
+    for i in range(lo, hi):
+        if mh2[i] > 0.0:
             d0 = d1 = d2 = 0.0
             for r in range(R):
                 w = u[i, r]
@@ -286,7 +305,7 @@ def star_system(sim, h: float):
     return A.tocsc(), free, keff
 
 
-SPLIT_MIN_UNKNOWNS = 8000    # a system with fewer unknowns is factored whole (minimum degree), not split (split_order)
+SPLIT_MIN_UNKNOWNS = 5000    # a system with fewer unknowns is factored whole (minimum degree), not split (split_order)
 
 
 def split_order(A, nv: int, coord) -> tuple | None:
@@ -750,17 +769,24 @@ _PARALLEL = []
 
 
 def parallel_kernels() -> tuple:
-    """(bdf2_start, integrate, correct, sheath_correct) on numba's threads (step.parallel_advance; Params.threads != 1):
-    the same code, compiled once per process from these functions with bdf2_start, _forward and _backward compiled
-    parallel (their prange loops: two halves of the arrays, the passes' two blocks of split), not cached
-    on disk (as step.parallel_advance). The results are the serial ones, bit for bit: every row's sum is the same in
-    the same order."""
+    """(bdf2_start, integrate, correct, sheath_correct, via_correct, contact.bone_contact) on numba's threads
+    (step.parallel_advance; Params.threads != 1): the same code, compiled once per process from these functions with
+    bdf2_start, _forward, _backward, _via_move and contact's _load_free, _broad_halves and _narrow_halves compiled
+    parallel (their prange loops: two halves of the arrays or of the contact's candidates, the passes' two blocks of
+    split), not cached on disk (as step.parallel_advance). The results are the serial ones, bit for bit: every row's
+    sum is the same in the same order, each contact candidate writes its own rows, and the reactions' sums are made
+    after, in the candidates' order."""
     if not _PARALLEL:
         g = dict(globals())
-        for name in ('_forward', '_backward', 'bdf2_start'):
+        for name in ('_forward', '_backward', 'bdf2_start', '_via_move'):
             g[name] = recompiled(globals()[name], g, name + '_parallel', parallel=True, fastmath={'contract'})
         for name in ('_solve', '_solve_sheath'):
             g[name] = recompiled(globals()[name], g, name + '_parallel', fastmath={'contract'})
+        gc = dict(CT.__dict__)
+        for name in ('_load_free', '_broad_halves', '_narrow_halves'):
+            gc[name] = recompiled(getattr(CT, name), gc, name + '_parallel', parallel=True, fastmath={'contract'})
         _PARALLEL.append((g['bdf2_start'],) + tuple(recompiled(globals()[name], g, name + '_parallel')
-                                                    for name in ('integrate', 'correct', 'sheath_correct')))
+                                                    for name in ('integrate', 'correct', 'sheath_correct'))
+                         + (recompiled(via_correct, g, 'via_correct_parallel', fastmath={'contract'}),
+                            recompiled(CT.bone_contact, gc, 'bone_contact_parallel', fastmath={'contract'})))
     return _PARALLEL[0]

@@ -66,9 +66,10 @@ Scratch = collections.namedtuple('Scratch', 'cell_work skel_work q0 qd0 lam0 mle
 
 
 _cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: cells.lane_forces_par)
-_im_bdf2_start, _im_integrate, _im_correct, _im_sheath_correct = (
-    IM.bdf2_start, IM.integrate, IM.correct, IM.sheath_correct)   # (parallel_advance: implicit.parallel_kernels,
-# BDF2's start and the triangular passes on the threads)
+_im_bdf2_start, _im_integrate, _im_correct, _im_sheath_correct, _im_via_correct, _bone_contact = (
+    IM.bdf2_start, IM.integrate, IM.correct, IM.sheath_correct, IM.via_correct, CT.bone_contact)
+# (parallel_advance: implicit.parallel_kernels, BDF2's start, the triangular passes, the via rings' moves and the bone
+# contact's broad phase on the threads)
 
 
 @njit(inline='always')
@@ -193,7 +194,7 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
                 if ok and not fast:    # the sheath inside the implicit step (implicit.sheath_correct)
                     fast = _im_sheath_correct(hs, xs, xb, vb, imp, st.seg_R, st.seg_t, cgrid, num.vmax2, st.contact_wrench)
                 if ok and not fast:    # the point via rings inside it (implicit.via_correct; none: nothing done)
-                    fast = IM.via_correct(hs, xs, xb, vb, imp, tissue.via_off, tissue.via_idx, tissue.via_seg,
+                    fast = _im_via_correct(hs, xs, xb, vb, imp, tissue.via_off, tissue.via_idx, tissue.via_seg,
                                           tissue.via_local, st.seg_R, st.seg_t, num.vmax2)
             else:
                 fast = IK.integrate(h, x, v, f, tissue.inv_den, xb, vb, tissue.att_idx, tissue.att_seg, tissue.rest,
@@ -221,7 +222,7 @@ def advance(n_steps, n_sub, h, acts, lock, target, st, cells, tissue, sk, num, s
                 SK.forward_kinematics(scratch.q0, sk, cwork.R0, cwork.t0)
                 CT.fold_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
                 CT.wrap_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
-                CT.bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
+                _bone_contact(h, xb, vb, st.seg_R, st.seg_t, cgrid, cwork, tissue.inv_den, st.contact_wrench)
             if imp.on and imp.bdf2:    # the sub-step is taken: it is BDF2's history for the next one, and the
                 IM.bdf2_history(h, xb, vb, x, v, st.history_h, cwork.moved, cwork.n_moved)     # buffers rotate
                 x, xb, xp = xb, xp, x
@@ -241,15 +242,15 @@ _PARALLEL = []
 
 def parallel_advance():
     """advance with the thread-parallel kernels (Params.threads != 1): the same code, compiled from it with
-    _cell_pass bound to cells.lane_forces_par and the implicit integrator's kernels to implicit.parallel_kernels',
-    once per process and not cached on disk. (numba
-    caches parallel kernels, but a cached function that calls one segfaulted when loaded in a later process if it
-    had been compiled against a callee loaded from the cache: measured with advance itself; so advance, cached,
-    never calls a parallel kernel.) The first call compiles it (about as long as advance's cold compile)."""
+    _cell_pass bound to cells.lane_forces_par and the implicit integrator's kernels and the bone contact to
+    implicit.parallel_kernels', once per process and not cached on disk. (numba caches parallel kernels, but a
+    cached function that calls one segfaulted when loaded in a later process if it had been compiled against a callee
+    loaded from the cache: measured with advance itself; so advance, cached, never calls a parallel kernel.) The first call compiles it (about as long as advance's cold compile)."""
     if not _PARALLEL:
         g = dict(globals())
         g['_cell_pass'] = CK.lane_forces_par
-        g['_im_bdf2_start'], g['_im_integrate'], g['_im_correct'], g['_im_sheath_correct'] = IM.parallel_kernels()
+        (g['_im_bdf2_start'], g['_im_integrate'], g['_im_correct'], g['_im_sheath_correct'], g['_im_via_correct'],
+         g['_bone_contact']) = IM.parallel_kernels()
         _PARALLEL.append(IM.recompiled(advance, g, 'advance_parallel', nogil=True))
     return _PARALLEL[0]
 
