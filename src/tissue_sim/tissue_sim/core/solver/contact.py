@@ -409,6 +409,15 @@ def _narrow(i, b, s, px, py, pz, gx, gy, gz, h, x, v, seg_R, cg, R0, t0, out):
     return d_first - lim, True
 
 
+@njit(cache=True, inline='always')
+def half(t, n):
+    """(lo, hi): half t (0 or 1) of range(n), the two parts of the parallel kernels' prange(2) loops (here, in
+    implicit.bdf2_start and implicit._via_move), cut at a multiple of 64 so that the halves write separate cache lines
+    (of a byte mask as of a float64 array)."""
+    m = min(n, ((n // 2 + 63) // 64) * 64)
+    return (0, m) if t == 0 else (m, n)
+
+
 @njit(cache=True, fastmath={'contract'})
 def _narrow_span(lo, hi, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc, slack, xf, dv):
     """bone_contact's narrow phase for grid b over its candidates lo <= k < hi (cand[k]: free vertex ii): each one
@@ -449,11 +458,10 @@ def _narrow_span(lo, hi, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc, slack, 
 def _narrow_halves(n, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc, slack, xf, dv):
     """_narrow_span over grid b's n candidates in two halves (prange: on two threads in implicit.parallel_kernels'
     copy of bone_contact, here one after the other; the same numbers: each candidate is a vertex of its own)."""
-    m = n // 2
     hits = 0
     for k in prange(2):
-        hits += _narrow_span(0 if k == 0 else m, m if k == 0 else n, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc,
-                             slack, xf, dv)
+        lo, hi = half(k, n)
+        hits += _narrow_span(lo, hi, b, h, x, v, seg_R, seg_t, cg, R0, t0, cand, qc, slack, xf, dv)
     return hits
 
 
@@ -482,22 +490,14 @@ def _broad(lo, hi, xf, qc, slack, R, t, mask):
     return n
 
 
-@njit(cache=True)
-def _halves(F):
-    """The two spans [0, m) and [m, F) of the broad phase's two halves, m a multiple of 64 (the halves write
-    separate cache lines of mask)."""
-    return min(F, ((F // 2 + 63) // 64) * 64)
-
-
 @njit(cache=True, fastmath={'contract'})
 def _broad_halves(xf, qc, slack, R, t, mask):
     """_broad over all the free vertices, in two halves (prange: on two threads in implicit.parallel_kernels' copy
     of bone_contact, here one after the other; the same mask and count)."""
-    F = xf.shape[1]
-    m = _halves(F)
     n = 0
     for k in prange(2):
-        n += _broad(0 if k == 0 else m, m if k == 0 else F, xf, qc, slack, R, t, mask)
+        lo, hi = half(k, xf.shape[1])
+        n += _broad(lo, hi, xf, qc, slack, R, t, mask)
     return n
 
 
@@ -505,10 +505,9 @@ def _broad_halves(xf, qc, slack, R, t, mask):
 def _load_free(x, free_idx, xf):
     """xf (3, F) float32: the free vertices' positions by coordinate (the broad phase's loads), in two halves (as
     _broad_halves)."""
-    F = free_idx.shape[0]
-    m = _halves(F)
     for k in prange(2):
-        for ii in range(0 if k == 0 else m, m if k == 0 else F):
+        lo, hi = half(k, free_idx.shape[0])
+        for ii in range(lo, hi):
             i = free_idx[ii]
             xf[0, ii], xf[1, ii], xf[2, ii] = x[i, 0], x[i, 1], x[i, 2]
 

@@ -230,11 +230,10 @@ def _via_move(ih, x, xn, vn, u, lm, mh2, vmax2):
     """via_correct's moves, xn_i -= sum_r u[i, r] lm[r] on the free vertices (u is 0 on the bone-attached ones), and
     their velocities, in one pass over two halves of the vertices (prange: on two threads in parallel_kernels' copy,
     here one after the other; the same numbers). Returns how many are too fast or not finite."""
-    n = xn.shape[0]
-    m = n // 2
     nfast = 0
     for t in prange(2):
-        nfast += _via_move_span(m * t, m + (n - m) * t, ih, x, xn, vn, u, lm, mh2, vmax2)
+        lo, hi = CT.half(t, xn.shape[0])
+        nfast += _via_move_span(lo, hi, ih, x, xn, vn, u, lm, mh2, vmax2)
     return nfast
 
 
@@ -418,10 +417,8 @@ def bdf2_start(h, x, v, x_prev, v_prev, history_h, xh, vh, y, yc, yg, hs):
     yf, ycf, ygf = y.reshape(-1), yc.reshape(-1), yg.reshape(-1)
     uniform = ycf.shape[0] == 0
     fresh = history_h[0] != h
-    n = xf.shape[0]
-    m = n // 2
     for t in prange(2):             # (two halves: on two threads in parallel_kernels' copy; the same numbers)
-        lo, hi = m * t, m + (n - m) * t
+        lo, hi = CT.half(t, xf.shape[0])
         _bdf2_span(h, hs, fresh, uniform, xf[lo:hi], vf[lo:hi], xpf[lo:hi], vpf[lo:hi], xhf[lo:hi], vhf[lo:hi],
                    yf[lo:hi], ycf if uniform else ycf[lo:hi], ygf if uniform else ygf[lo:hi])
 

@@ -69,7 +69,7 @@ _cell_pass = CK.lane_forces     # the cell pass of advance (parallel_advance: ce
 _im_bdf2_start, _im_integrate, _im_correct, _im_sheath_correct, _im_via_correct, _bone_contact = (
     IM.bdf2_start, IM.integrate, IM.correct, IM.sheath_correct, IM.via_correct, CT.bone_contact)
 # (parallel_advance: implicit.parallel_kernels, BDF2's start, the triangular passes, the via rings' moves and the bone
-# contact's broad phase on the threads)
+# contact's broad and narrow phases on the threads)
 
 
 @njit(inline='always')
@@ -245,7 +245,8 @@ def parallel_advance():
     _cell_pass bound to cells.lane_forces_par and the implicit integrator's kernels and the bone contact to
     implicit.parallel_kernels', once per process and not cached on disk. (numba caches parallel kernels, but a
     cached function that calls one segfaulted when loaded in a later process if it had been compiled against a callee
-    loaded from the cache: measured with advance itself; so advance, cached, never calls a parallel kernel.) The first call compiles it (about as long as advance's cold compile)."""
+    loaded from the cache: measured with advance itself; so advance, cached, never calls a parallel kernel.) The first
+    call compiles it (about as long as advance's cold compile)."""
     if not _PARALLEL:
         g = dict(globals())
         g['_cell_pass'] = CK.lane_forces_par
