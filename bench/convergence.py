@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
-"""Mesh convergence of the knee motion: the demo's experiment (physical set, the hamstrings fully active
-from t = 0) on the bundled limb built 1x, 3x and 6x finer (`build-model --refine R`), one integrator.
+"""Mesh convergence of the knee motion: an experiment of the physical set (--motion step: the hamstrings fully active
+from t = 0; demo: make demo's, the hamstrings ramped 0 -> 1 over 8 s) on the bundled limb built 1x, 3x and 6x finer
+(`build-model --refine R`), one integrator.
 
-    . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--integrator NAME] [--substeps unscaled|set|matched|N]
-                                              [--duration 0.3] [--out DIR] [--quick] [--set NAME=VALUE ...] [--isometric]
-                                              [--build NAME=VALUE ...] [--torques] [--time-reference N]
+    . ./env.sh && python bench/convergence.py [--refine 1,3,6] [--motion step|demo] [--integrator NAME]
+                                              [--substeps unscaled|set|matched|N] [--duration S] [--out DIR] [--quick]
+                                              [--set NAME=VALUE ...] [--isometric] [--build NAME=VALUE ...] [--torques]
+                                              [--time-reference N]
 
 For each refinement: vertices, cells, sub-steps per 1-ms step, steps per CPU second (one thread, the
 stepping alone), the knee angle every 10 ms (or the step where the run diverged), the cells inside out at the end
@@ -24,7 +26,8 @@ each run reports its added mass. --quick: 1x and 2x, 0.3 s (for `make bench`). -
 field of the physical set changed (what a term costs: the same table with and without it). --isometric: the knee held
 at 0 deg by the joint lock; the series compared is the hamstrings' knee torque [N m] instead of the angle. --build
 NAME=VALUE (repeatable): a builder setting of the models (e.g. point_vias=false). --torques: the knee torque of each
-source the skeleton step takes (torque_sources), printed every 30 ms and in the JSON: where a lag comes from.
+source the skeleton step takes (torque_sources), printed every 30 ms (--motion demo: 250 ms) and in the JSON: where a
+lag comes from.
 --time-reference N: each model also run at N sub-steps per step, and the table gives each model's difference to that
 run (max / RMS): the time step's share of the differences, apart from the mesh's (docs/convergence.md).
 """
@@ -51,6 +54,16 @@ from tissue_sim.core.solver import params as P  # noqa: E402
 
 SAMPLE_EVERY = 10          # steps between knee samples (10 ms at the physical set's 1-ms step)
 SERIES = {False: ('knee_deg', 'deg'), True: ('knee_torque_Nm', 'N m')}   # what a run records (--isometric: True)
+# The experiments (--motion): the hamstrings' activation timeline (core.activation's knots: linear between, the last
+# held), every other muscle passive, and the simulated time a run covers by default.
+MOTIONS = {
+    'step': ({'hamstrings': [(0.0, 1.0)]}, 0.3,
+             'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical --activate '
+             'hamstrings=1)'),
+    'demo': ({'hamstrings': [(0.0, 0.0), (8.0, 1.0)]}, 10.0,
+             "physical set, hamstrings ramped 0 -> 1 over 8 s (make demo's default activation: the activation node's "
+             '--profile ramp --rise 8 --others 0)'),
+}
 LOW_VOLUME = 0.2           # cells below this share of their rest volume are counted at the end (cell_health)
 UNSCALED_TOL = 1e-3        # --substeps unscaled: mass_scaled adds less than this share of the true mass
 
@@ -115,14 +128,14 @@ def with_moment_stiffness(tm, params, c):
     return dc.replace(tm, cell_k_scale=want / (np.cbrt(V) * 4.0 / n))
 
 
-def run_one(tm, params, duration, label, isometric=False, torques=False):
-    """Knee angle [deg] every SAMPLE_EVERY steps of the demo experiment (isometric: the knee held at 0 deg by the
-    joint lock, the knee torque [N m, flexing +] the hamstrings produce), steps per CPU second, divergence. torques:
+def run_one(tm, params, duration, label, isometric=False, torques=False, motion='step'):
+    """Knee angle [deg] every SAMPLE_EVERY steps of the experiment `motion` (MOTIONS; isometric: the knee held at 0 deg
+    by the joint lock, the knee torque [N m, flexing +] the hamstrings produce), steps per CPU second, divergence. torques:
     also, per sample, the knee torque of each source the skeleton step takes (torque_sources; its cost is in the
     CPU time then)."""
     sim = solver.compile_model(tm, params)
     knee = list(tm.joint_names).index('knee') if 'knee' in tm.joint_names else 0
-    ham = {'hamstrings': [(0.0, 1.0)]}
+    ham = MOTIONS[motion][0]
     warm = solver.make_state(sim)
     solver.step(sim, warm, solver.make_control(sim))          # numba compile / caches outside the timing
     t, q, diverged, src = [], [], None, []
@@ -305,7 +318,11 @@ def main():
     ap.add_argument('--substeps', default=None,
                     help="'unscaled' (mass_scaled adding < 0.1 %% of the mass: time-converged; default with mass_scaled), "
                          "'set' (the parameter set's own; default otherwise), 'matched' (omega_max h of the default model) or an integer")
-    ap.add_argument('--duration', type=float, default=0.3, help='simulated seconds (default 0.3: the knee flexes to ~60 deg)')
+    ap.add_argument('--motion', choices=tuple(MOTIONS), default='step',
+                    help="'step' (default): the hamstrings fully active from t = 0; 'demo': make demo's activation, the "
+                         'hamstrings ramped 0 -> 1 over 8 s')
+    ap.add_argument('--duration', type=float, default=None,
+                    help="simulated seconds (default: 0.3 with --motion step, the knee flexes to ~60 deg; 10 with demo)")
     ap.add_argument('--out', default=str(ROOT / 'bench' / 'out'), help='folder for convergence.json and .png')
     ap.add_argument('--stiffness', choices=('as-is', 'moment'), default='as-is',
                     help="'as-is': the models' own stiffness (default); 'moment' (an experiment): each cell's passive "
@@ -324,7 +341,8 @@ def main():
                          'docs/builder.md): what a modelling choice costs')
     ap.add_argument('--torques', action='store_true',
                     help='also the knee torque of each source the skeleton step takes (the bound vertices, the point '
-                         'via rings, the contact and sheath reaction, the passive fibres), every 30 ms (its cost is '
+                         'via rings, the contact and sheath reaction, the passive fibres), printed every 30 ms (--motion '
+                         'demo: 250 ms; its cost is '
                          'in the steps/CPU s then)')
     ap.add_argument('--time-reference', type=int, default=None, metavar='N',
                     help='also run each model at N sub-steps per step and give its difference to that run (the time '
@@ -332,7 +350,11 @@ def main():
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')
     a = ap.parse_args()
     if a.quick:
-        a.refine, a.duration = '1,2', 0.3
+        a.refine, a.duration, a.motion = '1,2', 0.3, 'step'
+    if a.duration is None:
+        a.duration = MOTIONS[a.motion][1]
+    if a.isometric and a.motion != 'step':
+        bad_argument('--isometric holds the knee under the step activation: it takes --motion step')
     from tissue_sim.core.builder import parse_refinements
     try:
         refs = parse_refinements(a.refine)
@@ -384,10 +406,11 @@ def main():
             sub = max(1, base.substeps or 1)
             w = solver.compile_model(tm, dataclasses.replace(base, substeps=1).validate()).omega_max
             params = dataclasses.replace(base, substeps=int(math.ceil(sub * w / omega1 - 1e-9))).validate()
-        r, _ = run_one(tm, params, a.duration, f'{R:g}x', isometric=a.isometric, torques=a.torques and not a.isometric)
+        r, _ = run_one(tm, params, a.duration, f'{R:g}x', isometric=a.isometric, torques=a.torques and not a.isometric,
+                       motion=a.motion)
         if a.time_reference:       # the same model at N sub-steps: the time step's share of the differences
             ref, _ = run_one(tm, dataclasses.replace(params, substeps=a.time_reference).validate(), a.duration,
-                             f'{R:g}x at x{a.time_reference}', isometric=a.isometric)
+                             f'{R:g}x at x{a.time_reference}', isometric=a.isometric, motion=a.motion)
             k = r['series']
             r['time_reference'] = {'substeps': a.time_reference, 'at_end': ref[k][-1] if ref[k] else None,
                                    'diverged': ref['diverged'], 'difference': differences(r, ref)}
@@ -396,7 +419,8 @@ def main():
                 print(f'{R:g}x against x{a.time_reference}: max {d["max_deg"]}, RMS {d["rms_deg"]} (up to {d["up_to_s"]} s)',
                       flush=True)
         if 'torque_sources_Nm' in r:
-            print(f'{R:g}x: knee torque by source [N m, flexing +]:\n' + torque_table(r), flush=True)
+            print(f'{R:g}x: knee torque by source [N m, flexing +]:\n'
+                  + torque_table(r, every=3 if a.motion == 'step' else 25), flush=True)
         r['refine'] = R
         r['stiffness_moment_ratio'] = {k: round(v, 3) for k, v in ratio.items()}
         runs.append(r)
@@ -407,8 +431,8 @@ def main():
             cpu = next((ln.split(':', 1)[1].strip() for ln in fh if ln.startswith('model name')), cpu)
     except OSError:
         pass
-    out = {'experiment': 'physical set, hamstrings fully active from t = 0 (tissue-sim simulate --params physical '
-                         '--activate hamstrings=1)' + ('; the knee held at 0 deg, its torque' if a.isometric else ''), 'integrator': integ, 'substeps_mode': mode,
+    out = {'experiment': MOTIONS[a.motion][2] + ('; the knee held at 0 deg, its torque' if a.isometric else ''),
+           'motion': a.motion, 'integrator': integ, 'substeps_mode': mode,
            'duration_s': a.duration, 'time_reference_substeps': a.time_reference, 'stiffness': a.stiffness, 'set': list(a.set), 'build': build, 'isometric': a.isometric, 'active_length': base.active_length, 'runs': runs, 'differences': diffs, 'cpu_model': cpu,
            'load_average_1min': round(os.getloadavg()[0], 2), 'timing': 'steps per CPU second of this process, one thread'}
     out['differences_shrink'] = shrinking(diffs)
@@ -417,7 +441,7 @@ def main():
     (od / 'convergence.json').write_text(json.dumps(out, indent=1))
     try:
         plot(runs, od / 'convergence.png', f'knee {"torque held at 0 deg" if a.isometric else "flexion"}, hamstrings '
-             f'fully active; {integ}, sub-steps {mode}' + (f'; {" ".join(a.set + a.build)}' if a.set or a.build else '')
+             f'{"ramped over 8 s" if a.motion == "demo" else "fully active"}; {integ}, sub-steps {mode}' + (f'; {" ".join(a.set + a.build)}' if a.set or a.build else '')
              + f'; active length {base.active_length}'
              + ('; stiffness per volume as the default model' if a.stiffness == 'moment' else ''))
     except Exception as e:  # report, do not hide

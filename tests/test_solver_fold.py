@@ -3,6 +3,7 @@ contact in the fold"): flexion-side soft tissue keeps to its side of the knee's 
 segment's plane through the axis."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -267,9 +268,10 @@ def test_sheath_shared_false_leaves_the_vertices_shared_with_other_muscles(defau
     """sheath_shared (default True) sheathes every free vertex of the named muscles' cells; False leaves out those on
     another muscle's cell too (fat cells do not count): on the bundled limb with the physical set's groups, the
     sheathed vertices with it are exactly those without it less the shared ones, and there are such vertices on
-    both sides of the knee."""
-    p = solver.Params.physical()
-    keep, drop = (solver.compile_model(default_tm, solver.Params.physical(sheath_shared=v)).contact for v in (True, False))
+    both sides of the knee (sartorius and gracilis also sheathed below it: the physical set has no sheath there)."""
+    p = solver.Params.physical(sheath_below='sartorius,gracilis')
+    keep, drop = (solver.compile_model(default_tm, dataclasses.replace(p, sheath_shared=v).validate()).contact
+                  for v in (True, False))
     off, cv = np.asarray(default_tm.cell_offsets), np.asarray(default_tm.cell_vertices)
     cm = np.asarray(default_tm.cell_muscle)[np.repeat(np.arange(off.size - 1), np.diff(off))]
 
@@ -286,7 +288,6 @@ def test_the_sheath_leaves_a_point_via_ring_free_to_turn():
     """A point via ring (TissueModel.via_point_*) is not sheathed: the hamstring column's free ring 50 mm below the knee
     phantom's centre is in the sheath below the knee, and made a point via it no longer is (the rest of the column
     still is)."""
-    import dataclasses
     tm = phantom.knee(n_gaps=12)
     cells = np.flatnonzero(tm.cell_muscle == 0)
     vs = np.unique(np.concatenate([tm.cell_vertices[tm.cell_offsets[c]:tm.cell_offsets[c + 1]] for c in cells]))
@@ -299,14 +300,13 @@ def test_the_sheath_leaves_a_point_via_ring_free_to_turn():
 
 
 def test_pes_anserinus_sheath_keeps_sartorius_a_knee_flexor_at_extension(default_tm):
-    """The physical set holds sartorius and gracilis in the sheath above and below the knee (the fascia that keeps the
-    pes anserinus behind the medial condyle, where the source model's via points and GR_at_condyles wrap put them).
+    """The physical set holds sartorius and gracilis in the sheath above the knee (the fascia that keeps the pes
+    anserinus behind the medial condyle, where the source model's via points and GR_at_condyles wrap put them).
     Sartorius alone fully active, the knee locked at 0 deg for 1 s, moved to 10 deg at 200 deg/s and held 1 s: its
-    centre line shortens: it flexes the knee (measured -1.8 mm, a moment arm of +10 mm; OpenSim +12 to +18 mm over
-    0-10 deg). Without the sheath on them (hamstrings only, above the knee) the active muscle pulls straighter in front
-    of the medial condyle and shortens less (measured -1.0 mm; +6.2 mm, an extensor, on the limb before the anatomy
-    generator's partition rule for a squeezed-out muscle changed the gastrocnemii's sections at the joint line;
-    docs/contact.md)."""
+    centre line shortens: it flexes the knee (measured -2.2 mm, a moment arm of +12.7 mm; OpenSim +12 to +18 mm over
+    0-10 deg; -3.4 mm with them also sheathed below the knee, which the physical set leaves out: docs/convergence.md
+    "The demo motion"). Without the sheath on them (hamstrings only) the active muscle pulls straighter in front of the
+    medial condyle and lengthens (measured +2.7 mm, an extensor; docs/contact.md)."""
     names = list(default_tm.muscle_names)
     m = names.index('sartorius')
     change = {}

@@ -241,7 +241,7 @@ def test_a_fine_model_is_stable_at_one_ms_with_one_iteration(settings):
     assert tm.n_vertices >= 14000
     sim = solver.compile_model(tm, _implicit(rest_fibre_length=1.0))
     assert sim.params.implicit_iterations == 1 and sim.params.sheath_group == solver.Params.physical().sheath_group
-    assert sim.contact.s_idx.size and np.any(sim.contact.s_side < 0)      # sheathed above and below the knee
+    assert sim.contact.s_idx.size and np.all(sim.contact.s_side > 0)      # sheathed above the knee (none below)
     assert np.all(sim.volume_cap[sim.k_volume > 0] > 0)
     st = _run(sim, 1000)
     assert np.degrees(st.q[0]) > 90.0
@@ -252,9 +252,10 @@ def test_a_fine_model_is_stable_at_one_ms_with_one_iteration(settings):
 def test_the_demo_motion_agrees_with_mass_scaled(default_tm):
     """The demo's motion (physical set, hamstrings ramped 0 -> 1 over 8 s, 10 s), the same physics in both (the
     sheath and the contact's reaction on the skeleton in both, and the affine volume measure, the one the implicit
-    integrator holds): the implicit knee trajectory within 3 deg of mass_scaled's. Measured: 2.45 deg at worst (BDF2; backward
-    Euler 2.48), at 4.6 s, the knees ending at 117.1 / 117.5 deg (on earlier limbs, with the knee hinge at the walker knee frame's origin instead of its fitted centre: 0.82 deg; 2.17 deg on the
-    limb before the gastrocnemii's heads behind the condyles; docs/solver.md). """
+    integrator holds): the implicit knee trajectory within 5 deg of mass_scaled's. Measured: 4.28 deg at worst (BDF2), at
+    8.4 s, where the knee swings up to its stop (within 0.5 deg to 7 s, 1.9 deg at 8 s; mass_scaled's added mass, 7.3 ->
+    24.5 kg of tissue, slows that swing), the knees ending at 117.5 / 119.0 deg; 2.13 deg with sartorius, gracilis and
+    semitendinosus also sheathed below the knee (the physical set before 2026-12-01; docs/solver.md). """
     q = {}
     for name, params in (('mass_scaled', solver.Params.physical(volume_measure='affine')), ('implicit', _implicit())):
         sim = solver.compile_model(default_tm, params)
@@ -263,12 +264,12 @@ def test_the_demo_motion_agrees_with_mass_scaled(default_tm):
     d = np.abs(q['implicit'] - q['mass_scaled'])
     print(f"max diff {d.max():.2f} deg at frame {int(d.argmax())}; end {q['mass_scaled'][-1]:.1f} / {q['implicit'][-1]:.1f} deg")
     assert q['mass_scaled'][-1] >= 105.0
-    assert d.max() < 3.0
+    assert d.max() < 5.0
 
 
 def test_the_implicit_physical_set_keeps_the_sheath():
     """The sheath runs under the implicit integrator (its correction solve, implicit.sheath_correct): the physical
-    preset keeps it (above and below the knee), a parameter file asking for both is accepted, and the factor of
+    preset keeps it (above the knee), a parameter file asking for both is accepted, and the factor of
     A' = A + diag(k_s) is made only where there is a sheath."""
     phys = solver.Params.physical()
     p = solver.Params.physical(integrator='implicit', substeps=1)

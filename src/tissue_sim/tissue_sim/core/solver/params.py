@@ -198,7 +198,7 @@ class Params:
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
                     fold_contact='knee', fold_plane=False, sheath_group='hamstrings,sartorius,gracilis',
-                    sheath_below='sartorius,gracilis,semitendinosus', sheath_radius=1e-3, wrap_surfaces='KnExt_at_fem_r,ST_at_condyles_r',
+                    sheath_below='', sheath_radius=1e-3, wrap_surfaces='KnExt_at_fem_r,ST_at_condyles_r',
                     active_length='path', length_measure='centre_line', volume_measure='enclosed',
                     end_ring_pull='bound', joint_paths=True)
         # gram masses, stiff active tension: h = 0.25 ms with selective mass scaling (the light tendon/edge
@@ -216,17 +216,19 @@ class Params:
         # validate`: 57 of 338 signs wrong (70 without), 9 of 24 hamstring moment arms within 25 % (8), every hamstring
         # >= 60 % of Fmax (semimembranosus 53 -> 70 %); the plane (fold_plane) and the hamstrings' sheath below the knee were
         # measured and left off: the active knee then stops short of 120 deg; sartorius and gracilis (the pes anserinus)
-        # in the sheath above and below the knee, as the fascia holds them behind the medial condyle: active alone,
+        # in the sheath above the knee, as the fascia holds them behind the medial condyle: active alone,
         # sartorius no longer pulls straight in front of it and lengthens from 0 to 10 deg (+6.2 mm, an extensor; now
         # -1.8 mm), `tissue-sim validate`: 22 wrong signs (23); on the limb regenerated with the partition rule for a
         # squeezed-out muscle (tools/anatomy/README.md) sartorius stays a flexor without it too (-1.0 mm), and the sheath
         # takes its active moment arm at 0 deg from +6.0 to +10.0 mm, gracilis' from +3.4 to +5.4 (OpenSim +12.0, +21.7)
-        # semitendinosus in the sheath below the knee too (the pes anserinus' third tendon, with sartorius and gracilis): its
-        # tendon passes its via point on the tibia (a point via, docs/builder.md "Via points"), a ring that turns freely
-        # (not sheathed itself); without the sheath the turning ring swung the free ring above it forwards on the 3x limb
-        # (8 mm) and semitendinosus' isometric knee torque at 0 deg (implicit x4, 0.3 s) fell to -4.5 N m (1x: 17.0); with
-        # it 12.8 N m, the four hamstrings' 93.1 against 93.8 N m on the 1x limb, where no free vertex of semitendinosus
-        # lies in the sheath's reach below the knee but its via ring (the 1x limb's figures are the same with or without it)
+        # no sheath below the knee (sheath_below ''): held in the shank's frame there, sartorius and gracilis passed a
+        # flexing torque to the shank that grew with refinement, and the demo motion's knee (bench/convergence.py --motion
+        # demo, 1 ms) did not converge over the 1x/3x/6x limbs (max difference 13.3 deg, then 84.3: the 6x knee at its
+        # stop by 2.5 s); without it the differences shrink (7.9 / 4.2 deg, then 4.9 / 3.1, max / RMS), `tissue-sim
+        # validate` gives 9 wrong signs instead of 10 (sartorius and gracilis keep the source model's sign everywhere,
+        # the other targets the same), and semitendinosus' isometric knee torque at 0 deg (implicit x4, 0.3 s) is 16.6
+        # N m on the 1x and the 3x limb (19.8 on the 3x with its tendon sheathed below; docs/convergence.md "The demo
+        # motion")
         # rest_fibre_length 0: each muscle's source-model operating point (tissues.yaml), not 1.0 (every fibre at its
         # optimum at rest): with 1.0 the vasti and rectus femoris sit on the descending limb, their extensor torque
         # falls as the knee flexes, and full co-contraction at 30 deg gives 18.4 N m/rad against the passive knee's 8.8
