@@ -216,11 +216,9 @@ class Params:
         # validate`: 57 of 338 signs wrong (70 without), 9 of 24 hamstring moment arms within 25 % (8), every hamstring
         # >= 60 % of Fmax (semimembranosus 53 -> 70 %); the plane (fold_plane) and the hamstrings' sheath below the knee were
         # measured and left off: the active knee then stops short of 120 deg; sartorius and gracilis (the pes anserinus)
-        # in the sheath above the knee, as the fascia holds them behind the medial condyle: active alone,
-        # sartorius no longer pulls straight in front of it and lengthens from 0 to 10 deg (+6.2 mm, an extensor; now
-        # -1.8 mm), `tissue-sim validate`: 22 wrong signs (23); on the limb regenerated with the partition rule for a
-        # squeezed-out muscle (tools/anatomy/README.md) sartorius stays a flexor without it too (-1.0 mm), and the sheath
-        # takes its active moment arm at 0 deg from +6.0 to +10.0 mm, gracilis' from +3.4 to +5.4 (OpenSim +12.0, +21.7)
+        # in the sheath above the knee, as the fascia holds them behind the medial condyle: active alone, sartorius no
+        # longer pulls straight in front of it and lengthens from 0 to 10 deg (today's limb: +2.7 mm without the sheath
+        # on it, an extensor; -2.2 mm with it, a +12.7 mm moment arm, OpenSim +12 to +18; tests/test_solver_fold.py)
         # no sheath below the knee (sheath_below ''): held in the shank's frame there, sartorius and gracilis passed a
         # flexing torque to the shank that grew with refinement, and the demo motion's knee (bench/convergence.py --motion
         # demo, 1 ms) did not converge over the 1x/3x/6x limbs (max difference 13.3 deg, then 84.3: the 6x knee at its
