@@ -255,7 +255,7 @@ def test_the_demo_motion_agrees_with_mass_scaled(default_tm):
     integrator holds): the implicit knee trajectory within 5 deg of mass_scaled's. Measured: 4.28 deg at worst (BDF2), at
     8.4 s, where the knee swings up to its stop (within 0.5 deg to 7 s, 1.9 deg at 8 s; mass_scaled's added mass, 7.3 ->
     24.5 kg of tissue, slows that swing), the knees ending at 117.5 / 119.0 deg; 2.13 deg with sartorius, gracilis and
-    semitendinosus also sheathed below the knee (the physical set before 2026-12-01; docs/solver.md). """
+    semitendinosus also sheathed below the knee (docs/solver.md). """
     q = {}
     for name, params in (('mass_scaled', solver.Params.physical(volume_measure='affine')), ('implicit', _implicit())):
         sim = solver.compile_model(default_tm, params)
