@@ -16,7 +16,7 @@ phantom scaled up) in its own ROS domain, then this process subscribes to /joint
 * side by side in this process: building the same MarkerArray as rclpy Python objects and
   serialising it, vs the numpy CDR encoder (ratio).
 
---compare runs each configuration twice, the solver in a thread of its own (solver_thread: true; the node's default is false)
+--compare runs each configuration twice, the solver in a thread of its own (solver_thread: true, the node's default)
 and in the frame timer's callback (solver_thread: false), one after the other: the old and the new stepping
 loop side by side under the same load. --participants both runs each configuration with the markers from a DDS
 participant of their own (markers_own_participant: true, the default) and from the node's, one after the other: the

@@ -2,6 +2,7 @@
 the activation node's defaults and combination rule, recorder (SIGINT -> rosbags reads it; SIGKILL
 -> our reader reads it), replay; the simulator's parameters declared once."""
 import math
+import os
 import signal
 import time
 
@@ -353,6 +354,32 @@ def _call(node, client, req, timeout=20):
     fut = client.call_async(req)
     spin_until(fut.done, node, timeout, f'{client.srv_name} reply')
     return fut.result()
+
+
+def test_the_solver_steps_in_its_own_thread_by_default_and_in_the_timer_on_one_cpu(knee_model):
+    """solver_thread defaults to true: on this machine's CPUs the node steps in a thread of its own; the same node
+    allowed one CPU only (taskset) steps in its frame timer, says so in its log, and its diagnostics say
+    solver_thread False."""
+    import shutil
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from tissue_sim.core.realtime import usable_cpus
+    if shutil.which('taskset') is None:
+        pytest.skip('taskset (util-linux) not installed')
+    runs = [([], 'True')] if usable_cpus() >= 2 else []
+    runs.append((['taskset', '-c', str(min(os.sched_getaffinity(0)))], 'False'))
+    for prefix, want in runs:
+        with isolated_domain() as dom, ros_context(dom.id) as ctx, \
+                rosutil.start_process([*prefix, str(rosutil.exe_path('simulator')), *sim_args(knee_model)],
+                                      env=dom.env) as sim:
+            node = rclpy.create_node('probe', context=ctx)
+            diag = Collector(node, DiagnosticArray, '/diagnostics')
+            sim.wait_for_output('simulator ready', timeout=60)
+            spin_until(lambda: diag.msgs, node, 10, 'diagnostics')
+            assert diag_values(diag.msgs[-1])['solver_thread'] == want, (prefix, sim.output)
+            assert ('one CPU only' in sim.output) == (want == 'False'), sim.output
+            node.destroy_node()
+        assert sim.returncode == 0, sim.output
 
 
 @pytest.mark.parametrize('solver_thread', ['true', 'false'])

@@ -1,9 +1,10 @@
 """No stalls in the frame stream (issue 21, item 6): a demo-like run of the real nodes over DDS
-(recorder + simulator on the bundled limb, markers on, started paused; activation node; resume,
-pause, resume, reset through the services) is recorded, and the publish times of /joint_states (the
-simulator's DDS source timestamps, as the recorder writes them), from the first frame on, have no gap
-above the limit. The frames of a node stepping in its frame timer go out at the start of each tick, so a resume does
-not shift them (stepping first, the first frame after a resume came 46-62 ms after the last paused one).
+(recorder + simulator on the bundled limb with its defaults, the solver in a thread of its own, markers on, started
+paused; activation node; resume, pause, resume, reset through the services) is recorded, and the publish times of
+/joint_states (the simulator's DDS source timestamps, as the recorder writes them), from the first frame on, have no
+gap above the limit. (The frames of a node stepping in its frame timer, `solver_thread: false`, go out at the start of
+each tick, so a resume does not shift them: stepping first, the first frame after a resume came 46-62 ms after the
+last paused one.)
 
 Publish times, not log times. The recorder's log time is when a message arrived there; Fast DDS
 sometimes delivers a frame to the recorder ~0.3 s late while a node joins the graph (the activation

@@ -97,6 +97,15 @@ class Pacer:
         return n
 
 
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity mask where the platform has one, else the CPU count): the
+    simulator steps in a thread of its own only with two or more."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:          # pragma: no cover - platforms without affinity masks
+        return os.cpu_count() or 1
+
+
 def lower_priority(increment: int) -> bool:
     """Raise the calling thread's nice value by ``increment`` (Linux: per thread; anyone may lower their own
     priority); False where the platform does not allow it."""

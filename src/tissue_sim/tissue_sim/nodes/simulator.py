@@ -17,9 +17,10 @@ Timing (tissue_sim.core.realtime): in real-time mode (``realtime: true``) sim ti
 wall time x ``rate``, in solver steps of params.dt, at most ``max_steps_per_tick`` steps at a time
 (when the solver cannot keep up, sim time falls behind and /diagnostics shows the real-time factor).
 With ``realtime: false`` (as fast as possible) the solver steps all the time it has, while frames keep
-their rate. With ``solver_thread: true`` (default false) the solver steps in a thread of its own
-(realtime.SolverThread: the compiled step releases the GIL) and each frame publishes the state its
-last chunk left; with ``false`` each frame's timer callback publishes the state its last steps left, then steps (one core).
+their rate. With ``solver_thread: true`` (the default; on a machine with two CPUs or more, realtime.usable_cpus)
+the solver steps in a thread of its own (realtime.SolverThread: the compiled step releases the GIL) and
+each frame publishes the state its last chunk left; with ``false``, or on one CPU, each frame's timer callback
+publishes the state its last steps left, then steps (one core).
 
 Parameters (PARAMS below, each declared once) have descriptors (``ros2 param describe /simulator
 <name>``), a command-line flag each, and load from YAML with ``--ros-args --params-file
@@ -79,9 +80,9 @@ PARAMS = (
     Param('frame_id', 'world', 'frame of positions and markers (REP-103)', read_only=True),
     Param('max_steps_per_tick', 2000, 'cap on solver steps per published frame (per chunk of the solver thread)',
           lo=1, hi=1000000),
-    Param('solver_thread', False, 'step the solver in a thread of its own beside the frame loop (two cores: stepping '
-          'and publishing in parallel); false: in the frame timer callback, between publishes (one core)',
-          read_only=True),
+    Param('solver_thread', True, 'step the solver in a thread of its own beside the frame loop (two cores: stepping '
+          'and publishing in parallel; a process allowed one CPU steps in the frame timer all the same); false: '
+          'in the frame timer callback, between publishes (one core)', read_only=True),
     Param('solver_nice', 0, "the solver thread's nice increment (Linux, its thread only): > 0 gives the frame loop the "
           'CPU first where cores are short, at the cost of the real-time factor', lo=0, hi=19, read_only=True),
     Param('start_paused', False, 'start paused (resume with ~/pause false)', read_only=True),
@@ -198,7 +199,10 @@ class Simulator(Node):
         self.period = realtime.frame_period(P['publish_rate'])
         self.stepper = None
         self.frame = self.state                 # the state of the last frame published
-        if P['solver_thread']:
+        if P['solver_thread'] and realtime.usable_cpus() < 2:
+            self.get_logger().info('solver_thread: this process may run on one CPU only: the solver steps in the frame '
+                                   'timer (solver_thread false)')
+        if P['solver_thread'] and realtime.usable_cpus() >= 2:
             sys.setswitchinterval(realtime.GIL_SWITCH)
             self.stepper = realtime.SolverThread(self.pacer, self.state.copy, self.period, paused=self.paused,
                                                  nice=int(P['solver_nice']), on_error=self.on_step_error)
