@@ -199,10 +199,11 @@ class Simulator(Node):
         self.period = realtime.frame_period(P['publish_rate'])
         self.stepper = None
         self.frame = self.state                 # the state of the last frame published
-        if P['solver_thread'] and realtime.usable_cpus() < 2:
+        threaded = P['solver_thread'] and realtime.usable_cpus() >= 2
+        if P['solver_thread'] and not threaded:
             self.get_logger().info('solver_thread: this process may run on one CPU only: the solver steps in the frame '
                                    'timer (solver_thread false)')
-        if P['solver_thread'] and realtime.usable_cpus() >= 2:
+        if threaded:
             sys.setswitchinterval(realtime.GIL_SWITCH)
             self.stepper = realtime.SolverThread(self.pacer, self.state.copy, self.period, paused=self.paused,
                                                  nice=int(P['solver_nice']), on_error=self.on_step_error)
