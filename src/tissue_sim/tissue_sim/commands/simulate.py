@@ -32,6 +32,9 @@ def add_arguments(p):
     p.add_argument('--params', default=None,
                    help='paper | physical | parameter file .yaml (default paper; physical with --motion, the set the '
                         'motions are made for)')
+    p.add_argument('--set', action='append', default=[], metavar='NAME=VALUE', dest='overrides',
+                   help='change a field of the parameter set (repeatable; VALUE read as YAML), e.g. --set '
+                        'integrator=implicit --set substeps=1 (docs/solver.md "Parameter sets")')
     p.add_argument('--dt', type=float, help='step [s] (default: the parameter set\'s dt)')
     p.add_argument('--every', type=int, default=10, help='record every N steps (default %(default)s)')
     p.add_argument('--positions', action='store_true', help='.npz output: also record all vertex positions (large)')
@@ -79,7 +82,7 @@ def _load(args):
     from tissue_sim.core.load import load_model, load_params
     try:
         tm = load_model(args.model)
-        params = load_params(args.params, args.dt)
+        params = load_params(args.params, args.dt, args.overrides)
         # the same timeline file format as `activation --profile timeline` (muscles: {name: [[t, a], ...]})
         timeline = {name: list(zip(times.tolist(), values.tolist()))
                     for name, (times, values) in (load_timeline(args.timeline) if args.timeline else {}).items()}
@@ -137,7 +140,7 @@ def run(args) -> int:
             if writer is not None:
                 writer.write_frame(st, o, act)
     except solver.DivergenceError as e:
-        failure = str(e)
+        failure = str(e) + _stable_hint(sim.params)
     finally:
         if writer is not None:
             writer.close()
@@ -163,6 +166,15 @@ def run(args) -> int:
     if failure:
         raise UserError(failure, exit_code=1)
     return 0
+
+
+def _stable_hint(p) -> str:
+    """What a divergence message adds under the explicit schemes: the implicit integrator, stable at the set's own
+    step on finer models and stiffer sets (docs/solver.md "Implicit integrator"), as the --set that selects it."""
+    if p.integrator == 'implicit':
+        return ''
+    return ('; the implicit integrator is stable at the set\'s own step on finer models: --set integrator=implicit '
+            '--set substeps=1 (docs/solver.md "Implicit integrator")')
 
 
 def _open_run(out: Path, tm, sim, motion=None):

@@ -41,17 +41,21 @@ def load_model(spec: str | None = None):
     return TissueModel.load(spec)
 
 
-def load_params(spec: str | None = 'paper', dt: float | None = None):
+def load_params(spec: str | None = 'paper', dt: float | None = None, overrides=()):
     """The solver Params named by ``spec``: ``paper`` (Inaba et al. Table 2; also ``None``/``''``),
-    ``physical`` (SI), or a YAML parameter file; ``dt`` > 0 replaces the set's step [s].
+    ``physical`` (SI), or a YAML parameter file; then ``overrides``, NAME=VALUE changes of its fields (a command's
+    repeatable --set; each VALUE read as YAML); ``dt`` > 0 replaces the set's step [s].
     ValueError naming the problem otherwise."""
     from tissue_sim.core.solver import Params
+    from tissue_sim.core.solver.params import parse_assignments
     if not spec or spec == 'paper':
         p = Params.paper()
     elif spec == 'physical':
         p = Params.physical()
     else:
         p = Params.from_yaml(spec)
+    if overrides:
+        p = Params.from_dict({**p.to_dict(), **parse_assignments(overrides, '--set')})
     if dt:
         p = dataclasses.replace(p, dt=float(dt)).validate()
     return p
