@@ -295,7 +295,7 @@ def test_a_model_that_diverges_from_rest_is_a_set_up_error(tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if ln.startswith('error:')]
     assert r.returncode == 2 and 'Traceback' not in r.stderr, r.stderr
     assert len(lines) == 1 and 'does not run with these parameters' in lines[0] and 'diverged at step' in lines[0]
-    assert 'integrator implicit' in lines[0]
+    assert 'integrator: implicit and substeps: 1 in a parameter file' in lines[0]
 
 
 def test_replay_of_a_simulator_run_restores_state_clock_and_topology(knee_model, tmp_path):
@@ -430,6 +430,7 @@ def test_pause_reset_services_and_divergence_is_reported_not_published(knee_mode
         spin_until(lambda: len(js.msgs) > n + 10, node, 10, 'frames after the divergence')
         assert all(np.isfinite(list(j.position)).all() for j in js.msgs)
         assert 'solver diverged' in sim.output
+        assert 'integrator: implicit and substeps: 1' in sim.output      # (the paper set: mass_scaled)
         resp = _call(node, pause, SetBool.Request(data=False))
         assert not resp.success and 'reset' in resp.message
         node.destroy_node()

@@ -100,6 +100,7 @@ def _load(args):
 def run(args) -> int:
     from tissue_sim.core import solver
     from tissue_sim.core.activation import MOTIONS, timeline_function
+    from tissue_sim.core.load import implicit_hint
     if args.motion is not None and args.timeline:
         raise UserError('--motion and --timeline exclude each other')
     if args.motion is not None and args.motion not in MOTIONS:
@@ -140,7 +141,7 @@ def run(args) -> int:
             if writer is not None:
                 writer.write_frame(st, o, act)
     except solver.DivergenceError as e:
-        failure = str(e) + _stable_hint(sim.params)
+        failure = str(e) + implicit_hint(sim.params)
     finally:
         if writer is not None:
             writer.close()
@@ -166,15 +167,6 @@ def run(args) -> int:
     if failure:
         raise UserError(failure, exit_code=1)
     return 0
-
-
-def _stable_hint(p) -> str:
-    """What a divergence message adds under the explicit schemes: the implicit integrator, stable at the set's own
-    step on finer models and stiffer sets (docs/solver.md "Implicit integrator"), as the --set that selects it."""
-    if p.integrator == 'implicit':
-        return ''
-    return ('; the implicit integrator is stable at the set\'s own step on finer models: --set integrator=implicit '
-            '--set substeps=1 (docs/solver.md "Implicit integrator")')
 
 
 def _open_run(out: Path, tm, sim, motion=None):

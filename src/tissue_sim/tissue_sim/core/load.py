@@ -59,3 +59,13 @@ def load_params(spec: str | None = 'paper', dt: float | None = None, overrides=(
     if dt:
         p = dataclasses.replace(p, dt=float(dt)).validate()
     return p
+
+
+def implicit_hint(params) -> str:
+    """What a divergence message adds under the explicit schemes ('' under the implicit one): the implicit integrator,
+    stable at the set's own step on finer models (docs/solver.md "Implicit integrator"), and how to select it."""
+    if params.integrator == 'implicit':
+        return ''
+    return ('; the implicit integrator is stable at the set\'s own step on finer models: --set integrator=implicit '
+            '--set substeps=1 (tissue-sim simulate), or integrator: implicit and substeps: 1 in a parameter file '
+            '(docs/solver.md "Implicit integrator")')

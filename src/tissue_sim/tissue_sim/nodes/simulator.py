@@ -39,6 +39,7 @@ from rclpy.node import Node
 from ..core import markers as mk
 from ..core import measures, realtime, urdf
 from ..core.activation import REASONS, Muscles
+from ..core.load import implicit_hint
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
                           TOPIC_BONE_MARKERS, TOPIC_ROBOT_DESCRIPTION, TOPIC_STATE, TOPIC_TF, TOPIC_TF_STATIC,
                           TOPIC_MUSCLES, TOPIC_TOPOLOGY, OwnParticipant, Param, add_flags, declare, overrides,
@@ -139,8 +140,8 @@ class Simulator(Node):
             self.pacer.warm_up(lambda k: solver.step(self.sim, warm, self.ctrl, self.dt, n_steps=k))
         except solver.DivergenceError as e:     # (from rest: the model cannot run with these parameters at all)
             from ..errors import UserError
-            raise UserError(f'the model does not run with these parameters: from rest, {e}; a finer model or a longer '
-                            f'dt needs integrator implicit (or more substeps)') from None
+            raise UserError(f'the model does not run with these parameters: from rest, {e}'
+                            f'{implicit_hint(self.params) or "; more substeps may help"}') from None
         if self.marker_enc is not None:
             self.marker_enc.encode(0, warm.x, solver.observe(self.sim, warm)['segment_poses'],
                                    self.corner_colours(self.state.x))
@@ -268,7 +269,7 @@ class Simulator(Node):
     def report_failure(self, e):
         if isinstance(e, self.solver.DivergenceError):
             self.diverged = str(e)
-            self.get_logger().error(f'solver diverged: {e}; paused (call ~/reset)')
+            self.get_logger().error(f'solver diverged: {e}; paused (call ~/reset){implicit_hint(self.params)}')
         elif isinstance(e, ValueError):      # should not happen: activations are validated on arrival
             self.diverged = f'solver refused the step: {e}'
             self.get_logger().error(self.diverged)
