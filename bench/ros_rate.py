@@ -12,7 +12,7 @@ phantom scaled up) in its own ROS domain, then this process subscribes to /joint
   per CPU second (the figure bench/solver.py gives for the bare solver), the frame's build+publish time (from
   /diagnostics);
 * the node's marker build+publish time per frame (mean/max, from /diagnostics; target < 5 ms), per 10k vertices,
-  and the MarkerArray's bytes;
+  and the MarkerArray's bytes (with --marker-resolution M the node's display surface on an M-metre grid);
 * side by side in this process: building the same MarkerArray as rclpy Python objects and
   serialising it, vs the numpy CDR encoder (ratio).
 
@@ -25,7 +25,7 @@ table of them at the end.
 
 Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --phantom | --refine R[,R...]]
       [--params paper|physical|FILE] [--integrator NAME] [--as-fast-as-possible] [--paused] [--no-objects]
-      [--compare | --no-solver-thread] [--participants own|shared|both] [--solver-only]
+      [--compare | --no-solver-thread] [--participants own|shared|both] [--marker-resolution M] [--solver-only]
 Last line: one JSON object (a list of them with several runs).
 """
 import argparse
@@ -59,7 +59,7 @@ def stats(ts):
                 p99_ms=round(float(np.percentile(gaps, 99)), 2), max_ms=round(float(gaps.max()), 2), n=int(ts.size))
 
 
-def python_object_markers(tm, x, reps=2):
+def python_object_markers(tm, x, reps=2, resolution=0.0):
     """Build the soft tissue's MarkerArray with rclpy Python objects and serialise it (the slow way; reps 0:
     not at all), and with the numpy CDR encoder the node uses; returns (ms, ms, the encoder's bytes)."""
     from geometry_msgs.msg import Point
@@ -67,7 +67,8 @@ def python_object_markers(tm, x, reps=2):
     from std_msgs.msg import ColorRGBA
     from visualization_msgs.msg import Marker, MarkerArray
     from tissue_sim.core import markers as mk
-    enc = mk.MarkerArrayEncoder(tm, bones=False)      # what the node encodes each frame (the bones go once)
+    enc = mk.MarkerArrayEncoder(tm, bones=False, soft_resolution=resolution)   # what the node encodes each frame
+                                                                                # (the bones go once)
     best = float('nan') if reps == 0 else 1e9
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -109,7 +110,8 @@ def measure(a, model, tm, params, solver_thread, own_participant=True):
     sim = subprocess.Popen([str(EXE / 'simulator'), '--ros-args', '-p', f'model:={model}',
                             '-p', f'publish_rate:={a.rate}', '-p', f'marker_colouring:={a.colouring}',
                             '-p', f'solver_thread:={str(solver_thread).lower()}',
-                            '-p', f'markers_own_participant:={str(own_participant).lower()}']
+                            '-p', f'markers_own_participant:={str(own_participant).lower()}',
+                            '-p', f'marker_resolution:={float(a.marker_resolution)}']
                            + (['-p', f'params:={params}'] if params else [])
                            + (['-p', 'realtime:=false'] if a.as_fast_as_possible else [])
                            + (['-p', 'start_paused:=true'] if a.paused else []),
@@ -153,9 +155,9 @@ def measure(a, model, tm, params, solver_thread, own_participant=True):
         dom.release()
     x = np.asarray(tm.rest_positions, np.float64)
     if a.no_objects:
-        py_ms, np_ms, nbytes = python_object_markers(tm, x, reps=0)
+        py_ms, np_ms, nbytes = python_object_markers(tm, x, reps=0, resolution=a.marker_resolution)
     else:
-        py_ms, np_ms, nbytes = python_object_markers(tm, x)
+        py_ms, np_ms, nbytes = python_object_markers(tm, x, resolution=a.marker_resolution)
     num = lambda k: float(d.get(k, 'nan'))      # noqa: E731
     per10k = 1e4 / tm.n_vertices
     js, mkst = rates['js'], rates['mk']
@@ -163,6 +165,7 @@ def measure(a, model, tm, params, solver_thread, own_participant=True):
         'model': tm.name, 'refine': a.refine_now, 'params': a.params or 'default', 'integrator': a.integrator or "the set's",
         'solver_thread': solver_thread, 'markers_own_participant': own_participant, 'paused': a.paused, 'realtime': not a.as_fast_as_possible,
         'vertices': tm.n_vertices, 'surface_triangles': int(len(tm.surface_triangles)),
+        'marker_resolution': a.marker_resolution,
         'marker_bytes': int(float(d.get('marker_bytes', nbytes))), 'window_s': round(w1 - w0, 2),
         'publish_rate_target_hz': a.rate,
         'joint_states': js, 'tissue_state': rates['state'], 'tf': rates['tf'], 'markers': mkst,
@@ -265,7 +268,8 @@ def solver_only(model, params, seconds, windows=3):
     return out
 
 
-TABLE = (('refine', 'refine', '{:g}'), ('vertices', 'vertices', '{}'), ('solver thread', 'solver_thread', '{}'),
+TABLE = (('refine', 'refine', '{:g}'), ('vertices', 'vertices', '{}'), ('marker resolution m', 'marker_resolution', '{:g}'),
+         ('solver thread', 'solver_thread', '{}'),
          ('markers own participant', 'markers_own_participant', '{}'),
          ('RTF', 'real_time_factor', '{:.2f}'), ('steps/s', 'steps_per_s', '{:.0f}'),
          ('stepping share', 'stepping_share', '{:.2f}'), ('steps/CPU-s', 'steps_per_cpu_s', '{:.0f}'),
@@ -310,6 +314,9 @@ def main():
     ap.add_argument('--no-objects', action='store_true',
                     help='skip the rclpy Python-object MarkerArray for comparison (seconds per frame on finer models)')
     ap.add_argument('--rate', type=float, default=34.0, help='publish_rate (default 34)')
+    ap.add_argument('--marker-resolution', type=float, default=0.0, metavar='M',
+                    help="the node's marker_resolution: the soft tissue's markers on a display surface decimated on a "
+                         'grid of M metres (default 0: the full surface)')
     ap.add_argument('--colouring', default='none', help='marker colouring (none, skin_area, fat_deformation)')
     ap.add_argument('--params', default='', help="parameter set of the node (paper, physical or a YAML file; '' = the node's default)")
     ap.add_argument('--as-fast-as-possible', action='store_true',

@@ -106,6 +106,9 @@ def test_simulator_publishes_at_34hz_with_markers(builder_model):
         # the markers from a DDS participant of their own (markers_own_participant), the frame's small topics from the
         # node's (bench/ros_rate.py --participants both: what the shared one did to /joint_states and /tf)
         assert_own_participant(node, '/tissue/markers', 'simulator_markers', '/joint_states', 'simulator')
+        # a small model's TissueState (under state_own_participant_bytes) from the node's participant
+        spin_until(lambda: [p.node_name for p in node.get_publishers_info_by_topic('/tissue/state')] == ['simulator'],
+                   node, 20, 'simulator as the publisher of /tissue/state')
         # markers: the soft tissue in 'world' each frame (muscle opaque, skin/fat translucent); the bones
         # once, opaque, in their segments' TF frames, frame-locked (viewers move them with /tf)
         from rclpy.serialization import deserialize_message
@@ -354,6 +357,33 @@ def _call(node, client, req, timeout=20):
     fut = client.call_async(req)
     spin_until(fut.done, node, timeout, f'{client.srv_name} reply')
     return fut.result()
+
+
+def test_marker_resolution_and_a_large_state_from_a_participant_of_its_own(builder_model):
+    """-p marker_resolution:=R: the soft-tissue markers the node publishes are the model's display surface on that
+    grid (core.markers.display_surface): the points of the encoder made with it, fewer than the full surface's.
+    -p state_own_participant_bytes:=0: /tissue/state, larger than that, goes out from a DDS participant of its own
+    (simulator_state), as a finer model's (1.6 MB on the 6x limb) does by default."""
+    import rclpy
+    from rclpy.serialization import deserialize_message
+    from visualization_msgs.msg import MarkerArray
+    from tissue_sim.core import markers
+    from tissue_sim.core.model import TissueModel
+    tm = TissueModel.load(builder_model)
+    full, coarse = (markers.MarkerArrayEncoder(tm, bones=False, soft_resolution=r) for r in (0.0, 0.02))
+    assert coarse.n_points < full.n_points
+    with isolated_domain() as dom, ros_context(dom.id) as ctx, \
+            run_executable('simulator', *sim_args(builder_model, '-p', 'marker_resolution:=0.02',
+                                                  '-p', 'state_own_participant_bytes:=0'), env=dom.env) as sim:
+        node = rclpy.create_node('probe', context=ctx)
+        mk = Collector(node, MarkerArray, '/tissue/markers', raw=True)
+        sim.wait_for_output('simulator ready', timeout=60)
+        spin_until(lambda: len(mk.msgs) > 2, node, 30, 'markers')
+        m = deserialize_message(mk.msgs[-1], MarkerArray)
+        assert sum(len(x.points) for x in m.markers) == coarse.n_points < full.n_points
+        assert_own_participant(node, '/tissue/state', 'simulator_state', '/joint_states', 'simulator')
+        node.destroy_node()
+    assert sim.returncode == 0, sim.output
 
 
 def test_the_solver_steps_in_its_own_thread_by_default_and_in_the_timer_on_one_cpu(knee_model):

@@ -9,7 +9,9 @@ ROS-free: returns ``bytes`` to hand to ``Publisher.publish``.
 Markers (namespace ``tissue``), all TRIANGLE_LIST:
 * per frame (:class:`MarkerArrayEncoder`, in ``frame_id``): one per soft-tissue surface group
   (``surface_group_names``): each muscle in its own opaque colour, skin and fat translucent (alpha
-  0.3, ``SKIN_RGBA``); with ``bones=True`` (the default) also one per skeleton segment with bones:
+  0.3, ``SKIN_RGBA``); with ``soft_resolution`` > 0 a display surface of a finer model: the surface's vertices
+  clustered on a grid of that size at rest, each cluster drawn at its vertex nearest the cluster's mean
+  (:func:`display_surface`), so each frame still gathers real vertices; with ``bones=True`` (the default) also one per skeleton segment with bones:
   the bones' rest triangles, opaque, ``pose`` = segment pose;
 * once (:func:`bone_marker_array`): the bones in their segments' link frames (``frame_id`` = segment
   name, ``frame_locked``), for a transient-local topic next to TF; the per-frame array then leaves
@@ -175,7 +177,7 @@ class MarkerArrayEncoder:
     :func:`bone_marker_array` on a transient-local topic; TF moves them)."""
 
     def __init__(self, tm, frame_id: str = 'world', colouring: str = 'none', ns: str = 'tissue',
-                 bone_resolution: float = 0.0, bones: bool = True):
+                 bone_resolution: float = 0.0, bones: bool = True, soft_resolution: float = 0.0):
         if colouring not in COLOURINGS:
             raise ValueError(f'marker colouring {colouring!r}: expected one of {", ".join(COLOURINGS)}')
         self.colouring = colouring
@@ -185,6 +187,8 @@ class MarkerArrayEncoder:
         names = list(tm.surface_group_names)
         if len(tris) == 0:               # a model without a surface (phantoms): boundary faces of the cells
             tris, groups, names = boundary_surface(tm)
+        if soft_resolution > 0:
+            tris, groups = display_surface(np.asarray(tm.rest_positions), tris, groups, soft_resolution)
         # soft-tissue markers
         self._soft = []             # (corner vertex indices, group name)
         coloured = set(coloured_groups(names, colouring))
@@ -332,23 +336,60 @@ def bone_marker_array(tm, ns: str = 'tissue', bone_resolution: float = 0.0) -> b
     return buf.tobytes()
 
 
+def _clusters(v: np.ndarray, cell: float):
+    """(cluster of each point (N,), the clusters' mean points (n, 3)) of vertex clustering on a grid of ``cell``."""
+    keys = np.floor(v / cell).astype(np.int64)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    n = inv.max() + 1
+    mean = np.zeros((n, 3))
+    np.add.at(mean, inv, v)
+    return inv, mean / np.bincount(inv, minlength=n)[:, None]
+
+
+def _drop_collapsed(nt: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Indices of the triangles nt (T, 3) that keep three distinct corners, one of each set of corners per ``key``
+    (T,) value (the first, in their order)."""
+    keep = np.flatnonzero((nt[:, 0] != nt[:, 1]) & (nt[:, 1] != nt[:, 2]) & (nt[:, 0] != nt[:, 2]))
+    _, first = np.unique(np.column_stack([np.sort(nt[keep], axis=1), key[keep]]), axis=0, return_index=True)
+    return keep[np.sort(first)]
+
+
 def cluster_decimate(v: np.ndarray, t: np.ndarray, cell: float):
     """Display decimation of a triangle mesh by vertex clustering on a grid of ``cell`` metres:
     vertices in one cell merge at their mean, collapsed and repeated triangles are dropped."""
     if len(v) == 0:
         return v, t
-    keys = np.floor(v / cell).astype(np.int64)
-    _, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    n = inv.max() + 1
-    nv = np.zeros((n, 3))
-    np.add.at(nv, inv, v)
-    nv /= np.bincount(inv, minlength=n)[:, None]
+    inv, nv = _clusters(v, cell)
     nt = inv[t]
-    keep = (nt[:, 0] != nt[:, 1]) & (nt[:, 1] != nt[:, 2]) & (nt[:, 0] != nt[:, 2])
-    nt = nt[keep]
-    _, first = np.unique(np.sort(nt, axis=1), axis=0, return_index=True)
-    return nv, nt[np.sort(first)]
+    return nv, nt[_drop_collapsed(nt, np.zeros(len(nt), np.int64))]
+
+
+def display_surface(x: np.ndarray, tris: np.ndarray, groups: np.ndarray, cell: float):
+    """(triangles, groups) of a soft-tissue surface decimated for display, group by group (the skin's corners stay
+    skin vertices): the vertices a group's triangles use, clustered on a grid of ``cell`` metres at the positions x
+    (the rest shape), each replaced by its cluster's vertex nearest the cluster's mean (a real vertex: the markers keep
+    gathering current positions); triangles that collapse are dropped, and repeated ones. Corner order (the outward
+    orientation) is kept."""
+    tris = np.asarray(tris, np.int64).reshape(-1, 3)
+    groups = np.asarray(groups)
+    out_t, out_g = [], []
+    for g in np.unique(groups):
+        t = tris[groups == g]
+        used = np.unique(t)
+        inv, mean = _clusters(x[used], cell)
+        d = np.einsum('ij,ij->i', x[used] - mean[inv], x[used] - mean[inv])
+        order = np.lexsort((used, d, inv))              # per cluster: nearest the mean first (ties: the lower id)
+        first = order[np.r_[True, inv[order][1:] != inv[order][:-1]]]
+        rep = np.empty(inv.max() + 1, np.int64)
+        rep[inv[first]] = used[first]
+        nt = rep[inv[np.searchsorted(used, t)]]
+        nt = nt[_drop_collapsed(nt, np.zeros(len(nt), np.int64))]
+        out_t.append(nt)
+        out_g.append(np.full(len(nt), g, groups.dtype))
+    if not out_t:
+        return tris, groups
+    return np.concatenate(out_t), np.concatenate(out_g)
 
 
 def boundary_surface(tm):

@@ -68,10 +68,17 @@ PARAMS = (
           '(node <name>_markers): the full-mesh frames then do not hold up the small topics in Fast DDS\'s shared '
           'memory (ros.common.OwnParticipant); false: from the node\'s participant', read_only=True),
     Param('publish_state', True, 'publish /tissue/state (compact state, for recording)'),
+    Param('state_own_participant_bytes', 262144, 'publish /tissue/state from a DDS participant of its own (node '
+          '<name>_state) when a TissueState is larger than this [bytes] (a finer model\'s: 1.6 MB on the 6x limb, '
+          'against the bundled limb\'s 55 kB), as the markers: it then does not hold up the small topics; -1 = never',
+          lo=-1, hi=2 ** 31 - 1, read_only=True),
     Param('marker_colouring', 'none', 'skin colouring: none, skin_area (Fig. 8) or fat_deformation (Fig. 9)',
           choices=mk.COLOURINGS, read_only=True, aliases=('--colouring',)),
     Param('colour_scale', 0.2, 'skin_area: area change at full colour (0.2 = +-20 %); fat_deformation: d at full '
           'red [m]', lo=1e-6, hi=10.0),
+    Param('marker_resolution', 0.0, "the soft tissue's markers drawn on a display surface decimated by vertex "
+          'clustering on a grid of this size [m] (each cluster at its vertex nearest its mean; for finer models); 0 = '
+          'the full surface', lo=0.0, hi=0.05, read_only=True),
     Param('bone_marker_resolution', 0.003, 'bone meshes in the markers are simplified by vertex clustering on a '
           'grid of this size [m]; 0 = full meshes', lo=0.0, hi=0.05, read_only=True),
     Param('publish_tf', True, 'publish /tf (moving segments, each frame) and /tf_static (fixed ones); false when '
@@ -124,6 +131,7 @@ class Simulator(Node):
         # the soft tissue each frame; the bones once, in their segments' TF frames (/tissue/bone_markers)
         self.marker_enc = mk.MarkerArrayEncoder(self.tm, self.frame_id, P['marker_colouring'],
                                                 bone_resolution=P['bone_marker_resolution'],
+                                                soft_resolution=P['marker_resolution'],
                                                 bones=False) if P['publish_markers'] else None
         self._rest_area = None
         self._fat_def = None
@@ -153,7 +161,11 @@ class Simulator(Node):
         self.Clock, self.JointState, self.DiagnosticArray = Clock, JointState, DiagnosticArray
         self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, qos_stream(1))
         self.pub_joints = self.create_publisher(JointState, TOPIC_JOINTS, qos_stream())
-        self.pub_state = self.create_publisher(TissueState, TOPIC_STATE, qos_stream())
+        self.state_bytes = len(self.tcdr.encode_frame(self.tm, self.state, solver.observe(self.sim, self.state),
+                                                      self.ctrl.activation, stamp_ns=0, frame_id=self.frame_id))
+        limit = int(P['state_own_participant_bytes'])
+        self.state_participant = OwnParticipant(self, 'state') if 0 <= limit < self.state_bytes else None
+        self.pub_state = (self.state_participant or self).create_publisher(TissueState, TOPIC_STATE, qos_stream())
         self.markers_participant = (OwnParticipant(self, 'markers') if self.marker_enc is not None
                                     and P['markers_own_participant'] else None)
         self.pub_markers = (self.markers_participant or self).create_publisher(MarkerArray, TOPIC_MARKERS,
@@ -283,8 +295,9 @@ class Simulator(Node):
             self.stepper.stop()
 
     def destroy_node(self):
-        if self.markers_participant is not None:
-            self.markers_participant.close()
+        for participant in (self.markers_participant, self.state_participant):
+            if participant is not None:
+                participant.close()
         return super().destroy_node()
 
     def stepper_settings(self):

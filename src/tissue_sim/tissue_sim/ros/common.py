@@ -71,9 +71,9 @@ def qos_stream(depth: int = 10):
 
 
 class OwnParticipant:
-    """A DDS participant of its own for a node's large messages (the full-mesh markers): a second rclpy context on
-    the node's domain with one node, ``<node name>_<suffix>`` in the node's namespace, whose publishers are made on
-    the names the node resolves (its remappings apply).
+    """A DDS participant of its own for a node's large messages (the full-mesh markers; a finer model's TissueState): a
+    second rclpy context on the node's domain with one node, ``<node name>_<suffix>`` in the node's namespace, whose
+    publishers are made on the names the node resolves (its remappings apply).
 
     Why. Fast DDS puts every sample a participant sends through shared memory into that participant's one segment
     (512 KB, Fast DDS's default; under ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` rmw_fastrtps builds the transports
