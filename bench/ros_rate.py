@@ -268,7 +268,8 @@ def solver_only(model, params, seconds, windows=3):
     return out
 
 
-TABLE = (('refine', 'refine', '{:g}'), ('vertices', 'vertices', '{}'), ('marker resolution m', 'marker_resolution', '{:g}'),
+TABLE = (('refine', 'refine', '{:g}'), ('vertices', 'vertices', '{}'),
+         ('marker resolution m', 'marker_resolution', '{:g}'),
          ('solver thread', 'solver_thread', '{}'),
          ('markers own participant', 'markers_own_participant', '{}'),
          ('RTF', 'real_time_factor', '{:.2f}'), ('steps/s', 'steps_per_s', '{:.0f}'),

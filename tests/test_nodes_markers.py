@@ -148,7 +148,8 @@ def test_display_surface_of_a_finer_limb_is_its_own_vertices_on_a_coarser_mesh()
 
     def volume_area(tt):
         a, b, c = x[tt[:, 0]], x[tt[:, 1]], x[tt[:, 2]]
-        return np.einsum('ij,ij->i', a, np.cross(b, c)).sum() / 6, 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
+        return (np.einsum('ij,ij->i', a, np.cross(b, c)).sum() / 6,
+                0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
     (v0, a0), (v1, a1) = volume_area(tris[groups == skin]), volume_area(t[g == skin])
     assert v0 > 0 and abs(v1 / v0 - 1) < 0.03 and abs(a1 / a0 - 1) < 0.03
     full, coarse = mk.MarkerArrayEncoder(tm, bones=False), mk.MarkerArrayEncoder(tm, bones=False, soft_resolution=0.01)

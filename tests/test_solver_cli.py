@@ -48,8 +48,8 @@ def test_simulate_set_changes_fields_of_the_parameter_set(tmp_path, capsys):
     it. A bad one is one error line, exit 2, and nothing is written."""
     import yaml
     out = tmp_path / 'obs.npz'
-    rc = main(['simulate', 'phantom:knee', '--params', 'physical', '--set', 'integrator=implicit', '--set', 'substeps=1',
-               '--set', 'gravity=[0, 0, -9.81]', '--duration', '0.05', '-o', str(out), '--json'])
+    rc = main(['simulate', 'phantom:knee', '--params', 'physical', '--set', 'integrator=implicit',
+               '--set', 'substeps=1', '--set', 'gravity=[0, 0, -9.81]', '--duration', '0.05', '-o', str(out), '--json'])
     assert rc == 0
     assert json.loads(capsys.readouterr().out)['substeps'] == 1
     with np.load(out) as z:

@@ -11,7 +11,8 @@ Markers (namespace ``tissue``), all TRIANGLE_LIST:
   (``surface_group_names``): each muscle in its own opaque colour, skin and fat translucent (alpha
   0.3, ``SKIN_RGBA``); with ``soft_resolution`` > 0 a display surface of a finer model: the surface's vertices
   clustered on a grid of that size at rest, each cluster drawn at its vertex nearest the cluster's mean
-  (:func:`display_surface`), so each frame still gathers real vertices; with ``bones=True`` (the default) also one per skeleton segment with bones:
+  (:func:`display_surface`), so each frame still gathers real vertices; with ``bones=True`` (the default) also one
+  per skeleton segment with bones:
   the bones' rest triangles, opaque, ``pose`` = segment pose;
 * once (:func:`bone_marker_array`): the bones in their segments' link frames (``frame_id`` = segment
   name, ``frame_locked``), for a transient-local topic next to TF; the per-frame array then leaves
