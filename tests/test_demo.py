@@ -1,5 +1,8 @@
 """`make demo` end to end, as a user runs it (scripts/demo.sh): real nodes over DDS on the bundled
-anatomy, the recording read back, analysis tables, pictures; only shortened to 2 s of sim time."""
+anatomy, the recording read back, analysis tables, pictures; only shortened to 2 s of sim time. Each run in a ROS
+domain the tests' lock files hold (rosutil.isolated_domain; the demo takes ROS_DOMAIN_ID from the environment): left
+to pick its own (1 + its pid % 101), a demo's activation node once reached a test running beside it in the same
+domain (CI, 2026-12-01: the probe of test_foundation received the demo's 28 muscle names)."""
 import json
 import os
 import subprocess
@@ -20,9 +23,9 @@ def test_demo_default_flexes_the_knee_and_writes_analysis_and_figures(tmp_path):
     except Exception as e:  # the bundled anatomy is part of the repo; say so if it is missing
         pytest.fail(f'bundled anatomy missing: {e}')
     env = dict(os.environ, TISSUE_SIM_RUNS=str(tmp_path), DEMO_SECONDS='2', DEMO_TIMEOUT='240')
-    env.pop('ROS_DOMAIN_ID', None)
-    p = subprocess.run(['bash', str(ROOT / 'scripts' / 'demo.sh')], cwd=ROOT, env=env, capture_output=True,
-                       text=True, timeout=280)
+    with rosutil.isolated_domain() as dom:
+        p = subprocess.run(['bash', str(ROOT / 'scripts' / 'demo.sh')], cwd=ROOT,
+                           env=dict(env, ROS_DOMAIN_ID=str(dom.id)), capture_output=True, text=True, timeout=280)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     (run,) = [d for d in tmp_path.iterdir() if d.is_dir()]
     s = json.loads((run / 'summary.json').read_text())
@@ -46,10 +49,10 @@ def test_demo_motion_knob_runs_a_named_motion(tmp_path):
     (1.5 s of sim time); the ankle plantarflexes (measured -50.0 deg at the end, the stop, as headless) and the
     analysis finds the ankle as the joint that moved."""
     env = dict(os.environ, TISSUE_SIM_RUNS=str(tmp_path), MOTION='heel_raise', DEMO_MARKERS='0', DEMO_TIMEOUT='240')
-    env.pop('ROS_DOMAIN_ID', None)
     env.pop('DEMO_SECONDS', None)
-    p = subprocess.run(['bash', str(ROOT / 'scripts' / 'demo.sh')], cwd=ROOT, env=env, capture_output=True,
-                       text=True, timeout=280)
+    with rosutil.isolated_domain() as dom:
+        p = subprocess.run(['bash', str(ROOT / 'scripts' / 'demo.sh')], cwd=ROOT,
+                           env=dict(env, ROS_DOMAIN_ID=str(dom.id)), capture_output=True, text=True, timeout=280)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     (run,) = [d for d in tmp_path.iterdir() if d.is_dir()]
     s = json.loads((run / 'summary.json').read_text())
