@@ -55,7 +55,7 @@ def load_params(spec: str | None = 'paper', dt: float | None = None, overrides=(
     else:
         p = Params.from_yaml(spec)
     if overrides:
-        p = Params.from_dict({**p.to_dict(), **parse_assignments(overrides, '--set')})
+        p = Params.from_dict({**p.to_dict(), **parse_assignments(overrides, 'solver parameters')})
     if dt:
         p = dataclasses.replace(p, dt=float(dt)).validate()
     return p

@@ -348,12 +348,11 @@ def _clusters(v: np.ndarray, cell: float):
     return inv, mean / np.bincount(inv, minlength=n)[:, None]
 
 
-def _drop_collapsed(nt: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """Indices of the triangles nt (T, 3) that keep three distinct corners, one of each set of corners per ``key``
-    (T,) value (the first, in their order)."""
-    keep = np.flatnonzero((nt[:, 0] != nt[:, 1]) & (nt[:, 1] != nt[:, 2]) & (nt[:, 0] != nt[:, 2]))
-    _, first = np.unique(np.column_stack([np.sort(nt[keep], axis=1), key[keep]]), axis=0, return_index=True)
-    return keep[np.sort(first)]
+def _drop_collapsed(nt: np.ndarray) -> np.ndarray:
+    """The triangles nt (T, 3) that keep three distinct corners, each set of corners once (the first, in order)."""
+    nt = nt[(nt[:, 0] != nt[:, 1]) & (nt[:, 1] != nt[:, 2]) & (nt[:, 0] != nt[:, 2])]
+    _, first = np.unique(np.sort(nt, axis=1), axis=0, return_index=True)
+    return nt[np.sort(first)]
 
 
 def cluster_decimate(v: np.ndarray, t: np.ndarray, cell: float):
@@ -363,7 +362,7 @@ def cluster_decimate(v: np.ndarray, t: np.ndarray, cell: float):
         return v, t
     inv, nv = _clusters(v, cell)
     nt = inv[t]
-    return nv, nt[_drop_collapsed(nt, np.zeros(len(nt), np.int64))]
+    return nv, _drop_collapsed(nt)
 
 
 def display_surface(x: np.ndarray, tris: np.ndarray, groups: np.ndarray, cell: float):
@@ -384,8 +383,7 @@ def display_surface(x: np.ndarray, tris: np.ndarray, groups: np.ndarray, cell: f
         first = order[np.r_[True, inv[order][1:] != inv[order][:-1]]]
         rep = np.empty(inv.max() + 1, np.int64)
         rep[inv[first]] = used[first]
-        nt = rep[inv[np.searchsorted(used, t)]]
-        nt = nt[_drop_collapsed(nt, np.zeros(len(nt), np.int64))]
+        nt = _drop_collapsed(rep[inv[np.searchsorted(used, t)]])
         out_t.append(nt)
         out_g.append(np.full(len(nt), g, groups.dtype))
     if not out_t:

@@ -377,11 +377,11 @@ def _built_with_via_points(tm) -> bool:
 def parameter_set(params: str, overrides=()):
     """Params of the named set ('physical' or 'paper') with NAME=VALUE overrides (the command's --set; as
     Params.from_assignments); ValidationError naming a bad set or assignment."""
-    from tissue_sim.core import solver
+    from tissue_sim.core.load import load_params
     if params not in ('physical', 'paper'):
         raise ValidationError(f'--params {params!r}: expected physical or paper')
     try:
-        return solver.Params.from_assignments(params, list(overrides))
+        return load_params(params, None, list(overrides))
     except ValueError as e:
         raise ValidationError(f'--set: {e}') from None
 
