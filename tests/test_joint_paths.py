@@ -15,6 +15,7 @@ from tissue_sim.core import solver
 from tissue_sim.core.builder import load_joints
 from tissue_sim.core.solver import skeleton as SK
 from tissue_sim.core.solver.measures import joint_torques, skeleton_energy
+from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
 
 KNEE = 0
 
@@ -101,7 +102,7 @@ def test_path_jacobian_is_the_derivative_of_the_pose(sims, deg):
     (shank, foot and the coupled patella); skeleton.joint_jacobians' velocity W x (x - P) + D of shank points equals
     dx/dq."""
     sim = sims[True]
-    sk = sim.skeleton._replace(gravity=np.zeros(3))
+    sk = sim.skeleton._replace(gravity=frozen(np.zeros(3)))
     lock = np.array([t == 1 for t in sim.j_type])
     i = int(np.flatnonzero(sim.vertex_segment == 1)[5])
     e = 1e-6
@@ -132,7 +133,7 @@ def test_free_swing_conserves_the_skeletons_energy(sims):
     for paths, h in ((True, 1e-4), (True, 5e-5), (False, 1e-4)):
         sim = sims[paths]
         J = sim.n_joints
-        sk = sim.skeleton._replace(gravity=np.array([0.0, 0.0, -9.81]), j_range=np.array([[-10.0, 10.0]] * J))
+        sk = sim.skeleton._replace(gravity=frozen([0.0, 0.0, -9.81]), j_range=frozen([[-10.0, 10.0]] * J))
         s2 = dataclasses.replace(sim, skeleton=sk, gravity=sk.gravity, j_range=sk.j_range)
         st = _posed(sim, 60.0, 10.0)
         f = np.zeros_like(st.x)

@@ -22,6 +22,7 @@ from tissue_sim.core import solver
 from tissue_sim.core.solver import phantom
 from tissue_sim.core.solver import skeleton as SK
 from tissue_sim.core.solver.measures import skeleton_energy
+from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
 
 
 @pytest.fixture(scope='module')
@@ -188,7 +189,7 @@ def test_coupling_virtual_work_equals_finite_differences(psim):
     """A force f on a patella vertex, the knee locked: the lock's torque is -f . dx/dtheta, dx/dtheta by
     central differences of the forward kinematics (the coupling Jacobian)."""
     i = int(np.flatnonzero(psim.vertex_segment == 2)[0])
-    sk = psim.skeleton._replace(gravity=np.zeros(3))
+    sk = psim.skeleton._replace(gravity=frozen(np.zeros(3)))
     fv = np.array([3.0, -1.0, 7.0])
     for deg in (5.0, 37.0, 80.0, 115.0):
         th, e = math.radians(deg), 1e-6
@@ -210,7 +211,7 @@ def test_coupled_segment_energy_is_conserved(psim):
     the patella's kinetic and potential energy included, stays within 0.05 % of its swing (symplectic
     Euler's bounded oscillation, no drift). Without the patella's inertia and bias in the driver's
     equation the energy would not be conserved."""
-    sk = psim.skeleton._replace(gravity=np.array([0.0, 0.0, -9.81]), j_range=np.array([[-10.0, 10.0], [-10.0, 10.0]]))
+    sk = psim.skeleton._replace(gravity=frozen([0.0, 0.0, -9.81]), j_range=frozen([[-10.0, 10.0], [-10.0, 10.0]]))
     s2 = dataclasses.replace(psim, skeleton=sk, gravity=sk.gravity, j_range=sk.j_range)
     st = solver.set_joint_positions(psim, solver.make_state(psim), [math.radians(60.0), 0.0])
     f = np.zeros_like(st.x)
@@ -286,7 +287,7 @@ def test_joint_torques_equal_the_kernels(psim):
     f = np.random.default_rng(1).standard_normal(st.x.shape)
     tau = joint_torques(psim, st, f)
     lt = np.zeros(2)
-    sk = psim.skeleton._replace(gravity=np.zeros(3))
+    sk = psim.skeleton._replace(gravity=frozen(np.zeros(3)))
     SK.skeleton_step(1e-4, st.q, st.qd, f, st.x, sk, psim.att_idx, psim.att_seg, 0.0, 0.3, 1.0, st.seg_R, st.seg_t,
                      np.zeros((2, 10)), np.array([True, False]), st.q.copy(), lt, np.zeros(2), np.zeros((psim.n_segments, 6)))
     np.testing.assert_allclose(tau[0], -lt[0], rtol=1e-9)

@@ -16,6 +16,7 @@ from tissue_sim.core import solver
 from tissue_sim.core.builder.bones import winding_number
 from tissue_sim.core.model import JOINT_HINGE, TISSUE_FAT, TISSUE_MUSCLE
 from tissue_sim.core.solver import contact as C, phantom
+from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
 
 H = 1.5e-3          # grid spacing of the tests [m]
 MARGIN = 5e-4
@@ -103,7 +104,7 @@ def test_vertex_falling_onto_sphere_stays_outside(friction):
     for k in range(300):
         vin = v.copy()
         x += h * v
-        hit = C.bone_contact(h, x, v, seg_R, seg_t, tup, cw, np.ones(len(x)), np.zeros((len(seg_R), 6)))
+        hit = C.bone_contact(h, x, v, seg_R, seg_t, tup, cw, frozen(np.ones(len(x))), np.zeros((len(seg_R), 6)))
         d = _exact_signed(V, T, x)[0]
         assert d > MARGIN - 5e-5, (k, d)
         if hit and first is None:
@@ -131,7 +132,7 @@ def test_vertex_pushed_into_box_leaves_along_face_normal():
     v = np.array([[0.1, 0.0, -0.5]])
     wr = np.zeros((1, 6))
     m, h = 0.004, 1e-3                       # [kg] the vertex's mass (1 / the integrator's inv_den), [s]
-    assert C.bone_contact(h, x, v, seg_R, seg_t, tup, cw, np.array([1.0 / m]), wr) == 1
+    assert C.bone_contact(h, x, v, seg_R, seg_t, tup, cw, frozen([1.0 / m]), wr) == 1
     assert x[0, 2] == pytest.approx(top + MARGIN, abs=2e-5)
     assert x[0, :2] == pytest.approx([0.003, -0.002], abs=1e-6)
     assert v[0] == pytest.approx([0.1, 0.0, 0.0], abs=1e-3)
@@ -158,7 +159,7 @@ def test_moving_bone_pushes_vertex_with_its_velocity():
         cw.t0[:] = seg_t                       # the pose at the sub-step's start (advance: forward kinematics of q0)
         seg_t[1, 0] += h * u
         x += h * v
-        C.bone_contact(h, x, v, seg_R, seg_t, tup, cw, np.ones(len(x)), np.zeros((len(seg_R), 6)))
+        C.bone_contact(h, x, v, seg_R, seg_t, tup, cw, frozen(np.ones(len(x))), np.zeros((len(seg_R), 6)))
         assert _exact_signed(V, T, x - seg_t[1])[0] > MARGIN - 5e-5
     assert abs(_exact_signed(V, T, x - seg_t[1])[0] - MARGIN) < 5e-5
     assert v[0, 0] == pytest.approx(u, rel=1e-3)
@@ -192,7 +193,7 @@ def test_broad_phase_gives_the_result_of_a_full_pass_every_substep():
             x += 1e-4 * v * 10
             if full:
                 cw.slack[:] = 0.0              # every vertex tested against every grid
-            C.bone_contact(1e-3, x, v, seg_R, seg_t, tup, cw, np.ones(len(x)), np.zeros((len(seg_R), 6)))
+            C.bone_contact(1e-3, x, v, seg_R, seg_t, tup, cw, frozen(np.ones(len(x))), np.zeros((len(seg_R), 6)))
         runs.append((x, v, cw.stats.copy()))
     (xa, va, sa), (xb, vb, sb) = runs
     assert xa.tobytes() == xb.tobytes() and va.tobytes() == vb.tobytes()

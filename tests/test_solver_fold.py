@@ -11,6 +11,7 @@ import pytest
 
 from tissue_sim.core import solver
 from tissue_sim.core.solver import contact as C, phantom, reference, skeleton as SK
+from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
 
 from test_solver_contact import _knee_with_bones
 
@@ -52,7 +53,7 @@ def _stage_both(sim, x, v, R, t):
     work.R0[:], work.t0[:] = R, t
     m = np.full(len(x), 1e-3)
     wr, wrr = np.zeros((sim.n_segments, 6)), np.zeros((sim.n_segments, 6))
-    C.fold_contact(1e-3, x, v, R, t, cg, work, 1.0 / m, wr)
+    C.fold_contact(1e-3, x, v, R, t, cg, work, frozen(1.0 / m), wr)
     reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3, m, wrr)
     assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
     assert np.allclose(wr, wrr, rtol=1e-12, atol=1e-12)
@@ -108,7 +109,7 @@ def test_fold_stage_projects_along_the_segment_axis_and_removes_inward_velocity(
     m = np.full(len(x), 2e-3)
     wr, wrr = np.zeros((sim.n_segments, 6)), np.zeros((sim.n_segments, 6))
     v_in = v.copy()
-    hits = C.fold_contact(1e-3, x, v, R, t, cg, work, 1.0 / m, wr)
+    hits = C.fold_contact(1e-3, x, v, R, t, cg, work, frozen(1.0 / m), wr)
     reference.fold_stage(cg, xr, vr, R, t, R, t, 1e-3, m, wrr)
     assert np.allclose(x, xr, atol=1e-15) and np.allclose(v, vr, atol=1e-15)
     assert np.allclose(wr, wrr, rtol=1e-12, atol=1e-12)

@@ -8,6 +8,7 @@ import pytest
 from tissue_sim.core import solver
 from tissue_sim.core.solver import contact as C
 from tissue_sim.core.solver import phantom
+from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
 
 
 def _cylinder_grids(x0, geo, floors=None):
@@ -17,9 +18,9 @@ def _cylinder_grids(x0, geo, floors=None):
     n = len(x0)
     cg = C.build_grids([], np.zeros(0, np.int32), 5e-4, 0.0, 1.5e-3, x0, -np.ones(n, np.int32))
     g = np.asarray(geo, float)
-    return cg._replace(w_seg=np.array([0], np.int32), w_geo=np.array([[*g[:9], g[9], 0.5 * g[10]]]),
-                       w_off=np.array([0, n], np.int64), w_idx=np.arange(n, dtype=np.int32),
-                       w_floor=np.full(n, g[9]) if floors is None else np.asarray(floors, float))
+    return cg._replace(w_seg=frozen([0], np.int32), w_geo=frozen([[*g[:9], g[9], 0.5 * g[10]]]),
+                       w_off=frozen([0, n], np.int64), w_idx=frozen(np.arange(n), np.int32),
+                       w_floor=frozen(np.full(n, g[9]) if floors is None else floors, float))
 
 
 def test_vertex_inside_is_moved_radially_and_loses_its_inward_velocity():
@@ -38,7 +39,7 @@ def test_vertex_inside_is_moved_radially_and_loses_its_inward_velocity():
     x1, v1, wr = x.copy(), v.copy(), np.zeros((1, 6))
     m, h = 0.004, 1e-3
     R, t = np.eye(3)[None], np.zeros((1, 3))
-    assert C.wrap_contact(h, x1, v1, R, t, cg, cw, np.full(5, 1.0 / m), wr) == 2
+    assert C.wrap_contact(h, x1, v1, R, t, cg, cw, frozen(np.full(5, 1.0 / m)), wr) == 2
     n = np.array([0.015, 0.0, 0.005]) / np.hypot(0.015, 0.005)
     assert x1[0] == pytest.approx(0.02 * n + [0, 0.01, 0], abs=1e-12)
     vn = v[0] @ n
@@ -66,7 +67,7 @@ def test_moving_cylinder_carries_the_vertex_with_its_velocity():
         cw.t0[:] = t
         t[0, 0] += h * u
         x += h * v
-        C.wrap_contact(h, x, v, R, t, cg, cw, np.ones(1), np.zeros((1, 6)))
+        C.wrap_contact(h, x, v, R, t, cg, cw, frozen(np.ones(1)), np.zeros((1, 6)))
         assert np.hypot(x[0, 0] - t[0, 0], x[0, 2]) >= 0.02 - 1e-12
     assert v[0, 0] == pytest.approx(u, rel=1e-9) and abs(v[0, 1]) < 1e-12 and abs(v[0, 2]) < 1e-12
 

@@ -1062,6 +1062,8 @@ def build_grids(meshes, bone_segment, margin: float, friction: float, spacing: f
     g = dict(g_seg=np.array(segs, np.int32), g_origin=np.array(origins, np.float64).reshape(-1, 3),
              g_inv_h=np.array(inv_h, np.float64), g_dims=np.array(dims, np.int64).reshape(-1, 3), g_off=g_off,
              g_phi=f32(phis), c_dims=np.array(cdims, np.int64).reshape(-1, 3), c_off=c_off, c_min=f32(cmins))
+    for a in g.values():        # read-only before sample_grid sees them, as the stage's are: one compiled signature
+        a.flags.writeable = False
     # each free vertex's floor: the margin, or less where the rest shape already is closer
     floor = np.full(len(rest), float(margin))
     if len(segs):
