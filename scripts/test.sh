@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # `make test`: the whole suite in two phases, so that it uses both cores of a 2-core machine.
 #   1. every test not marked `ros` on TISSUE_SIM_TEST_WORKERS pytest-xdist workers (default 2), one file per
-#      worker at a time (--dist loadfile: a module's fixtures are built once), all with the numba cache beside the
+#      worker at a time (--dist loadfile: a module's fixtures are built once; --no-loadscope-reorder: in the order
+#      tests/conftest.py gives them, not the most tests first), all with the numba cache beside the
 #      sources (tissue_sim.core.numba_cache makes it safe for processes compiling at once; tests/conftest.py orders
 #      the files so that only one worker compiles the solver's step);
 #   2. the `ros` tests (real nodes over DDS: mostly waiting on discovery and rates) on as many workers, after
@@ -15,7 +16,7 @@ export TISSUE_SIM_REQUIRE_WS=1
 if [ "$workers" = 0 ]; then
   exec python -m pytest "$@"
 fi
-python -m pytest -m 'not ros' -n "$workers" --dist loadfile "$@"; a=$?
+python -m pytest -m 'not ros' -n "$workers" --dist loadfile --no-loadscope-reorder "$@"; a=$?
 if [ "$a" -ne 0 ] && [ "$a" -ne 5 ]; then exit "$a"; fi
 warm="$(mktemp -d)"
 tissue-sim simulate --duration 0.01 --activate hamstrings=1 -o "$warm/warm.mcap" > /dev/null; w=$?
