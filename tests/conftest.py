@@ -27,7 +27,7 @@ def default_tm():
 # is lost) the first file goes to one worker and the second to the other: the first compiles the step (about 80 s on a cold cache) while
 # the second, the anatomy regenerated from its sources (about 110 s), needs no solver, so the other worker loads the
 # step from the cache instead of compiling it too. Otherwise the files keep pytest's order.
-FIRST_FILES = ('test_solver.py', 'test_anatomy.py')
+FIRST_FILES = ('test_solver.py', 'test_anatomy.py', 'test_solver_kernel.py')
 
 
 def pytest_collection_modifyitems(session, config, items):

@@ -242,7 +242,7 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         k = np.where(muscle, p.youngs_muscle, p.youngs_fat) * size * 4.0 / sizes * tm.cell_k_scale
     k_active = np.zeros(C)
     alen = np.zeros(C)
-    cell_axial_lengths(rest, off, cv, alen)
+    cell_axial_lengths(np.array(rest), off, cv, alen)          # (writable, as a state's x: one compiled signature)
     lines = centre_lines(tm, off, cv, rest, p.active_path_sigma)      # each muscle's centre line (measures.py)
     if p.active_length == 'path':
         alen = path_lengths(tm, rest, off, cv, alen, p.active_path_sigma, lines=lines)

@@ -241,7 +241,7 @@ def _constants(sim):
         shift = np.zeros(sim.n_muscles)
         if sim.params.rest_fibre_length > 0 and pm.size:
             w = PathWork(sim.n_muscles, pm.size, powers.shape)
-            fibre_lengths(np.asarray(sim.j_rest, np.float64), pm, pdata, powers, coef, shift, l0, *w)
+            fibre_lengths(np.array(sim.j_rest, np.float64), pm, pdata, powers, coef, shift, l0, *w)
             shift = np.where(np.isin(np.arange(sim.n_muscles), pm), sim.params.rest_fibre_length - w[-1], 0.0)
         c = _CONSTANTS[sim] = (muscle_max_forces(tm, sim.params, sim.rest_volume, sim.rest_length), cells, gaps,
                                (pm, pdata, powers, coef, shift, l0))
@@ -258,7 +258,7 @@ def fibre_state(sim, q):
     """(ln (M,), lpart (P,), L (P,), dL (P, J)) at joint coordinates q: fibre_lengths of the model's paths."""
     pm, pdata, powers, coef, shift, l0 = path_constants(sim)
     w = PathWork(sim.n_muscles, pm.size, powers.shape)
-    fibre_lengths(np.asarray(q, np.float64), pm, pdata, powers, coef, shift, l0, *w)
+    fibre_lengths(np.array(q, np.float64), pm, pdata, powers, coef, shift, l0, *w)     # (a writable copy: one signature)
     return w[5], w[4], w[2], w[3]
 
 

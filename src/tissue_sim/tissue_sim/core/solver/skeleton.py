@@ -183,7 +183,7 @@ def forward_kinematics(q, sk, seg_R, seg_t):
     w1 = np.empty(3)
     w2 = np.empty(3)
     for s in seg_order:
-        j = seg_joint[s]
+        j = np.int64(seg_joint[s])      # (int64 as the other callers' j: one compiled signature of each callee)
         if j < 0:
             continue
         p = j_parent[j]
