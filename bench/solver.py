@@ -3,7 +3,7 @@ same step in plain numpy (solver.reference_step) and with pypbd's shape matching
 same cells; then the thread scaling of the step.
 
     .venv/bin/python bench/solver.py [--model FILE.npz] [--seconds 3] [--fine FILE.npz] [--threads 1,2] [--refine R]
-                                     [--quick] [--ab N] [--stages I] [--sizes R,R,...]
+                                     [--quick] [--ab N] [--stages I] [--sizes R,R,...] [--sustained R,R,...]
 
 The physical set runs with its mass_scaled integrator (4 sub-steps) and, beside it, with the implicit integrator (one
 sub-step of 1 ms; docs/solver.md "Implicit integrator"). --fine: the same two on a finer model (e.g. from
@@ -16,13 +16,16 @@ process per configuration (the thread counts alternate, best of 3 windows each),
 100-step chunks), the physical set (mass_scaled, 4 sub-steps) and the physical set with the implicit integrator,
 on the default model and, with --refine R (the bundled limb built R times finer, builder.default_model(refine=R))
 or --fine FILE, on a finer model; with each configuration's peak resident memory (its own process:
-resource.getrusage ru_maxrss). --quick: 1-s windows and the scaling section only (what `make bench` runs). --ab N:
-only the physical set, mass_scaled (affine and enclosed volume) beside implicit (all with the hamstring sheath) and
-implicit without it, N
-alternating rounds (ab_rates): the ratio the issue's target is about, on a shared machine. --stages I: the implicit
+resource.getrusage ru_maxrss); with --refine R also that limb's --sustained rates (below; `make bench` runs
+--refine 2.6). --quick: 1-s windows and the scaling section only. --ab N: only the physical set, mass_scaled (affine
+and enclosed volume) beside implicit (all with the hamstring sheath) and implicit without it, N alternating rounds
+(ab_rates): the ratio the issue's target is about, on a shared machine. --stages I: the implicit
 step's stages timed one by one (stage_times; --refine R: on the refined limb), where its time goes. --sizes R,R,...:
 the physical set's implicit step on the bundled limb built R times finer, one thread, with the bytes of the arrays a
 step reads and writes (size_scaling): how the cost per vertex changes once those outgrow the processor's caches.
+--sustained R,R,...: the physical set's implicit step on the bundled limb built R times finer with each of --threads,
+over a whole 1-s full hamstring contraction (ten 100-step windows): steps per wall second, median, slowest and fastest
+window, and whether the median keeps real time (sustained_rates): the largest model that runs at real time here.
 
 Model: tissue_sim.core.builder.default_model() (the bundled anatomy); if that is not available,
 the builder's synthetic paper-sized limb phantom (tests/phantoms.py). Prints the figures as lines, then as a
@@ -185,6 +188,9 @@ def main():
                     'their own (I iterations; with --refine R on the refined limb) (stage_times)')
     ap.add_argument('--sizes', metavar='R,R,...', help='only the implicit step on the bundled limb built R times finer '
                     '(e.g. 1,2,2.6,3): time per step and per vertex beside the working set (size_scaling)')
+    ap.add_argument('--sustained', metavar='R,R,...', help='only the implicit step on the bundled limb built R times '
+                    'finer, with each of --threads, over a whole 1-s contraction: median steps per wall second and '
+                    'whether it keeps real time (sustained_rates)')
     ap.add_argument('--scaling-child', help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.scaling_child:
@@ -205,6 +211,19 @@ def main():
         if path and not Path(path).is_file():
             print(f'error: {path}: no such model file', file=sys.stderr)
             sys.exit(2)
+    if args.sustained is not None:
+        from tissue_sim.core.builder import parse_refinements
+        try:
+            sizes = parse_refinements(args.sustained)
+        except ValueError:
+            print(f'error: --sustained {args.sustained!r}: expected refinements >= 1 separated by commas', file=sys.stderr)
+            sys.exit(2)
+        out = {'cpu': _cpu_name(), **_cpu(), 'timing': 'steps per wall second', 'threads': threads}
+        print(f'CPU: {out["cpu"]} ({os.cpu_count()} cores; numba compiles for {out["llvm_cpu"]}); load average '
+              f'{os.getloadavg()[0]:.1f} at the start')
+        out['sustained'] = sustained_rates(sizes, threads)
+        print(json.dumps(out))
+        return
     if args.sizes is not None:
         from tissue_sim.core.builder import parse_refinements
         try:
@@ -323,6 +342,9 @@ def main():
     if args.fine:
         out['fine'] = fine_model(args.fine, solver_rate)
     out['scaling'] = scaling(args, threads, args.seconds)
+    if args.refine is not None and threads:
+        print(f'\nsustained: the refine {refine[0]:g} limb over a whole 1-s contraction (--sustained)')
+        out['sustained'] = sustained_rates(refine, threads)
     if r_pbd:
         out.update(pypbd_steps_per_s=round(r_pbd, 1), speedup_vs_pypbd=round(r_chunk / r_pbd, 2),
                    speedup_vs_pypbd_per_pass=round(passes / r_pbd, 2), pypbd_target_met=bool(r_chunk >= 4 * r_pbd))
@@ -705,6 +727,43 @@ def size_scaling(refinements, seconds):
         rows.append(row)
         print(f'{R:6g} | {row["vertices"]:8,} | {row["cells"]:5,} | {row["steps_per_s"]:7,.0f} | {row["us_per_step"]:7,.0f} | '
               f'{row["ns_per_vertex"]:9.1f} | {row["working_set_mb"]:.1f} ({row["contact_grids_mb"]:.1f})', flush=True)
+    return rows
+
+
+def sustained_rates(refinements, threads, windows=10, window=100):
+    """--sustained: per refinement R of the bundled limb and thread count n, the physical set with the implicit
+    integrator (one sub-step) from rest with the hamstrings fully active: 50 steps, then `windows` windows of `window`
+    steps (with the defaults the contraction's 0.05-1.05 s, the knee flexing to its stop), each timed on the wall clock.
+    Real time: the median window's steps per second times dt >= 1. Prints a markdown table; returns the rows."""
+    from tissue_sim.core.builder import default_model
+    from tissue_sim.core.validation import KNEE_JOINT
+    rows = []
+    for R in refinements:
+        tm = default_model(refine=R) if R != 1 else default_model()
+        ham = [m for m, g in enumerate(tm.muscle_groups) if g == 'hamstrings'] or [0]
+        for n in threads:
+            sim = solver.compile_model(tm, solver.Params.physical(integrator='implicit', substeps=1, threads=n))
+            st, ctrl = solver.make_state(sim), solver.make_control(sim)
+            ctrl.activation[ham] = 1.0
+            solver.step(sim, st, ctrl, n_steps=50)          # (compiled; the contraction under way)
+            r = []
+            for _ in range(windows):
+                t0 = time.perf_counter()
+                solver.step(sim, st, ctrl, n_steps=window)
+                r.append(window / (time.perf_counter() - t0))
+            med = float(np.median(r))
+            rows.append({'refine': R, 'vertices': sim.n_vertices, 'cells': sim.n_cells, 'threads': n,
+                         'median': round(med, 1), 'slowest': round(min(r), 1), 'fastest': round(max(r), 1),
+                         'real_time': bool(med * sim.params.dt >= 1.0), 'knee_deg': round(float(np.degrees(
+                             st.q[list(tm.joint_names).index(KNEE_JOINT)])), 1)})
+            print(f'  refine {R:g} ({sim.n_vertices:,} vertices), {n} thread(s): median {med:,.0f}, slowest {min(r):,.0f}, '
+                  f'fastest {max(r):,.0f} steps/s; knee at {rows[-1]["knee_deg"]:.0f} deg', flush=True)
+    print()
+    print('| refine | vertices | cells | threads | median [steps/s] | slowest | fastest | real time |')
+    print('|---|---|---|---|---|---|---|---|')
+    for w in rows:
+        print(f'| {w["refine"]:g} | {w["vertices"]:,} | {w["cells"]:,} | {w["threads"]} | {w["median"]:,.0f} | '
+              f'{w["slowest"]:,.0f} | {w["fastest"]:,.0f} | {"yes" if w["real_time"] else "no"} |')
     return rows
 
 
