@@ -15,7 +15,7 @@ from tissue_sim.core import solver
 from tissue_sim.core.builder import load_joints
 from tissue_sim.core.solver import skeleton as SK
 from tissue_sim.core.solver.measures import joint_torques, skeleton_energy
-from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
+from tissue_sim.core.solver.model import frozen     # read-only, as the model's arrays: no extra compile
 
 KNEE = 0
 

@@ -16,7 +16,7 @@ from tissue_sim.core import solver
 from tissue_sim.core.builder.bones import winding_number
 from tissue_sim.core.model import JOINT_HINGE, TISSUE_FAT, TISSUE_MUSCLE
 from tissue_sim.core.solver import contact as C, phantom
-from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
+from tissue_sim.core.solver.model import frozen     # read-only, as the model's arrays: no extra compile
 
 H = 1.5e-3          # grid spacing of the tests [m]
 MARGIN = 5e-4

@@ -11,7 +11,7 @@ import pytest
 
 from tissue_sim.core import solver
 from tissue_sim.core.solver import contact as C, phantom, reference, skeleton as SK
-from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
+from tissue_sim.core.solver.model import frozen     # read-only, as the model's arrays: no extra compile
 
 from test_solver_contact import _knee_with_bones
 

@@ -8,7 +8,7 @@ import pytest
 from tissue_sim.core import solver
 from tissue_sim.core.solver import contact as C
 from tissue_sim.core.solver import phantom
-from tissue_sim.core.solver.model import _frozen as frozen     # read-only, as the model's: no extra compile
+from tissue_sim.core.solver.model import frozen     # read-only, as the model's arrays: no extra compile
 
 
 def _cylinder_grids(x0, geo, floors=None):

@@ -28,7 +28,9 @@ class DivergenceError(RuntimeError):
         super().__init__(f'simulation diverged at step {self.step}{where}: {self.cause}')
 
 
-def _frozen(a, dtype=None):
+def frozen(a, dtype=None):
+    """A read-only, C-contiguous copy of a (as dtype): how SimModel holds its arrays, and what a kernel's caller
+    hands it in place of one of them (numba compiles read-only and writable arrays as two signatures)."""
     a = np.ascontiguousarray(a if dtype is None else np.asarray(a, dtype=dtype))
     a = a.copy()
     a.flags.writeable = False
@@ -122,7 +124,7 @@ class SimModel:
         kh2 = h * h * self.vertex_stiffness
         den = np.maximum(np.maximum(self.mass, kh2 / self.params.stability_limit ** 2),
                          (kh2 + 2.0 * h * self.vertex_damping) / 3.8)
-        return _frozen(np.where(self.inv_mass > 0, 1.0 / den, 0.0))
+        return frozen(np.where(self.inv_mass > 0, 1.0 / den, 0.0))
 
     @property
     def n_vertices(self):
@@ -340,24 +342,24 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
     np.add.at(bsum, cv, np.repeat(damp_b, sizes))
     q_ff = np.einsum('ci,cij,cj->c', fib, Q, fib)
     sim_kw = dict(
-        tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=_frozen(rest), inv_mass=_frozen(inv_mass),
-        mass=_frozen(mass), vertex_segment=_frozen(vs), vertex_stiffness=_frozen(kappa), vertex_damping=_frozen(bsum), off=_frozen(off), cv=_frozen(cv), X0=_frozen(X0),
-        Qinv=_frozen(Qinv), q_tr=_frozen(tr), q_ff=_frozen(q_ff), rest_length=_frozen(alen), fibre=_frozen(tm.cell_fibre, np.float64), cell_muscle=_frozen(tm.cell_muscle, np.int32),
-        k=_frozen(k, np.float64), k_active=_frozen(k_active), damp_b=_frozen(damp_b), rest_volume=_frozen(vol), k_volume=_frozen(k_volume), volume_cap=_frozen(volume_cap), cell_sign=_frozen(sign),
-        k_enclosed=_frozen(k_enc), end_rings=CK.EndRings(*(_frozen(a) for a in ends)),
-        length_weight=_frozen(lw),
-        muscle_rest_length=_frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
+        tissue=tm, params=p, n_substeps=1, omega_max=0.0, rest=frozen(rest), inv_mass=frozen(inv_mass),
+        mass=frozen(mass), vertex_segment=frozen(vs), vertex_stiffness=frozen(kappa), vertex_damping=frozen(bsum), off=frozen(off), cv=frozen(cv), X0=frozen(X0),
+        Qinv=frozen(Qinv), q_tr=frozen(tr), q_ff=frozen(q_ff), rest_length=frozen(alen), fibre=frozen(tm.cell_fibre, np.float64), cell_muscle=frozen(tm.cell_muscle, np.int32),
+        k=frozen(k, np.float64), k_active=frozen(k_active), damp_b=frozen(damp_b), rest_volume=frozen(vol), k_volume=frozen(k_volume), volume_cap=frozen(volume_cap), cell_sign=frozen(sign),
+        k_enclosed=frozen(k_enc), end_rings=CK.EndRings(*(frozen(a) for a in ends)),
+        length_weight=frozen(lw),
+        muscle_rest_length=frozen(np.bincount(tm.cell_muscle[tm.cell_muscle >= 0], weights=(lw * alen)[tm.cell_muscle >= 0],
                                                minlength=tm.n_muscles)[:tm.n_muscles]),
         centre_lines=lines,
-        free_idx=_frozen(np.flatnonzero(vs < 0).astype(np.int32)),
-        att_idx=_frozen(att), att_seg=_frozen(vs[att]),
+        free_idx=frozen(np.flatnonzero(vs < 0).astype(np.int32)),
+        att_idx=frozen(att), att_seg=frozen(vs[att]),
         **via_points(tm, rest),
-        seg_order=_frozen(np.array(order, np.int32)), seg_parent=_frozen(seg_parent), seg_joint=_frozen(seg_joint),
-        seg_mass=_frozen(seg_mass), seg_com=_frozen(seg_com), seg_inertia=_frozen(seg_I),
-        j_parent=_frozen(tm.joint_parent, np.int32), j_child=_frozen(tm.joint_child, np.int32),
-        j_type=_frozen(tm.joint_type, np.uint8), j_axis=_frozen(tm.joint_axis, np.float64),
-        j_centre=_frozen(tm.joint_centre, np.float64), j_rest=_frozen(tm.joint_rest, np.float64),
-        j_range=_frozen(tm.joint_range, np.float64), anc=_frozen(anc), gravity=_frozen(np.array(p.gravity, float)),
+        seg_order=frozen(np.array(order, np.int32)), seg_parent=frozen(seg_parent), seg_joint=frozen(seg_joint),
+        seg_mass=frozen(seg_mass), seg_com=frozen(seg_com), seg_inertia=frozen(seg_I),
+        j_parent=frozen(tm.joint_parent, np.int32), j_child=frozen(tm.joint_child, np.int32),
+        j_type=frozen(tm.joint_type, np.uint8), j_axis=frozen(tm.joint_axis, np.float64),
+        j_centre=frozen(tm.joint_centre, np.float64), j_rest=frozen(tm.joint_rest, np.float64),
+        j_range=frozen(tm.joint_range, np.float64), anc=frozen(anc), gravity=frozen(np.array(p.gravity, float)),
         **coupling_spline(tm, p.joint_paths),
         skeleton=None,
         cell_blocks=CK.pack_cells(off, cv, X0, tm.cell_muscle, k, k_active, damp_b,
@@ -404,8 +406,8 @@ def coupling_spline(tm: TissueModel, joint_paths: bool = True) -> dict:
     cp_x = np.concatenate(knots) if knots else np.zeros(0)
     cp_c = np.concatenate(coef) if coef else np.zeros((0, SK.CHANNELS, 4))
     sec = np.asarray(tm.joint_path_axes, np.float64).reshape(J, 2, 3)
-    return dict(j_driver=_frozen(tm.joint_driver, np.int32), cp_off=_frozen(np.array(off, np.int64)),
-                cp_x=_frozen(cp_x.astype(np.float64)), cp_c=_frozen(cp_c), j_sec=_frozen(sec))
+    return dict(j_driver=frozen(tm.joint_driver, np.int32), cp_off=frozen(np.array(off, np.int64)),
+                cp_x=frozen(cp_x.astype(np.float64)), cp_c=frozen(cp_c), j_sec=frozen(sec))
 
 
 def via_points(tm: TissueModel, rest: np.ndarray) -> dict:
@@ -414,8 +416,8 @@ def via_points(tm: TissueModel, rest: np.ndarray) -> dict:
     off, idx = np.asarray(tm.via_point_offsets, np.int64), np.asarray(tm.via_point_vertices, np.int32)
     R = off.size - 1
     local = np.array([rest[idx[off[r]:off[r + 1]]].mean(axis=0) for r in range(R)]).reshape(R, 3)
-    return dict(via_off=_frozen(off), via_idx=_frozen(idx), via_seg=_frozen(np.asarray(tm.via_point_segment, np.int32)),
-                via_local=_frozen(local, np.float64))
+    return dict(via_off=frozen(off), via_idx=frozen(idx), via_seg=frozen(np.asarray(tm.via_point_segment, np.int32)),
+                via_local=frozen(local, np.float64))
 
 
 def active_stiffness(tm: TissueModel, p: Params, vol: np.ndarray, alen: np.ndarray, sizes: np.ndarray) -> np.ndarray:
