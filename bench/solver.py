@@ -40,6 +40,16 @@ import sys
 import time
 from pathlib import Path
 
+def _refinements(flag: str, text: str) -> list:
+    """The refinements R,R,... given to flag (builder.parse_refinements); a bad list: one line, exit 2."""
+    from tissue_sim.core.builder import parse_refinements
+    try:
+        return parse_refinements(text)
+    except ValueError:
+        print(f'error: {flag} {text!r}: expected refinements >= 1 separated by commas', file=sys.stderr)
+        sys.exit(2)
+
+
 def _max_threads(argv) -> int:
     """The most threads --threads asks for (numba's pool is sized before numba is imported); 1 if none."""
     for i, a in enumerate(argv):
@@ -212,12 +222,7 @@ def main():
             print(f'error: {path}: no such model file', file=sys.stderr)
             sys.exit(2)
     if args.sustained is not None:
-        from tissue_sim.core.builder import parse_refinements
-        try:
-            sizes = parse_refinements(args.sustained)
-        except ValueError:
-            print(f'error: --sustained {args.sustained!r}: expected refinements >= 1 separated by commas', file=sys.stderr)
-            sys.exit(2)
+        sizes = _refinements('--sustained', args.sustained)
         out = {'cpu': _cpu_name(), **_cpu(), 'timing': 'steps per wall second', 'threads': threads}
         print(f'CPU: {out["cpu"]} ({os.cpu_count()} cores; numba compiles for {out["llvm_cpu"]}); load average '
               f'{os.getloadavg()[0]:.1f} at the start')
@@ -225,12 +230,7 @@ def main():
         print(json.dumps(out))
         return
     if args.sizes is not None:
-        from tissue_sim.core.builder import parse_refinements
-        try:
-            sizes = parse_refinements(args.sizes)
-        except ValueError:
-            print(f'error: --sizes {args.sizes!r}: expected refinements >= 1 separated by commas', file=sys.stderr)
-            sys.exit(2)
+        sizes = _refinements('--sizes', args.sizes)
         out = {'cpu': _cpu_name(), **_cpu(), 'timing': 'per CPU second of this process, one thread'}
         print(f'CPU: {out["cpu"]} (numba compiles for {out["llvm_cpu"]}); {_caches()}')
         out['sizes'] = size_scaling(sizes, args.seconds)
