@@ -25,11 +25,13 @@ def default_tm():
 # that safe for processes that compile at the same time. Under `make test` (scripts/test.sh: --dist loadfile
 # --no-loadscope-reorder; without the latter pytest-xdist hands out the files with the most tests first and this
 # order is lost) the first file goes to one worker and the second to the other: the first compiles the step (about
-# 80 s on a cold cache) while the second, the anatomy regenerated from its sources (about 100 s), needs no solver, so
-# the other worker loads the step from the cache instead of compiling it too. The third, with its ~90-s subprocess (the 16-lane layout compiled for
-# another CPU name), goes to the worker that frees first rather than at the end of the run, where the other worker would
-# wait for it. Otherwise the files keep pytest's order.
-FIRST_FILES = ('test_solver.py', 'test_anatomy.py', 'test_solver_kernel.py')
+# 100 s on a cold cache with the other worker busy) while the second, the anatomy regenerated from its sources (about
+# 60 s), and the next two, builders of finer and of the default model (about 40 s), need no step, so the other worker
+# loads the step from the cache instead of compiling it too. The fifth, with its ~90-s subprocess (the 16-lane layout
+# compiled for another CPU name), goes to the worker that frees first rather than at the end of the run, where the
+# other worker would wait for it. Otherwise the files keep pytest's order.
+FIRST_FILES = ('test_solver.py', 'test_anatomy.py', 'test_builder_fine.py', 'test_builder_default.py',
+               'test_solver_kernel.py')
 
 
 def pytest_collection_modifyitems(session, config, items):

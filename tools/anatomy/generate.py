@@ -202,6 +202,20 @@ def origin_along_bone(table, seeds, lab, s_mm, R0, A0):
                 seeds[m][k] = [cen[k] + off for _ in t['paths']]
 
 
+def edt_inside(mask):
+    """ndimage.distance_transform_edt(mask), computed on mask's bounding box with a one-pixel margin of background
+    (none past the array's edge): the same numbers (a background pixel outside the box is never nearer to a pixel
+    inside it than the margin is), in a fraction of the time on the slices' grid."""
+    idx = np.argwhere(mask)
+    out = np.zeros(mask.shape)
+    if len(idx) == 0:
+        return out
+    lo, hi = np.maximum(idx.min(0) - 1, 0), idx.max(0) + 2
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    out[box] = ndimage.distance_transform_edt(mask[box])
+    return out
+
+
 def skin_slice(q, tri_all, reg, s_mm, grid):
     """Skin mask of the right leg in one slice (RAS mm plane S = s_mm)."""
     R0, A0, NI, NJ = grid
@@ -233,7 +247,7 @@ def distribute(area, skins, lab, s_mm, knee_z, iters=300, beta=0.5):
     cap = np.zeros(K)
     for k in range(K):
         t = FAT_NOMINAL_MM['thigh' if s_mm[k] > knee_z else 'shank']
-        edt = ndimage.distance_transform_edt(skins[k])
+        edt = edt_inside(skins[k])
         cap[k] = ((edt > t) & (lab[..., k] == 0)).sum()
     A = area.copy()
     rows = area.sum(1)
@@ -281,7 +295,7 @@ def cover_shifts(skins, lab, clearance):
         bone = lab[..., k] > 0
         if not bone.any() or not skins[k].any():
             continue
-        notE = ~(ndimage.distance_transform_edt(skins[k]) >= clearance)
+        notE = ~(edt_inside(skins[k]) >= clearance)
         c = fftconvolve(bone.astype(float), notE[::-1, ::-1].astype(float), mode='full')
         N = np.array(notE.shape)
         r = MAX_COVER_SHIFT_MM
@@ -329,11 +343,13 @@ def partition(region, seeds_px, targets, iters=400):
     idx = np.argwhere(region)
     M = len(seeds_px)
     D = np.empty((M, len(idx)))
-    cost = np.where(region, 1.0, np.inf)
+    lo = idx.min(0)          # the region's bounding box: no path leaves the region, so the distances are the same
+    box = region[lo[0]:idx[:, 0].max() + 1, lo[1]:idx[:, 1].max() + 1]
+    cost = np.where(box, 1.0, np.inf)
     for m, sp in enumerate(seeds_px):
         # geodesic distance inside the region (around bone, not through it)
-        g, _ = MCP_Geometric(cost).find_costs([tuple(p) for p in sp])
-        d = g[idx[:, 0], idx[:, 1]]
+        g, _ = MCP_Geometric(cost).find_costs([(p[0] - lo[0], p[1] - lo[1]) for p in sp])
+        d = g[idx[:, 0] - lo[0], idx[:, 1] - lo[1]]
         D[m] = np.where(np.isfinite(d), d, 1e6) ** 2
     tgt = targets / targets.sum() * len(idx)
     w = np.zeros(M)
@@ -442,7 +458,7 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
             # the straight OpenSim path ignores wrapping and retinacula: where it leaves the body (behind
             # and in front of the ankle) the tendon lies just under the skin, at the nearest point
             # MU.TENDON_RADIUS_MM + 2 mm deep (the knee tendons' paths stay inside: unchanged)
-            depth = ndimage.distance_transform_edt(skins[k])
+            depth = edt_inside(skins[k])
             deep = np.argwhere(depth >= r + 2.0)
             # then the parts of a shared tendon are set side by side (MU.TENDON_OFFSET_MM)
             for off in ((0.0, 0.0), MU.TENDON_OFFSET_MM.get(t['name'], (0.0, 0.0))):
@@ -465,7 +481,7 @@ def tendon_masks(lab, skins, table, area, s_mm, R0, A0, verbose=True):
             if s > z_ins + MU.TENDON_SNAP_MM and t['name'] in MU.TENDON_OFF_BONE:
                 # a gliding tendon squeezed between skin and bone (the path crosses the subcutaneous
                 # tibia) moves to the nearest place where its disc fits beside the bone
-                room = ndimage.distance_transform_edt(free)
+                room = edt_inside(free)
                 ci = np.clip(np.round(c).astype(int), 0, np.array(room.shape) - 1)
                 fit = np.argwhere(room >= r - 1.0)
                 if len(fit) and room[ci[0], ci[1]] < r - 1.0:
@@ -595,7 +611,7 @@ def _build(out_dir: Path, verbose, behind_bones, fitted):
         tendon = np.zeros_like(bone)
         for _, tm in tendons.get(k, []):
             tendon |= tm
-        edt = ndimage.distance_transform_edt(sk)
+        edt = edt_inside(sk)
         present = [m for m in range(len(table)) if area[m, k] > 0]
         need = area[present, k].sum()
         # behind_bones (default): where the muscles of MU.BEHIND_BONES are the only ones (the knee), the space in

@@ -131,7 +131,7 @@ class LimbRenderer:
                 if len(t) == 0:
                     continue
                 pd = pv.PolyData(np.asarray(v, np.float64), _faces(np.asarray(t, np.int64)))
-                self.pl.add_mesh(pd, color=IVORY, smooth_shading=True, specular=0.2)
+                self.pl.add_mesh(pd, color=IVORY, smooth_shading=True, specular=0.2, render=False)
                 self.meshes.append((pd, 'bone', b))
             mnames = list(topo.muscle_names)
             for name, tri in groups.items():
@@ -141,13 +141,13 @@ class LimbRenderer:
                 k = mnames.index(mn) if mn in mnames else 0
                 grp = topo.muscle_groups[k] if mn in mnames else ''
                 pd = pv.PolyData(rest.copy(), _faces(tri))
-                self.pl.add_mesh(pd, color=muscle_colour(mn, grp, k), smooth_shading=True)
+                self.pl.add_mesh(pd, color=muscle_colour(mn, grp, k), smooth_shading=True, render=False)
                 self.meshes.append((pd, 'soft', None))
             for name, tri in groups.items():
                 if name.startswith('muscle/'):
                     continue
                 pd = pv.PolyData(rest.copy(), _faces(tri))
-                self.pl.add_mesh(pd, color=FAT_YELLOW, opacity=fat_opacity, smooth_shading=True)
+                self.pl.add_mesh(pd, color=FAT_YELLOW, opacity=fat_opacity, smooth_shading=True, render=False)
                 self.meshes.append((pd, 'soft', None))
         else:
             quads = np.asarray(topo.skin_quads, np.int64)
@@ -163,13 +163,13 @@ class LimbRenderer:
                 lim = np.log2(clim) if clim else np.log2(1.3)
                 title = 'log2 area\nvs frame 0\nblue grown\nred shrunk'
                 self.pl.add_mesh(pd, scalars='value', cmap='bwr_r', clim=(-lim, lim), show_edges=True,
-                                 edge_color=(0.5, 0.5, 0.5), line_width=0.3, **_FLAT,
+                                 edge_color=(0.5, 0.5, 0.5), line_width=0.3, render=False, **_FLAT,
                                  scalar_bar_args=dict(title=title, fmt='%.2f', **_BAR))
             else:
                 dm = (d_max or 1e-3) * 1000
                 title = 'fat d [mm]\n(paper eq. 2)' if kind == 'd_paper' else 'fat d [mm]\n(rotation-free)'
                 self.pl.add_mesh(pd, scalars='value', cmap='Reds', clim=(0, dm), show_edges=True,
-                                 edge_color=(0.5, 0.5, 0.5), line_width=0.3, **_FLAT,
+                                 edge_color=(0.5, 0.5, 0.5), line_width=0.3, render=False, **_FLAT,
                                  scalar_bar_args=dict(title=title, fmt='%.1f', **_BAR))
             self.meshes.append((pd, 'soft', None))
             self.skin_pd = pd
@@ -209,13 +209,15 @@ class LimbRenderer:
             else:
                 v = v * 1000
             self.skin_pd.cell_data['value'] = v
-        if self.text is not None:
-            self.pl.remove_actor(self.text)
-        self.text = self.pl.add_text(label, position='upper_left', font_size=11, color='black') if label else None
+        if self.text is not None:          # (render=False: the screenshot renders the frame once)
+            self.pl.remove_actor(self.text, render=False)
+        self.text = (self.pl.add_text(label, position='upper_left', font_size=11, color='black', render=False)
+                     if label else None)
 
     def image(self) -> np.ndarray:
         """(H, W, 3) uint8."""
         self.pl.reset_camera_clipping_range()
+        self.pl.render()                   # (the one render of the frame: screenshot reads the last one)
         return self.pl.screenshot(return_img=True)
 
     def close(self):
