@@ -9,7 +9,8 @@ import pytest
 
 from tissue_sim.cli import main
 from tissue_sim.core import builder
-from tissue_sim.core.builder.assemble import cut_fragments, settings_with_defaults, smooth_path
+from tissue_sim.core.build_settings import settings_with_defaults
+from tissue_sim.core.builder.assemble import cut_fragments, smooth_path
 from tissue_sim.core.builder import quality
 from tissue_sim.errors import UserError
 

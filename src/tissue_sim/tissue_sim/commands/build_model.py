@@ -13,7 +13,7 @@ HELP = 'build the elastic bone/muscle/fat model from a label volume and a tissue
 
 
 def add_arguments(p):
-    from tissue_sim.core.builder import DEFAULTS as D
+    from tissue_sim.core.build_settings import DEFAULTS as D
     p.add_argument('labels', nargs='?', help='label volume: .nii/.nii.gz, .npz (labels + affine) or a folder of '
                    'slice_NNNN.png with spacing.yaml (default: the bundled lower limb)')
     p.add_argument('--tissues', metavar='TABLE.yaml', help='tissue table (required with LABELS; default: the bundled one)')
@@ -75,7 +75,7 @@ def _settings(args) -> dict:
 
 def _check_arguments(args) -> dict:
     """Every output path and option checked before any input is read or anything written (issue 20)."""
-    from tissue_sim.core.builder import settings_with_defaults
+    from tissue_sim.core.build_settings import settings_with_defaults
     from tissue_sim.outputs import check_outputs
     if args.bone_mesh_step < 1:
         raise UserError(f'--bone-mesh-step must be an integer >= 1 (voxels), got {args.bone_mesh_step}')
@@ -86,8 +86,8 @@ def _check_arguments(args) -> dict:
 
 
 def run(args) -> int:
-    from tissue_sim.core import builder
     _check_arguments(args)
+    from tissue_sim.core import builder
     if args.labels is None:
         if args.tissues is not None:
             raise UserError('--tissues given without LABELS')

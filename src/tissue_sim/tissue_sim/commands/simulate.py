@@ -98,7 +98,6 @@ def _load(args):
 
 
 def run(args) -> int:
-    from tissue_sim.core import solver
     from tissue_sim.core.activation import MOTIONS, timeline_function
     from tissue_sim.core.load import implicit_hint
     if args.motion is not None and args.timeline:
@@ -118,6 +117,7 @@ def run(args) -> int:
     if args.output and Path(args.output).suffix not in ('.mcap', '.npz'):
         raise UserError(f'-o {args.output}: expected RUN.mcap (a run) or OBS.npz (observation arrays)')
     tm, params, timeline = _load(args)
+    from tissue_sim.core import solver
     try:
         sim = solver.compile_model(tm, params)
         fn = timeline_function(sim, timeline)

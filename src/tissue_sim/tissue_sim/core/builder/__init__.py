@@ -20,7 +20,8 @@ from tissue_sim.core import numba_cache
 
 numba_cache.install()     # before any kernel of the package is compiled or loaded
 
-from .assemble import DEFAULTS, build, settings_with_defaults
+from tissue_sim.core.build_settings import DEFAULTS, settings_with_defaults
+from .assemble import build
 from .io import LabelVolume, load_labels
 from .quality import PAPER_TABLE1, TABLE1_LABELS, table1
 from .table import load_joints, load_tissue_table
