@@ -308,3 +308,20 @@ def test_png_spacing_wrong_types(tmp_path, spacing, words):
     (lab / 'spacing.yaml').write_text(yaml.safe_dump(spacing))
     expect_error(tmp_path, 'build-model', lab, '--tissues', tab, '-o', tmp_path / 'm.npz', *SLICE,
                  words=['spacing.yaml', *words])
+
+
+@pytest.mark.parametrize('argv', [['build-model', '--slices', '-3'], ['simulate', 'missing.npz'],
+                                  ['simulate', '--duration', '-1'], ['info', 'missing.mcap']])
+def test_an_argument_error_is_answered_before_the_numerics_load(tmp_path, argv):
+    """The parser and the arguments' checks import no numba and no scipy (core/build_settings.py holds the builder's
+    defaults apart from its geometry; simulate imports the solver once its inputs are read): a mistyped command
+    answers at once. The error itself is the one of the tests above."""
+    probe = ('import sys, runpy; sys.argv = ["tissue-sim", *sys.argv[1:]]\n'
+             'try:\n    runpy.run_module("tissue_sim.cli", run_name="__main__")\n'
+             'except SystemExit as e:\n'
+             '    print(sorted(m for m in ("numba", "scipy") if m in sys.modules), e.code)')
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(SRC), os.environ.get('PYTHONPATH', '')]))
+    r = subprocess.run([sys.executable, '-c', probe, *argv], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.stdout.strip() == '[] 2', (r.stdout, r.stderr)
+    assert len(r.stderr.strip().splitlines()) == 1 and ': error: ' in r.stderr, r.stderr
