@@ -332,8 +332,9 @@ def test_replay_of_a_simulator_run_restores_state_clock_and_topology(knee_model,
         st = Collector(node, TissueState, '/tissue/state', raw=True, qos=100)
         clk = Collector(node, Clock, '/clock', qos=100)
         with run_executable('replay', out, '--rate', '2', '--start', '0.5', '--topics', '/tissue/state',
-                            '/tissue/topology', '--wait-subscribers', '20', env=dom.env) as rp:
-            # a late joiner: created only after the replay has started publishing
+                            '/tissue/topology', '--wait-subscribers', '8', env=dom.env) as rp:
+            # a late joiner: created only after the replay has started publishing (so the replay waits its whole
+            # 8 s for a subscriber on the topology: the states' and the clock's are matched long before)
             spin_until(lambda: len(st.msgs) >= 3, node, 30, 'replayed states')
             tp = Collector(node, TissueTopology, '/tissue/topology', raw=True, qos=qos_latched())
             def ns(c):

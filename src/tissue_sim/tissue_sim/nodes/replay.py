@@ -32,7 +32,7 @@ def build_parser():
     p.add_argument('--topics', nargs='*', default=None, help='only these topics')
     p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
     p.add_argument('--wait-subscribers', type=float, default=0.0,
-                   help='wait up to N s for a subscriber on each topic before playing')
+                   help='wait up to N s for a subscriber on each replayed topic (/clock not counted) before playing')
     return p
 
 
@@ -108,11 +108,12 @@ class Replay(Node):
         return super().destroy_node()
 
     def wait(self, timeout):
+        """Up to timeout s until every replayed topic has a subscriber. Not /clock, which the replay derives: a node
+        without use_sim_time never subscribes to it, and one with it follows from the next tick."""
         import rclpy
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
-            pubs = list(self.pubs.values()) + ([self.pub_clock] if self.pub_clock is not None else [])
-            if all(p.get_subscription_count() > 0 for p in pubs):
+            if all(p.get_subscription_count() > 0 for p in self.pubs.values()):
                 return
             rclpy.spin_once(self, timeout_sec=0.05)
 
