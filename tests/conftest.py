@@ -29,12 +29,11 @@ def default_tm():
 # 60 s), and the next two, builders of finer and of the default model (about 40 s), need no step, so the other worker
 # loads the step from the cache instead of compiling it too. The fifth, with its ~90-s subprocess (the 16-lane layout
 # compiled for another CPU name), goes to the worker that frees first rather than at the end of the run, where the
-# other worker would wait for it. In the ROS phase (scripts/test.sh: its tests one at a time to the worker that
-# frees) the two files of the longest tests, the `ros2` command line's (~35 s) and the demo's (2 x ~25 s), go out
-# first, so that no worker is left with one of them at the end while the other waits. Otherwise the files keep
-# pytest's order.
+# other worker would wait for it. Otherwise the files keep pytest's order (in the ROS phase too: with the `ros2`
+# command line's file first, its `ros2 topic hz` shared the cores with a demo's pictures and saw 29.3 Hz, CI
+# 2026-12-02).
 FIRST_FILES = ('test_solver.py', 'test_anatomy.py', 'test_builder_fine.py', 'test_builder_default.py',
-               'test_solver_kernel.py', 'test_ros2_cli.py', 'test_demo.py')
+               'test_solver_kernel.py')
 
 
 def pytest_collection_modifyitems(session, config, items):
