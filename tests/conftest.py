@@ -29,9 +29,8 @@ def default_tm():
 # 60 s), and the next two, builders of finer and of the default model (about 40 s), need no step, so the other worker
 # loads the step from the cache instead of compiling it too. The fifth, with its ~90-s subprocess (the 16-lane layout
 # compiled for another CPU name), goes to the worker that frees first rather than at the end of the run, where the
-# other worker would wait for it. Otherwise the files keep pytest's order (in the ROS phase too: with the `ros2`
-# command line's file first, its `ros2 topic hz` shared the cores with a demo's pictures and saw 29.3 Hz, CI
-# 2026-12-02).
+# other worker would wait for it. Otherwise the files keep pytest's order, in the ROS phase too (where it keeps the
+# `ros2 topic hz` test, late in the run, off the cores the demos' pictures take early: docs/history.md, stop 61).
 FIRST_FILES = ('test_solver.py', 'test_anatomy.py', 'test_builder_fine.py', 'test_builder_default.py',
                'test_solver_kernel.py')
 

@@ -202,6 +202,12 @@ def origin_along_bone(table, seeds, lab, s_mm, R0, A0):
                 seeds[m][k] = [cen[k] + off for _ in t['paths']]
 
 
+def bounding_box(idx, margin=0):
+    """The slices of the box around the pixels idx (n, 2), widened by margin pixels (not below 0: slicing clips the
+    upper end to the array)."""
+    return tuple(slice(max(a - margin, 0), b + margin + 1) for a, b in zip(idx.min(0), idx.max(0)))
+
+
 def edt_inside(mask):
     """ndimage.distance_transform_edt(mask), computed on mask's bounding box with a one-pixel margin of background
     (none past the array's edge): the same numbers (a background pixel outside the box is never nearer to a pixel
@@ -210,8 +216,7 @@ def edt_inside(mask):
     out = np.zeros(mask.shape)
     if len(idx) == 0:
         return out
-    lo, hi = np.maximum(idx.min(0) - 1, 0), idx.max(0) + 2
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    box = bounding_box(idx, 1)
     out[box] = ndimage.distance_transform_edt(mask[box])
     return out
 
@@ -343,9 +348,9 @@ def partition(region, seeds_px, targets, iters=400):
     idx = np.argwhere(region)
     M = len(seeds_px)
     D = np.empty((M, len(idx)))
-    lo = idx.min(0)          # the region's bounding box: no path leaves the region, so the distances are the same
-    box = region[lo[0]:idx[:, 0].max() + 1, lo[1]:idx[:, 1].max() + 1]
-    cost = np.where(box, 1.0, np.inf)
+    box = bounding_box(idx)  # the region's bounding box: no path leaves the region, so the distances are the same
+    lo = [b.start for b in box]
+    cost = np.where(region[box], 1.0, np.inf)
     for m, sp in enumerate(seeds_px):
         # geodesic distance inside the region (around bone, not through it)
         g, _ = MCP_Geometric(cost).find_costs([(p[0] - lo[0], p[1] - lo[1]) for p in sp])
