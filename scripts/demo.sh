@@ -5,8 +5,9 @@
 #   time (default 10); then they are stopped with SIGINT and the run folder is analysed and drawn.
 #   The experiment is the paper's (section 4.2): the hamstrings contract, every other muscle passive.
 #   Default: the physical (SI) parameter set with the hamstrings' activation ramped 0 -> 1 over 8 s,
-#   so the knee flexes progressively to its 120-deg limit (the simulator node runs it at about
-#   0.75x real time on this 2-core machine: it publishes at 34 Hz regardless and sim time runs slower). DEMO_PARAMS=paper runs the
+#   so the knee flexes progressively to its 120-deg limit (on the 2-core machines measured the simulator
+#   node runs it at 0.85-1.00x real time, docs/ros.md: it publishes at 34 Hz regardless and sim time runs slower
+#   where the solver cannot keep up). DEMO_PARAMS=paper runs the
 #   paper's Table 2 set with the paper's step activation (full from t = 0): faithful, but the knee
 #   only swings within 0-8 deg on this anatomy (docs/solver.md).
 #

@@ -27,9 +27,9 @@ def default_tm():
 # order is lost) the first file goes to one worker and the second to the other: the first compiles the step (about
 # 100 s on a cold cache with the other worker busy) while the second, the anatomy regenerated from its sources (about
 # 60 s), and the next two, builders of finer and of the default model (about 40 s), need no step, so the other worker
-# loads the step from the cache instead of compiling it too. The fifth, with its ~90-s subprocess (the 16-lane layout
-# compiled for another CPU name), goes to the worker that frees first rather than at the end of the run, where the
-# other worker would wait for it. Otherwise the files keep pytest's order, in the ROS phase too (where it keeps the
+# loads the step from the cache instead of compiling it too. The fifth, with its ~30-s subprocess (the 16-lane layout's
+# cell kernels compiled for another CPU name), goes to the worker that frees first rather than at the end of the run,
+# where the other worker would wait for it. Otherwise the files keep pytest's order, in the ROS phase too (where it keeps the
 # `ros2 topic hz` test, late in the run, off the cores the demos' pictures take early: docs/history.md, stop 61).
 FIRST_FILES = ('test_solver.py', 'test_anatomy.py', 'test_builder_fine.py', 'test_builder_default.py',
                'test_solver_kernel.py')
