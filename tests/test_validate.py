@@ -49,6 +49,26 @@ def test_knee_muscles_are_the_issues_list(knee_muscles):
     assert all(m.opensim and all(p.endswith('_r') for p in m.opensim) for m in knee_muscles)
 
 
+def test_active_sets_are_the_anatomical_groups(knee_muscles):
+    """The active sweeps: the four hamstrings together (the torque targets), then each other knee muscle with its
+    anatomical group, antagonists at rest (the quadriceps apart from the gastrocnemii and from the flexors at the hip);
+    'others' puts every non-hamstring knee muscle in one sweep. Every knee muscle is in exactly one sweep."""
+    names = [m.name for m in knee_muscles]
+    for grouping in V.ACTIVE_GROUPINGS:
+        sets = V.active_sets_of(knee_muscles, grouping)
+        assert list(sets)[0] == 'hamstrings' and set(sets['hamstrings']) == set(V.HAMSTRINGS)
+        assert sorted(n for ms in sets.values() for n in ms) == sorted(names)
+    groups = V.active_sets_of(knee_muscles)
+    assert set(groups['quadriceps']) == {'rectus_femoris', 'vastus_lateralis', 'vastus_medialis', 'vastus_intermedius'}
+    assert set(groups['triceps_surae']) == {'gastrocnemius_medialis', 'gastrocnemius_lateralis'}
+    assert not any({'vastus_medialis', 'sartorius'} <= set(ms) for ms in groups.values())
+    assert len(groups) >= 4 and 'passive' not in groups
+    together = V.active_sets_of(knee_muscles, 'others')
+    assert list(together) == ['hamstrings', 'others'] and len(together['others']) == len(names) - 4
+    with pytest.raises(V.ValidationError, match='--active-sets bogus'):
+        V.active_sets_of(knee_muscles, 'bogus')
+
+
 def test_opensim_reference_is_the_source_model(reference):
     """The numbers issue 19 quotes from the source model: moment arms at 0 deg, hamstring shortening at 90 deg,
     flexion-positive knee_angle_r (hamstrings and gastrocnemii flex, the quadriceps extend)."""
@@ -120,6 +140,16 @@ def test_targets_follow_the_data(reference):
     assert ev['pass'] is False and len(ev['wrong']) == int(np.sum(ref > 1e-3)) > 0
     assert ev['undecided'] == 2 * int(np.sum(ref <= 1e-3)) and ev['resolution_mm']['passive'] == pytest.approx(1.0)
     flat['moment_arm_resolution'] = {k: {'value': 0.0} for k in ('passive', 'hamstrings', 'others')}                                                   # without it: all "right"
+    assert V.evaluate(flat)['moment_arm_signs']['pass'] is True
+    # each muscle's active moment arm is decided on its own sweep's resolution: a coarse sweep of the others' does
+    # not take the sign of a hamstring's
+    flat['muscles'][name]['active_set'] = 'quadriceps'
+    flat['muscles'][name]['active_moment_arm'] = list(1e-4 * np.sign(sref))
+    flat['moment_arm_resolution'] = {'passive': {'value': 0.0}, 'hamstrings': {'value': 0.0}, 'quadriceps': {'value': 1e-3}}
+    ev = V.evaluate(flat)['moment_arm_signs']
+    assert len(ev['wrong']) == int(np.sum(ref > 1e-3)) and all(' active ' in w for w in ev['wrong'])
+    assert set(ev['resolution_mm']) == {'passive', 'hamstrings', 'quadriceps'}
+    flat['muscles'][name]['active_set'] = 'hamstrings'
     assert V.evaluate(flat)['moment_arm_signs']['pass'] is True
 
 
@@ -211,6 +241,8 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     (['--build', 'bogus=1'], '--build: unknown builder setting(s): bogus'),
     (['--build', 'fat_follow'], "--build: 'fat_follow': expected NAME=VALUE"),
     (['--build', 'fat_follow=true', '--kinematics'], '--build and --kinematics'),
+    (['--active-sets', 'all'], '--active-sets all: must be one of groups, others'),
+    (['--active-sets', 'others', '--passive'], '--active-sets: only the moment-arm and torque sweeps'),
 ])
 def test_bad_arguments_one_line_exit_2(tmp_path, capsys, argv, msg):
     out = tmp_path / 'out'
@@ -269,13 +301,15 @@ def test_validate_command_on_the_bundled_model(tmp_path, capsys, params):
     png = (out / f'validation_{params}.png').read_bytes()
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000
     assert res['params'] == params and res['angles_deg'] == [0, 60, 120]
+    assert res['active_grouping'] == 'groups' and res['active_sets']['quadriceps'] and 'others' not in res['active_sets']
+    assert set(res['diverged']) == {'passive', *res['active_sets']} == set(res['targets']['moment_arm_signs']['resolution_mm'])
     m = res['muscles']
     assert len(m) >= 12 and set(V.HAMSTRINGS) <= set(m)
     assert m['semimembranosus']['opensim_moment_arm'][0] * 1e3 == pytest.approx(31.2, abs=0.5)
     for n, d in m.items():
         for mode in ('passive', 'active'):
             L = np.asarray(d[f'{mode}_length'])
-            # a sweep that diverged (the physical set's 'others' does on this base) is NaN from that angle on
+            # a sweep that diverged is NaN from that angle on
             gone = res['diverged'][d['active_set'] if mode == 'active' else 'passive']
             ok = np.array([gone is None or a < gone['at_deg'] for a in res['angles_deg']])
             assert np.all(np.isfinite(L[ok])) and np.all(L[ok] > 0.02) and np.all(np.isnan(L[~ok])), (n, mode)

@@ -40,6 +40,10 @@ def add_arguments(p):
     p.add_argument('--set', action='append', default=[], metavar='NAME=VALUE', dest='overrides',
                    help='change a field of the parameter set (repeatable; VALUE read as YAML, e.g. wrap_surfaces= or '
                         'fold_contact=knee; docs/solver.md); the JSON records them')
+    p.add_argument('--active-sets', dest='grouping', metavar='groups|others',
+                   help='which knee muscles contract together in the active sweeps besides the hamstrings: each '
+                        'anatomical group on its own, antagonists at rest (groups, the default), or all of them at once '
+                        '(others) (docs/validation.md "Active sweeps")')
     p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
     p.add_argument('--quiet', action='store_true', help='print only the targets')
 
@@ -52,6 +56,11 @@ def run(args) -> int:
             raise V.ValidationError(f'--osim {args.osim}: no such file')
         if args.overrides and args.kinematics:
             raise V.ValidationError('--set and --kinematics: --kinematics evaluates the source model only')
+        if args.grouping is not None and (args.passive or args.kinematics):
+            raise V.ValidationError('--active-sets: only the moment-arm and torque sweeps have active sets, not '
+                                    '--passive or --kinematics')
+        if args.grouping is not None:
+            V.active_sets_of([], args.grouping)               # a bad name: one line, before anything runs
         if not args.kinematics:
             V.parameter_set(args.params, args.overrides)     # a bad --set: one line, before anything runs
     except V.ValidationError as e:
@@ -85,7 +94,7 @@ def run(args) -> int:
         return _run_kinematics(args, con, out, V, angles)
     try:
         res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, model=model,
-                               progress=progress, overrides=args.overrides)
+                               progress=progress, overrides=args.overrides, grouping=args.grouping or 'groups')
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)
@@ -224,8 +233,8 @@ def _print(con, res, quiet):
     mark = {True: '[green]PASS[/]', False: '[red]FAIL[/]', None: '[yellow]n/a[/]'}
     ms = tg['moment_arm_signs']
     con.print(f'{mark[ms["pass"]]} every knee muscle\'s moment arm has the source model\'s sign '
-              f'({len(ms["wrong"])} wrong (muscle, mode, angle); resolution of the holds, passive / hamstrings / others: '
-              + ' / '.join(f'{v:.1f}' for v in ms['resolution_mm'].values()) + ' mm'
+              f'({len(ms["wrong"])} wrong (muscle, mode, angle); resolution of each sweep\'s holds: '
+              + ', '.join(f'{k} {v:.1f}' for k, v in ms['resolution_mm'].items()) + ' mm'
               + (f', {ms["undecided"]} where the source model\'s is within it' if ms.get('undecided') else '') + ')')
     hm = tg['hamstring_moment_arms']
     nbad = sum(not r['pass'] for r in hm['rows'])

@@ -31,6 +31,7 @@ TARGET_ANGLES = (0.0, 30.0, 60.0, 90.0)
 MOMENT_ARM_TOLERANCE = 0.25
 MIN_FORCE_FRACTION = 0.60
 TORQUE_RANGE = (60.0, 180.0)        # N m, adult peak isometric knee flexion (docs/validation.md)
+ACTIVE_GROUPINGS = ('groups', 'others')     # active_sets_of
 SHAPE_PEAK_MAX_DEG = 60.0           # published curves peak at small to moderate flexion and fall with deep flexion
 
 
@@ -386,31 +387,51 @@ def parameter_set(params: str, overrides=()):
         raise ValidationError(f'--set: {e}') from None
 
 
+def active_sets_of(muscles: list, grouping: str = 'groups') -> dict:
+    """The active sweeps (name -> knee muscles fully active in it, the others at rest): the hamstrings together (the
+    torque targets' sweep), then with ``grouping`` 'groups' every other knee muscle with its anatomical group
+    (tissues.yaml ``group``: the quadriceps, the triceps surae, ...), one sweep per group in table order, antagonists
+    at rest; with 'others' every other knee muscle in one sweep (the co-contraction of all of them)."""
+    if grouping not in ACTIVE_GROUPINGS:
+        raise ValidationError(f'--active-sets {grouping}: must be one of {", ".join(ACTIVE_GROUPINGS)}')
+    sets = {'hamstrings': [km.name for km in muscles if km.name in HAMSTRINGS]}
+    for km in muscles:
+        if km.name not in HAMSTRINGS:
+            key = 'others' if grouping == 'others' else (km.group or km.name)
+            if key in ('passive', 'hamstrings'):        # (a group named like a sweep: its muscle's own name)
+                key = km.name
+            sets.setdefault(key, []).append(km.name)
+    return sets
+
+
 def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
-                   osim_path=None, model=None, progress=None, overrides=()) -> dict:
+                   osim_path=None, model=None, progress=None, overrides=(), grouping: str = 'groups') -> dict:
     """Everything docs/validation.md reports, as one JSON-able dict (see ``evaluate`` for the targets); overrides:
-    NAME=VALUE changes of the parameter set (parameter_set)."""
+    NAME=VALUE changes of the parameter set (parameter_set); grouping: which knee muscles contract together in the
+    active sweeps (active_sets_of)."""
     from tissue_sim.core import solver
     base = parameter_set(params, overrides)
     if not (settle > 0 and math.isfinite(settle)):
         raise ValidationError(f'--settle {settle}: must be a positive number of seconds')
     if not (ramp_speed > 0 and math.isfinite(ramp_speed)):
         raise ValidationError(f'--ramp-speed {ramp_speed}: must be a positive number of deg/s')
+    if grouping not in ACTIVE_GROUPINGS:
+        raise ValidationError(f'--active-sets {grouping}: must be one of {", ".join(ACTIVE_GROUPINGS)}')
     angles, osim_path, tm, muscles = _inputs(angles_deg, osim_path, model)
     hams = [km.name for km in muscles if km.name in HAMSTRINGS]
-    others = [km.name for km in muscles if km.name not in HAMSTRINGS]
-    active_sets = {'hamstrings': hams, 'others': others}
+    active_sets = active_sets_of(muscles, grouping)
+    set_of = {m: key for key, ms in active_sets.items() for m in ms}
     ref = opensim_reference(osim_path, muscles, angles, active_sets)
     sim = solver.compile_model(tm, base)
     runs = {}
-    for key, act in (('passive', []), ('hamstrings', hams), ('others', others)):
+    for key, act in (('passive', []), *active_sets.items()):
         runs[key] = hold_sweep(sim, muscles, angles, act, settle, ramp_speed,
                                progress=(lambda d, k=key: progress(k, d)) if progress else None)
     out = {'params': params, 'overrides': list(overrides), 'angles_deg': angles, 'settle_s': settle, 'ramp_speed_deg_s': ramp_speed,
-           'model': tm.name, 'via_points': _built_with_via_points(tm), 'n_substeps': sim.n_substeps, 'opensim': ref, 'active_sets': active_sets,
-           'muscles': {}, 'torque': {}}
+           'model': tm.name, 'via_points': _built_with_via_points(tm), 'n_substeps': sim.n_substeps, 'opensim': ref,
+           'active_grouping': grouping, 'active_sets': active_sets, 'muscles': {}, 'torque': {}}
     for i, km in enumerate(muscles):
-        act_key = 'hamstrings' if km.name in hams else 'others'
+        act_key = set_of[km.name]
         ro = ref['muscles'][km.name]
         rf = ref['active'][act_key]['muscles'][km.name]
         d = {'index': km.index, 'group': km.group, 'opensim': list(km.opensim), 'max_isometric_force': km.max_force,
@@ -517,7 +538,7 @@ def evaluate(res: dict) -> dict:
                     below = ' (within the resolution: no sign)' if abs(ours) <= res_r else ''
                     bad.append(f'{name} {mode} {a:g} deg: {ours * 1e3:+.1f}{below} vs {ref * 1e3:+.1f} mm')
     t['moment_arm_signs'] = {'pass': not bad, 'wrong': bad, 'undecided': undecided,
-                             'resolution_mm': {k: resolution(k) * 1e3 for k in ('passive', 'hamstrings', 'others')}}
+                             'resolution_mm': {k: resolution(k) * 1e3 for k in reso}}
     # 2. hamstrings within +-25 % at 0, 30, 60, 90 deg
     rows, ok, missing = [], True, [a for a in TARGET_ANGLES if _at(angles, angles, a) is None]
     for name in TARGET_HAMSTRINGS:
