@@ -10,7 +10,6 @@ wall and CPU seconds, vertices, cells). Last line: one JSON object.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import sys
@@ -23,8 +22,9 @@ sys.path.insert(0, str(ROOT / 'tests'))
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--runs', type=int, default=3)
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--runs', type=bounded(int, low=1), default=3)
     ap.add_argument('--refine', default='3', help="refinements R to time, e.g. 3,6 ('none': skip)")
     args = ap.parse_args()
     try:

@@ -19,7 +19,6 @@ JSON object with the figures.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -183,8 +182,9 @@ def ankle_main(sets):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--seconds', type=float, default=6.0, help='measuring time per configuration [s]')
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--seconds', type=bounded(above=0), default=6.0, help='measuring time per configuration [s]')
     ap.add_argument('--penetration', action='store_true', help='also run the active flexion and passive sweep')
     ap.add_argument('--ankle', action='store_true', help="only the ankle fat's transient (physical set, every 25 ms)")
     ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE', help='with --ankle: a Params field')

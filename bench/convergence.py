@@ -33,7 +33,6 @@ run (max / RMS): the time step's share of the differences, apart from the mesh's
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -311,7 +310,8 @@ def bad_argument(msg: str):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--refine', default='1,3,6', help='refinements of the bundled limb, comma-separated (default 1,3,6)')
     ap.add_argument('--integrator', default=None, choices=P.INTEGRATORS,
                     help=f'time integrator (default {default_integrator()}, the fastest stable one here)')
@@ -321,7 +321,7 @@ def main():
     ap.add_argument('--motion', choices=tuple(MOTIONS), default='step',
                     help="'step' (default): the hamstrings fully active from t = 0; 'demo': make demo's activation, the "
                          'hamstrings ramped 0 -> 1 over 8 s')
-    ap.add_argument('--duration', type=float, default=None,
+    ap.add_argument('--duration', type=bounded(above=0), default=None,
                     help="simulated seconds (default: 0.3 with --motion step, the knee flexes to ~60 deg; 10 with demo)")
     ap.add_argument('--out', default=str(ROOT / 'bench' / 'out'), help='folder for convergence.json and .png')
     ap.add_argument('--stiffness', choices=('as-is', 'moment'), default='as-is',
@@ -344,7 +344,7 @@ def main():
                          'via rings, the contact and sheath reaction, the passive fibres), printed every 30 ms (--motion '
                          'demo: 250 ms; its cost is '
                          'in the steps/CPU s then)')
-    ap.add_argument('--time-reference', type=int, default=None, metavar='N',
+    ap.add_argument('--time-reference', type=bounded(int, low=1), default=None, metavar='N',
                     help='also run each model at N sub-steps per step and give its difference to that run (the time '
                          "step's share of the differences)")
     ap.add_argument('--quick', action='store_true', help='refine 1,2 and 0.3 s (make bench)')

@@ -14,7 +14,6 @@ Steps/s as bench/contact.py (per CPU second, one thread, full hamstring activati
 """
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from pathlib import Path
@@ -122,15 +121,16 @@ def validate(out_dir, side_only, sheath, below, rest):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--seconds', type=float, default=6.0, help='measuring time per configuration [s]')
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--seconds', type=bounded(above=0), default=6.0, help='measuring time per configuration [s]')
     ap.add_argument('--hold', action='store_true', help='also the passive hold, fold off and on')
     ap.add_argument('--validate', metavar='DIR', help='run tissue-sim validate -o DIR with the fold on instead')
     ap.add_argument('--side-only', action='store_true', help='with --validate: fold_plane False')
     ap.add_argument('--below', action='store_true', help='with --sheath: also below the knee (sheath_below)')
     ap.add_argument('--implicit', action='store_true', help='the physical set (fold + sheath) under mass_scaled and '
                     'implicit: the passive hold and a full hamstring contraction, side by side (nothing else)')
-    ap.add_argument('--sheath', type=float, default=0.0, metavar='R', help='with --validate: the hamstrings in a sheath of radius R [m]')
+    ap.add_argument('--sheath', type=bounded(low=0), default=0.0, metavar='R', help='with --validate: the hamstrings in a sheath of radius R [m]')
     a, rest = ap.parse_known_args()
     if a.validate:
         return validate(a.validate, a.side_only, a.sheath, a.below, rest)

@@ -12,7 +12,6 @@ preconditioner A (implicit.py) being far stiffer than the tissue's soft modes (d
 """
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
 import json
@@ -43,9 +42,10 @@ def parse_counts(text: str) -> list[int]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--refine', default='3', help='refinement of the bundled limb (default 3)')
-    ap.add_argument('--at', type=int, default=150, help='steps of the fast path before the reference step (default 150)')
+    ap.add_argument('--at', type=bounded(int, low=0), default=150, help='steps of the fast path before the reference step (default 150)')
     ap.add_argument('--iterations', default='1,2,4,8,16', help='iteration counts, comma-separated (default 1,2,4,8,16)')
     ap.add_argument('--out', default=str(ROOT / 'bench' / 'out'), help='folder for iterations.json and .png')
     ap.add_argument('--quick', action='store_true', help='the 1x limb, iterations 1,2,4,8')

@@ -14,7 +14,6 @@ physical set) and report the rates seen. --quick: 1x and 2x, no --ros (for `make
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -102,9 +101,10 @@ def ros_rate(R, seconds):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--refine', default='1,3,6', help='refinements of the bundled limb, comma-separated (default 1,3,6)')
-    ap.add_argument('--ros', type=float, default=0.0, metavar='SECONDS',
+    ap.add_argument('--ros', type=bounded(low=0), default=0.0, metavar='SECONDS',
                     help='also run bench/ros_rate.py for this many seconds per model (0 = not; default)')
     ap.add_argument('--quick', action='store_true', help='1x and 2x, no --ros (make bench)')
     a = ap.parse_args()

@@ -14,7 +14,6 @@ NAME=VALUE (repeatable): a builder setting of the models (e.g. fat_follow=false:
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -71,9 +70,10 @@ def measure(R: float, duration: float, build: dict | None = None) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--refine', default='1,3,6', help='refinements of the bundled limb, comma-separated (default 1,3,6)')
-    ap.add_argument('--duration', type=float, default=0.05, help='simulated seconds (default 0.05)')
+    ap.add_argument('--duration', type=bounded(above=0), default=0.05, help='simulated seconds (default 0.05)')
     ap.add_argument('--out', default=str(ROOT / 'bench' / 'out'), help='folder for mesh_quality.json and .png')
     ap.add_argument('--build', action='append', default=[], metavar='NAME=VALUE',
                     help='a builder setting of the models (repeatable; VALUE read as YAML, e.g. fat_follow=false; '

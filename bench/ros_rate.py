@@ -28,7 +28,6 @@ Run:  . ./env.sh && python bench/ros_rate.py [--seconds 10] [--model FILE | --ph
       [--compare | --no-solver-thread] [--participants own|shared|both] [--marker-resolution M] [--solver-only]
 Last line: one JSON object (a list of them with several runs).
 """
-import argparse
 import json
 import os
 import signal
@@ -300,22 +299,23 @@ def table(runs) -> str:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--seconds', type=float, default=10.0, help='measurement window [s] (default 10)')
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--seconds', type=bounded(above=0), default=10.0, help='measurement window [s] (default 10)')
     ap.add_argument('--model', default='', help="model file (.npz); '' = the bundled anatomy")
     ap.add_argument('--phantom', action='store_true', help='use the knee phantom with extra muscles and fat')
     ap.add_argument('--refine', default='1', help='the bundled limb R x finer (build-model --refine R; default 1); '
                     'a list 1,2,3 runs each')
     ap.add_argument('--integrator', default='', help="the parameter set's integrator replaced by this one ('' = the set's)")
-    ap.add_argument('--substeps', type=int, default=None,
+    ap.add_argument('--substeps', type=bounded(int, low=1), default=None,
                     help="sub-steps per step with --integrator (default: the set's; implicit: 1, as bench/solver.py)")
     ap.add_argument('--paused', action='store_true',
                     help='start the simulator paused (start_paused:=true): frames and markers without stepping, the '
                          'publishing and transport alone')
     ap.add_argument('--no-objects', action='store_true',
                     help='skip the rclpy Python-object MarkerArray for comparison (seconds per frame on finer models)')
-    ap.add_argument('--rate', type=float, default=34.0, help='publish_rate (default 34)')
-    ap.add_argument('--marker-resolution', type=float, default=0.0, metavar='M',
+    ap.add_argument('--rate', type=bounded(above=0), default=34.0, help='publish_rate (default 34)')
+    ap.add_argument('--marker-resolution', type=bounded(low=0), default=0.0, metavar='M',
                     help="the node's marker_resolution: the soft tissue's markers on a display surface decimated on a "
                          'grid of M metres (default 0: the full surface)')
     ap.add_argument('--colouring', default='none', help='marker colouring (none, skin_area, fat_deformation)')

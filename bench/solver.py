@@ -184,18 +184,19 @@ def parse_threads(text):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from tissue_sim.errors import ArgumentParser, bounded
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--model', help='a model .npz (default: the bundled anatomy)')
-    ap.add_argument('--seconds', type=float, default=3.0, help='measuring time per figure [s]')
+    ap.add_argument('--seconds', type=bounded(above=0), default=3.0, help='measuring time per figure [s]')
     ap.add_argument('--fine', help='also a finer model .npz: physical set, mass_scaled beside implicit')
     ap.add_argument('--threads', default=None, help="thread counts of the scaling section, e.g. 1,2 (default: 1,2 on a "
                     "machine with 2 or more cores; 'none': skip it)")
     ap.add_argument('--refine', help='the scaling section also on the bundled limb built R times finer (e.g. 3)')
     ap.add_argument('--quick', action='store_true', help='the scaling section only, 1-s windows')
-    ap.add_argument('--ab', type=int, default=0, metavar='N', help='only the physical set mass_scaled beside implicit '
+    ap.add_argument('--ab', type=bounded(int, low=0), default=0, metavar='N', help='only the physical set mass_scaled beside implicit '
                     '(with and without the sheath), N alternating rounds of --seconds each (ab_rates)')
-    ap.add_argument('--stages', type=int, default=0, metavar='I', help='only the implicit step\'s stages timed on '
-                    'their own (I iterations; with --refine R on the refined limb) (stage_times)')
+    ap.add_argument('--stages', type=bounded(int, low=0, high=20), default=0, metavar='I', help='only the implicit step\'s stages timed on '
+                    'their own (I implicit iterations per step, 1-20; with --refine R on the refined limb) (stage_times)')
     ap.add_argument('--sizes', metavar='R,R,...', help='only the implicit step on the bundled limb built R times finer '
                     '(e.g. 1,2,2.6,3): time per step and per vertex beside the working set (size_scaling)')
     ap.add_argument('--sustained', metavar='R,R,...', help='only the implicit step on the bundled limb built R times '

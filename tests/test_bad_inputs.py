@@ -325,3 +325,35 @@ def test_an_argument_error_is_answered_before_the_numerics_load(tmp_path, argv):
                        timeout=120)
     assert r.stdout.strip() == '[] 2', (r.stdout, r.stderr)
     assert len(r.stderr.strip().splitlines()) == 1 and ': error: ' in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize('argv, words', [
+    (['validate', '--settle', 'abc'], ['tissue-sim validate: error: argument --settle', "invalid float value: 'abc'"]),
+    (['simulate', '--no-such-option'], ['unrecognized arguments: --no-such-option']),
+    (['no-such-command'], ["invalid choice: 'no-such-command'"]),
+    (['analyze'], ['the following arguments are required: run']),
+])
+def test_a_parser_error_is_one_line_too(tmp_path, argv, words):
+    """argparse's own errors (a mistyped value, an unknown option or command, a missing argument) are one line with
+    exit 2 like the commands' checks, without argparse's usage block (tissue_sim.errors.ArgumentParser)."""
+    line = expect_error(tmp_path, *argv, words=words)
+    assert line.endswith('(--help lists the options)') and not line.startswith('usage')
+
+
+def test_bounded_argument_types():
+    """tissue_sim.errors.bounded: the range checks of the benchmarks' options, each refusal one line of the parser."""
+    import argparse
+
+    from tissue_sim.errors import ArgumentParser, bounded
+    assert bounded(above=0)('0.5') == 0.5 and bounded(int, low=1)('3') == 3 and bounded(int, low=0, high=20)('20') == 20
+    for conv, text, msg in ((bounded(above=0), '0', '0 must be > 0'), (bounded(above=0), 'nan', 'finite'),
+                            (bounded(low=0), '-inf', 'finite'), (bounded(int, low=1), '0', '0 must be >= 1'),
+                            (bounded(int, high=20), '21', '21 must be <= 20'), (bounded(int), '1.5', 'not an integer'),
+                            (bounded(), 'x', "'x' is not a number")):
+        with pytest.raises(argparse.ArgumentTypeError, match=msg):
+            conv(text)
+    p = ArgumentParser(prog='bench')
+    p.add_argument('--seconds', type=bounded(above=0))
+    with pytest.raises(SystemExit) as e:
+        p.parse_args(['--seconds', '-1'])
+    assert e.value.code == 2

@@ -277,6 +277,10 @@ def test_executables_print_usage():
     r = subprocess.run([str(rosutil.exe_path('activation')), '--level', '2'], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 2 and r.stderr.strip() == 'error: --level 2.0: must be in [0, 1]'
+    r = subprocess.run([str(rosutil.exe_path('activation')), '--level', 'abc'], capture_output=True, text=True,
+                       timeout=60)          # argparse's own error: one line too (tissue_sim.errors.ArgumentParser)
+    assert r.returncode == 2 and r.stderr.strip() == ("activation: error: argument --level: invalid float value: 'abc' "
+                                                      '(--help lists the options)'), r.stderr
     r = subprocess.run([str(rosutil.exe_path('simulator')), '--model', '/nope.npz'], capture_output=True, text=True,
                        timeout=60, env=rosutil.ros_env(0))
     assert r.returncode == 2 and 'error: /nope.npz: no such model file' in r.stderr and 'Traceback' not in r.stderr

@@ -11,7 +11,7 @@ import importlib
 import sys
 
 from tissue_sim import __version__
-from tissue_sim.errors import UserError
+from tissue_sim.errors import ArgumentParser, UserError
 
 COMMAND_MODULES = ('build_model', 'make_anatomy', 'simulate', 'analyze', 'render', 'export', 'export_run',
                    'info', 'repair', 'validate', 'stiffness')
@@ -29,7 +29,7 @@ def _commands():
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog='tissue-sim', description='Elastic bone/muscle/fat model of a lower limb: '
+    p = ArgumentParser(prog='tissue-sim', description='Elastic bone/muscle/fat model of a lower limb: '
                                 'build it from labelled slices, simulate it, analyse the deformation.')
     p.add_argument('--version', action='version', version=f'tissue-sim {__version__}')
     sub = p.add_subparsers(dest='command', metavar='COMMAND', required=True)

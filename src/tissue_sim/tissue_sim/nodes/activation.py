@@ -26,12 +26,13 @@ import time
 from rclpy.node import Node
 
 from ..core import activation as act
+from ..errors import ArgumentParser
 from ..ros.common import TOPIC_ACTIVATION, TOPIC_MUSCLES, qos_latched, qos_stream
 from ..ros.common import main as node_main
 
 
 def build_parser():
-    p = argparse.ArgumentParser(prog='activation', description=__doc__.split('\n')[0],
+    p = ArgumentParser(prog='activation', description=__doc__.split('\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--profile', choices=act.PROFILES, default=None,
                    help='activation profile or named motion (default: paper, or set when --set is given); motions: '

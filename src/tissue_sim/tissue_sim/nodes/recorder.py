@@ -30,6 +30,7 @@ from pathlib import Path
 from ..core import mcapio
 from rclpy.node import Node
 
+from ..errors import ArgumentParser
 from ..ros.common import (TISSUE_TOPICS, TOPIC_BONE_MARKERS, TOPIC_MUSCLES, TOPIC_ROBOT_DESCRIPTION, TOPIC_TF_STATIC,
                           TOPIC_TOPOLOGY, TOPIC_TYPES,
                           qos_latched, qos_stream)
@@ -40,7 +41,7 @@ LATCHED = (TOPIC_TOPOLOGY, TOPIC_MUSCLES, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTI
 
 
 def build_parser():
-    p = argparse.ArgumentParser(prog='recorder', description=__doc__.split('\n')[0],
+    p = ArgumentParser(prog='recorder', description=__doc__.split('\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n', 2)[2])
     p.add_argument('-o', '--output', required=True, help='output .mcap path (parent folders are created)')
     p.add_argument('--topics', nargs='*', default=[], help='extra topics (optionally /topic:pkg/msg/Type)')

@@ -18,12 +18,13 @@ from rclpy.node import Node
 
 from ..core import mcapio
 from ..core.cdr import CdrReader
+from ..errors import ArgumentParser
 from ..ros.common import TOPIC_CLOCK, TOPIC_MARKERS, TOPIC_TOPOLOGY, OwnParticipant, qos_latched, qos_stream
 from ..ros.common import main as node_main
 
 
 def build_parser():
-    p = argparse.ArgumentParser(prog='replay', description=__doc__.split('\n')[0],
+    p = ArgumentParser(prog='replay', description=__doc__.split('\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n', 2)[2])
     p.add_argument('input', help='.mcap file or a folder of split .mcap files')
     p.add_argument('--rate', type=float, default=1.0, help='playback speed (default 1 = original timing)')

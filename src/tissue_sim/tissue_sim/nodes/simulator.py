@@ -40,6 +40,7 @@ from ..core import markers as mk
 from ..core import measures, realtime, urdf
 from ..core.activation import REASONS, Muscles
 from ..core.load import implicit_hint
+from ..errors import ArgumentParser
 from ..ros.common import (TOPIC_ACTIVATION, TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_JOINTS, TOPIC_MARKERS,
                           TOPIC_BONE_MARKERS, TOPIC_ROBOT_DESCRIPTION, TOPIC_STATE, TOPIC_TF, TOPIC_TF_STATIC,
                           TOPIC_MUSCLES, TOPIC_TOPOLOGY, OwnParticipant, Param, add_flags, declare, overrides,
@@ -99,7 +100,7 @@ PARAMS = (
 
 
 def build_parser():
-    p = argparse.ArgumentParser(prog='simulator', description=__doc__.split('\n')[0],
+    p = ArgumentParser(prog='simulator', description=__doc__.split('\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     return add_flags(p, PARAMS)
 
