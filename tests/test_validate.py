@@ -243,6 +243,8 @@ def test_held_knee_does_not_move_its_bones(default_tm):
     (['--build', 'fat_follow=true', '--kinematics'], '--build and --kinematics'),
     (['--active-sets', 'all'], '--active-sets all: must be one of groups, others'),
     (['--active-sets', 'others', '--passive'], '--active-sets: only the moment-arm and torque sweeps'),
+    (['--jobs', '0'], 'argument --jobs: 0 must be >= 1'),
+    (['--jobs', '2', '--kinematics'], '--jobs: --passive holds one sweep and --kinematics none'),
 ])
 def test_bad_arguments_one_line_exit_2(tmp_path, capsys, argv, msg):
     out = tmp_path / 'out'
@@ -338,6 +340,22 @@ def test_validate_command_on_the_bundled_model(tmp_path, capsys, params):
     else:           # the paper set is dimensionless: no comparison in N m or of Fmax
         assert pt['pass'] is None and res['targets']['hamstring_force']['pass'] is None
     assert res['targets']['hamstring_moment_arms']['angles_not_sampled'] == [30.0, 90.0]
+
+
+def test_sweeps_on_threads_give_the_numbers_of_one_after_the_other(default_tm, knee_muscles):
+    """validation.run_sweeps: the sweeps held at once on two threads (the step releases the GIL) give bit for bit
+    the results of the same sweeps one after the other, in the same order. Reduced: two angles, short holds."""
+    sim = solver.compile_model(default_tm, V.parameter_set('physical'))
+    sets = V.active_sets_of(knee_muscles)
+    sweeps = {'passive': [], 'hamstrings': sets['hamstrings'], 'quadriceps': sets['quadriceps']}
+    seen = []
+    serial = V.run_sweeps(sim, knee_muscles, [0.0, 40.0], sweeps, 0.05, 400.0, jobs=1)
+    both = V.run_sweeps(sim, knee_muscles, [0.0, 40.0], sweeps, 0.05, 400.0, jobs=2,
+                        progress=lambda k, d: seen.append((k, d)))
+    assert list(both) == list(sweeps) and json.dumps(both) == json.dumps(serial)
+    assert sorted(seen) == sorted((k, a) for k in sweeps for a in (0.0, 40.0))
+    # the quadriceps pull: their sweep's lengths differ from the passive one's
+    assert both['quadriceps']['length'] != both['passive']['length']
 
 
 def test_a_sweep_that_diverges_ends_in_nan_and_says_where(default_tm, knee_muscles):

@@ -41,7 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:         # --help, --version, or the parser's one-line error (ArgumentParser): its exit code
+        return e.code if isinstance(e.code, int) else 0
     try:
         return int(args._run(args) or 0)
     except UserError as e:

@@ -5,7 +5,7 @@ import json
 import time
 from pathlib import Path
 
-from tissue_sim.errors import UserError
+from tissue_sim.errors import UserError, bounded
 
 NAME = 'validate'
 HELP = ('compare the bundled knee with its source OpenSim model (Rajagopal 2016): muscle lengths and moment '
@@ -44,6 +44,8 @@ def add_arguments(p):
                    help='which knee muscles contract together in the active sweeps besides the hamstrings: each '
                         'anatomical group on its own, antagonists at rest (groups, the default), or all of them at once '
                         '(others) (docs/validation.md "Active sweeps")')
+    p.add_argument('--jobs', type=bounded(int, low=1), default=None, metavar='N',
+                   help='sweeps held at once, each on a thread of its own (default: the CPUs this process may use)')
     p.add_argument('--strict', action='store_true', help='exit 1 when a target fails (default: report only)')
     p.add_argument('--quiet', action='store_true', help='print only the targets')
 
@@ -59,6 +61,8 @@ def run(args) -> int:
         if args.grouping is not None and (args.passive or args.kinematics):
             raise V.ValidationError('--active-sets: only the moment-arm and torque sweeps have active sets, not '
                                     '--passive or --kinematics')
+        if args.jobs is not None and (args.passive or args.kinematics):
+            raise V.ValidationError('--jobs: --passive holds one sweep and --kinematics none')
         if args.grouping is not None:
             V.active_sets_of([], args.grouping)               # a bad name: one line, before anything runs
         if not args.kinematics:
@@ -71,12 +75,12 @@ def run(args) -> int:
     from rich.console import Console
     con = Console()
     t0 = time.perf_counter()
-    last = [None]
+    seen = set()
 
-    def progress(kind, deg):
-        if not args.quiet and last[0] != kind:
+    def progress(kind, deg):          # (called from the sweeps' threads: once per sweep)
+        if not args.quiet and kind not in seen:
+            seen.add(kind)
             con.print(f'  holding the knee: {kind} ...')
-            last[0] = kind
 
     if args.passive and args.kinematics:
         raise UserError('--passive and --kinematics: choose one')
@@ -94,7 +98,8 @@ def run(args) -> int:
         return _run_kinematics(args, con, out, V, angles)
     try:
         res = V.run_validation(args.params, angles, args.settle, args.ramp_speed, osim_path=args.osim, model=model,
-                               progress=progress, overrides=args.overrides, grouping=args.grouping or 'groups')
+                               progress=progress, overrides=args.overrides, grouping=args.grouping or 'groups',
+                               jobs=args.jobs)
     except V.ValidationError as e:
         raise UserError(str(e)) from None
     res['wall_s'] = round(time.perf_counter() - t0, 1)

@@ -404,11 +404,33 @@ def active_sets_of(muscles: list, grouping: str = 'groups') -> dict:
     return sets
 
 
+def run_sweeps(sim, muscles: list, angles: list, sweeps: dict, settle: float, ramp_speed: float, progress=None,
+               jobs: int | None = None) -> dict:
+    """hold_sweep for each sweep (name -> the muscles active in it), on ``jobs`` threads at once (default: this
+    process's usable CPUs, realtime.usable_cpus): the step releases the GIL (step.advance is nogil) and each sweep
+    has its own state, so the sweeps run in parallel and give the same numbers as one after the other. Returns
+    name -> hold_sweep's result, in the order of sweeps. progress(name, angle) is called from the sweeps' threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tissue_sim.core.realtime import usable_cpus
+    jobs = max(1, min(len(sweeps), usable_cpus() if jobs is None else int(jobs)))
+
+    def one(item):
+        key, act = item
+        return hold_sweep(sim, muscles, angles, act, settle, ramp_speed,
+                          progress=(lambda d: progress(key, d)) if progress else None)
+    if jobs == 1:
+        return {key: one((key, act)) for key, act in sweeps.items()}
+    with ThreadPoolExecutor(max_workers=jobs, thread_name_prefix='sweep') as pool:
+        return dict(zip(sweeps, pool.map(one, sweeps.items())))
+
+
 def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
-                   osim_path=None, model=None, progress=None, overrides=(), grouping: str = 'groups') -> dict:
+                   osim_path=None, model=None, progress=None, overrides=(), grouping: str = 'groups',
+                   jobs: int | None = None) -> dict:
     """Everything docs/validation.md reports, as one JSON-able dict (see ``evaluate`` for the targets); overrides:
     NAME=VALUE changes of the parameter set (parameter_set); grouping: which knee muscles contract together in the
-    active sweeps (active_sets_of)."""
+    active sweeps (active_sets_of); jobs: how many sweeps run at once (run_sweeps)."""
     from tissue_sim.core import solver
     base = parameter_set(params, overrides)
     if not (settle > 0 and math.isfinite(settle)):
@@ -423,10 +445,7 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
     set_of = {m: key for key, ms in active_sets.items() for m in ms}
     ref = opensim_reference(osim_path, muscles, angles, active_sets)
     sim = solver.compile_model(tm, base)
-    runs = {}
-    for key, act in (('passive', []), *active_sets.items()):
-        runs[key] = hold_sweep(sim, muscles, angles, act, settle, ramp_speed,
-                               progress=(lambda d, k=key: progress(k, d)) if progress else None)
+    runs = run_sweeps(sim, muscles, angles, {'passive': [], **active_sets}, settle, ramp_speed, progress, jobs)
     out = {'params': params, 'overrides': list(overrides), 'angles_deg': angles, 'settle_s': settle, 'ramp_speed_deg_s': ramp_speed,
            'model': tm.name, 'via_points': _built_with_via_points(tm), 'n_substeps': sim.n_substeps, 'opensim': ref,
            'active_grouping': grouping, 'active_sets': active_sets, 'muscles': {}, 'torque': {}}
