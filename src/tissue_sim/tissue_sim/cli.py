@@ -30,7 +30,7 @@ def _commands():
 
 def build_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog='tissue-sim', description='Elastic bone/muscle/fat model of a lower limb: '
-                                'build it from labelled slices, simulate it, analyse the deformation.')
+                       'build it from labelled slices, simulate it, analyse the deformation.')
     p.add_argument('--version', action='version', version=f'tissue-sim {__version__}')
     sub = p.add_subparsers(dest='command', metavar='COMMAND', required=True)
     for mod in _commands():

@@ -1,5 +1,6 @@
 """Errors that reach the user as one clear line and a non-zero exit code (never a traceback)."""
 import argparse
+import math
 
 
 class UserError(Exception):
@@ -27,7 +28,6 @@ def bounded(kind=float, low=None, high=None, above=None):
     """An argparse ``type`` converting with kind (float or int) and checking the range: low <= value <= high, and
     value > above; NaN and infinities are refused. A bad value is the parser's one-line error (ArgumentParser), e.g.
     ``argument --seconds: -1 must be > 0``."""
-    import math
 
     def convert(text):
         try:

@@ -437,8 +437,7 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
         raise ValidationError(f'--settle {settle}: must be a positive number of seconds')
     if not (ramp_speed > 0 and math.isfinite(ramp_speed)):
         raise ValidationError(f'--ramp-speed {ramp_speed}: must be a positive number of deg/s')
-    if grouping not in ACTIVE_GROUPINGS:
-        raise ValidationError(f'--active-sets {grouping}: must be one of {", ".join(ACTIVE_GROUPINGS)}')
+    active_sets_of([], grouping)                    # a bad grouping: before the model is built
     angles, osim_path, tm, muscles = _inputs(angles_deg, osim_path, model)
     hams = [km.name for km in muscles if km.name in HAMSTRINGS]
     active_sets = active_sets_of(muscles, grouping)

@@ -33,7 +33,7 @@ from ..ros.common import main as node_main
 
 def build_parser():
     p = ArgumentParser(prog='activation', description=__doc__.split('\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--profile', choices=act.PROFILES, default=None,
                    help='activation profile or named motion (default: paper, or set when --set is given); motions: '
                         + '; '.join(f'{n}: {m.description}' for n, m in act.MOTIONS.items()))

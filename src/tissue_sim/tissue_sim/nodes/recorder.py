@@ -21,11 +21,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import sys
 import time
-from pathlib import Path
 
 from ..core import mcapio
 from rclpy.node import Node
@@ -42,7 +40,7 @@ LATCHED = (TOPIC_TOPOLOGY, TOPIC_MUSCLES, TOPIC_TF_STATIC, TOPIC_ROBOT_DESCRIPTI
 
 def build_parser():
     p = ArgumentParser(prog='recorder', description=__doc__.split('\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n', 2)[2])
+                       formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n', 2)[2])
     p.add_argument('-o', '--output', required=True, help='output .mcap path (parent folders are created)')
     p.add_argument('--topics', nargs='*', default=[], help='extra topics (optionally /topic:pkg/msg/Type)')
     p.add_argument('--only', action='store_true', help='record only --topics, not the tissue topics')

@@ -25,7 +25,7 @@ from ..ros.common import main as node_main
 
 def build_parser():
     p = ArgumentParser(prog='replay', description=__doc__.split('\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n', 2)[2])
+                       formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split('\n', 2)[2])
     p.add_argument('input', help='.mcap file or a folder of split .mcap files')
     p.add_argument('--rate', type=float, default=1.0, help='playback speed (default 1 = original timing)')
     p.add_argument('--loop', action='store_true', help='start again at the end')

@@ -101,7 +101,7 @@ PARAMS = (
 
 def build_parser():
     p = ArgumentParser(prog='simulator', description=__doc__.split('\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     return add_flags(p, PARAMS)
 
 
