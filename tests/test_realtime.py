@@ -314,3 +314,15 @@ def test_a_pause_is_not_starved_by_a_solver_thread_that_never_sleeps():
         assert s.steps == n
     finally:
         th.stop()
+
+
+def test_map_threads_keeps_the_order_and_runs_at_once():
+    """realtime.map_threads: the results in the items' order, with one job one after the other on the calling thread,
+    with two on two threads at once (here two waits that can only both end if they overlap)."""
+    assert rt.map_threads(lambda v: v * v, [3, 1, 2], jobs=1) == [9, 1, 4]
+    assert rt.map_threads(lambda v: v * v, range(5), jobs=8) == [0, 1, 4, 9, 16]
+    assert rt.map_threads(lambda v: v, [], jobs=2) == []
+    main = threading.get_ident()
+    assert rt.map_threads(lambda v: threading.get_ident(), [0, 1], jobs=1) == [main, main]
+    both = threading.Barrier(2, timeout=10)
+    assert rt.map_threads(lambda v: (both.wait(), v)[1], ['a', 'b'], jobs=2) == ['a', 'b']

@@ -14,7 +14,7 @@ from tissue_sim.cli import main
 @pytest.mark.parametrize('argv, msg', [
     (['--levels', '0,1.5'], 'must be in'), (['--levels', 'a,b'], 'comma-separated'),
     (['--angle', '119'], 'range'), (['--delta', '0'], '--delta'), (['--settle', 'nan'], '--settle'),
-    (['--params', 'nope.yaml'], 'nope.yaml'),
+    (['--params', 'nope.yaml'], 'nope.yaml'), (['--jobs', '0'], 'argument --jobs: 0 must be >= 1'),
 ])
 def test_bad_arguments(tmp_path, capsys, argv, msg):
     out = tmp_path / 'st'
@@ -43,6 +43,11 @@ def test_co_contraction_stiffens_the_knee_without_moving_it(tmp_path):
     assert abs(full['torque_nm'] - res['passive_torque_nm']) < 5.0
     assert full['free_drift_max_deg'] < 5.0
     assert full['hamstrings_only']['free_drift_max_deg'] > 20.0
+    # the levels measured on threads at once (the default) give what they give one after the other
+    one = tmp_path / 'one'
+    assert main(['stiffness', '-o', str(one), '--levels', '0,1', '--settle', '0.15', '--free', '0.3', '--jobs', '1']) == 0
+    serial = json.loads((one / 'stiffness_physical.json').read_text())
+    assert {k: v for k, v in serial.items() if k != 'wall_s'} == {k: v for k, v in res.items() if k != 'wall_s'}
 
 
 def test_published_passive_stiffness_is_the_slope_of_riener_and_edrich():

@@ -7,7 +7,7 @@ import math
 import time
 from pathlib import Path
 
-from tissue_sim.errors import UserError
+from tissue_sim.errors import UserError, bounded
 
 NAME = 'stiffness'
 HELP = ('measure the knee\'s joint stiffness under co-contraction of hamstrings and quadriceps at several '
@@ -28,6 +28,8 @@ def add_arguments(p):
     p.add_argument('--settle', type=float, default=0.3, help='hold after each change [s] (default %(default)s)')
     p.add_argument('--free', type=float, default=0.5, help='time the released knee is followed [s] (default %(default)s)')
     p.add_argument('--no-single', action='store_true', help='skip the hamstrings-alone reference')
+    p.add_argument('--jobs', type=bounded(int, low=1), default=None, metavar='N',
+                   help='levels measured at once, each on a thread of its own (default: the CPUs this process may use)')
     p.add_argument('--json', action='store_true', help='print the result as one JSON object')
 
 
@@ -74,7 +76,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     res = stiffness.measure(sim, levels, angle_deg=args.angle, delta_deg=args.delta, settle=args.settle,
                             free_seconds=args.free, single=not args.no_single,
-                            progress=lambda a: con.print(f'  level {a:g} done ({time.perf_counter() - t0:.0f} s)'))
+                            progress=lambda a: con.print(f'  level {a:g} done ({time.perf_counter() - t0:.0f} s)'),
+                            jobs=args.jobs)
     res['wall_s'] = round(time.perf_counter() - t0, 1)
     tag = Path(args.params).stem if args.params.endswith(('.yaml', '.yml')) else args.params
     try:

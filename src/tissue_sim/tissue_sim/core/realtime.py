@@ -106,6 +106,19 @@ def usable_cpus() -> int:
         return os.cpu_count() or 1
 
 
+def map_threads(fn: Callable, items, jobs: int | None = None) -> list:
+    """[fn(item) for item in items], up to ``jobs`` at a time on threads of their own (default: usable_cpus()), in
+    the items' order. For independent runs of the solver (each with its own state): its step releases Python's lock
+    (step.advance is nogil), so the runs use as many cores, and each gives what it gives alone."""
+    from concurrent.futures import ThreadPoolExecutor
+    items = list(items)
+    jobs = max(1, min(len(items), usable_cpus() if jobs is None else int(jobs)))
+    if jobs == 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(max_workers=jobs, thread_name_prefix='tissue_sim run') as pool:
+        return list(pool.map(fn, items))
+
+
 def lower_priority(increment: int) -> bool:
     """Raise the calling thread's nice value by ``increment`` (Linux: per thread; anyone may lower their own
     priority); False where the platform does not allow it."""

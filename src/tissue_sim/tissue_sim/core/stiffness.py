@@ -151,16 +151,20 @@ def hold_torque(sim, activations: dict, angle_deg: float, settle: float, ramp: f
 
 
 def measure(sim, levels=(0.0, 0.25, 0.5, 1.0), angle_deg: float = 30.0, delta_deg: float = 2.0, settle: float = 0.3,
-            ramp: float = 0.3, free_seconds: float = 0.5, single: bool = True, progress=None) -> dict:
+            ramp: float = 0.3, free_seconds: float = 0.5, single: bool = True, progress=None,
+            jobs: int | None = None) -> dict:
     """Knee stiffness at each co-contraction level a: the hamstrings at a, the quadriceps balancing them
     (:func:`balance`); with ``single`` also the figures of the hamstrings alone at a (what the
     antagonist prevents: their drift). A level that diverges gives its error instead of figures (no
-    number made up)."""
+    number made up). The levels are independent runs: ``jobs`` of them at a time on threads of their own
+    (realtime.map_threads; default the usable CPUs), each giving what it gives alone; progress(a) is called from
+    them."""
     from tissue_sim.core import solver
+    from tissue_sim.core.realtime import map_threads
     kw = dict(angle_deg=angle_deg, delta_deg=delta_deg, settle=settle, ramp=ramp, free_seconds=free_seconds)
     tau_p = hold_torque(sim, {}, angle_deg, settle, ramp)
-    rows = []
-    for a in levels:
+
+    def level(a):
         r = {'level': float(a)}
         try:
             ham = level_stiffness(sim, {'hamstrings': a}, **kw) if a > 0 else None
@@ -172,9 +176,10 @@ def measure(sim, levels=(0.0, 0.25, 0.5, 1.0), angle_deg: float = 30.0, delta_de
                                                              'free_final_deg')}
         except solver.DivergenceError as e:
             r['diverged'] = str(e)
-        rows.append(r)
         if progress:
             progress(a)
+        return r
+    rows = map_threads(level, levels, jobs)
     return {'joint': KNEE, 'angle_deg': angle_deg, 'delta_deg': delta_deg, 'settle_s': settle, 'ramp_s': ramp,
             'free_seconds': free_seconds, 'params': sim.params.preset, 'model': sim.tissue.name,
             'passive_torque_nm': tau_p, 'levels': rows,

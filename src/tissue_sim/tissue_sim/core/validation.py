@@ -406,23 +406,17 @@ def active_sets_of(muscles: list, grouping: str = 'groups') -> dict:
 
 def run_sweeps(sim, muscles: list, angles: list, sweeps: dict, settle: float, ramp_speed: float, progress=None,
                jobs: int | None = None) -> dict:
-    """hold_sweep for each sweep (name -> the muscles active in it), on ``jobs`` threads at once (default: this
-    process's usable CPUs, realtime.usable_cpus): the step releases the GIL (step.advance is nogil) and each sweep
-    has its own state, so the sweeps run in parallel and give the same numbers as one after the other. Returns
-    name -> hold_sweep's result, in the order of sweeps. progress(name, angle) is called from the sweeps' threads."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from tissue_sim.core.realtime import usable_cpus
-    jobs = max(1, min(len(sweeps), usable_cpus() if jobs is None else int(jobs)))
+    """hold_sweep for each sweep (name -> the muscles active in it), ``jobs`` at a time on threads of their own
+    (realtime.map_threads; default: this process's usable CPUs): each sweep has its own state, so they give the same
+    numbers as one after the other. Returns name -> hold_sweep's result, in the order of sweeps. progress(name,
+    angle) is called from the sweeps' threads."""
+    from tissue_sim.core.realtime import map_threads
 
     def one(item):
         key, act = item
         return hold_sweep(sim, muscles, angles, act, settle, ramp_speed,
                           progress=(lambda d: progress(key, d)) if progress else None)
-    if jobs == 1:
-        return {key: one((key, act)) for key, act in sweeps.items()}
-    with ThreadPoolExecutor(max_workers=jobs, thread_name_prefix='sweep') as pool:
-        return dict(zip(sweeps, pool.map(one, sweeps.items())))
+    return dict(zip(sweeps, map_threads(one, sweeps.items(), jobs)))
 
 
 def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.0, ramp_speed: float = 200.0,
