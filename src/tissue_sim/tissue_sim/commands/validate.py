@@ -64,7 +64,7 @@ def run(args) -> int:
         if args.jobs is not None and (args.passive or args.kinematics):
             raise V.ValidationError('--jobs: --passive holds one sweep and --kinematics none')
         if args.grouping is not None:
-            V.active_sets_of([], args.grouping)               # a bad name: one line, before anything runs
+            V.check_grouping(args.grouping)                  # a bad name: one line, before anything runs
         if not args.kinematics:
             V.parameter_set(args.params, args.overrides)     # a bad --set: one line, before anything runs
     except V.ValidationError as e:

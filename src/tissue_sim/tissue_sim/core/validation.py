@@ -387,13 +387,18 @@ def parameter_set(params: str, overrides=()):
         raise ValidationError(f'--set: {e}') from None
 
 
+def check_grouping(grouping: str) -> None:
+    """ValidationError naming a grouping active_sets_of does not know."""
+    if grouping not in ACTIVE_GROUPINGS:
+        raise ValidationError(f'--active-sets {grouping}: must be one of {", ".join(ACTIVE_GROUPINGS)}')
+
+
 def active_sets_of(muscles: list, grouping: str = 'groups') -> dict:
     """The active sweeps (name -> knee muscles fully active in it, the others at rest): the hamstrings together (the
     torque targets' sweep), then with ``grouping`` 'groups' every other knee muscle with its anatomical group
     (tissues.yaml ``group``: the quadriceps, the triceps surae, ...), one sweep per group in table order, antagonists
     at rest; with 'others' every other knee muscle in one sweep (the co-contraction of all of them)."""
-    if grouping not in ACTIVE_GROUPINGS:
-        raise ValidationError(f'--active-sets {grouping}: must be one of {", ".join(ACTIVE_GROUPINGS)}')
+    check_grouping(grouping)
     sets = {'hamstrings': [km.name for km in muscles if km.name in HAMSTRINGS]}
     for km in muscles:
         if km.name not in HAMSTRINGS:
@@ -431,10 +436,10 @@ def run_validation(params: str = 'physical', angles_deg=None, settle: float = 1.
         raise ValidationError(f'--settle {settle}: must be a positive number of seconds')
     if not (ramp_speed > 0 and math.isfinite(ramp_speed)):
         raise ValidationError(f'--ramp-speed {ramp_speed}: must be a positive number of deg/s')
-    active_sets_of([], grouping)                    # a bad grouping: before the model is built
+    check_grouping(grouping)                        # before the model is built
     angles, osim_path, tm, muscles = _inputs(angles_deg, osim_path, model)
-    hams = [km.name for km in muscles if km.name in HAMSTRINGS]
     active_sets = active_sets_of(muscles, grouping)
+    hams = active_sets['hamstrings']
     set_of = {m: key for key, ms in active_sets.items() for m in ms}
     ref = opensim_reference(osim_path, muscles, angles, active_sets)
     sim = solver.compile_model(tm, base)
