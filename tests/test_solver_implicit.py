@@ -200,26 +200,34 @@ def test_bad_implicit_iterations_are_refused():
             solver.Params.paper(integrator='implicit', implicit_iterations=bad)
 
 
-def test_the_volume_bound_is_the_implicit_integrators_only():
-    """Params.implicit_volume_cap: a finite number >= 0 (0: off), anything else refused; compile_model sets the bound
-    only for the implicit integrator (mass_scaled and explicit keep the unbounded volume term, the paper's), at keff's
-    stiffness: |grad det D|^2 <= (1 + vol) / vol x its rest value (2x for muscle cells, 1.05x for the physical set's fat)."""
-    for bad in (-0.5, float('nan'), float('inf')):
-        with pytest.raises(ValueError, match='implicit_volume_cap'):
-            solver.Params.physical(implicit_volume_cap=bad)
+def test_the_volume_bound_follows_the_integrator():
+    """Params.implicit_volume_cap and explicit_volume_cap: finite numbers >= 0 (0: off), anything else refused;
+    compile_model sets the bound from the first under the implicit integrator and from the second under mass_scaled and
+    explicit (the physical set's 1.0; the paper set's 0, unbounded), at keff's stiffness: |grad det D|^2 <= (1 + vol) /
+    vol x its rest value (2x for muscle cells, 1.05x for the physical set's fat)."""
+    for name in ('implicit_volume_cap', 'explicit_volume_cap'):
+        for bad in (-0.5, float('nan'), float('inf')):
+            with pytest.raises(ValueError, match=name):
+                solver.Params.physical(**{name: bad})
+    assert solver.Params.physical().explicit_volume_cap == 1.0 and solver.Params.paper().explicit_volume_cap == 0.0
     tm = phantom.knee(n_gaps=8)
     for integrator in ('mass_scaled', 'explicit', 'implicit'):
-        sim = solver.compile_model(tm, solver.Params.physical(integrator=integrator, substeps=1))
-        assert np.any(sim.k_volume > 0)
-        assert np.any(sim.volume_cap > 0) == (integrator == 'implicit')
+        for cap in (0.0, 1.0):
+            other = 'explicit_volume_cap' if integrator == 'implicit' else 'implicit_volume_cap'
+            own = 'implicit_volume_cap' if integrator == 'implicit' else 'explicit_volume_cap'
+            sim = solver.compile_model(tm, solver.Params.physical(integrator=integrator, substeps=1,
+                                                                  **{own: cap, other: 1.0 - cap}))
+            assert np.any(sim.k_volume > 0)
+            assert np.any(sim.volume_cap > 0) == (cap > 0)
+    assert not np.any(solver.compile_model(tm, solver.Params.paper(volume_stiffness=1.0)).volume_cap)
     sim = solver.compile_model(tm, _implicit(implicit_volume_cap=0.0))
     assert not np.any(sim.volume_cap)
-    sim = solver.compile_model(tm, _implicit())
-    g2 = np.einsum('cii->c', sim.Qinv)                    # |grad det D|^2 at rest
-    vol = sim.k_volume > 0
-    ratio = sim.volume_cap[vol] / g2[vol]
-    muscle = (sim.cell_muscle >= 0)[vol]
-    assert np.allclose(ratio[muscle], 2.0) and np.allclose(ratio[~muscle], 21.0 / 20.0)
+    for sim in (solver.compile_model(tm, _implicit()), solver.compile_model(tm, solver.Params.physical())):
+        g2 = np.einsum('cii->c', sim.Qinv)                    # |grad det D|^2 at rest
+        vol = sim.k_volume > 0
+        ratio = sim.volume_cap[vol] / g2[vol]
+        muscle = (sim.cell_muscle >= 0)[vol]
+        assert np.allclose(ratio[muscle], 2.0) and np.allclose(ratio[~muscle], 21.0 / 20.0)
 
 
 @pytest.mark.slow

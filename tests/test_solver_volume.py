@@ -1,5 +1,7 @@
 """The volume energy on each cell's enclosed volume (Params.volume_measure 'enclosed', core/solver/volume.py,
 reference.enclosed_forces; docs/solver.md "Volume")."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -34,13 +36,20 @@ def test_the_force_is_minus_the_gradient_of_the_enclosed_volume_energy(default_t
             xp[i, r] += d
             xm[i, r] -= d
             assert f[i, r] == pytest.approx(-(_energy(sim, xp, k) - _energy(sim, xm, k)) / (2 * d), rel=1e-5, abs=1e-7)
-    # the reference (numpy, per cell size) on the physical set's 'enclosed' cells
+    # the reference (numpy, per cell size) on the physical set's 'enclosed' cells, with the set's bound
+    # (explicit_volume_cap: the force scaled by cap / |grad (V/V0)|^2 where that exceeds the cell's cap), which
+    # acts on some of them at this deformation, and without it
     sim_e = solver.compile_model(default_tm, solver.Params.physical())
-    f, e = np.zeros_like(x), np.zeros(sim.n_cells)
-    VO.enclosed_forces(x, f, sim_e.off, sim_e.cv, sim_e.cell_sign.astype(float), sim_e.rest_volume, sim_e.k_enclosed, e)
+    args = (sim_e.off, sim_e.cv, sim_e.cell_sign.astype(float), sim_e.rest_volume, sim_e.k_enclosed)
+    f, e, f1, e1 = np.zeros_like(x), np.zeros(sim.n_cells), np.zeros_like(x), np.zeros(sim.n_cells)
+    VO.enclosed_forces(x, f, *args, e, sim_e.volume_cap)
+    VO.enclosed_forces(x, f1, *args, e1)
     fr, er = reference.enclosed_forces(sim_e, x)
+    fr1, _ = reference.enclosed_forces(dataclasses.replace(sim_e, volume_cap=np.zeros(sim.n_cells)), x)
     assert np.abs(f).max() > 1.0
     assert np.allclose(f, fr, rtol=1e-9, atol=1e-9 * np.abs(f).max()) and np.allclose(e, er, rtol=1e-9, atol=1e-18)
+    assert np.allclose(f1, fr1, rtol=1e-9, atol=1e-9 * np.abs(f1).max()) and np.array_equal(e, e1)
+    assert np.abs(f - f1).max() > 0.01 * np.abs(f1).max()         # the bound acted
 
 
 def test_which_cells_hold_their_enclosed_volume(default_tm):
@@ -98,3 +107,22 @@ def test_the_enclosed_volume_keeps_the_tibialis_anterior_whole(default_tm):
         ankle = np.degrees(o['joint_positions'][j])
     assert worst < 0.02, worst
     assert ankle > 19.0, ankle
+
+
+@pytest.mark.slow
+def test_the_physical_set_as_it_ships_runs_issue_23s_fine_model():
+    """Issue 23's finer model (the builder at 140 slices, 24 muscle and 36 fat rays: ~27.7k vertices), the physical set
+    as it ships (mass_scaled, 4 sub-steps), full hamstring activation from rest: 1 s without divergence, the knee at its
+    120-deg stop. The volume terms' bound (explicit_volume_cap 1.0) holds them within the stiffness the mass scaling
+    budgets; without it (explicit_volume_cap 0) the soleus' cells below the knee ran away at step 408 (the enclosed
+    volume), and with the affine measure the fat's at step 809 (docs/solver.md "The volume term's bound")."""
+    from tissue_sim.core.builder import default_model
+    tm = default_model(slices=140, muscle_rays=24, fat_rays=36)
+    assert tm.n_vertices >= 25000
+    sim = solver.compile_model(tm, solver.Params.physical())
+    assert sim.params.integrator == 'mass_scaled' and sim.n_substeps == 4
+    st, ctrl = solver.make_state(sim), solver.make_control(sim)
+    ctrl.activation[solver.muscle_indices(sim, 'hamstrings')] = 1.0
+    solver.step(sim, st, ctrl, n_steps=1000)
+    assert np.degrees(st.q[0]) > 115.0
+    assert np.all(np.isfinite(st.x)) and np.abs(st.v).max() < 5.0

@@ -67,8 +67,8 @@ class SimModel:
     rest_volume: np.ndarray         # (C,) [m^3]
     k_volume: np.ndarray            # (C,) volume penalty stiffness on det of the best-fit affine map [J] (0 = off)
     volume_cap: np.ndarray          # (C,) [1/m^2] bound on |grad det D|^2 = sum_i |cof(D) Qinv X0_i|^2 beyond which the volume
-                                    # force is scaled down (implicit integrator: kvol x the bound = implicit_volume_cap x keff;
-                                    # 0 = none)
+                                    # force is scaled down (kvol x the bound = implicit_volume_cap or explicit_volume_cap
+                                    # x keff; 0 = none); the enclosed volume's force the same beyond |grad (V/V0)|^2 = it
     cell_sign: np.ndarray           # (C,) +1/-1 ring orientation (signed volume formula)
     k_enclosed: np.ndarray          # (C,) [J] stiffness of the volume energy on the enclosed volume (volume_measure 'enclosed':
                                     # k_volume of the muscle cells but thin ones, which the cell kernel then leaves out; 0 = off;
@@ -265,10 +265,12 @@ def compile_model(tm: TissueModel, params: Params | None = None) -> SimModel:
         g = np.einsum('kij,kj->ki', Qinv[cell_of_k], X0)
         g2 = np.bincount(cell_of_k, weights=np.sum(g * g, axis=1), minlength=C)
         k_volume = np.where(~flat, vol_rel * (k + k_active) / np.maximum(g2, 1e-300), 0.0)
-        if p.integrator == 'implicit' and p.implicit_volume_cap > 0:
+        cap = p.implicit_volume_cap if p.integrator == 'implicit' else p.explicit_volume_cap
+        if cap > 0:
             # the volume term's stiffness kvol |grad det D|^2 (vol_rel (k + k_active) at rest, |grad det D|^2 = g2) at most
-            # implicit_volume_cap x keff's (1 + vol_rel)(k + k_active) (docs/solver.md "Implicit integrator")
-            volume_cap = np.where(k_volume > 0, p.implicit_volume_cap * g2 * (1.0 + vol_rel) / np.maximum(vol_rel, 1e-300), 0.0)
+            # cap x keff's (1 + vol_rel)(k + k_active) (docs/solver.md "The volume term's bound"); the enclosed volume's
+            # |grad (V/V0)|^2 is held to the same bound (volume.enclosed_lanes)
+            volume_cap = np.where(k_volume > 0, cap * g2 * (1.0 + vol_rel) / np.maximum(vol_rel, 1e-300), 0.0)
     # muscle length weights: cells of a muscle in the same slice gap share one gap length
     lw = np.zeros(C)
     for m in range(tm.n_muscles):

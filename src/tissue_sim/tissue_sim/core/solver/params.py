@@ -64,7 +64,10 @@ class Params:
     implicit_iterations: int = 1          # local/global iterations per sub-step of the implicit integrator (1: one solve)
     implicit_volume_cap: float = 1.0      # implicit integrator only: a cell's volume-term stiffness at most this fraction of
                                           # its weight keff in the system matrix (the force scaled down beyond; 0 = unbounded;
-                                          # docs/solver.md "Implicit integrator"); mass_scaled/explicit: always unbounded
+                                          # docs/solver.md "Implicit integrator")
+    explicit_volume_cap: float = 0.0      # mass_scaled/explicit integrators: the same bound (x keff, the stiffness the
+                                          # mass scaling budgets), on the affine and the enclosed volume terms; 0 =
+                                          # unbounded (the paper's; docs/solver.md "The volume term's bound")
     implicit_via_correction: bool = True  # implicit integrator only: the point via rings' centroids held inside the solve
                                           # (the least-A-norm correction that puts them on their places, the tissue round
                                           # them following; False: the ring alone moved back after the solve, as the other
@@ -193,7 +196,8 @@ class Params:
         """SI tissue: density masses, moduli, active force = cross-section x 60 N/cm^2."""
         base = dict(preset='physical', mass_mode='density', stiffness_mode='modulus', specific_tension=6.0e5,
                     damping_ratio=0.3, gravity=(0.0, 0.0, 0.0), joint_damping=5.0, max_speed=50.0,
-                    integrator='mass_scaled', substeps=4, implicit_scheme='bdf2', max_contraction_velocity=10.0,
+                    integrator='mass_scaled', substeps=4, implicit_scheme='bdf2', explicit_volume_cap=1.0,
+                    max_contraction_velocity=10.0,
                     bone_contact=True, stability_limit=1.4, activation_time=0.015, deactivation_time=0.05,
                     force_length=True, rest_fibre_length=0.0, volume_stiffness_fat=20.0, damping_ratio_fat=2.0,
                     passive_force_length=True, fl_passive_strain=2.0,
@@ -290,6 +294,8 @@ class Params:
         need(0 < self.limit_omega_dt <= 10, 'limit_omega_dt must be in (0, 10]')
         need(math.isfinite(self.implicit_volume_cap) and self.implicit_volume_cap >= 0,
              'implicit_volume_cap must be a finite number >= 0 (0: off)')
+        need(math.isfinite(self.explicit_volume_cap) and self.explicit_volume_cap >= 0,
+             'explicit_volume_cap must be a finite number >= 0 (0: off)')
         need(self.implicit_scheme in IMPLICIT_SCHEMES, f'implicit_scheme must be one of {IMPLICIT_SCHEMES}')
         need(isinstance(self.implicit_iterations, int) and 1 <= self.implicit_iterations <= 20,
              'implicit_iterations must be an integer in [1, 20]')

@@ -112,7 +112,8 @@ def enclosed_forces(cells, x):
     compiled): per cell with k_enclosed > 0, V = its sign x the prism volume of core.geometry.prism_volumes (caps as
     fans about the ring centroids, side quads as four triangles about their centroids), E = 1/2 k (V/V0 - 1)^2 and
     the force -k (V/V0 - 1) / V0 dV/dx, dV/dx from d(a . b x c) = (b x c, c x a, a x b) per triangle, each centroid's
-    share going to its vertices. Returns (forces (V, 3), energies (C,))."""
+    share going to its vertices, times min(1, cap / |dV/dx / V0|^2) where the cell's bound cap (SimModel.volume_cap)
+    is > 0. Returns (forces (V, 3), energies (C,))."""
     f, energy = np.zeros_like(x), np.zeros(len(cells.k_enclosed))
     sizes = np.diff(cells.off)
     on = cells.k_enclosed > 0
@@ -142,8 +143,11 @@ def enclosed_forces(cells, x):
         V = sign * V / 6.0
         e = V / v0 - 1.0
         energy[cs] = 0.5 * k * e * e
-        w = (-k * e / v0 * sign / 6.0)[:, None, None]
-        np.add.at(f, idx, w * np.concatenate([gB, gT], axis=1))
+        grad = np.concatenate([gB, gT], axis=1) * (sign / 6.0)[:, None, None]      # dV/dx
+        g2 = np.sum(grad * grad, axis=(1, 2)) / (v0 * v0)
+        cap = cells.volume_cap[cs]
+        scale = np.where((cap > 0) & (g2 > cap), cap / np.where(g2 > 0, g2, 1.0), 1.0)
+        np.add.at(f, idx, (-k * e / v0 * scale)[:, None, None] * grad)
     return f, energy
 
 

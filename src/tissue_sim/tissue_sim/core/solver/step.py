@@ -56,8 +56,8 @@ Arrays = collections.namedtuple('Arrays', 'x v xb vb f quat q qd seg_R seg_t lam
                                 'history_h')   # the State's arrays (xb, vb: back buffers)
 Tissue = collections.namedtuple('Tissue', 'rest inv_den att_idx att_seg mlanes mcell_muscle mcell_weight inv_vl0 '
                                 'fmax path_muscle path_data path_powers path_coef path_shift l_rest enc_size enc_start enc_cell '
-                                'enc_s6 enc_v0 enc_k enc_idx off cv cell_muscle k_active rest_length end_cell end_top end_free_off end_free '
-                                'end_bound_off end_bound via_off via_idx via_seg via_local')     # enc_*: volume.Enclosed;
+                                'enc_s6 enc_v0 enc_k enc_cap enc_idx off cv cell_muscle k_active rest_length end_cell end_top '
+                                'end_free_off end_free end_bound_off end_bound via_off via_idx via_seg via_local')     # enc_*: volume.Enclosed;
                                 # end_*: cells.EndRings; via_*: the point via rings (SimModel.via_*)
 Numbers = collections.namedtuple('Numbers', 'log_c log_r lam_min h_ref vol_actual iters jdamp lim_wh lim_z vel_damp '
                                  'vol_gain vmax2 fv_on fv_max fv_alpha tau_act tau_deact fl_on fl_gamma pe_on pe_k pe_eps0 pe_curve')
@@ -95,8 +95,8 @@ def after_cells(x, f, h, lam, mlen, mvel, tissue, num, scratch, velocity):
     and (velocity) the muscles' length and velocity from the cell pass's axial lengths."""
     if tissue.enc_size.shape[0] > 0:
         VO.enclosed_lanes(x, f, tissue.enc_size, tissue.enc_start, tissue.enc_cell, tissue.enc_s6, tissue.enc_v0,
-                          tissue.enc_k, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt, scratch.enc_t,
-                          scratch.enc_energy)
+                          tissue.enc_k, tissue.enc_cap, tissue.enc_idx, scratch.enc_p, scratch.enc_gb, scratch.enc_gt,
+                          scratch.enc_t, scratch.enc_energy)
     if tissue.end_cell.shape[0] > 0:
         CK.end_ring_shift(x, f, tissue.off, tissue.cv, tissue.cell_muscle, tissue.k_active, tissue.rest_length,
                           tissue.end_cell, tissue.end_top, tissue.end_free_off, tissue.end_free,
@@ -304,7 +304,7 @@ class Workspace:
         cells = sim.cell_blocks
         mcells = np.flatnonzero(sim.cell_muscle >= 0).astype(np.int32)
         vl0 = p.max_contraction_velocity * sim.muscle_rest_length
-        enc = VO.pack_enclosed(sim.off, sim.cv, sim.cell_sign, sim.rest_volume, sim.k_enclosed)
+        enc = VO.pack_enclosed(sim.off, sim.cv, sim.cell_sign, sim.rest_volume, sim.k_enclosed, sim.volume_cap)
         tissue = Tissue(sim.rest, sim.inv_denominator(h), sim.att_idx, sim.att_seg,
                         cells.lane_of[mcells],             # the muscle cells' lanes (the kernel keeps axial lengths in lane order)
                         sim.cell_muscle[mcells], sim.length_weight[mcells],

@@ -1,8 +1,11 @@
 """The volume energy on each cell's enclosed volume (Params.volume_measure 'enclosed'; docs/solver.md "Volume"):
 E_c = 1/2 kvol_c (V_c / V0_c - 1)^2, V_c the signed volume of the cell's closed surface as core.geometry.prism_volumes
 defines it (each ring cap a fan about its centroid, each side quad four triangles about its centroid), its force the
-exact gradient -kvol (V/V0 - 1) / V0 dV/dx_i. A prism deformed unevenly (half its vertices bound, the other half
-moved) keeps the determinant of its best-fit affine map but not its volume; this energy holds the volume itself.
+exact gradient -kvol (V/V0 - 1) / V0 dV/dx_i, scaled by cap / |grad (V/V0)|^2 where a bound cap is given and exceeded
+(SimModel.volume_cap: the volume term's stiffness along its gradient held within the integrator's budget, as the
+affine term's in the cell kernel; docs/solver.md "The volume term's bound"). A prism deformed unevenly (half its
+vertices bound, the other half moved) keeps the determinant of its best-fit affine map but not its volume; this
+energy holds the volume itself.
 Compiled with SIMD across cells as the cell kernel (cells.py): pack_enclosed lays the cells out in blocks of BLK cells
 of one size (lanes), enclosed_lanes computes a block's volumes and gradients lane by lane (the readable form of the
 same sums is reference.enclosed_forces).
@@ -31,16 +34,17 @@ def ring_radii(rest, off, cv) -> np.ndarray:
     return out
 
 
-Enclosed = collections.namedtuple('Enclosed', 'size start cell s6 v0 k idx')
+Enclosed = collections.namedtuple('Enclosed', 'size start cell s6 v0 k cap idx')
 Enclosed.__doc__ = """The enclosed-volume cells in blocks of L (= cells.BLK) cells of one vertex count (pack_enclosed): per
 block size (its cells' vertex count) and start (its first entry in idx); per lane (block * L + lane) cell (-1: a dummy
-lane, a copy of the block's first cell with k = 0), s6 = sign / 6, v0 the rest volume [m^3], k the stiffness [J];
+lane, a copy of the block's first cell with k = 0), s6 = sign / 6, v0 the rest volume [m^3], k the stiffness [J], cap
+the bound on |grad (V/V0)|^2 [1/m^2] (0: none);
 idx[start + slot * L + lane] = 3 x the vertex of that slot (flat x)."""
 
 
-def pack_enclosed(off, cv, sign, rest_volume, k) -> Enclosed:
-    """The layout enclosed_lanes reads for the cells with k > 0 (cells of off/cv, their signs, rest volumes and
-    stiffnesses), grouped by vertex count in blocks of L lanes."""
+def pack_enclosed(off, cv, sign, rest_volume, k, cap=None) -> Enclosed:
+    """The layout enclosed_lanes reads for the cells with k > 0 (cells of off/cv, their signs, rest volumes,
+    stiffnesses and bounds on |grad (V/V0)|^2, None: none), grouped by vertex count in blocks of L lanes."""
     sizes = np.diff(off)
     on = np.flatnonzero(np.asarray(k) > 0)
     size, start, cell, idx = [], [], [], []
@@ -57,7 +61,7 @@ def pack_enclosed(off, cv, sign, rest_volume, k) -> Enclosed:
     src = np.where(ok, cell, 0)
     pick = (lambda a, pad: np.where(ok, np.asarray(a, np.float64)[src], pad)) if cell.size else (lambda a, pad: np.zeros(0))
     return Enclosed(np.array(size, np.int64), np.array(start, np.int64), cell, pick(sign, 1.0) / 6.0,
-                    pick(rest_volume, 1.0), pick(k, 0.0),
+                    pick(rest_volume, 1.0), pick(k, 0.0), pick(np.zeros(len(off) - 1) if cap is None else cap, 0.0),
                     np.concatenate(idx).astype(np.int64) if idx else np.zeros(0, np.int64))
 
 
@@ -68,10 +72,11 @@ def enclosed_work(enc: Enclosed):
     return np.zeros(m * 3 * L), np.zeros(m // 2 * 3 * L), np.zeros(m // 2 * 3 * L), np.zeros(N_T * L)
 
 
-def enclosed_forces(x, f, off, cv, sign, v0, kvol, energy):
-    """f += -kvol (V/V0 - 1) / V0 dV/dx for every cell with kvol > 0, energy[c] = 1/2 kvol (V/V0 - 1)^2 (0 for the
-    others): enclosed_lanes on pack_enclosed's layout, made for this call (the solver packs once per model)."""
-    enc = pack_enclosed(off, cv, sign, v0, kvol)
+def enclosed_forces(x, f, off, cv, sign, v0, kvol, energy, cap=None):
+    """f += -kvol (V/V0 - 1) / V0 dV/dx for every cell with kvol > 0 (bounded by cap, None: none), energy[c] = 1/2 kvol
+    (V/V0 - 1)^2 (0 for the others): enclosed_lanes on pack_enclosed's layout, made for this call (the solver packs once
+    per model)."""
+    enc = pack_enclosed(off, cv, sign, v0, kvol, cap)
     energy[:] = 0.0
     if enc.size.size:
         enclosed_lanes(x, f, *enc, *enclosed_work(enc), energy)
@@ -83,19 +88,21 @@ T_S6 = 1        # sign / 6
 T_Z = 2         # a cap's centroid (3)
 T_S = 5         # a cap's sum of v_j x v_j+1 (3)
 T_W = 8         # the cap's weight (-s6 bottom, +s6 top)
-T_F = 9         # -k (V/V0 - 1) / V0: the factor of the gradient in the force
+T_F = 9         # -k (V/V0 - 1) / V0 (x the bound's scale): the factor of the gradient in the force
 T_CB = 10       # the previous side quad's share of its b vertex (3), carried to the next bottom-ring vertex
 T_CC = 13       # and of its c vertex (3), to the next top-ring vertex
-N_T = 16
+T_G2 = 16       # |dV/dx|^2 summed over the cell's vertices
+N_T = 17
 
 @njit(cache=True, error_model='numpy', **NOALIAS)
-def enclosed_lanes(x, f, size, start, cell, s6v, v0, kv, idx, P, GB, GT, T, energy):
-    """f (V, 3) += -k (V/V0 - 1) / V0 dV/dx for the cells of the layout (size ... idx: Enclosed), energy[c] =
-    1/2 k (V/V0 - 1)^2 (cells of the layout only). V = sign x the prism volume of core.geometry.prism_volumes: bottom
-    ring the first half of a cell's vertices, top the second; each ring cap a fan about its centroid z (sum_j z .
-    (v_j x v_j+1) = z . S; d/dv_j = S/n + z x (v_j-1 - v_j+1)), each side quad (a, b, c, d) = (j, j+1, n+j+1, n+j) four
-    triangles about its centroid q (q . X with X = (c - a) x (d - b); d/da = X/4 - u x q, d/dc = X/4 + u x q with u =
-    d - b, d/db = X/4 - q x w, d/dd = X/4 + q x w with w = c - a), all / 6, positions about each cell's first vertex.
+def enclosed_lanes(x, f, size, start, cell, s6v, v0, kv, capv, idx, P, GB, GT, T, energy):
+    """f (V, 3) += -k (V/V0 - 1) / V0 dV/dx for the cells of the layout (size ... idx: Enclosed), times
+    min(1, cap / |dV/dx / V0|^2) where cap > 0, energy[c] = 1/2 k (V/V0 - 1)^2 (cells of the layout only). V = sign x
+    the prism volume of core.geometry.prism_volumes: bottom ring the first half of a cell's vertices, top the second;
+    each ring cap a fan about its centroid z (sum_j z . (v_j x v_j+1) = z . S; d/dv_j = S/n + z x (v_j-1 - v_j+1)), each
+    side quad (a, b, c, d) = (j, j+1, n+j+1, n+j) four triangles about its centroid q (q . X with X = (c - a) x (d - b);
+    d/da = X/4 - u x q, d/dc = X/4 + u x q with u = d - b, d/db = X/4 - q x w, d/dd = X/4 + q x w with w = c - a), all
+    / 6, positions about each cell's first vertex.
     Lane by lane (vectorised over the block's L cells), every buffer row at one base + a constant per loop (noalias:
     the scratch P, GB, GT, T must not overlap the other arrays). No fused multiply-add (fastmath 'contract'): with it
     the serial and the thread-parallel step, each compiled with this kernel inlined, rounded differently
@@ -181,9 +188,18 @@ def enclosed_lanes(x, f, size, start, cell, s6v, v0, kv, idx, P, GB, GT, T, ener
         for l in range(L):       # quad n-1's b and c shares: vertices 0 and n
             GB[l] += T[T_CB * L + l]; GB[L + l] += T[(T_CB + 1) * L + l]; GB[2 * L + l] += T[(T_CB + 2) * L + l]
             GT[l] += T[T_CC * L + l]; GT[L + l] += T[(T_CC + 1) * L + l]; GT[2 * L + l] += T[(T_CC + 2) * L + l]
-            k, iv = kv[b * L + l], 1.0 / v0[b * L + l]
+            T[T_G2 * L + l] = 0.0
+        for j in range(n):       # |dV/dx|^2, for the bound
+            g = 3 * j * L
+            for l in range(L):
+                bx, by, bz = GB[g + l], GB[g + L + l], GB[g + 2 * L + l]
+                tx, ty, tz = GT[g + l], GT[g + L + l], GT[g + 2 * L + l]
+                T[T_G2 * L + l] += (bx * bx + by * by + bz * bz) + (tx * tx + ty * ty + tz * tz)
+        for l in range(L):
+            k, iv, cap = kv[b * L + l], 1.0 / v0[b * L + l], capv[b * L + l]
             e = T[T_V * L + l] * iv - 1.0
-            T[T_F * L + l] = -k * e * iv
+            g2 = T[T_G2 * L + l] * iv * iv
+            T[T_F * L + l] = -k * e * iv * (cap / g2 if cap > 0.0 and g2 > cap else 1.0)
             c = cell[b * L + l]
             if c >= 0:
                 energy[c] = 0.5 * k * e * e
