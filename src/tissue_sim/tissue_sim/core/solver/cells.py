@@ -1101,7 +1101,7 @@ def _cell_algebra(w, pb, n, volume_actual, vol_gain, plain, fatvol=None):
         pres = w[W_PRES * BLK + c] + vol_gain * g if vol else w[W_PRES * BLK + c]
         w[W_PRES * BLK + c] = pres
         g = (g + pres) * dq
-        # the implicit integrator's bound (P_VCAP > 0): |grad det D|^2 = dq^2 tr(cof(A) Q cof(A)^T), the volume
+        # the volume term's bound (P_VCAP > 0): |grad det D|^2 = dq^2 tr(cof(A) Q cof(A)^T), the volume
         # term's stiffness relative to its rest value, beyond the bound the force scaled by bound / |grad det D|^2
         vcap = pb[P_VCAP * BLK + c]
         q00, q11, q22 = pb[P_Q * BLK + c], pb[(P_Q + 1) * BLK + c], pb[(P_Q + 2) * BLK + c]

@@ -37,6 +37,12 @@ def polar_rotation(B: np.ndarray) -> np.ndarray:
     return U @ Vt
 
 
+def bound_scale(g2, cap):
+    """The volume terms' bound (SimModel.volume_cap; docs/solver.md "The volume term's bound"): per cell the factor
+    cap / g2 of its volume force where its squared gradient norm g2 exceeds a bound cap > 0, else 1."""
+    return np.where((cap > 0) & (g2 > cap), cap / np.where(g2 > 0, g2, 1.0), 1.0)
+
+
 def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_actual):
     """Force (V, 3) [N] of every cell on its vertices: shape matching to the contracted rest shape, volume,
     deformation damping, active axial tension (docs/solver.md "Elastic cells", "Contraction"). ``cells``: a
@@ -70,10 +76,8 @@ def cell_forces(cells, pad: Padded, x, v, lam, act, pressure, vol_gain, volume_a
     g = np.where(kv > 0, g + pressure, 0.0)
     cof = np.stack([np.cross(D[:, 1], D[:, 2]), np.cross(D[:, 2], D[:, 0]), np.cross(D[:, 0], D[:, 1])], axis=1)
     grad = np.einsum('cij,cpj->cpi', cof @ cells.Qinv, pad.X0)          # grad det D: one row per vertex
-    # the implicit integrator's bound (volume_cap > 0): beyond it the force scaled by volume_cap / |grad det D|^2
-    gn = (grad * grad * m).sum((1, 2))
-    cap = cells.volume_cap
-    g = np.where((cap > 0) & (gn > cap), g * cap / np.where(gn > 0, gn, 1.0), g)
+    # the volume term's bound (volume_cap > 0): beyond it the force scaled by volume_cap / |grad det D|^2
+    g = g * bound_scale((grad * grad * m).sum((1, 2)), cells.volume_cap)
     f += g[:, None, None] * grad
     # deformation damping: -b (v_i - vbar - w x r_i), w = I^-1 L the cell's rigid angular velocity
     vbar = vc.sum(1) / n[:, None]
@@ -144,9 +148,7 @@ def enclosed_forces(cells, x):
         e = V / v0 - 1.0
         energy[cs] = 0.5 * k * e * e
         grad = np.concatenate([gB, gT], axis=1) * (sign / 6.0)[:, None, None]      # dV/dx
-        g2 = np.sum(grad * grad, axis=(1, 2)) / (v0 * v0)
-        cap = cells.volume_cap[cs]
-        scale = np.where((cap > 0) & (g2 > cap), cap / np.where(g2 > 0, g2, 1.0), 1.0)
+        scale = bound_scale(np.sum(grad * grad, axis=(1, 2)) / (v0 * v0), cells.volume_cap[cs])
         np.add.at(f, idx, (-k * e / v0 * scale)[:, None, None] * grad)
     return f, energy
 
